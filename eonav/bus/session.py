@@ -1,0 +1,132 @@
+"""zenoh configuration from the shared command-line flags (defined once, here).
+
+Order of precedence, lowest first:
+
+1. zenoh's built-in defaults;
+2. ``--zenoh-config FILE`` (``EONAV_ZENOH_CONFIG``): a zenoh JSON5/YAML file holding only overrides;
+3. the flags: ``--mode``, ``--connect``, ``--listen``, ``--multicast``.
+
+Multicast scouting is **off** unless ``--multicast`` is given (ECOSYSTEM §1.3: containers and CI drop
+multicast, discovery can take minutes), so every deployment names its endpoints explicitly.
+A peer that was given ``--connect`` but no ``--listen`` (and no config file) listens on
+``tcp/127.0.0.1:0``: the rmw_zenoh pattern, where same-host peers find each other through the
+router's gossip and talk directly (and over shared memory), while the router carries the legs
+between hosts.
+
+No heavy import at module level: ``zenoh`` is imported inside :func:`build_config`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+from .. import InputError
+
+MODES = ("peer", "client", "router")
+_TRUE = ("1", "true", "yes", "on")
+
+
+def env_default(var: str, default=None):
+    """The value of environment variable ``var`` if set and non-empty, else ``default``."""
+    val = os.environ.get(var)
+    return default if val is None or val == "" else val
+
+
+def env_flag(var: str, default: bool = False) -> bool:
+    val = os.environ.get(var)
+    if val is None or val == "":
+        return default
+    return val.strip().lower() in _TRUE
+
+
+def add_flag(p, *names, env: str, default=None, help: str = "", **kw):
+    """``p.add_argument`` whose default comes from environment variable ``env`` (then ``default``).
+
+    For ``action="store_true"`` the variable is read as a boolean (1/true/yes/on). argparse applies
+    ``type`` to string defaults, so ``type=float`` works with an environment string too."""
+    if kw.get("action") == "store_true":
+        dflt = env_flag(env, bool(default))
+    else:
+        dflt = env_default(env, default)
+    suffix = f" (env {env}; default {dflt!r})"
+    return p.add_argument(*names, default=dflt, help=(help + suffix).strip(), **kw)
+
+
+def split_endpoints(value) -> list[str]:
+    """``"tcp/a:1,tcp/b:2"`` or a list of such strings -> ``["tcp/a:1", "tcp/b:2"]``."""
+    if value is None:
+        return []
+    if isinstance(value, str):
+        value = [value]
+    out = []
+    for v in value:
+        out.extend(x.strip() for x in str(v).split(",") if x.strip())
+    for e in out:
+        if "/" not in e:
+            raise InputError(f"zenoh endpoint {e!r}: expected <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    return out
+
+
+def add_session_arguments(p: argparse.ArgumentParser, *, modes=("peer", "client"), default_mode=None) -> None:
+    """The zenoh flags every eonav process shares."""
+    g = p.add_argument_group("zenoh session")
+    add_flag(g, "--connect", env="EONAV_CONNECT", default=None, metavar="ENDPOINTS",
+             help="comma-separated zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
+    add_flag(g, "--listen", env="EONAV_LISTEN", default=None, metavar="ENDPOINTS",
+             help="comma-separated zenoh endpoints to listen on")
+    add_flag(g, "--zenoh-config", env="EONAV_ZENOH_CONFIG", default=None, metavar="FILE",
+             help="zenoh JSON5/YAML config file applied first; the flags override it")
+    add_flag(g, "--mode", env="EONAV_ZENOH_MODE", default=default_mode, choices=modes,
+             help="zenoh session mode (default: the config file's, else peer)")
+    add_flag(g, "--multicast", env="EONAV_ZENOH_MULTICAST", default=False, action="store_true",
+             help="enable multicast scouting (off by default: name endpoints instead)")
+
+
+def config_dict(args) -> dict:
+    """The overrides the flags make, as a plain dict {json-path: value} (for logging and tests)."""
+    zfile = getattr(args, "zenoh_config", None)
+    mode = getattr(args, "mode", None) or (None if zfile else "peer")
+    connect = split_endpoints(getattr(args, "connect", None))
+    listen = split_endpoints(getattr(args, "listen", None))
+    out: dict = {}
+    if mode:
+        out["mode"] = mode
+    if connect:
+        out["connect/endpoints"] = connect
+    if listen:
+        out["listen/endpoints"] = listen
+    elif mode == "peer" and connect and not zfile:
+        out["listen/endpoints"] = ["tcp/127.0.0.1:0"]
+    out["scouting/multicast/enabled"] = bool(getattr(args, "multicast", False))
+    return out
+
+
+def build_config(args):
+    """A ``zenoh.Config`` from the flags (see the module docstring for precedence)."""
+    import zenoh
+
+    zfile = getattr(args, "zenoh_config", None)
+    if zfile:
+        if not os.path.isfile(zfile):
+            raise InputError(f"--zenoh-config {zfile!r}: no such file")
+        try:
+            cfg = zenoh.Config.from_file(zfile)
+        except Exception as e:  # zenoh raises ZError with the parser's message
+            raise InputError(f"--zenoh-config {zfile!r}: {e}") from None
+    else:
+        cfg = zenoh.Config()
+    for path, value in config_dict(args).items():
+        try:
+            cfg.insert_json5(path, json.dumps(value))
+        except Exception as e:
+            raise InputError(f"zenoh config {path} = {value!r}: {e}") from None
+    return cfg
+
+
+def open_session(args):
+    """``zenoh.open`` with the flags' config; use as a context manager."""
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")
+    return zenoh.open(build_config(args))
