@@ -1,0 +1,173 @@
+"""``eonav bench locate``: accuracy and speed of every range method on the same pairs, printed as figures.
+
+Cases: simulator presets (ground truth per pixel), Middlebury stereo pairs (ground-truth disparity),
+KITTI motion and stereo pairs (no ground-truth depth: OpenCV StereoSGBM on the stereo pair stands in as
+an approximate reference, and is labelled so). Every method runs on the same views in the same process;
+the OpenCV DIS optical-flow baseline is one of them. Figures, not assertions.
+"""
+from __future__ import annotations
+
+import json
+import statistics
+import time
+import tracemalloc
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FT = 0.3048
+
+
+@dataclass
+class Case:
+    name: str
+    view_a: object
+    view_b: object
+    truth_m: np.ndarray            # reference range on view a's grid (NaN unknown, inf sky)
+    mask: np.ndarray               # pixels to score
+    truth_label: str = "ground truth"
+    object_id: np.ndarray | None = None
+    objects: dict = field(default_factory=dict)
+    stereo_rectified: bool = False
+
+
+def sim_cases(presets, size):
+    from .sim.presets import make_pair
+    out = []
+    for name in presets:
+        sp = make_pair(name, seed=0, size=size if name != "paper" else None)
+        t = sp.truth[0]
+        out.append(Case(f"sim:{name}", sp.views[0], sp.views[1], t.range_m, np.isfinite(t.range_m),
+                        object_id=t.object_id, objects=dict(sp.objects)))
+    return out
+
+
+def middlebury_cases(data_dir):
+    from .realdata import MIDDLEBURY_SCENES, middlebury_pair
+    out = []
+    for scene in MIDDLEBURY_SCENES:
+        a, b, truth, nonocc = middlebury_pair(data_dir, scene)
+        out.append(Case(f"middlebury:{scene}", a, b, truth, nonocc, "GT disparity, non-occluded",
+                        stereo_rectified=True))
+    return out
+
+
+def kitti_cases(data_dir):
+    from .methods.flow_baseline import sgbm_range
+    from .realdata import kitti_views
+    views, right0 = kitti_views(data_dir)
+    ref = sgbm_range(views[0], right0)
+    mask = np.isfinite(ref) & (ref < 40)
+    label = "StereoSGBM on the KITTI stereo pair (approximate, NOT ground truth)"
+    return [Case("kitti:motion 0->1", views[0], views[1], ref, mask, label),
+            Case("kitti:motion 0->2", views[0], views[2], ref, mask, label)]
+
+
+def score(range_m, truth_m, mask):
+    est = mask & np.isfinite(range_m) & (range_m > 0) & np.isfinite(truth_m)
+    rel = np.abs(range_m[est] - truth_m[est]) / truth_m[est]
+    n = int(mask.sum())
+    return {"median_rel_error": float(np.median(rel)) if rel.size else float("nan"),
+            "within_5pct_of_scored": float((rel < 0.05).sum() / max(n, 1)),
+            "coverage": float(est.sum() / max(n, 1))}
+
+
+def time_method(fn, a, b, repeat):
+    res = fn(a, b)                       # warm-up, and the result we score
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn(a, b)
+        times.append(time.perf_counter() - t0)
+    tracemalloc.start()
+    fn(a, b)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return res, statistics.median(times), peak
+
+
+def object_rows(case, range_m):
+    rows = []
+    for oid, name in sorted(case.objects.items()):
+        on = case.object_id == oid
+        if not on.any() or oid < 2:
+            continue
+        actual = float(np.median(case.truth_m[on]))
+        est = range_m[on & np.isfinite(range_m) & (range_m > 0)]
+        e = float(np.median(est)) if est.size else float("nan")
+        rows.append((name, actual, e, abs(e - actual) / actual, int(est.size)))
+    return rows
+
+
+def run_bench(methods, cases, repeat, json_out=None):
+    from .locate import get_method
+    results = []
+    for case in cases:
+        w, h = case.view_a.camera.width, case.view_a.camera.height
+        print(f"\n== {case.name}  ({w}x{h}, reference: {case.truth_label}, {int(case.mask.sum())} scored pixels)")
+        print(f"   {'method':<14}{'median err':>11}{'within 5%':>11}{'coverage':>10}{'ms/pair':>10}{'peak MB':>9}")
+        per = {}
+        extra = []
+        if case.stereo_rectified:
+            from .methods.flow_baseline import sgbm_range
+            extra.append(("sgbm", lambda a, b: _as_result(sgbm_range(a, b))))
+        for m in list(methods) + extra:
+            name, fn = (m, None) if isinstance(m, str) else m
+            try:
+                fn = fn or get_method(name)
+            except (ImportError, AttributeError) as e:
+                print(f"   {name:<14} not available ({e})")
+                continue
+            res, secs, peak = time_method(fn, case.view_a, case.view_b, repeat)
+            s = score(res.range_m, case.truth_m, case.mask)
+            per[name] = res
+            print(f"   {name:<14}{100 * s['median_rel_error']:>10.2f}%{100 * s['within_5pct_of_scored']:>10.1f}%"
+                  f"{100 * s['coverage']:>9.1f}%{1000 * secs:>10.1f}{peak / 2**20:>9.1f}")
+            results.append({"case": case.name, "method": name, "seconds_per_pair": secs, "peak_bytes": peak, **s})
+        if case.objects and per:
+            print(f"   Table I style (range in m / ft):")
+            print(f"   {'object':<12}{'method':<8}{'actual':>16}{'estimated':>18}{'error':>8}{'points':>8}")
+            for name, res in per.items():
+                for obj, actual, est, err, pts in object_rows(case, res.range_m):
+                    print(f"   {obj:<12}{name:<8}{actual:>7.1f} /{actual / FT:>7.1f}{est:>8.1f} /{est / FT:>8.1f}"
+                          f"{100 * err:>7.1f}%{pts:>8d}")
+    if json_out:
+        with open(json_out, "w") as f:
+            json.dump(results, f, indent=1)
+    return results
+
+
+def _as_result(range_m):
+    from .rangemap import RangeResult
+    return RangeResult(range_m, np.isfinite(range_m).astype(np.float32), "sgbm")
+
+
+def add_arguments(p):
+    p.add_argument("--methods", default="dense,paper,dis", help="comma-separated methods (default dense,paper,dis)")
+    p.add_argument("--presets", default="paper,fast,turning,climbing,stereo", help="simulator presets")
+    p.add_argument("--size", type=int, default=512, help="image size for the simulator presets other than 'paper'")
+    p.add_argument("--data", default=None, help="real data folder (default: shared/data beside the checkout)")
+    p.add_argument("--no-real", action="store_true", help="skip Middlebury and KITTI")
+    p.add_argument("--repeat", type=int, default=3, help="timed runs per method and pair (median)")
+    p.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1: one core)")
+    p.add_argument("--json", default=None, help="also write the figures as JSON")
+
+
+def run(args) -> int:
+    import cv2
+    from pathlib import Path
+
+    from .realdata import default_data_dir
+    cv2.setNumThreads(args.threads)
+    methods = [m for m in args.methods.split(",") if m]
+    cases = sim_cases([p for p in args.presets.split(",") if p], args.size)
+    data = Path(args.data) if args.data else default_data_dir()
+    if not args.no_real:
+        if data.is_dir():
+            cases += middlebury_cases(data)
+            cases += kitti_cases(data)
+        else:
+            print(f"(real data folder {data} not found: Middlebury and KITTI skipped)")
+    print(f"eonav bench locate: methods {methods}, OpenCV threads {args.threads}, median of {args.repeat} runs")
+    run_bench(methods, cases, args.repeat, args.json)
+    return 0

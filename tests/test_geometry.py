@@ -1,0 +1,119 @@
+"""Rotation matrices and the two-view pose: properties checked against hand-derived values."""
+import numpy as np
+import pytest
+
+from eonav import InputError
+from eonav.camera import Camera, VehicleState, View, pair_geometry
+from eonav.geometry import (T_body_ned_from_quat, T_body_ned_from_ypr, T_cam_body_from_eps, camera_from_ned,
+                            ned_from_camera, quat_wxyz_from_rotation, quat_wxyz_from_ypr, relative_pose,
+                            rotation_from_quat_wxyz, slerp_quat_wxyz, ypr_from_T_body_ned)
+
+RNG = np.random.default_rng(20261121)
+
+
+def random_ypr(n):
+    return np.column_stack([RNG.uniform(-np.pi, np.pi, n), RNG.uniform(-1.4, 1.4, n), RNG.uniform(-np.pi, np.pi, n)])
+
+
+def test_T2_is_orthonormal_with_unit_determinant():
+    for y, p, r in random_ypr(50):
+        T = T_body_ned_from_ypr(y, p, r)
+        assert np.allclose(T @ T.T, np.eye(3), atol=1e-12)
+        assert np.isclose(np.linalg.det(T), 1.0)
+
+
+def test_T2_hand_values_yaw_90_maps_east_to_nose():
+    # Heading east (yaw +90 deg): an NED vector pointing east is straight ahead of the nose (body +X).
+    T = T_body_ned_from_ypr(np.pi / 2, 0, 0)
+    assert np.allclose(T @ [0, 1, 0], [1, 0, 0], atol=1e-12)
+    # Pitch up 90 deg... use 30 deg: "up" (NED -Z) has a positive nose component sin(30).
+    T = T_body_ned_from_ypr(0, np.deg2rad(30), 0)
+    assert np.allclose(T @ [0, 0, -1], [0.5, 0, -np.cos(np.deg2rad(30))], atol=1e-12)
+    # Roll right 90 deg: the starboard wing points down.
+    T = T_body_ned_from_ypr(0, 0, np.pi / 2)
+    assert np.allclose(T.T @ [0, 1, 0], [0, 0, 1], atol=1e-12)
+
+
+def test_T1_has_the_same_form_as_T2():
+    eps = [0.1, -0.2, 0.3]
+    assert np.allclose(T_cam_body_from_eps(eps), T_body_ned_from_ypr(*eps))
+
+
+def test_ypr_round_trip():
+    for ypr in random_ypr(50):
+        assert np.allclose(ypr_from_T_body_ned(T_body_ned_from_ypr(*ypr)), ypr, atol=1e-9)
+
+
+def test_quaternion_euler_round_trip_and_mavlink_convention():
+    for ypr in random_ypr(50):
+        q = quat_wxyz_from_ypr(*ypr)
+        assert np.isclose(np.linalg.norm(q), 1.0)
+        # MAVLink ATTITUDE_QUATERNION rotates body vectors into NED: T2 = R(q)^T.
+        assert np.allclose(T_body_ned_from_quat(q), T_body_ned_from_ypr(*ypr), atol=1e-12)
+        assert np.allclose(quat_wxyz_from_rotation(rotation_from_quat_wxyz(q)), q, atol=1e-12)
+    # Hand value: yaw +90 deg about NED down is q = (cos 45, 0, 0, sin 45).
+    assert np.allclose(quat_wxyz_from_ypr(np.pi / 2, 0, 0), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)])
+
+
+def test_gimbal_lock_attitude_enters_through_quaternion():
+    # Nadir camera case: pitch -90 deg. Euler angles are singular; the quaternion is not.
+    q = np.array([np.cos(-np.pi / 4), 0, np.sin(-np.pi / 4), 0])   # rotation of -90 deg about body Y
+    s = VehicleState.from_quat([0, 0, -50], q)
+    # Nose points straight down (NED +Z) at pitch -90.
+    assert np.allclose(s.T_body_ned.T @ [1, 0, 0], [0, 0, 1], atol=1e-12)
+    assert np.allclose(s.T_body_ned @ s.T_body_ned.T, np.eye(3), atol=1e-12)
+
+
+def test_bad_quaternion_is_rejected():
+    with pytest.raises(InputError, match="quaternion"):
+        rotation_from_quat_wxyz([0, 0, 0, 0])
+    with pytest.raises(InputError, match="finite"):
+        VehicleState([0, 0, np.nan], np.eye(3))
+
+
+def test_slerp_midpoint_and_shortest_path():
+    q0 = quat_wxyz_from_ypr(np.deg2rad(170), 0, 0)
+    q1 = quat_wxyz_from_ypr(np.deg2rad(-170), 0, 0)
+    mid = slerp_quat_wxyz(q0, q1, 0.5)
+    yaw = ypr_from_T_body_ned(T_body_ned_from_quat(mid))[0]
+    assert np.isclose(abs(yaw), np.pi, atol=1e-9)   # through 180 deg, not through 0
+
+
+def test_ned_camera_round_trip_eqs_12_15_33():
+    T1 = T_cam_body_from_eps([0.05, -0.1, 0.02])
+    T2 = T_body_ned_from_ypr(0.3, 0.1, -0.05)
+    xv, l = np.array([10.0, -4.0, -30.0]), np.array([2.0, 0.1, 0.5])
+    pts = RNG.normal(size=(20, 3)) * 50
+    assert np.allclose(ned_from_camera(camera_from_ned(pts, T1, T2, xv, l), T1, T2, xv, l), pts)
+
+
+def test_relative_pose_moves_points_between_camera_frames():
+    ca = Camera("a", 64, 48, 50, 50, 31.5, 23.5, [1.0, 0.2, 0.3], np.deg2rad([2, -5, 1]))
+    cb = Camera("b", 80, 60, 70, 65, 40.0, 30.0, [1.0, -0.4, 0.3], np.deg2rad([-1, -4, 0]))
+    sa = VehicleState.from_ypr([0, 0, -10], np.deg2rad([10, 2, -3]))
+    sb = VehicleState.from_ypr([3, 0.5, -10.2], np.deg2rad([12, 1, -2]))
+    R, t = relative_pose(ca.T_cam_body, sa.T_body_ned, sa.position_ned_m, ca.l_body_m,
+                         cb.T_cam_body, sb.T_body_ned, sb.position_ned_m, cb.l_body_m)
+    world = RNG.normal(size=(10, 3)) * 20 + [60, 0, 0]
+    Xa = camera_from_ned(world, ca.T_cam_body, sa.T_body_ned, sa.position_ned_m, ca.l_body_m)
+    Xb = camera_from_ned(world, cb.T_cam_body, sb.T_body_ned, sb.position_ned_m, cb.l_body_m)
+    assert np.allclose(Xa @ R.T + t, Xb)
+
+
+def test_map_to_b_is_exact_projection_for_two_different_cameras():
+    ca = Camera("a", 64, 48, 50, 52, 31.5, 23.5, [1.0, 0.2, 0.3], np.deg2rad([2, -5, 1]))
+    cb = Camera("b", 64, 48, 70, 65, 30.0, 20.0, [1.0, -0.4, 0.3], np.deg2rad([-1, -4, 0]))
+    sa = VehicleState.from_ypr([0, 0, -10], np.deg2rad([10, 2, -3]))
+    sb = VehicleState.from_ypr([3, 0.5, -10.2], np.deg2rad([12, 1, -2]))
+    va, vb = View(ca, sa, np.zeros((48, 64))), View(cb, sb, np.zeros((48, 64)))
+    g = pair_geometry(va, vb)
+    rho = RNG.uniform(0.01, 0.2, size=(48, 64)).astype(np.float32)
+    ub, vb_, _ = g.map_to_b(rho)
+    # Independent route: back-project each pixel of a to NED, project into b with eqs. (8)-(9).
+    u, v = ca.pixel_grid()
+    xc = 1.0 / rho
+    Xa = np.stack([xc, xc * (u - ca.cx) / ca.fx, xc * (v - ca.cy) / ca.fy], -1)
+    world = ned_from_camera(Xa, ca.T_cam_body, sa.T_body_ned, sa.position_ned_m, ca.l_body_m)
+    Xb = camera_from_ned(world, cb.T_cam_body, sb.T_body_ned, sb.position_ned_m, cb.l_body_m)
+    assert np.allclose(ub, cb.cx + cb.fx * Xb[..., 1] / Xb[..., 0], atol=2e-3)
+    assert np.allclose(vb_, cb.cy + cb.fy * Xb[..., 2] / Xb[..., 0], atol=2e-3)

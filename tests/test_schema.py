@@ -1,0 +1,90 @@
+"""The bus schema: round trips, and hostile or malformed payloads rejected with a reason."""
+import msgpack
+import numpy as np
+import pytest
+
+from eonav import keys, schema
+from eonav.schema import SchemaError
+
+
+def frame_msg(**over):
+    f = dict(camera_id="nose", seq=3, stamp_us=1_700_000_000_000_000, image=np.arange(12, dtype=np.uint8).reshape(3, 4))
+    f.update(over)
+    return schema.encode("frame", **f)
+
+
+def test_round_trip_keeps_arrays_and_defaults():
+    d = schema.decode(frame_msg(), expect="frame")
+    assert d["v"] == schema.SCHEMA_VERSION and d["seq"] == 3
+    assert d["image"].dtype == np.uint8 and d["image"].shape == (3, 4) and d["image"][2, 3] == 11
+    assert d["stamp_source"] == "host"
+    n = schema.decode(schema.encode("nav_state", stamp_us=5, q_wxyz=[1, 0, 0, 0]))
+    assert np.isnan(n["position_ned_m"]).all() and n["q_wxyz"][0] == 1.0
+
+
+def test_float_array_round_trip():
+    r = np.linspace(0, 1, 6, dtype=np.float32).reshape(2, 3)
+    r[0, 0] = np.nan
+    d = schema.decode(schema.encode("range_map", camera_id="c", seq=1, stamp_us=1, method="dense", range_m=r,
+                                    confidence=r, camera={"width": 3}, position_ned_m=[0, 0, 0],
+                                    q_wxyz=[1, 0, 0, 0]))
+    assert np.isnan(d["range_m"][0, 0]) and np.allclose(d["range_m"][1], r[1])
+
+
+def raw(doc):
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+@pytest.mark.parametrize("payload,match", [
+    (b"\xc1\xc1garbage", "not msgpack"),
+    (raw([1, 2, 3]), "not a msgpack map"),
+    (raw({"kind": "teleport", "v": 1}), "unknown message kind"),
+    (raw({"kind": "frame", "v": 99}), "unsupported schema version 99"),
+    (raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": 1}), r"frame.stamp_us: missing required field"),
+    (raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": "one", "stamp_us": 1}), r"frame.seq: expected an integer"),
+    (raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": 1, "stamp_us": 1,
+          "image": {"dtype": "uint8", "shape": [100, 100], "data": b"\0" * 10}}), "10 bytes but dtype uint8"),
+    (raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": 1, "stamp_us": 1,
+          "image": {"dtype": "object", "shape": [1], "data": b"\0"}}), "dtype 'object' not allowed"),
+    (raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": 1, "stamp_us": 1,
+          "image": {"dtype": "uint8", "shape": [100000, 100000], "data": b""}}), "exceeds the limit"),
+    (raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": 1, "stamp_us": 1,
+          "image": {"dtype": "uint8", "shape": [-1, 4], "data": b""}}), "non-negative integers"),
+])
+def test_malformed_payloads_are_rejected_with_a_reason(payload, match):
+    with pytest.raises(SchemaError, match=match):
+        schema.decode(payload)
+
+
+def test_wrong_kind_for_the_topic():
+    with pytest.raises(SchemaError, match="expected a nav_state message, got frame"):
+        schema.decode(frame_msg(), expect="nav_state")
+
+
+def test_encode_refuses_unknown_fields_and_missing_required():
+    with pytest.raises(SchemaError, match="unknown field"):
+        schema.encode("health", service="x", stamp_us=1, state="ok", colour="red")
+    with pytest.raises(SchemaError, match="health.state: missing"):
+        schema.encode("health", service="x", stamp_us=1)
+
+
+def test_extra_fields_from_a_newer_writer_are_ignored():
+    doc = msgpack.unpackb(frame_msg(), raw=False)
+    doc["future_field_m"] = 3.0
+    assert schema.decode(raw(doc))["seq"] == 3
+
+
+def test_keys_carry_the_vehicle_prefix_and_reject_wildcards():
+    assert keys.frame("v1", "nose") == "eonav/v1/camera/nose/frame"
+    assert keys.range_map("v1", "nose") == "eonav/v1/range/nose"
+    with pytest.raises(ValueError, match="vehicle"):
+        keys.nav_state("v1/*")
+    with pytest.raises(ValueError, match="camera id"):
+        keys.frame("v1", "**")
+
+
+def test_camera_message_round_trip():
+    from eonav.camera import Camera
+    cam = Camera("nose", 64, 48, 50.0, 51.0, 31.5, 23.5, [7.6, 0, 0.6], np.deg2rad([0, -2, 0]))
+    back = schema.camera_from_msg(schema.camera_to_msg(cam))
+    assert back.name == "nose" and back.fy == 51.0 and np.allclose(back.eps_rad, cam.eps_rad)
