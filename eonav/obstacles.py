@@ -1,0 +1,387 @@
+"""From a range map to what guidance and the autopilot consume: OBSTACLE_DISTANCE sectors and an obstacle list.
+
+Pure numpy/scipy: no transport, no MAVLink (``eonav.mavlink_out`` packs the sectors).
+
+Every pixel with a confident range becomes a point. With the camera model and the pose of the frame:
+    camera frame   x_c = r [1, (u - cx)/fx, (v - cy)/fy]            (inverse of eqs. 8-9; r = x_c)
+    NED            x   = x_v + T2^T (T1^T x_c + l)                  (eq. 33, ``geometry.ned_from_camera``)
+Distances and bearings are measured from the vehicle origin x_v (where the autopilot puts a proximity
+sensor), not from the lens: with a nose camera 7.6 m ahead of the origin the difference matters up close.
+
+Points on or near the ground below the vehicle are not obstacles: a point whose down coordinate is within
+``ground_clearance_m`` of the ground estimate (or below it) is ground. The ground estimate is
+``ground_down_m`` when configured (local NED origin at home: 0 m for a take-off from the ground), else the
+90th percentile of the down coordinate of the confident points below the vehicle (ground points are the
+lowest dense surface in view), else 0 m. Points beyond ``max_distance_m`` are not obstacles either; they
+(and pixels at infinity) are evidence that a sector is clear.
+
+(a) Sectors, as MAVLink OBSTACLE_DISTANCE (ECOSYSTEM.md §2.3; vision_to_mavros ``d4xx_to_mavlink.py``):
+    72 bins over the camera's horizontal field of view, ``increment_deg = HFOV/72``,
+    ``angle_offset_deg = camera yaw on the body - HFOV/2`` (bin 0 at the left edge; 0 = nose, clockwise positive).
+    A point falls in the bin of its horizontal bearing from the vehicle origin, relative to the heading. A bin is
+      - the ``percentile`` (robust minimum) of the horizontal distances of its obstacle points, when it has at
+        least ``min_sector_pixels`` of them, clamped to [min, max] distance;
+      - clear (``max_distance_cm + 1``) when it has no obstacle but at least ``min_clear_pixels`` pixels of
+        evidence (confident ground, beyond max distance, or at infinity);
+      - unknown (``UINT16_MAX``) otherwise.
+(b) Obstacle list: 4-connected components (scipy.ndimage.label) of obstacle pixels within
+    ``max_obstacle_distance_m``, after cutting the mask at range discontinuities (neighbours whose ranges differ by
+    more than ``max_rel_jump``; the farther pixel of the pair is cut, so a near object keeps its outline and is not
+    merged with what is behind it). Components smaller than ``min_obstacle_pixels`` are dropped.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from . import InputError
+from .camera import Camera, VehicleState
+from .geometry import ned_from_camera, ypr_from_T_body_ned
+from .rangemap import AT_INFINITY, VALID
+
+UINT16_MAX = 65535
+N_SECTORS = 72
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    min_confidence: float = 0.0        # pixels with confidence below this are ignored
+    max_rel_std: float = 0.25          # ... and those whose 1-sigma range error exceeds this fraction of range
+    min_distance_m: float = 0.5        # OBSTACLE_DISTANCE min_distance
+    max_distance_m: float = 150.0      # OBSTACLE_DISTANCE max_distance; farther points are "clear" evidence
+    ground_down_m: float | None = None  # NED down of the ground; None: estimate from the points (see module doc)
+    ground_clearance_m: float = 0.6    # points within this of the ground (or below it) are ground
+    max_height_above_m: float = 200.0  # points higher than this above the vehicle are ignored (top of the band)
+    percentile: float = 5.0            # robust minimum of a sector / an obstacle
+    min_sector_pixels: int = 4         # obstacle pixels a sector needs to report a distance
+    min_clear_pixels: int = 20         # evidence pixels a sector needs to report "clear"
+    max_obstacle_distance_m: float = 100.0   # obstacle list: only components nearer than this
+    max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative)
+    min_obstacle_pixels: int = 12      # smallest component reported
+    max_obstacles: int = 32            # nearest first
+
+    def __post_init__(self):
+        pos = ("max_rel_std", "min_distance_m", "max_distance_m", "max_height_above_m", "max_obstacle_distance_m",
+               "max_rel_jump")
+        for name in pos:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InputError(f"obstacle config: {name} must be a finite number > 0, got {v!r}")
+        if not self.min_distance_m < self.max_distance_m:
+            raise InputError(f"obstacle config: min_distance_m {self.min_distance_m} must be < max_distance_m "
+                             f"{self.max_distance_m}")
+        if self.max_distance_m * 100 + 1 >= UINT16_MAX:
+            raise InputError(f"obstacle config: max_distance_m {self.max_distance_m} does not fit OBSTACLE_DISTANCE "
+                             f"(u16 cm, below {(UINT16_MAX - 2) / 100} m)")
+        if not 0 <= self.percentile <= 100:
+            raise InputError(f"obstacle config: percentile must be in [0, 100], got {self.percentile}")
+        if self.ground_down_m is not None and not math.isfinite(self.ground_down_m):
+            raise InputError("obstacle config: ground_down_m must be finite or None")
+        for name in ("min_sector_pixels", "min_clear_pixels", "min_obstacle_pixels", "max_obstacles"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise InputError(f"obstacle config: {name} must be an integer >= 1, got {v!r}")
+
+
+@dataclass
+class Sectors:
+    """OBSTACLE_DISTANCE content (MAV_FRAME_BODY_FRD). ``distances_cm`` u16[72]."""
+    distances_cm: np.ndarray
+    increment_deg: float
+    angle_offset_deg: float
+    min_distance_cm: int
+    max_distance_cm: int
+    counts: np.ndarray = field(repr=False, default=None)    # obstacle pixels per bin
+
+    def to_msg(self) -> dict:
+        return {"distances_cm": [int(x) for x in self.distances_cm], "increment_deg": float(self.increment_deg),
+                "angle_offset_deg": float(self.angle_offset_deg), "min_distance_cm": int(self.min_distance_cm),
+                "max_distance_cm": int(self.max_distance_cm), "frame": "body_frd"}
+
+    @classmethod
+    def from_msg(cls, d: dict) -> "Sectors":
+        try:
+            dist = np.asarray(d["distances_cm"], dtype=np.int64)
+            out = cls(dist.astype(np.uint16), float(d["increment_deg"]), float(d["angle_offset_deg"]),
+                      int(d["min_distance_cm"]), int(d["max_distance_cm"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(f"sectors: expected distances_cm[72], increment_deg, angle_offset_deg, min/max_distance_cm "
+                             f"({type(e).__name__}: {e})") from None
+        if dist.shape != (N_SECTORS,) or dist.min() < 0 or dist.max() > UINT16_MAX:
+            raise InputError(f"sectors: distances_cm must be {N_SECTORS} values in 0..{UINT16_MAX}")
+        return out
+
+    def bin_centres_deg(self) -> np.ndarray:
+        return self.angle_offset_deg + (np.arange(N_SECTORS) + 0.5) * self.increment_deg
+
+    @classmethod
+    def unknown(cls, like: "Sectors") -> "Sectors":
+        return cls(np.full(N_SECTORS, UINT16_MAX, np.uint16), like.increment_deg, like.angle_offset_deg,
+                   like.min_distance_cm, like.max_distance_cm)
+
+
+@dataclass
+class Obstacle:
+    id: int
+    distance_m: float              # robust minimum (percentile) of Euclidean distance from the vehicle origin
+    distance_median_m: float
+    horizontal_distance_m: float   # robust minimum of the horizontal distance
+    bearing_deg: float             # body frame, 0 = nose, clockwise positive (of the median body-frame point)
+    elevation_deg: float           # body frame, positive up
+    range_std_m: float             # 1-sigma of x_c (median per-pixel estimate, else robust spread)
+    position_ned_m: list           # median NED point
+    extent_ned_m: list             # 5..95 % extent along N, E, D
+    width_m: float                 # horizontal extent across the line of sight
+    height_m: float                # vertical extent
+    pixel_count: int
+    confidence: float              # median confidence of its pixels
+    bbox_px: list                  # [u_min, v_min, u_max, v_max]
+
+    def to_msg(self) -> dict:
+        return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in asdict(self).items()}
+
+
+@dataclass
+class Points:
+    """Per-pixel geometry of the confident pixels of one range map (flattened, in pixel order)."""
+    idx: np.ndarray           # flat pixel index
+    range_m: np.ndarray       # x_c
+    ned_m: np.ndarray         # (n, 3)
+    body_m: np.ndarray        # (n, 3) relative to the vehicle origin, body axes
+    hdist_m: np.ndarray       # horizontal distance from the vehicle origin
+    dist_m: np.ndarray        # Euclidean distance from the vehicle origin
+    bearing_rad: np.ndarray   # horizontal bearing from the vehicle origin relative to the heading
+    sigma_m: np.ndarray | None
+    confidence: np.ndarray
+
+
+def _check_maps(range_m, confidence, flags, inv_range_std_per_m, camera: Camera):
+    r = np.asarray(range_m)
+    if r.ndim != 2:
+        raise InputError(f"range_m must be a 2-D H x W map, got shape {r.shape}")
+    if r.shape != (camera.height, camera.width):
+        raise InputError(f"range_m is {r.shape[1]}x{r.shape[0]} but camera {camera.name!r} is "
+                         f"{camera.width}x{camera.height}")
+    for name, a in (("confidence", confidence), ("flags", flags), ("inv_range_std_per_m", inv_range_std_per_m)):
+        if a is not None and np.shape(a) != r.shape:
+            raise InputError(f"{name} has shape {np.shape(a)}, expected {r.shape} like range_m")
+
+
+def confident_mask(range_m, confidence=None, flags=None, inv_range_std_per_m=None, cfg: ObstacleConfig = ObstacleConfig()):
+    """Pixels with a finite positive range the estimator stands behind."""
+    r = np.asarray(range_m, np.float32)
+    with np.errstate(invalid="ignore"):
+        m = np.isfinite(r) & (r > 0)
+        if flags is not None:
+            m &= (np.asarray(flags) & VALID) != 0
+        if confidence is not None:
+            m &= np.asarray(confidence) >= cfg.min_confidence
+        if inv_range_std_per_m is not None:
+            s = np.asarray(inv_range_std_per_m, np.float32)
+            m &= ~(s * r > cfg.max_rel_std)           # sigma_r / r = sigma_rho * r (first order); NaN std passes
+    return m
+
+
+def infinity_mask(range_m, flags=None):
+    r = np.asarray(range_m, np.float32)
+    m = np.isposinf(r)
+    if flags is not None:
+        m |= (np.asarray(flags) & AT_INFINITY) != 0
+    return m
+
+
+def pixel_points(range_m, camera: Camera, state: VehicleState, mask: np.ndarray, confidence=None,
+                 inv_range_std_per_m=None) -> Points:
+    """Geometry of the pixels in ``mask`` (eq. 33 per pixel)."""
+    idx = np.flatnonzero(mask)
+    r = np.asarray(range_m, np.float64).ravel()[idx]
+    v, u = np.divmod(idx, camera.width)
+    cam_pts = np.stack([r, r * (u - camera.cx) / camera.fx, r * (v - camera.cy) / camera.fy], axis=1)
+    ned = ned_from_camera(cam_pts, camera.T_cam_body, state.T_body_ned, state.position_ned_m, camera.l_body_m)
+    rel = ned - state.position_ned_m
+    body = rel @ state.T_body_ned.T                                  # T2 (x - x_v), row-vector form
+    yaw = ypr_from_T_body_ned(state.T_body_ned)[0]
+    bearing = np.arctan2(rel[:, 1], rel[:, 0]) - yaw
+    bearing = (bearing + np.pi) % (2 * np.pi) - np.pi
+    sigma = None
+    if inv_range_std_per_m is not None:
+        sigma = np.asarray(inv_range_std_per_m, np.float64).ravel()[idx] * r * r   # sigma_r = sigma_rho / rho^2
+    conf = (np.asarray(confidence, np.float64).ravel()[idx] if confidence is not None else np.ones(idx.size))
+    return Points(idx, r, ned, body, np.hypot(rel[:, 0], rel[:, 1]), np.linalg.norm(rel, axis=1), bearing, sigma, conf)
+
+
+def estimate_ground_down_m(pts: Points, state: VehicleState, cfg: ObstacleConfig) -> float:
+    """Ground height (NED down) from the configuration or the points (see module doc)."""
+    if cfg.ground_down_m is not None:
+        return float(cfg.ground_down_m)
+    below = pts.ned_m[:, 2][pts.ned_m[:, 2] > state.position_ned_m[2] + 0.5]
+    if below.size >= 50:
+        return float(np.percentile(below, 90))
+    return 0.0
+
+
+def sector_geometry(camera: Camera) -> tuple:
+    """(increment_deg, angle_offset_deg): 72 bins over the horizontal field of view, bin 0 at the left image edge."""
+    left = math.atan2(-0.5 - camera.cx, camera.fx)
+    right = math.atan2(camera.width - 0.5 - camera.cx, camera.fx)
+    hfov = math.degrees(right - left)
+    yaw_cam = math.degrees(float(camera.eps_rad[0]))
+    return hfov / N_SECTORS, yaw_cam + math.degrees(left)
+
+
+@dataclass
+class ObstacleResult:
+    sectors: Sectors
+    obstacles: list
+    ground_down_m: float
+    n_confident: int
+    n_obstacle_px: int
+
+
+def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags=None, inv_range_std_per_m=None,
+            cfg: ObstacleConfig = ObstacleConfig()) -> ObstacleResult:
+    """Sectors and obstacle list of one range map (see the module docstring)."""
+    _check_maps(range_m, confidence, flags, inv_range_std_per_m, camera)
+    conf_m = confident_mask(range_m, confidence, flags, inv_range_std_per_m, cfg)
+    pts = pixel_points(range_m, camera, state, conf_m, confidence, inv_range_std_per_m)
+    ground = estimate_ground_down_m(pts, state, cfg)
+    z = pts.ned_m[:, 2]
+    above_ground = z < ground - cfg.ground_clearance_m
+    in_band = above_ground & (z > state.position_ned_m[2] - cfg.max_height_above_m)
+    obstacle = in_band & (pts.hdist_m <= cfg.max_distance_m)
+    sectors = _sectors(pts, obstacle, ~obstacle, camera, range_m, flags, cfg)
+    obstacles = _components(pts, obstacle & (pts.dist_m <= cfg.max_obstacle_distance_m), camera, range_m, state, cfg)
+    return ObstacleResult(sectors, obstacles, ground, int(pts.idx.size), int(np.count_nonzero(obstacle)))
+
+
+def _bins(bearing_rad, inc_deg, off_deg):
+    b = np.floor((np.degrees(bearing_rad) - off_deg) / inc_deg).astype(np.int64)
+    ok = (b >= 0) & (b < N_SECTORS)
+    return b, ok
+
+
+def _sectors(pts: Points, obstacle, evidence, camera, range_m, flags, cfg: ObstacleConfig) -> Sectors:
+    inc, off = sector_geometry(camera)
+    min_cm, max_cm = int(round(cfg.min_distance_m * 100)), int(round(cfg.max_distance_m * 100))
+    out = np.full(N_SECTORS, UINT16_MAX, np.uint16)
+    b, ok = _bins(pts.bearing_rad, inc, off)
+    # evidence of free space: confident non-obstacle points, plus pixels at infinity (binned by their column's bearing)
+    ev = np.bincount(b[ok & evidence], minlength=N_SECTORS)[:N_SECTORS]
+    inf_idx = np.flatnonzero(infinity_mask(range_m, flags))
+    if inf_idx.size:
+        u = inf_idx % camera.width
+        col_bearing = np.arctan2(u - camera.cx, camera.fx) + camera.eps_rad[0]
+        bi, oki = _bins(col_bearing, inc, off)
+        ev = ev + np.bincount(bi[oki], minlength=N_SECTORS)[:N_SECTORS]
+    sel = ok & obstacle
+    bo, d = b[sel], pts.hdist_m[sel]
+    counts = np.bincount(bo, minlength=N_SECTORS)[:N_SECTORS]
+    out[ev >= cfg.min_clear_pixels] = max_cm + 1
+    if bo.size:
+        order = np.lexsort((d, bo))
+        bo, d = bo[order], d[order]
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        for j in np.flatnonzero(counts >= cfg.min_sector_pixels):
+            dj = d[starts[j]:starts[j] + counts[j]]
+            val = float(np.percentile(dj, cfg.percentile))
+            out[j] = int(np.clip(round(val * 100), min_cm, max_cm))
+    return Sectors(out, inc, off, min_cm, max_cm, counts)
+
+
+def _components(pts: Points, sel, camera: Camera, range_m, state: VehicleState, cfg: ObstacleConfig) -> list:
+    from scipy import ndimage
+    H, W = camera.height, camera.width
+    mask = np.zeros(H * W, bool)
+    mask[pts.idx[sel]] = True
+    mask = mask.reshape(H, W)
+    if not mask.any():
+        return []
+    r = np.where(mask, np.asarray(range_m, np.float64), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lr = np.log(r)
+        cut = np.zeros((H, W), bool)
+        dx = lr[:, 1:] - lr[:, :-1]                       # > 0: right pixel farther
+        jump = np.abs(dx) > math.log1p(cfg.max_rel_jump)
+        cut[:, 1:] |= jump & (dx > 0)
+        cut[:, :-1] |= jump & (dx < 0)
+        dy = lr[1:, :] - lr[:-1, :]
+        jump = np.abs(dy) > math.log1p(cfg.max_rel_jump)
+        cut[1:, :] |= jump & (dy > 0)
+        cut[:-1, :] |= jump & (dy < 0)
+    labels, n = ndimage.label(mask & ~cut)
+    if n == 0:
+        return []
+    # map each selected point to its label
+    pos = np.full(H * W, -1, np.int64)
+    pos[pts.idx] = np.arange(pts.idx.size)
+    lab_flat = labels.ravel()
+    px = np.flatnonzero(lab_flat)
+    lab = lab_flat[px]
+    pi = pos[px]
+    order = np.argsort(lab, kind="stable")
+    lab, pi, px = lab[order], pi[order], px[order]
+    bounds = np.flatnonzero(np.diff(lab)) + 1
+    out = []
+    for grp_p, grp_px in zip(np.split(pi, bounds), np.split(px, bounds)):
+        if grp_p.size < cfg.min_obstacle_pixels:
+            continue
+        q = cfg.percentile
+        dist = pts.dist_m[grp_p]
+        ned = pts.ned_m[grp_p]
+        body_med = np.median(pts.body_m[grp_p], axis=0)
+        p5, p95 = np.percentile(ned, [5, 95], axis=0)
+        los = np.median(ned, axis=0) - state.position_ned_m
+        across = np.array([-los[1], los[0], 0.0])
+        n_across = np.linalg.norm(across)
+        width = (float(np.ptp(np.percentile(ned @ (across / n_across), [5, 95]))) if n_across > 1e-9 else 0.0)
+        rr = pts.range_m[grp_p]
+        if pts.sigma_m is not None and np.isfinite(pts.sigma_m[grp_p]).any():
+            std = float(np.nanmedian(pts.sigma_m[grp_p]))
+        else:
+            std = float(1.4826 * np.median(np.abs(rr - np.median(rr))))
+        v, u = np.divmod(grp_px, W)
+        out.append(Obstacle(
+            id=0, distance_m=float(np.percentile(dist, q)), distance_median_m=float(np.median(dist)),
+            horizontal_distance_m=float(np.percentile(pts.hdist_m[grp_p], q)),
+            bearing_deg=float(np.degrees(np.arctan2(body_med[1], body_med[0]))),
+            elevation_deg=float(np.degrees(np.arctan2(-body_med[2], np.hypot(body_med[0], body_med[1])))),
+            range_std_m=std, position_ned_m=[float(x) for x in np.median(ned, axis=0)],
+            extent_ned_m=[float(x) for x in (p95 - p5)], width_m=width, height_m=float(p95[2] - p5[2]),
+            pixel_count=int(grp_p.size), confidence=float(np.median(pts.confidence[grp_p])),
+            bbox_px=[int(u.min()), int(v.min()), int(u.max()), int(v.max())]))
+    out.sort(key=lambda o: o.distance_m)
+    out = out[:cfg.max_obstacles]
+    for i, o in enumerate(out):
+        o.id = i + 1
+    return out
+
+
+class ObstacleTracker:
+    """Persistent obstacle ids across range maps: greedy nearest-neighbour association of NED positions within
+    a gate of ``max(gate_m, gate_rel * distance)``; tracks unseen for ``max_age_s`` are forgotten."""
+
+    def __init__(self, gate_m: float = 3.0, gate_rel: float = 0.15, max_age_s: float = 2.0):
+        self.gate_m, self.gate_rel, self.max_age_s = gate_m, gate_rel, max_age_s
+        self._tracks: dict[int, tuple] = {}       # id -> (position_ned_m, last_stamp_us)
+        self._next = 1
+
+    def update(self, obstacles: list, stamp_us: int) -> list:
+        self._tracks = {i: t for i, t in self._tracks.items() if stamp_us - t[1] <= self.max_age_s * 1e6}
+        free = dict(self._tracks)
+        for o in sorted(obstacles, key=lambda o: o.distance_m):
+            p = np.asarray(o.position_ned_m)
+            best, best_d = None, max(self.gate_m, self.gate_rel * o.distance_m)
+            for i, (q, _) in free.items():
+                d = float(np.linalg.norm(p - q))
+                if d <= best_d:
+                    best, best_d = i, d
+            if best is None:
+                best = self._next
+                self._next += 1
+            else:
+                del free[best]
+            o.id = best
+            self._tracks[best] = (p, stamp_us)
+        return obstacles
