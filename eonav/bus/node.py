@@ -486,7 +486,7 @@ def _setup_logging(level: str, name: str) -> None:
 def run_node(name: str, args, body: Callable) -> int:
     """Open the session, run ``body``, wait for a stop, shut down. Returns the exit code.
     Installs SIGINT/SIGTERM handlers when called from the main thread."""
-    log = logging.getLogger(f"eonav.service.{name}")
+    log = logging.getLogger(f"eonav.service.{getattr(args, 'name', name)}")
     node_ref: list[Node] = []
     signals = {"n": 0}
 

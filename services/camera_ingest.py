@@ -1,0 +1,601 @@
+"""Camera ingest: one camera (live or recorded) -> schema "frame" messages on ``keys.frame(vehicle, camera_id)``.
+
+Live or recorded is one flag (STYLE §4). ``--source`` takes:
+
+- a video file (``flight.mp4``; FFMPEG);
+- an image folder: the image files in it, sorted by name, plus optionally ``timestamps.txt``
+  (or ``--timestamps FILE``) with **one stamp per line matching the sorted files**. The first
+  whitespace-separated column of each line is the stamp; blank lines and ``#`` comments are skipped.
+  Units (``--timestamps-unit``): ``s`` = seconds (float), ``us`` = integer microseconds, ``auto``
+  (default) = microseconds when every value is an integer >= 1e11, else seconds;
+- a V4L2 device: ``/dev/video0`` or an integer ``0``;
+- a network stream: ``rtsp://...``, ``http(s)://...`` (FFMPEG; set ``OPENCV_FFMPEG_CAPTURE_OPTIONS``
+  e.g. ``rtsp_transport;tcp`` for RTSP over TCP).
+
+Stamps (integer ``stamp_us``, UNIX-epoch microseconds on this host's realtime clock), and the
+``stamp_source`` field that says where each came from:
+
+- ``recorded``: an image folder with a timestamps file, mapped onto the current clock preserving the
+  spacing (offset = now at start - first recorded stamp); ``recorded_raw`` with ``--keep-stamps``;
+- ``pts``: the stream/file presentation time (``CAP_PROP_POS_MSEC``) mapped to a wall-clock origin
+  taken at the first frame; the PTS itself travels in ``source_pts_us``;
+- ``v4l2``: the kernel buffer timestamp (``CAP_PROP_POS_MSEC`` of the V4L2 backend), converted from
+  CLOCK_MONOTONIC to the realtime clock when it is monotonic (the usual uvcvideo case);
+- ``fps``: a file without PTS: wall-clock origin at the first frame + index / frame rate;
+- ``host``: the realtime clock right after ``grab()`` (``retrieve()``/decode come afterwards, so
+  decode time is not in the stamp): image folders without timestamps, and any source whose driver
+  stamp is missing or implausible (> 2 s from the host clock for live sources).
+
+Pacing (``--rate``) applies to files and folders only; live sources are paced by the camera:
+``auto`` (default) = real time from the recorded stamps / PTS / the file's fps (``--default-fps`` for
+a folder without timestamps), a number = that many frames per second, ``0`` = as fast as possible.
+``--loop`` replays a file source forever (stamps keep increasing across laps).
+
+Output: ``--encoding mono8`` (default; the locators work on grey) or ``bgr8``; 16-bit input is
+scaled to 8 bit (/257). Corrupt or unreadable frames are counted (``corrupt_frames``), logged and
+skipped; frames whose size differs from ``--width``/``--height`` (when given) are counted
+(``wrong_size``) and skipped. ``seq`` counts published frames, so a gap downstream means a drop on the
+bus. The publisher is an image publisher (CongestionControl.DROP): a slow consumer never grows a queue.
+End of a file source: clean exit 0 (unless ``--loop``). A live source that stops delivering frames for
+``--live-timeout`` seconds makes the service exit 1, so the supervisor restarts it.
+
+The capture loop :func:`capture_loop` is a function over an injected source iterator, sink and
+metrics object, testable without zenoh or a camera.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import re
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+from eonav import EonavError, InputError
+from eonav import keys as K
+from eonav.bus.node import Node, add_flag, service_main
+
+log = logging.getLogger("eonav.service.camera")
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm", ".webp")
+TIMESTAMPS_FILE = "timestamps.txt"
+ENCODINGS = ("mono8", "bgr8")
+US_THRESHOLD = 1e11  # integer stamps at or above this are microseconds (1e11 us = 27.8 h; 1e11 s = year 5138)
+LIVE_PLAUSIBLE_US = 2_000_000
+
+
+# --------------------------------------------------------------------------------------------------
+# clock (injectable)
+
+class Clock:
+    """Realtime microseconds, monotonic seconds and sleep; tests substitute a fake."""
+
+    def now_us(self) -> int:
+        return time.time_ns() // 1000
+
+    def monotonic(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, s: float, stop: threading.Event | None = None) -> None:
+        if s <= 0:
+            return
+        if stop is not None:
+            stop.wait(s)
+        else:
+            time.sleep(s)
+
+    def mono_to_realtime_us(self) -> int:
+        """Offset to add to a CLOCK_MONOTONIC stamp (us) to get the realtime clock (us)."""
+        return (time.time_ns() - time.monotonic_ns()) // 1000
+
+
+@dataclass
+class RawFrame:
+    """One frame as a source delivers it. ``image`` None = unreadable (``error`` says why)."""
+    index: int
+    image: np.ndarray | None
+    stamp_us: int
+    stamp_source: str
+    source_pts_us: int = -1
+    grab_mono: float = field(default_factory=time.monotonic)
+    error: str = ""
+    name: str = ""
+
+
+class Pacer:
+    """Sleeps so that frames go out at the recorded pace (``mode="auto"``: media time), at a fixed
+    ``fps``, or not at all (``fps == 0``). Media time is seconds from any origin; laps are handled by
+    the caller passing a continuously increasing media time."""
+
+    def __init__(self, rate, clock: Clock, stop: threading.Event | None = None):
+        self.clock, self.stop = clock, stop
+        if rate in (None, "auto"):
+            self.mode, self.fps = "auto", None
+        else:
+            self.fps = float(rate)
+            if self.fps < 0 or not np.isfinite(self.fps):
+                raise InputError(f"--rate {rate!r}: expected 'auto', 0 (as fast as possible) or frames per second > 0")
+            self.mode = "none" if self.fps == 0 else "fixed"
+        self._t0 = None
+        self._m0 = None
+        self._n = 0
+
+    def wait(self, media_s: float | None) -> None:
+        if self.mode == "none":
+            return
+        now = self.clock.monotonic()
+        if self._t0 is None:
+            self._t0, self._m0 = now, media_s
+            self._n = 1
+            return
+        if self.mode == "fixed" or media_s is None or self._m0 is None:
+            fps = self.fps if self.mode == "fixed" else None
+            if fps is None:  # auto without media time: nothing to pace by
+                return
+            target = self._t0 + self._n / fps
+        else:
+            target = self._t0 + (media_s - self._m0)
+        self._n += 1
+        delay = target - now
+        if delay > 0:
+            self.clock.sleep(delay, self.stop)
+        elif delay < -1.0:  # far behind (a stall): re-anchor rather than burst
+            self._t0, self._m0 = now, media_s
+            self._n = 1
+
+
+# --------------------------------------------------------------------------------------------------
+# sources
+
+def parse_timestamps(path: Path, unit: str = "auto") -> list[int]:
+    """Stamps in microseconds from a timestamps file (see module docstring for the format)."""
+    if unit not in ("auto", "s", "us"):
+        raise InputError(f"--timestamps-unit {unit!r}: expected auto, s or us")
+    raw: list[str] = []
+    for ln, line in enumerate(Path(path).read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        tok = re.split(r"[\s,]+", line)[0]
+        try:
+            float(tok)
+        except ValueError:
+            raise InputError(f"{path}:{ln}: stamp {tok!r} is not a number") from None
+        raw.append(tok)
+    if unit == "auto":
+        ints = all(re.fullmatch(r"[+-]?\d+", t) for t in raw)
+        unit = "us" if raw and ints and all(abs(int(t)) >= US_THRESHOLD for t in raw) else "s"
+    if unit == "us":
+        try:
+            out = [int(t) for t in raw]
+        except ValueError:
+            raise InputError(f"{path}: --timestamps-unit us needs integer microseconds") from None
+    else:
+        out = [int(round(float(t) * 1e6)) for t in raw]
+    for i in range(1, len(out)):
+        if out[i] < out[i - 1]:
+            raise InputError(f"{path}: stamps must not decrease (entry {i + 1}: {out[i]} us < {out[i - 1]} us)")
+    return out
+
+
+def list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS)
+
+
+def _median_dt_us(stamps: list[int], fallback_us: int) -> int:
+    if len(stamps) < 2:
+        return fallback_us
+    return int(np.median(np.diff(stamps))) or fallback_us
+
+
+def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", keep_stamps: bool = False,
+                  loop: bool = False, pacer: Pacer | None = None, clock: Clock | None = None,
+                  default_fps: float = 10.0, stop: threading.Event | None = None,
+                  reader: Callable | None = None) -> Iterator[RawFrame]:
+    """Frames of an image folder (sorted files), stamped from the timestamps file if there is one."""
+    import cv2
+    clock = clock or Clock()
+    folder = Path(folder)
+    files = list_images(folder)
+    if not files:
+        raise InputError(f"--source {folder}: no image files ({', '.join(IMAGE_EXTS)})")
+    tpath = Path(timestamps) if timestamps else folder / TIMESTAMPS_FILE
+    rec = None
+    if timestamps and not tpath.is_file():
+        raise InputError(f"--timestamps {tpath}: no such file")
+    if tpath.is_file():
+        rec = parse_timestamps(tpath, unit)
+        if len(rec) != len(files):
+            raise InputError(f"{tpath}: {len(rec)} stamps for {len(files)} image files in {folder}; "
+                             "expected one stamp per line per sorted image file")
+    read = reader or (lambda p: cv2.imread(str(p), cv2.IMREAD_UNCHANGED))
+    period_us = int(round(1e6 / default_fps)) if default_fps > 0 else 100_000
+    offset_us = None
+    lap_shift_us = 0
+    index = 0
+    while True:
+        for i, path in enumerate(files):
+            if stop is not None and stop.is_set():
+                return
+            if rec is not None:
+                media_us = rec[i] + lap_shift_us
+            else:
+                media_us = (index * period_us)
+            if pacer:
+                pacer.wait(media_us / 1e6)
+            t_grab = clock.monotonic()
+            host_us = clock.now_us()
+            if rec is not None:
+                if keep_stamps:
+                    stamp, src = media_us, "recorded_raw"
+                else:
+                    if offset_us is None:
+                        offset_us = host_us - rec[0]
+                    stamp, src = media_us + offset_us, "recorded"
+                pts = rec[i]
+            else:
+                stamp, src, pts = host_us, "host", -1
+            try:
+                img = read(path)
+                err = "" if img is not None else "cannot decode (corrupt or unsupported)"
+            except Exception as e:  # permission denied, truncated file, ...
+                img, err = None, f"{type(e).__name__}: {e}"
+            yield RawFrame(index=index, image=img, stamp_us=stamp, stamp_source=src, source_pts_us=pts,
+                           grab_mono=t_grab, error=err, name=path.name)
+            index += 1
+        if not loop:
+            return
+        if rec is not None:
+            lap_shift_us += rec[-1] - rec[0] + _median_dt_us(rec, period_us)
+
+
+def open_capture(source: str, kind: str, args=None):
+    """A cv2.VideoCapture for a file, V4L2 device or network stream (raises InputError if it won't open)."""
+    import cv2
+    if kind == "v4l2":
+        dev = int(source) if re.fullmatch(r"\d+", source) else source
+        cap = cv2.VideoCapture(dev, cv2.CAP_V4L2)
+        if args is not None and cap.isOpened():
+            if getattr(args, "fourcc", None):
+                cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*args.fourcc[:4].ljust(4)))
+            if getattr(args, "width", None):
+                cap.set(cv2.CAP_PROP_FRAME_WIDTH, args.width)
+            if getattr(args, "height", None):
+                cap.set(cv2.CAP_PROP_FRAME_HEIGHT, args.height)
+            if getattr(args, "device_fps", None):
+                cap.set(cv2.CAP_PROP_FPS, args.device_fps)
+            cap.set(cv2.CAP_PROP_BUFFERSIZE, int(getattr(args, "buffer_size", 2) or 2))
+    else:
+        if kind == "stream" and args is not None and getattr(args, "open_timeout", None):
+            cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG, [
+                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(args.open_timeout * 1000),
+                cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(args.open_timeout * 1000)])
+        else:
+            cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG)
+    if not cap.isOpened():
+        raise InputError(f"--source {source!r}: cannot open as {kind} (OpenCV build: FFMPEG and V4L2 only, no GStreamer)")
+    return cap
+
+
+def capture_frames(cap_factory: Callable[[], object], kind: str, *, loop: bool = False, pacer: Pacer | None = None,
+                   clock: Clock | None = None, stop: threading.Event | None = None,
+                   live_timeout_s: float = 5.0, default_fps: float = 30.0) -> Iterator[RawFrame]:
+    """Frames from a cv2.VideoCapture-like object (``grab``, ``retrieve``, ``get``, ``release``).
+
+    ``kind``: ``file`` (EOF ends, or loops; PTS mapped to a wall-clock origin), ``v4l2`` (kernel
+    stamps) or ``stream`` (network; PTS mapped, re-anchored when implausible). The stamp is taken
+    right after ``grab()``; ``retrieve()`` (decode) comes afterwards."""
+    import cv2
+    clock = clock or Clock()
+    cap = cap_factory()
+    fps = cap.get(cv2.CAP_PROP_FPS) if kind == "file" else 0.0
+    if not fps or not np.isfinite(fps) or fps <= 0 or fps > 1000:
+        fps = default_fps
+    period_us = int(round(1e6 / fps))
+    index = 0
+    origin_us = None          # wall-clock us of PTS 0 (file/stream)
+    lap_shift_us = 0          # file loops: media time keeps increasing
+    last_pts_us = -1
+    first_pts_us = None
+    fails = 0
+    last_ok = clock.monotonic()
+    try:
+        while stop is None or not stop.is_set():
+            ok = cap.grab()
+            t_grab = clock.monotonic()
+            host_us = clock.now_us()
+            if not ok:
+                if kind == "file":
+                    if not loop or index == 0:
+                        return
+                    cap.release()
+                    cap = cap_factory()
+                    if last_pts_us >= 0 and first_pts_us is not None:
+                        lap_shift_us += last_pts_us - first_pts_us + period_us
+                    last_pts_us = -1
+                    continue
+                fails += 1
+                if clock.monotonic() - last_ok > live_timeout_s:
+                    raise EonavError(f"{kind} source delivered no frame for {live_timeout_s:.1f} s "
+                                     f"({fails} failed grabs)")
+                clock.sleep(0.05, stop)
+                continue
+            fails, last_ok = 0, t_grab
+            pos_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+            pts_us = int(round(pos_ms * 1000)) if pos_ms is not None and np.isfinite(pos_ms) and pos_ms >= 0 else -1
+            stamp, src = host_us, "host"
+            if kind in ("file", "stream") and pts_us >= 0 and (pts_us > last_pts_us or index == 0 or last_pts_us < 0):
+                if first_pts_us is None:
+                    first_pts_us = pts_us
+                media_us = pts_us + lap_shift_us
+                if origin_us is None:
+                    origin_us = host_us - media_us
+                stamp = origin_us + media_us
+                if kind == "stream" and abs(stamp - host_us) > LIVE_PLAUSIBLE_US:
+                    origin_us = host_us - media_us   # stream restarted / PTS jumped: re-anchor
+                    stamp = host_us
+                src = "pts"
+            elif kind == "file" and pts_us < 0:
+                # no PTS: synthesize from the frame rate so spacing is still right
+                if origin_us is None:
+                    origin_us = host_us
+                stamp, src = origin_us + index * period_us, "fps"
+            elif kind == "v4l2" and pts_us > 0:
+                mono_cand = pts_us + clock.mono_to_realtime_us()
+                if abs(mono_cand - host_us) <= LIVE_PLAUSIBLE_US:
+                    stamp, src = mono_cand, "v4l2"
+                elif abs(pts_us - host_us) <= LIVE_PLAUSIBLE_US:  # driver stamps on the realtime clock
+                    stamp, src = pts_us, "v4l2"
+            if pts_us >= 0:
+                last_pts_us = pts_us
+            elif kind == "file":
+                last_pts_us = index * period_us
+            if kind == "file" and pacer is not None:
+                # after grab (only now is the PTS known); the stamp is PTS-based, so waiting here does not move it
+                pacer.wait((last_pts_us + lap_shift_us) / 1e6)
+            try:
+                ok, img = cap.retrieve()
+                err = "" if ok and img is not None else "retrieve() failed (corrupt frame)"
+                if err:
+                    img = None
+            except Exception as e:
+                img, err = None, f"{type(e).__name__}: {e}"
+            yield RawFrame(index=index, image=img, stamp_us=stamp, stamp_source=src, source_pts_us=pts_us,
+                           grab_mono=t_grab, error=err)
+            index += 1
+    finally:
+        try:
+            cap.release()
+        except Exception:
+            pass
+
+
+def classify_source(source: str) -> str:
+    """``folder``, ``file``, ``v4l2`` or ``stream`` for a ``--source`` string."""
+    s = str(source)
+    if re.match(r"^(rtsp|rtsps|rtmp|http|https|udp|tcp|srt)://", s, re.I):
+        return "stream"
+    if re.fullmatch(r"\d+", s) or s.startswith("/dev/video"):
+        return "v4l2"
+    p = Path(s)
+    if p.is_dir():
+        return "folder"
+    if p.is_file():
+        return "file"
+    raise InputError(f"--source {s!r}: not a directory, file, V4L2 device (/dev/videoN or N) "
+                     "or stream URL (rtsp://, http://)")
+
+
+# --------------------------------------------------------------------------------------------------
+# the capture loop (pure-ish: injected frames, sink, metrics)
+
+class NullMetrics:
+    def count(self, name, n=1): ...
+    def tick(self, name, n=1): ...
+    def latency(self, name, seconds): ...
+    def log_limited(self, tag, level, fmt, *args, **kw):
+        log.log(level, fmt, *args)
+
+
+def convert(img: np.ndarray, encoding: str) -> np.ndarray:
+    """A decoded image (grey / BGR / BGRA, 8 or 16 bit) as mono8 (H x W) or bgr8 (H x W x 3) uint8."""
+    import cv2
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.dtype == np.uint16:
+        a = (a.astype(np.uint32) * 255 // 65535).astype(np.uint8)
+    elif a.dtype != np.uint8:
+        raise InputError(f"image dtype {a.dtype} not supported; expected uint8 or uint16")
+    if a.ndim == 2:
+        return a if encoding == "mono8" else cv2.cvtColor(a, cv2.COLOR_GRAY2BGR)
+    if a.ndim != 3 or a.shape[2] not in (3, 4):
+        raise InputError(f"image shape {a.shape}: expected H x W, H x W x 3 or H x W x 4")
+    if encoding == "mono8":
+        return cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return a if a.shape[2] == 3 else cv2.cvtColor(a, cv2.COLOR_BGRA2BGR)
+
+
+@dataclass
+class CaptureStats:
+    published: int = 0
+    corrupt: int = 0
+    wrong_size: int = 0
+    last_stamp_us: int = -1
+
+
+def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, camera_id: str,
+                 encoding: str = "mono8", width: int | None = None, height: int | None = None,
+                 metrics=None, stop: threading.Event | None = None,
+                 monotonic: Callable[[], float] = time.monotonic) -> CaptureStats:
+    """Turn source frames into schema "frame" fields and hand them to ``sink``.
+
+    Skips (and counts) unreadable frames (``corrupt_frames``) and, when ``width``/``height`` are given,
+    frames of another size (``wrong_size``). ``seq`` numbers published frames from 0. Returns when
+    ``frames`` is exhausted or ``stop`` is set."""
+    if encoding not in ENCODINGS:
+        raise InputError(f"--encoding {encoding!r}: expected one of {ENCODINGS}")
+    m = metrics or NullMetrics()
+    st = CaptureStats()
+    for f in frames:
+        if stop is not None and stop.is_set():
+            break
+        m.count("frames_in")
+        if f.image is None:
+            st.corrupt += 1
+            m.count("corrupt_frames")
+            m.log_limited("corrupt", logging.WARNING, "skipped unreadable frame %d %s: %s",
+                          f.index, f.name, f.error or "no image")
+            continue
+        try:
+            img = convert(f.image, encoding)
+        except InputError as e:
+            st.corrupt += 1
+            m.count("corrupt_frames")
+            m.log_limited("corrupt", logging.WARNING, "skipped frame %d %s: %s", f.index, f.name, e)
+            continue
+        h, w = img.shape[:2]
+        if (width and w != width) or (height and h != height):
+            st.wrong_size += 1
+            m.count("wrong_size")
+            m.log_limited("size", logging.WARNING, "skipped frame %d %s: %dx%d, expected %sx%s",
+                          f.index, f.name, w, h, width or "*", height or "*")
+            continue
+        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": int(f.stamp_us),
+              "stamp_source": f.stamp_source, "encoding": encoding, "image": img,
+              "source_pts_us": int(f.source_pts_us)})
+        m.latency("grab_to_put", monotonic() - f.grab_mono)
+        m.tick("frames")
+        if st.last_stamp_us >= 0 and f.stamp_us <= st.last_stamp_us:
+            m.count("nonincreasing_stamps")
+        st.published += 1
+        st.last_stamp_us = int(f.stamp_us)
+    return st
+
+
+# --------------------------------------------------------------------------------------------------
+# the service
+
+def _rate(s: str):
+    if str(s).lower() == "auto":
+        return "auto"
+    try:
+        v = float(s)
+    except ValueError:
+        raise ValueError(f"--rate {s!r}: expected auto, 0 or frames per second") from None
+    if v < 0:
+        raise ValueError("--rate must be >= 0")
+    return v
+
+
+def _opt_int(s):
+    return None if s in (None, "", "0", 0) else int(s)
+
+
+def add_arguments(p) -> None:
+    g = p.add_argument_group("camera ingest")
+    add_flag(g, "--source", env="EONAV_CAMERA_SOURCE", default=None,
+             help="video file, image folder, V4L2 device (/dev/videoN or N), or rtsp:// / http:// URL")
+    add_flag(g, "--camera-id", env="EONAV_CAMERA_ID", default="nose", help="camera id in the frame key and messages")
+    add_flag(g, "--rate", env="EONAV_CAMERA_RATE", default="auto", type=_rate,
+             help="file pacing: auto = real time from stamps/PTS/fps, N = N fps, 0 = as fast as possible")
+    add_flag(g, "--loop", env="EONAV_CAMERA_LOOP", action="store_true", help="replay a file source forever")
+    add_flag(g, "--encoding", env="EONAV_CAMERA_ENCODING", default="mono8", choices=ENCODINGS,
+             help="published pixel format")
+    g.add_argument("--grey", dest="encoding", action="store_const", const="mono8", help="same as --encoding mono8")
+    g.add_argument("--colour", dest="encoding", action="store_const", const="bgr8", help="same as --encoding bgr8")
+    add_flag(g, "--width", env="EONAV_CAMERA_WIDTH", default=None, type=_opt_int,
+             help="expected width in pixels (frames of another size are skipped; V4L2: requested)")
+    add_flag(g, "--height", env="EONAV_CAMERA_HEIGHT", default=None, type=_opt_int,
+             help="expected height in pixels (as --width)")
+    add_flag(g, "--timestamps", env="EONAV_CAMERA_TIMESTAMPS", default=None,
+             help=f"timestamps file for an image folder (default <folder>/{TIMESTAMPS_FILE} if present)")
+    add_flag(g, "--timestamps-unit", env="EONAV_CAMERA_TIMESTAMPS_UNIT", default="auto", choices=("auto", "s", "us"),
+             help="s = seconds, us = integer microseconds, auto = us if all integers >= 1e11 else s")
+    add_flag(g, "--keep-stamps", env="EONAV_CAMERA_KEEP_STAMPS", action="store_true",
+             help="publish recorded stamps as they are instead of mapping them onto the current clock")
+    add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float,
+             help="frame rate assumed for folders without timestamps / files without fps (pacing in auto mode)")
+    add_flag(g, "--wait-subscribers", env="EONAV_CAMERA_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
+             help="file sources: wait up to S s for a subscriber before the first frame (declaration race)")
+    add_flag(g, "--fourcc", env="EONAV_CAMERA_FOURCC", default=None, help="V4L2 pixel format, e.g. MJPG")
+    add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, help="V4L2 frame rate to request")
+    add_flag(g, "--buffer-size", env="EONAV_CAMERA_BUFFER_SIZE", default=2, type=int, help="V4L2 buffers (small = low latency)")
+    add_flag(g, "--live-timeout", env="EONAV_CAMERA_LIVE_TIMEOUT", default=5.0, type=float, metavar="S",
+             help="live sources: exit 1 (for a restart) after S s without a frame")
+    add_flag(g, "--open-timeout", env="EONAV_CAMERA_OPEN_TIMEOUT", default=10.0, type=float, metavar="S",
+             help="network streams: open/read timeout")
+
+
+def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | None = None) -> Iterator[RawFrame]:
+    """The frame iterator for ``args.source`` (also usable without a bus)."""
+    if not args.source:
+        raise InputError("--source is required (or EONAV_CAMERA_SOURCE)")
+    kind = classify_source(args.source)
+    clock = clock or Clock()
+    pacer = Pacer(args.rate, clock, stop) if kind in ("folder", "file") else None
+    if kind == "folder":
+        return folder_frames(args.source, timestamps=args.timestamps, unit=args.timestamps_unit,
+                             keep_stamps=args.keep_stamps, loop=args.loop, pacer=pacer, clock=clock,
+                             default_fps=args.default_fps, stop=stop)
+    if args.timestamps:
+        raise InputError("--timestamps applies to image folders only")
+    open_capture(args.source, kind, args).release()  # fail early, as a configuration error
+    return capture_frames(lambda: open_capture(args.source, kind, args), kind, loop=args.loop, pacer=pacer,
+                          clock=clock, stop=stop, live_timeout_s=args.live_timeout, default_fps=args.default_fps)
+
+
+def _wait_matching(node: Node, pub, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not node.stop_event.is_set():
+        try:
+            if pub.matching_status.matching:
+                time.sleep(0.05)  # let the route settle on every hop
+                return
+        except Exception:
+            return
+        node.stop_event.wait(0.02)
+    if not node.stop_event.is_set():
+        node.log.info("no subscriber after %.1f s; publishing anyway", timeout_s)
+
+
+def body(node: Node, args) -> None:
+    K.check_chunk(args.camera_id, "--camera-id")
+    kind = classify_source(args.source) if args.source else None
+    frames = make_frames(args, stop=node.stop_event)
+    key = K.frame(node.vehicle, args.camera_id)
+    pub = node.publisher(key, image=True)
+    node.log.info("camera %s: %s source %s -> %s (%s, rate %s)", args.camera_id, kind, args.source, key,
+                  args.encoding, args.rate)
+
+    def sink(fields):
+        node.put(pub, "frame", **fields)
+
+    def run():
+        if kind in ("folder", "file") and args.wait_subscribers > 0:
+            _wait_matching(node, pub, args.wait_subscribers)
+        st = capture_loop(frames, sink, camera_id=args.camera_id, encoding=args.encoding, width=args.width,
+                          height=args.height, metrics=node, stop=node.stop_event)
+        if node.stop_event.is_set():
+            return
+        if st.published == 0 and st.corrupt + st.wrong_size > 0:
+            node.set_state("degraded", f"no usable frame ({st.corrupt} corrupt, {st.wrong_size} wrong size)")
+        node.log.info("end of source: %d frames published, %d corrupt, %d wrong size",
+                      st.published, st.corrupt, st.wrong_size)
+        node.stop_event.wait(0.3)  # let the last frames leave the TX queue
+        node.stop("end of source")
+
+    node.worker(run, name="capture")
+
+
+def main(argv=None) -> int:
+    from eonav.bus.node import main as node_main
+    return node_main("camera", add_arguments, body, argv)
+
+
+if __name__ == "__main__":
+    service_main("camera", add_arguments, body)
