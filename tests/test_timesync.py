@@ -1,0 +1,224 @@
+"""eonav.timesync: stamp association and pose interpolation, edge cases against hand-derived values."""
+import math
+
+import numpy as np
+import pytest
+
+from eonav import InputError
+from eonav.geometry import T_body_ned_from_quat, quat_wxyz_from_ypr, ypr_from_T_body_ned
+from eonav.timesync import (QF_EXTRAPOLATED, QF_GAP, QF_JITTER, QF_NO_VELOCITY, QF_VELOCITY_AIDED,
+                            NavBuffer, match_stamps)
+
+D = math.radians
+
+
+def yaw_of(q):
+    return ypr_from_T_body_ned(T_body_ned_from_quat(q))[0]
+
+
+# ----------------------------------------------------------------------------- match_stamps
+def test_match_exact_and_nearest():
+    a = [0, 100_000, 200_000]
+    b = [1_000, 99_000, 260_000]
+    assert match_stamps(a, b, max_diff_us=5_000) == [(0, 0), (1, 1)]       # 260 ms is 60 ms away
+
+
+def test_match_no_match():
+    assert match_stamps([0, 1_000_000], [500_000], max_diff_us=10_000) == []
+    assert match_stamps([], [1, 2], max_diff_us=10) == []
+    assert match_stamps([1, 2], [], max_diff_us=10) == []
+
+
+def test_match_clock_offset():
+    # b is on a clock 0.5 s behind a: b + 500 ms lands on a
+    a = np.array([1_000_000, 1_100_000, 1_200_000])
+    b = a - 500_000 + np.array([300, -200, 0])
+    assert match_stamps(a, b, max_diff_us=1_000) == []
+    assert match_stamps(a, b, max_diff_us=1_000, offset_us=500_000) == [(0, 0), (1, 1), (2, 2)]
+
+
+def test_match_out_of_order_returns_original_indices():
+    a = [300, 100, 200]
+    b = [210, 290, 95]
+    assert match_stamps(a, b, max_diff_us=20) == [(0, 1), (1, 2), (2, 0)]
+
+
+def test_match_duplicate_stamps_one_to_one():
+    # two frames with the same stamp and one nav sample: only one pair
+    assert match_stamps([100, 100], [100], max_diff_us=5) == [(0, 0)]
+    assert match_stamps([100], [100, 100], max_diff_us=5) == [(0, 0)]
+
+
+def test_match_greedy_closest_first():
+    # b=6 is 6 from a=0 and 4 from a=10: the closer pair wins, a=0 stays unmatched
+    assert match_stamps([0, 10], [6], max_diff_us=10) == [(1, 0)]
+
+
+def test_match_rejects_bad_input():
+    with pytest.raises(InputError, match="finite"):
+        match_stamps([0.0, float("nan")], [0], 10)
+    with pytest.raises(InputError, match="non-negative"):
+        match_stamps([0], [0], -1)
+    with pytest.raises(InputError, match="1-D"):
+        match_stamps([[0, 1]], [0], 10)
+
+
+# ----------------------------------------------------------------------------- NavBuffer
+def _buf(**kw):
+    kw.setdefault("max_gap_us", 250_000)
+    return NavBuffer(**kw)
+
+
+def test_interpolation_hand_values():
+    nb = _buf()
+    nb.add(0, quat_wxyz_from_ypr(0, 0, 0), [0, 0, -10])
+    nb.add(100_000, quat_wxyz_from_ypr(D(90), 0, 0), [4, -2, -11])
+    r = nb.pose_at(25_000)
+    assert r.ok and r.reason == ""
+    # slerp at constant rate about a fixed axis: a quarter of 90 deg
+    assert yaw_of(r.q_wxyz) == pytest.approx(D(22.5), abs=1e-12)
+    np.testing.assert_allclose(r.position_ned_m, [1.0, -0.5, -10.25], atol=1e-12)
+    np.testing.assert_allclose(r.velocity_ned_mps, [40.0, -20.0, -10.0], atol=1e-9)   # finite difference
+    assert r.nav_gap_us == 100_000 and r.quality_flags & QF_GAP      # 100 ms > 60 ms warn
+
+
+def test_slerp_across_yaw_wrap():
+    nb = _buf()
+    nb.add(0, quat_wxyz_from_ypr(D(170), 0, 0), [0, 0, 0])
+    nb.add(40_000, quat_wxyz_from_ypr(D(-170), 0, 0), [0, 0, 0])
+    # midway through a 20 deg turn across the wrap: 180 deg, not 0 deg
+    assert abs(yaw_of(nb.pose_at(20_000).q_wxyz)) == pytest.approx(math.pi, abs=1e-9)
+    # a quarter: 175 deg
+    assert yaw_of(nb.pose_at(10_000).q_wxyz) == pytest.approx(D(175), abs=1e-9)
+    # three quarters: -175 deg
+    assert yaw_of(nb.pose_at(30_000).q_wxyz) == pytest.approx(D(-175), abs=1e-9)
+
+
+def test_hermite_velocity_aided_constant_acceleration():
+    # p = 0.5 a t^2, v = a t, a = 4 m/s^2 north: samples at 0 and 0.1 s
+    a = 4.0
+    nb = _buf()
+    for t_s in (0.0, 0.1):
+        nb.add(int(t_s * 1e6), [1, 0, 0, 0], [0.5 * a * t_s**2, 0, 0], [a * t_s, 0, 0])
+    r = nb.pose_at(50_000)
+    assert r.quality_flags & QF_VELOCITY_AIDED
+    assert r.position_ned_m[0] == pytest.approx(0.5 * a * 0.05**2, abs=1e-12)     # 5 mm; linear gives 10 mm
+    assert r.velocity_ned_mps[0] == pytest.approx(a * 0.05, abs=1e-12)
+
+
+def test_no_velocity_flag_when_single_sample_without_velocity():
+    nb = _buf()
+    nb.add(0, [1, 0, 0, 0], [1, 2, 3])
+    r = nb.pose_at(0)
+    assert r.ok and r.quality_flags & QF_NO_VELOCITY
+    np.testing.assert_allclose(r.position_ned_m, [1, 2, 3])
+
+
+def test_gap_never():
+    nb = _buf(max_gap_us=200_000)
+    nb.add(0, [1, 0, 0, 0], [0, 0, 0])
+    nb.add(500_000, [1, 0, 0, 0], [5, 0, 0])
+    d = nb.decide(250_000)
+    assert (d.state, d.reason) == ("never", "gap")
+    r = nb.pose_at(250_000)
+    assert not r.ok and r.reason == "gap"
+    assert nb.pose_at(500_000).ok          # an exact hit needs no bracket
+
+
+def test_jitter_flag():
+    nb = _buf()
+    for t in (0, 10_000, 20_000, 30_000, 40_000, 70_000, 80_000):
+        nb.add(t, [1, 0, 0, 0], [t * 1e-6, 0, 0])
+    assert not nb.pose_at(15_000).quality_flags & QF_JITTER
+    assert nb.pose_at(55_000).quality_flags & QF_JITTER         # 30 ms bracket vs 10 ms spacing
+
+
+def test_extrapolation_limit():
+    nb = _buf(max_extrapolation_us=20_000)
+    nb.add(0, quat_wxyz_from_ypr(0, 0, 0), [0, 0, 0], [10, 0, 0])
+    nb.add(100_000, quat_wxyz_from_ypr(D(10), 0, 0), [1, 0, 0], [10, 0, 0])
+    assert nb.decide(115_000).state == "wait"
+    assert nb.pose_at(115_000).reason == "waiting_for_attitude"
+    r = nb.pose_at(115_000, allow_extrapolation=True)
+    assert r.ok and r.quality_flags & QF_EXTRAPOLATED
+    assert yaw_of(r.q_wxyz) == pytest.approx(D(11.5), abs=1e-9)          # same rate continued
+    assert r.position_ned_m[0] == pytest.approx(1.15, abs=1e-12)
+    r = nb.pose_at(125_000, allow_extrapolation=True)
+    assert not r.ok and r.reason == "extrapolation_limit"
+    # before the first sample: within the limit ready (flagged), beyond it never
+    assert nb.pose_at(-10_000).ok and nb.pose_at(-10_000).quality_flags & QF_EXTRAPOLATED
+    assert nb.decide(-30_000).reason == "before_first_nav"
+
+
+def test_watermark_wait_then_ready():
+    nb = _buf()
+    assert nb.watermark_us is None
+    assert nb.decide(150_000).state == "wait"
+    nb.add(0, [1, 0, 0, 0], None)
+    nb.add(100_000, [1, 0, 0, 0], None)
+    nb.add(0, None, [0, 0, 0])
+    nb.add(200_000, None, [2, 0, 0])
+    # attitude reached 100 ms, position 200 ms: the watermark is the older, 100 ms
+    assert nb.watermark_us == 100_000
+    d = nb.decide(150_000)
+    assert (d.state, d.reason) == ("wait", "waiting_for_attitude")
+    nb.add(200_000, [1, 0, 0, 0], None)
+    assert nb.decide(150_000).state == "ready"
+    np.testing.assert_allclose(nb.pose_at(150_000).position_ned_m, [1.5, 0, 0])
+
+
+def test_watermark_late_frame_older_than_buffer():
+    nb = _buf(max_samples=4)
+    for k in range(10):
+        nb.add(k * 10_000, [1, 0, 0, 0], [k, 0, 0])
+    # samples 0..5 were evicted: a frame at 20 ms can never be posed
+    d = nb.decide(20_000)
+    assert (d.state, d.reason) == ("never", "older_than_buffer")
+    assert nb.decide(75_000).state == "ready"
+    # a nav sample older than the evicted horizon is refused
+    nb.add(30_000, [1, 0, 0, 0], [3, 0, 0])
+    assert nb.counts["too_old"] == 2        # counted for attitude and position
+
+
+def test_out_of_order_nav_samples():
+    rng = np.random.default_rng(3)
+    ts = np.arange(0, 200_000, 10_000)
+    ref, shuf = _buf(), _buf()
+    for t in ts:
+        ref.add(int(t), quat_wxyz_from_ypr(t * 1e-6, 0, 0), [t * 1e-5, 0, 0])
+    for t in rng.permutation(ts):
+        shuf.add(int(t), quat_wxyz_from_ypr(t * 1e-6, 0, 0), [t * 1e-5, 0, 0])
+    assert shuf.counts["out_of_order"] > 0
+    for t in (5_000, 77_000, 190_000):
+        a, b = ref.pose_at(t), shuf.pose_at(t)
+        np.testing.assert_array_equal(a.position_ned_m, b.position_ned_m)
+        np.testing.assert_array_equal(a.q_wxyz, b.q_wxyz)
+
+
+def test_duplicate_nav_stamps_keep_first():
+    nb = _buf()
+    nb.add(0, [1, 0, 0, 0], [0, 0, 0])
+    nb.add(100_000, [1, 0, 0, 0], [1, 0, 0])
+    nb.add(100_000, [1, 0, 0, 0], [9, 9, 9])
+    assert nb.counts["duplicate_stamp"] == 2
+    np.testing.assert_allclose(nb.pose_at(100_000).position_ned_m, [1, 0, 0])
+
+
+def test_bad_nav_samples_ignored():
+    nb = _buf()
+    nb.add(0, [np.nan, 0, 0, 0], [np.inf, 0, 0])
+    nb.add(0, [2, 0, 0, 0], None)            # not a unit quaternion
+    assert len(nb.att) == 0 and len(nb.pos) == 0
+    assert nb.counts["bad_attitude"] == 2 and nb.counts["bad_position"] == 1
+    nb.add(0, [np.nan] * 4, [np.nan] * 3)    # an absent part (all NaN by schema convention) is not an error
+    assert nb.counts["bad_attitude"] == 2 and nb.counts["bad_position"] == 1
+
+
+def test_attitude_only_mode():
+    nb = _buf(require_position=False)
+    nb.add(0, quat_wxyz_from_ypr(0, 0, 0))
+    nb.add(20_000, quat_wxyz_from_ypr(0, D(2), 0))
+    r = nb.pose_at(10_000)
+    assert r.ok and np.all(np.isnan(r.position_ned_m))
+    assert ypr_from_T_body_ned(T_body_ned_from_quat(r.q_wxyz))[1] == pytest.approx(D(1), abs=1e-12)
+    assert not _buf().pose_at(10_000).ok
