@@ -234,3 +234,128 @@ def test_obstacles_module_imports_no_transport():
     code = "import eonav.obstacles, eonav.pair_policy, sys; print('zenoh' in sys.modules, 'pymavlink' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
+
+
+# -- MAVLink OBSTACLE_DISTANCE out (real bytes through pymavlink) --------------------------------------
+def _wall_sectors():
+    return ob.analyse(add_wall(ground_and_sky(), 20.0, 128, 192), CAM, LEVEL, cfg=CFG).sectors
+
+
+def _free_udp_port():
+    import socket
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_obstacle_distance_bytes_decode_back():
+    from eonav import mavlink_out as mo
+    mu = mo.mavutil()
+    s = _wall_sectors()
+    buf = mo.encode_obstacle_distance(s, 1_700_000_000_123_456, system_id=7)
+    assert buf[0] == 0xFD                                    # MAVLink 2 frame (extensions survive)
+    msgs = mu.mavlink.MAVLink(None).parse_buffer(buf)
+    assert len(msgs) == 1
+    m = msgs[0]
+    assert m.get_type() == "OBSTACLE_DISTANCE" and m.get_msgId() == 330
+    assert m.get_srcSystem() == 7 and m.get_srcComponent() == 191
+    assert m.frame == mu.mavlink.MAV_FRAME_BODY_FRD == 12
+    assert m.increment == 0 and m.increment_f == pytest.approx(1.25) and m.angle_offset == pytest.approx(-45.0)
+    assert list(m.distances) == [int(x) for x in s.distances_cm]
+    assert m.min_distance == 50 and m.max_distance == 15000 and m.time_usec == 1_700_000_000_123_456
+    assert 15001 in m.distances and 2000 <= min(m.distances) <= 2300
+
+
+def test_obstacle_distance_rejects_bad_sectors():
+    from eonav import mavlink_out as mo
+    s = _wall_sectors()
+    bad = ob.Sectors(s.distances_cm[:10], s.increment_deg, s.angle_offset_deg, 50, 15000)
+    with pytest.raises(InputError, match="72 distances"):
+        mo.encode_obstacle_distance(bad, 0)
+    with pytest.raises(InputError, match="min_distance_cm"):
+        mo.encode_obstacle_distance(ob.Sectors(s.distances_cm, 1.25, 0.0, 500, 100), 0)
+
+
+def test_sender_fresh_then_unknown_over_udp():
+    from eonav import mavlink_out as mo
+    mu = mo.mavutil()
+    port = _free_udp_port()
+    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", system_id=1, rate_hz=10.0, clock=lambda: t[0],
+                                   wall_us=lambda: 42)
+    try:
+        def drain():
+            out = []
+            deadline = __import__("time").time() + 1.0
+            while __import__("time").time() < deadline:
+                m = rx.recv_match(blocking=True, timeout=0.2)
+                if m is None:
+                    break
+                out.append(m)
+            return out
+
+        tx.tick()                                            # t = 0: heartbeat, no data yet -> no OBSTACLE_DISTANCE
+        got = drain()
+        assert [m.get_type() for m in got] == ["HEARTBEAT"]
+        hb = got[0]
+        assert hb.get_srcComponent() == 191 and hb.type == mu.mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+        assert hb.autopilot == mu.mavlink.MAV_AUTOPILOT_INVALID
+        s = _wall_sectors()
+        tx.update(s, 1_700_000_000_000_000)
+        t[0] = 0.1
+        tx.tick()
+        t[0] = 0.2
+        tx.tick()
+        got = [m for m in drain() if m.get_type() == "OBSTACLE_DISTANCE"]
+        assert len(got) == 2 and all(list(m.distances) == list(s.distances_cm) for m in got)
+        assert got[0].time_usec == 1_700_000_000_000_000
+        t[0] = 0.75                                          # 0.65 s after the update: stale
+        assert not tx.is_fresh()
+        tx.tick()
+        got = [m for m in drain() if m.get_type() == "OBSTACLE_DISTANCE"]
+        assert len(got) == 1 and set(got[0].distances) == {65535} and got[0].time_usec == 42
+        assert got[0].increment_f == pytest.approx(1.25)     # geometry kept so the autopilot maps bins the same
+        t[0] = 1.05
+        tx.tick()                                            # second heartbeat due at 1.0 s
+        assert tx.counters == {"od_sent_fresh": 2, "od_sent_unknown": 2, "heartbeats_sent": 2, "send_errors": 0}
+    finally:
+        tx.close()
+        rx.close()
+
+
+def test_sender_real_time_rate():
+    import threading
+    import time
+    from eonav import mavlink_out as mo
+    mu = mo.mavutil()
+    port = _free_udp_port()
+    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", rate_hz=15.0)
+    stop = threading.Event()
+    th = threading.Thread(target=tx.run, args=(stop,))
+    try:
+        tx.update(_wall_sectors(), 1)
+        th.start()
+        t0, n_od, n_hb = time.monotonic(), 0, 0
+        while time.monotonic() - t0 < 1.0:
+            m = rx.recv_match(blocking=True, timeout=0.1)
+            if m is not None:
+                n_od += m.get_type() == "OBSTACLE_DISTANCE"
+                n_hb += m.get_type() == "HEARTBEAT"
+        # 15 Hz for 1 s; the first 0.5 s fresh, then unknown: the stream itself never stops
+        assert 12 <= n_od <= 17 and 1 <= n_hb <= 2
+        assert tx.counters["od_sent_unknown"] >= 5 and tx.counters["od_sent_fresh"] >= 5
+    finally:
+        stop.set()
+        th.join(2.0)
+        tx.close()
+        rx.close()
+
+
+def test_sender_rejects_bad_setup():
+    from eonav import mavlink_out as mo
+    with pytest.raises(InputError, match="2 Hz"):
+        mo.ObstacleDistanceSender("udpout:127.0.0.1:9", rate_hz=1.0)
+    with pytest.raises(InputError, match="cannot open MAVLink output"):
+        mo.ObstacleDistanceSender("tcp:127.0.0.1:1")
