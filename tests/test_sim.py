@@ -1,0 +1,290 @@
+"""Simulator tests: the renderer's geometry against eonav.geometry / eonav.camera (independent truth),
+ground truth against analytic intersections, and two-view consistency against eqs. (25)-(26) via
+pair_geometry().map_to_b."""
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from eonav import InputError
+from eonav.camera import Camera, VehicleState, View, pair_geometry
+from eonav.geometry import camera_from_ned, ned_from_camera
+from eonav.pairfile import load_pair_file
+from eonav.sim.flight import FLIGHTS, flight, flight_states, render_flight
+from eonav.sim.presets import FT_M, PRESETS, make_pair, write_pair
+from eonav.sim.render import project_ned, render
+from eonav.sim.scene import Box, Runway, Scene
+
+SMALL = 128
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    """Noise-free small renders of the motion and stereo presets (module cache: each is rendered once)."""
+    cache = {}
+
+    def get(name, noise_sigma=0.0):
+        key = (name, noise_sigma)
+        if key not in cache:
+            cache[key] = make_pair(name, size=SMALL, noise_sigma=noise_sigma)
+        return cache[key]
+    return get
+
+
+def _camera(**kw):
+    args = dict(name="c", width=96, height=80, fx=90.0, fy=95.0, cx=47.0, cy=41.5,
+                l_body_m=[1.5, 0.2, 0.4], eps_rad=np.deg2rad([3.0, -8.0, 2.0]))
+    args.update(kw)
+    return Camera(**args)
+
+
+def test_projection_matches_eonav_geometry():
+    rng = np.random.default_rng(1)
+    cam = _camera()
+    state = VehicleState.from_ypr([10.0, -4.0, -20.0], np.deg2rad([35.0, 4.0, -12.0]))
+    pts_cam = np.column_stack([rng.uniform(5, 200, 50), rng.uniform(-50, 50, 50), rng.uniform(-40, 40, 50)])
+    pts_ned = ned_from_camera(pts_cam, cam.T_cam_body, state.T_body_ned, state.position_ned_m, cam.l_body_m)
+    u, v, xc = project_ned(cam, state, pts_ned)
+    # independent: eqs. (8)-(9) on eonav.geometry.camera_from_ned
+    pc = camera_from_ned(pts_ned, cam.T_cam_body, state.T_body_ned, state.position_ned_m, cam.l_body_m)
+    np.testing.assert_allclose(pc, pts_cam, atol=1e-9)
+    np.testing.assert_allclose(xc, pts_cam[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(u, cam.cx + cam.fx * pts_cam[:, 1] / pts_cam[:, 0], atol=1e-9)
+    np.testing.assert_allclose(v, cam.cy + cam.fy * pts_cam[:, 2] / pts_cam[:, 0], atol=1e-9)
+
+
+def test_box_seen_where_geometry_projects_it():
+    """A fronto-parallel box face: its centre projects (eonav.geometry) onto a pixel labelled with the box, whose
+    ground-truth range is the face's x_c; a point beside the box is not the box."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
+    state = VehicleState.from_ypr([0.0, 0.0, -3.0], [0.0, 0.0, 0.0])
+    box = Box.on_ground("crate", 32.0, 2.0, 4.0, 3.0, 4.0)             # face towards the camera at north 30
+    r = render(Scene((box,)), cam, state, supersample=1, noise_sigma=0.0)
+    face_centre = np.array([30.0, 2.0, -2.0])
+    pc = camera_from_ned(face_centre, cam.T_cam_body, state.T_body_ned, state.position_ned_m, cam.l_body_m)
+    u = int(round(cam.cx + cam.fx * pc[1] / pc[0]))
+    v = int(round(cam.cy + cam.fy * pc[2] / pc[0]))
+    assert r.object_id[v, u] == 2
+    assert r.range_m[v, u] == pytest.approx(30.0, rel=1e-5)
+    on_box = r.object_id == 2
+    np.testing.assert_allclose(r.range_m[on_box], 30.0, rtol=1e-5)  # only the front face is visible
+    # the box's pixel extent matches the projection of its face corners
+    corners = np.array([[30.0, 0.5, 0.0], [30.0, 3.5, -4.0]])
+    cu, cv_, _ = project_ned(cam, state, corners)
+    cols = np.flatnonzero(on_box.any(axis=0))
+    rows = np.flatnonzero(on_box.any(axis=1))
+    assert abs(cols.min() - cu[0]) <= 1 and abs(cols.max() - cu[1]) <= 1
+    assert abs(rows.min() - cv_[1]) <= 1 and abs(rows.max() - cv_[0]) <= 1
+
+
+def test_ground_range_is_the_analytic_plane_intersection():
+    cam = _camera()
+    state = VehicleState.from_ypr([0.0, 0.0, -12.0], np.deg2rad([20.0, -5.0, 6.0]))
+    r = render(Scene(()), cam, state, supersample=1, noise_sigma=0.0)
+    ground = r.object_id == 1
+    assert 0.3 < ground.mean() < 0.9 and np.all(np.isinf(r.range_m[r.object_id == 0]))
+    u, v = cam.pixel_grid()
+    m = np.stack([np.ones_like(u), (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy], -1).astype(float)
+    args = (cam.T_cam_body, state.T_body_ned, state.position_ned_m, cam.l_body_m)
+    z0 = ned_from_camera(0.0 * m, *args)[..., 2]                      # lens centre
+    z1 = ned_from_camera(m, *args)[..., 2]                            # point at x_c = 1
+    x_c = -z0 / (z1 - z0)                                             # z(x_c) = 0, affine in x_c
+    near = ground & (x_c < 2000.0)              # beyond, grazing rays are ill-conditioned in any arithmetic
+    assert near.sum() > 0.95 * ground.sum()
+    np.testing.assert_allclose(r.range_m[near], x_c[near], rtol=1e-5)
+    assert np.all((z1 - z0)[~ground] <= 1e-9)                         # sky pixels look at or above the horizon
+
+
+def _correspondence(pair, max_range_m=np.inf):
+    """For frame-1 pixels with ground-truth range: where eqs. (25)-(26) (map_to_b) put them in frame 2, and
+    the frame-2 depth predicted there. Kept: pixels whose 3x3 neighbourhood in frame 1 and whose four
+    surrounding pixels in frame 2 all show the same object (no occlusion edge in between)."""
+    va, vb = pair.views
+    ta, tb = pair.truth
+    geo = pair_geometry(va, vb)
+    rho = np.where(np.isfinite(ta.range_m), 1.0 / ta.range_m, 0.0).astype(np.float32)
+    u_b, v_b, den = geo.map_to_b(rho)
+    ids_a = ta.object_id.astype(np.float32)
+    k = np.ones((3, 3), np.uint8)
+    ok = (cv2.dilate(ids_a, k) == cv2.erode(ids_a, k)) & (ta.object_id > 0) & (ta.range_m < max_range_m)
+    W, H = vb.camera.width, vb.camera.height
+    ok &= (u_b > 2) & (u_b < W - 3) & (v_b > 2) & (v_b < H - 3)
+    ids_b = tb.object_id.astype(np.float32)
+    for du in (-0.5, 0.5):
+        for dv in (-0.5, 0.5):
+            near = cv2.remap(ids_b, u_b + du, v_b + dv, cv2.INTER_NEAREST, borderValue=-1)
+            ok &= near == ids_a
+    return u_b, v_b, den * ta.range_m, ok
+
+
+@pytest.mark.parametrize("name", ["paper", "fast", "turning", "climbing", "stereo"])
+def test_ground_truth_range_agrees_with_eq25_26_mapping(pairs, name):
+    """The point seen at pixel p of frame 1 at range x_c is seen in frame 2 at map_to_b(1/x_c), with depth
+    x_c * (A0 + B0 rho): frame 2's own ground truth, looked up there, must agree."""
+    pair = pairs(name)
+    u_b, v_b, depth_b, ok = _correspondence(pair)
+    assert ok.sum() > 0.3 * ok.size
+    # inverse range is affine in the pixel coordinates on a plane: bilinear lookup of it is exact there
+    rho_b = (1.0 / pair.truth[1].range_m).astype(np.float32)
+    looked_up = cv2.remap(rho_b, u_b, v_b, cv2.INTER_LINEAR)
+    rel = np.abs(looked_up[ok] * depth_b[ok] - 1.0)
+    assert np.median(rel) < 1e-4
+    assert np.mean(rel < 1e-3) > 0.99
+
+
+@pytest.mark.parametrize("name", ["fast", "stereo", "turning"])
+def test_images_agree_at_eq25_26_predicted_pixels(pairs, name):
+    """Texture is a function of world coordinates: frame 2 resampled at the predicted pixels reproduces frame 1;
+    resampled at pixels predicted for a wrong range (x 1.5) or shifted by 2 px it does not."""
+    pair = pairs(name)
+    va, vb = pair.views
+    u_b, v_b, _, ok = _correspondence(pair)
+    ok &= pair.truth[0].range_m < 60.0                   # near field: disparities of pixels to tens of pixels
+    assert ok.sum() > 500
+    geo = pair_geometry(va, vb)
+    disp = np.hypot(u_b - np.mgrid[0:SMALL, 0:SMALL][1], v_b - np.mgrid[0:SMALL, 0:SMALL][0])
+    assert np.percentile(disp[ok], 90) > 2.0              # a real displacement, not an identity
+
+    def err(ub, vb_):
+        warped = cv2.remap(vb.image, ub.astype(np.float32), vb_.astype(np.float32), cv2.INTER_LINEAR)
+        return float(np.mean(np.abs(warped - va.image)[ok]))
+    rho_wrong = (1.0 / (1.5 * pair.truth[0].range_m)).astype(np.float32)
+    uw, vw, _ = geo.map_to_b(rho_wrong)
+    e_true, e_range, e_shift = err(u_b, v_b), err(uw, vw), err(u_b + 2.0, v_b)
+    contrast = float(np.std(va.image[ok]))
+    assert e_true < 0.25 * contrast
+    assert e_true < 0.5 * e_range and e_true < 0.5 * e_shift
+
+
+def test_hover_pair_is_identical_without_noise(pairs):
+    pair = pairs("hover")
+    a, b = pair.views
+    assert np.array_equal(a.state.position_ned_m, b.state.position_ned_m)
+    assert np.array_equal(a.state.T_body_ned, b.state.T_body_ned)
+    assert np.array_equal(a.image, b.image)
+    assert pair_geometry(a, b).baseline_m == 0.0
+
+
+def test_hover_with_noise_differs_by_the_noise_only():
+    pair = make_pair("hover", size=64, noise_sigma=2.0, seed=3)
+    d = pair.views[0].image - pair.views[1].image
+    assert 2.0 < np.std(d) < 3.5                         # two quantised N(0, 2) draws: std ~ 2.9
+
+
+def test_stereo_has_two_cameras_with_different_intrinsics(pairs):
+    a, b = (v.camera for v in pairs("stereo").views)
+    assert a.name != b.name
+    assert a.fx != b.fx and (a.cx, a.cy) != (b.cx, b.cy)
+    assert pairs("stereo").views[0].state.t_s == pairs("stereo").views[1].state.t_s
+    assert 0.5 <= pair_geometry(*pairs("stereo").views).baseline_m <= 1.0
+
+
+def test_paper_preset_replicates_table1(pairs):
+    pair = pairs("paper")
+    ranges = pair.meta["object_range_m"]
+    for name, ft in [("vehicle1", 356.4), ("vehicle2", 607.0), ("vehicle3", 232.8)]:
+        assert ranges[name] == pytest.approx(ft * FT_M, rel=0.01)
+    a, b = pair.views
+    np.testing.assert_allclose(b.state.position_ned_m - a.state.position_ned_m,
+                               np.array([5.41, -0.44, 0.02]) * FT_M, atol=1e-9)
+    assert b.state.t_s - a.state.t_s == pytest.approx(0.17)
+    fov_deg = np.rad2deg(2 * np.arctan(0.5 * a.camera.width / a.camera.fx))
+    assert 35 < fov_deg < 45
+
+
+def test_fast_preset_has_tens_of_pixels_of_disparity_at_full_size():
+    from eonav.sim.presets import preset_scene
+    _, cams, states, _ = preset_scene("fast")
+    geo = pair_geometry(View(cams[0], states[0], np.zeros((512, 512))), View(cams[1], states[1], np.zeros((512, 512))))
+    r = render(Scene(()), cams[0], states[0], supersample=1, noise_sigma=0.0)   # ground only
+    u_b, v_b, _ = geo.map_to_b(np.where(np.isfinite(r.range_m), 1 / r.range_m, 0).astype(np.float32))
+    u, v = cams[0].pixel_grid()
+    assert np.hypot(u_b - u, v_b - v)[-1].min() > 20.0     # bottom row
+
+
+def test_renders_are_deterministic_and_noise_is_seeded():
+    a = make_pair("turning", size=48, seed=5)
+    b = make_pair("turning", size=48, seed=5)
+    c = make_pair("turning", size=48, seed=6)
+    assert all(np.array_equal(x.image, y.image) for x, y in zip(a.views, b.views))
+    assert not np.array_equal(a.views[0].image, c.views[0].image)
+    assert np.array_equal(a.truth[0].range_m, c.truth[0].range_m)
+    img = a.views[0].image
+    assert img.dtype == np.float32 and img.min() >= 0 and img.max() <= 255 and np.array_equal(img, np.round(img))
+
+
+def test_texture_has_energy_at_all_scales(pairs):
+    """Ground texture in the near field: band-pass (difference of Gaussians) energy at scales 1..16 px."""
+    img = pairs("fast").views[0].image
+    patch = img[SMALL // 2 + 20:, 8:-8].astype(np.float32)        # near ground, below the horizon
+    levels = [cv2.GaussianBlur(patch, (0, 0), s) if s else patch for s in (0, 1, 2, 4, 8, 16)]
+    energy = [float(np.std((levels[i] - levels[i + 1])[16:-16, 16:-16])) for i in range(len(levels) - 1)]
+    assert min(energy) > 0.5, energy                                # grey levels; noise-free render
+
+
+def test_write_pair_round_trips_through_the_pair_file(tmp_path, pairs):
+    pair = pairs("stereo")
+    path = write_pair(pair, tmp_path / "out")
+    pf = load_pair_file(path)
+    views = pf.views()
+    assert len(views) == 2
+    for got, want in zip(views, pair.views):
+        assert got.camera.name == want.camera.name
+        for f in ("width", "height", "fx", "fy", "cx", "cy"):
+            assert getattr(got.camera, f) == pytest.approx(getattr(want.camera, f))
+        np.testing.assert_allclose(got.camera.l_body_m, want.camera.l_body_m)
+        np.testing.assert_allclose(got.camera.eps_rad, want.camera.eps_rad, atol=1e-12)
+        np.testing.assert_allclose(got.state.position_ned_m, want.state.position_ned_m)
+        np.testing.assert_allclose(got.state.T_body_ned, want.state.T_body_ned, atol=1e-12)
+        assert np.array_equal(got.image, want.image)
+    doc = json.loads(path.read_text())
+    assert set(doc) == {"cameras", "frames"}
+    assert set(doc["cameras"]["left"]) == {"width", "height", "fx", "fy", "cx", "cy", "mount"}
+    assert all(set(fr) == {"image", "camera", "t", "position_ned_m", "ypr_deg"} for fr in doc["frames"])
+    truth = np.load(path.parent / "truth.npz")
+    assert np.array_equal(truth["range_m"], pair.truth[0].range_m)
+    assert np.array_equal(truth["object_id"], pair.truth[0].object_id)
+    names = json.loads((path.parent / "objects.json").read_text())["objects"]
+    assert names["0"] == "sky" and names["1"] == "ground" and "crate" in names.values()
+
+
+def test_flight_states_are_smooth_and_match_the_rendered_frames():
+    t = np.linspace(0.0, 3.0, 301)
+    for name in FLIGHTS:
+        states = flight_states(name, t)
+        pos = np.array([s.position_ned_m for s in states])
+        speed = np.linalg.norm(np.diff(pos, axis=0), axis=1) / np.diff(t)
+        assert 10.0 < speed.min() and speed.max() < 30.0
+        acc = np.diff(pos, 2, axis=0) / 0.01 ** 2
+        assert np.abs(acc).max() < 3 * 9.81                         # smooth: bounded acceleration
+    frames = list(render_flight("approach", n_frames=3, rate_hz=10.0, size=48, supersample=1))
+    assert [f[0] for f in frames] == pytest.approx([0.0, 0.1, 0.2])
+    s = flight_states("approach", [0.1])[0]
+    np.testing.assert_allclose(frames[1][1].state.T_body_ned, s.T_body_ned)
+    assert frames[1][2].image.shape == (48, 48) and flight("approach").scene.boxes
+
+
+def test_approach_flight_consecutive_frames_agree_with_mapping():
+    frames = list(render_flight("approach", n_frames=2, rate_hz=10.0, t0_s=1.0, size=SMALL, noise_sigma=0.0))
+    from eonav.sim.presets import SimPair
+    pair = SimPair([f[1] for f in frames], [f[2] for f in frames], {})
+    u_b, v_b, depth_b, ok = _correspondence(pair)
+    rho_b = (1.0 / pair.truth[1].range_m).astype(np.float32)
+    rel = np.abs(cv2.remap(rho_b, u_b, v_b, cv2.INTER_LINEAR)[ok] * depth_b[ok] - 1.0)
+    assert np.median(rel) < 1e-3
+
+
+def test_bad_inputs_raise_clear_errors():
+    with pytest.raises(InputError, match="unknown sim preset"):
+        make_pair("nope")
+    with pytest.raises(InputError, match="unknown flight"):
+        flight_states("nope", [0.0])
+    with pytest.raises(InputError, match="above the ground"):
+        render(Scene(()), _camera(), VehicleState.from_ypr([0, 0, 1.0], [0, 0, 0]))
+    with pytest.raises(InputError, match="supersample"):
+        render(Scene(()), _camera(), VehicleState.from_ypr([0, 0, -1.0], [0, 0, 0]), supersample=0)
+    with pytest.raises(InputError, match="size"):
+        make_pair("paper", size=3)
+    assert set(PRESETS) == {"paper", "fast", "turning", "climbing", "stereo", "hover"}
+    assert Runway().half_width_m > 0
