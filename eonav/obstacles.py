@@ -32,7 +32,7 @@ lowest dense surface in view), else 0 m. Points beyond ``max_distance_m`` are no
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -238,11 +238,16 @@ class ObstacleResult:
     ground_down_m: float
     n_confident: int
     n_obstacle_px: int
+    sectors_now: Sectors | None = None      # sectors relative to ``now_state`` when one was given
 
 
 def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags=None, inv_range_std_per_m=None,
-            cfg: ObstacleConfig = ObstacleConfig()) -> ObstacleResult:
-    """Sectors and obstacle list of one range map (see the module docstring)."""
+            cfg: ObstacleConfig = ObstacleConfig(), now_state: VehicleState | None = None) -> ObstacleResult:
+    """Sectors and obstacle list of one range map (see the module docstring).
+
+    ``state`` is the vehicle pose at capture (it places the points, eq. 33). ``now_state``, when given, is
+    a newer pose (latest navigation): ``sectors_now`` are then measured from it, since the autopilot applies
+    OBSTACLE_DISTANCE on arrival, relative to where the vehicle is then (20 m/s x 100 ms = 2 m)."""
     _check_maps(range_m, confidence, flags, inv_range_std_per_m, camera)
     conf_m = confident_mask(range_m, confidence, flags, inv_range_std_per_m, cfg)
     pts = pixel_points(range_m, camera, state, conf_m, confidence, inv_range_std_per_m)
@@ -253,7 +258,22 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     obstacle = in_band & (pts.hdist_m <= cfg.max_distance_m)
     sectors = _sectors(pts, obstacle, ~obstacle, camera, range_m, flags, cfg)
     obstacles = _components(pts, obstacle & (pts.dist_m <= cfg.max_obstacle_distance_m), camera, range_m, state, cfg)
-    return ObstacleResult(sectors, obstacles, ground, int(pts.idx.size), int(np.count_nonzero(obstacle)))
+    sectors_now = None
+    if now_state is not None:
+        moved = relative_to(pts, now_state)
+        obstacle_now = in_band & (moved.hdist_m <= cfg.max_distance_m)
+        sectors_now = _sectors(moved, obstacle_now, ~obstacle_now, camera, range_m, flags, cfg)
+    return ObstacleResult(sectors, obstacles, ground, int(pts.idx.size), int(np.count_nonzero(obstacle)),
+                          sectors_now)
+
+
+def relative_to(pts: Points, state: VehicleState) -> Points:
+    """The same points with distances and bearings measured from another vehicle pose."""
+    rel = pts.ned_m - state.position_ned_m
+    yaw = ypr_from_T_body_ned(state.T_body_ned)[0]
+    bearing = (np.arctan2(rel[:, 1], rel[:, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi
+    return replace(pts, body_m=rel @ state.T_body_ned.T, hdist_m=np.hypot(rel[:, 0], rel[:, 1]),
+                   dist_m=np.linalg.norm(rel, axis=1), bearing_rad=bearing)
 
 
 def _bins(bearing_rad, inc_deg, off_deg):

@@ -359,3 +359,13 @@ def test_sender_rejects_bad_setup():
         mo.ObstacleDistanceSender("udpout:127.0.0.1:9", rate_hz=1.0)
     with pytest.raises(InputError, match="cannot open MAVLink output"):
         mo.ObstacleDistanceSender("tcp:127.0.0.1:1")
+
+
+def test_sectors_now_move_with_the_vehicle():
+    r = add_wall(ground_and_sky(), 20.0, 128, 192)
+    later = VehicleState.from_ypr([2.0, 0.0, -ALT_M], [0.0, 0.0, 0.0])      # 2 m further north
+    res = ob.analyse(r, CAM, LEVEL, cfg=CFG, now_state=later)
+    j = 37                                                                  # bearing 0 .. 1.25 deg
+    assert abs(int(res.sectors.distances_cm[j]) - 2000) <= 2
+    assert abs(int(res.sectors_now.distances_cm[j]) - 1800) <= 2
+    assert res.obstacles[0].horizontal_distance_m == pytest.approx(20.0, rel=0.02)   # list stays at capture pose
