@@ -1,0 +1,312 @@
+"""MAVLink ingest: an autopilot link (live or a recorded .tlog) -> nav_state and clock_offset on the bus.
+
+Live or recorded is one flag (STYLE §4): ``--source`` takes any pymavlink connection string
+(``udpin:0.0.0.0:14550``, ``udpout:10.0.0.1:14550``, ``tcp:127.0.0.1:5760``, ``/dev/ttyACM0`` with
+``--baud``) or a ``.tlog`` file path.
+
+- Output: schema ``nav_state`` on ``keys.nav_state(vehicle)``, one per accepted ATTITUDE,
+  ATTITUDE_QUATERNION, LOCAL_POSITION_NED, GLOBAL_POSITION_INT or ODOMETRY message (each stream with
+  its own stamps; absent quantities NaN; ``source`` = the message type), and ``clock_offset`` on
+  ``keys.nav_clock(vehicle)`` (at most 1 Hz and on every change of method). Decoding, validation,
+  reboot handling and the clock-offset estimators are in :mod:`eonav.mavlink_nav` (see its docstring).
+- ``stamp_us`` is on the companion clock: autopilot time + the estimated offset.
+- .tlog: replayed at real time (``--rate 1``), ``--rate X`` times faster, or as fast as possible
+  (``--rate 0``). Record-header times are mapped onto the current clock (shift = now at start - first
+  header) so a replay looks live downstream; the clock offset is then estimated from those receive
+  times (``--clock receive`` is the default for tlogs). End of the file: clean exit 0. Corrupt
+  packets (``bad_data``) and a truncated last record (``truncated_bytes``) are counted.
+- Live links: a companion HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID,
+  component 191), TIMESYNC requests at ``--timesync-hz`` (default 5; 0 = off), and with
+  ``--request-streams`` MAV_CMD_SET_MESSAGE_INTERVAL for the nav messages at ``--stream-hz``.
+- ``--system-id``: the autopilot to follow (default: the first autopilot seen, component 1).
+
+Health counters: ``msg.<TYPE>`` per received message type, ``bad_data``, ``truncated_bytes``,
+``rejected.<reason>`` (see eonav.mavlink_nav), ``reboots``, ``nav_published``; the detail string
+carries the clock method and offset.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+from eonav import InputError
+from eonav import keys as K
+from eonav.bus.node import Node, add_flag, service_main
+from eonav.mavlink_nav import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
+
+log = logging.getLogger(__name__)
+
+COMPANION_COMPONENT = 191          # MAV_COMP_ID_ONBOARD_COMPUTER
+STREAM_IDS = {"ATTITUDE": 30, "ATTITUDE_QUATERNION": 31, "LOCAL_POSITION_NED": 32, "GLOBAL_POSITION_INT": 33,
+              "SYSTEM_TIME": 2}
+CLOCK_PUBLISH_PERIOD_US = 1_000_000
+
+
+def now_us() -> int:
+    return time.time_ns() // 1000
+
+
+def is_tlog(source: str) -> bool:
+    return source.lower().endswith((".tlog", ".tlog.raw")) or (Path(source).is_file() and not source.startswith("/dev/"))
+
+
+def parse_origin(s: str | None):
+    if not s:
+        return None
+    try:
+        vals = [float(x) for x in s.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 3:
+        raise InputError(f"--origin {s!r}: expected LAT_DEG,LON_DEG,ALT_M")
+    return tuple(vals)
+
+
+def parse_clock(s: str, tlog: bool):
+    if s == "auto":
+        return ("receive",) if tlog else ("timesync", "system_time", "receive")
+    methods = tuple(x.strip() for x in s.split(",") if x.strip())
+    bad = set(methods) - {"timesync", "system_time", "receive"}
+    if bad or not methods:
+        raise InputError(f"--clock {s!r}: expected auto or a comma list of timesync, system_time, receive")
+    return methods
+
+
+def make_ingest(args, tlog: bool) -> NavIngest:
+    dec = NavDecoder(system_id=args.system_id, origin_lla=parse_origin(args.origin),
+                     position_source=args.position_source)
+    mapper = ClockMapper(prefer=parse_clock(args.clock, tlog), window_us=int(args.clock_window * 1e6),
+                         max_rtt_us=int(args.max_rtt_ms * 1000))
+    return NavIngest(dec, mapper)
+
+
+class Publisher:
+    """Turns NavIngest output into bus messages and health counters (thread-safe)."""
+
+    def __init__(self, node: Node, ingest: NavIngest):
+        self.node, self.ingest = node, ingest
+        self.nav_pub = node.publisher(K.nav_state(node.vehicle))
+        self.clock_pub = node.publisher(K.nav_clock(node.vehicle))
+        self.lock = threading.Lock()
+        self._last_clock = None
+        self._last_clock_us = None
+        self._reported: Counter = Counter()
+
+    def feed(self, msg, rx_us: int) -> None:
+        t = msg.get_type()
+        self.node.count(f"msg.{t}")
+        if t == "BAD_DATA":
+            self.node.count("bad_data")
+            return
+        with self.lock:
+            states = self.ingest.feed(msg, rx_us)
+        self.publish(states, rx_us)
+
+    def publish(self, states, now: int) -> None:
+        for d in states:
+            self.node.put(self.nav_pub, "nav_state", **d)
+            self.node.count("nav_published")
+        self.sync_counters()
+        est = self.ingest.clock()
+        if est is None:
+            return
+        key = (est.method, est.offset_us)
+        if key != self._last_clock and (self._last_clock is None or est.method != self._last_clock[0]
+                                        or self._last_clock_us is None
+                                        or now - self._last_clock_us >= CLOCK_PUBLISH_PERIOD_US):
+            self.node.put(self.clock_pub, "clock_offset", stamp_us=int(now), offset_us=int(est.offset_us),
+                          rtt_us=int(est.rtt_us), method=est.method, samples=int(est.samples))
+            if self._last_clock is None or est.method != self._last_clock[0]:
+                self.node.log.info("clock offset: %s %+.6f s (%d samples)", est.method, est.offset_us / 1e6,
+                                   est.samples)
+            self._last_clock, self._last_clock_us = key, now
+            self.node.set_state("ok", f"clock {est.method} offset_us {est.offset_us} rtt_us {est.rtt_us}")
+
+    def sync_counters(self) -> None:
+        """Mirror the ingest's rejection counters into the node's health counters."""
+        cur = self.ingest.rejected
+        cur["reboots"] = self.ingest.decoder.reboots
+        for k, v in cur.items():
+            d = v - self._reported[k]
+            if d:
+                self.node.count(k if k == "reboots" else f"rejected.{k}", d)
+                self._reported[k] = v
+
+
+def replay_tlog(path, feed, *, rate: float, stop: threading.Event, keep_stamps: bool = False,
+                clock=now_us, sleep=None) -> TlogReader:
+    """Replay a tlog into ``feed(msg, rx_us)``: header times shifted onto the current clock, paced at
+    ``rate`` x real time (0 = as fast as possible). Returns the reader (its ``stats``)."""
+    sleep = sleep or (lambda s: stop.wait(s))
+    reader = TlogReader(path)
+    shift = None
+    t_start_mono = time.monotonic()
+    first = None
+    with reader:
+        for header_us, msg in reader:
+            if stop.is_set():
+                break
+            if first is None:
+                first = header_us
+                shift = 0 if keep_stamps else clock() - header_us
+            if rate > 0:
+                due = t_start_mono + (header_us - first) / 1e6 / rate
+                wait = due - time.monotonic()
+                if wait > 0.001:
+                    sleep(wait)
+            feed(msg, header_us + shift)
+    return reader
+
+
+def _wait_matching(node: Node, pub, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not node.stop_event.is_set():
+        try:
+            if pub.matching_status.matching:
+                time.sleep(0.05)
+                return
+        except Exception:
+            return
+        node.stop_event.wait(0.02)
+
+
+def add_arguments(p) -> None:
+    g = p.add_argument_group("mavlink ingest")
+    add_flag(g, "--source", env="EONAV_MAVLINK_SOURCE", default=None, required=False,
+             help="pymavlink connection string (udpin:0.0.0.0:14550, tcp:host:port, /dev/ttyACM0) or a .tlog path")
+    add_flag(g, "--baud", env="EONAV_MAVLINK_BAUD", default=57600, type=int, help="serial baud rate")
+    add_flag(g, "--rate", env="EONAV_MAVLINK_RATE", default=1.0, type=float,
+             help="tlog replay speed factor (1 = real time, 0 = as fast as possible)")
+    add_flag(g, "--keep-stamps", env="EONAV_MAVLINK_KEEP_STAMPS", default=False, action="store_true",
+             help="tlog: keep the recorded header times instead of mapping them onto the current clock")
+    add_flag(g, "--system-id", env="EONAV_MAVLINK_SYSTEM_ID", default=None, type=int,
+             help="autopilot system id to follow (default: the first autopilot seen, component 1)")
+    add_flag(g, "--source-system", env="EONAV_MAVLINK_SOURCE_SYSTEM", default=1, type=int,
+             help="our MAVLink system id on live links (the vehicle's; component is 191)")
+    add_flag(g, "--position-source", env="EONAV_MAVLINK_POSITION_SOURCE", default="auto",
+             choices=("auto", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "ODOMETRY"),
+             help="which message gives position (auto: the first seen)")
+    add_flag(g, "--origin", env="EONAV_MAVLINK_ORIGIN", default=None, metavar="LAT,LON,ALT",
+             help="local NED origin for GLOBAL_POSITION_INT (deg, deg, m AMSL; default: first fix)")
+    add_flag(g, "--clock", env="EONAV_MAVLINK_CLOCK", default="auto",
+             help="clock-offset methods in preference order: auto (tlog: receive; live: "
+                  "timesync,system_time,receive) or a comma list")
+    add_flag(g, "--clock-window", env="EONAV_MAVLINK_CLOCK_WINDOW", default=20.0, type=float, metavar="S",
+             help="sliding window of the min-filter offset estimators (s of autopilot time)")
+    add_flag(g, "--max-rtt-ms", env="EONAV_MAVLINK_MAX_RTT_MS", default=10.0, type=float,
+             help="TIMESYNC exchanges with a longer round trip are ignored")
+    add_flag(g, "--timesync-hz", env="EONAV_MAVLINK_TIMESYNC_HZ", default=5.0, type=float,
+             help="live links: TIMESYNC request rate (0 = off)")
+    add_flag(g, "--request-streams", env="EONAV_MAVLINK_REQUEST_STREAMS", default=False, action="store_true",
+             help="live links: MAV_CMD_SET_MESSAGE_INTERVAL for the nav messages")
+    add_flag(g, "--stream-hz", env="EONAV_MAVLINK_STREAM_HZ", default=50.0, type=float,
+             help="rate requested with --request-streams")
+    add_flag(g, "--wait-subscribers", env="EONAV_MAVLINK_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
+             help="tlog: wait up to S s for a nav_state subscriber before replaying (declaration race)")
+
+
+def body(node: Node, args) -> None:
+    if not args.source:
+        raise InputError("--source is required (a pymavlink connection string or a .tlog path)")
+    tlog = is_tlog(args.source)
+    if tlog and not Path(args.source).is_file():
+        raise InputError(f"--source {args.source}: no such tlog file")
+    if args.rate < 0:
+        raise InputError(f"--rate {args.rate}: expected >= 0 (0 = as fast as possible)")
+    ingest = make_ingest(args, tlog)
+    pub = Publisher(node, ingest)
+    node.log.info("mavlink %s source %s -> %s", "tlog" if tlog else "live", args.source,
+                  K.nav_state(node.vehicle))
+    if tlog:
+        node.worker(_run_tlog, node, args, pub, name="replay")
+    else:
+        _start_live(node, args, pub)
+
+
+def _run_tlog(node: Node, args, pub: Publisher) -> None:
+    if args.wait_subscribers > 0:
+        _wait_matching(node, pub.nav_pub, args.wait_subscribers)
+    reader = replay_tlog(args.source, pub.feed, rate=args.rate, stop=node.stop_event, keep_stamps=args.keep_stamps)
+    if node.stop_event.is_set():
+        return
+    with pub.lock:
+        rest = pub.ingest.flush()
+    pub.publish(rest, now_us())
+    st = reader.stats
+    node.count("tlog_records", st.records)
+    if st.truncated_bytes:
+        node.count("truncated_bytes", st.truncated_bytes)
+        node.log.warning("tlog ends with %d bytes of a truncated record", st.truncated_bytes)
+    node.log.info("end of tlog: %d records, %d bad packets, published %s, rejected %s, reboots %d",
+                  st.records, st.bad_data, dict(pub.ingest.published), dict(pub.ingest.rejected),
+                  pub.ingest.decoder.reboots)
+    node.stop_event.wait(0.3)          # let the last messages leave the TX queue
+    node.stop("end of tlog")
+
+
+def _start_live(node: Node, args, pub: Publisher) -> None:
+    mavutil = mavutil_v2()
+    try:
+        conn = mavutil.mavlink_connection(args.source, baud=args.baud, source_system=args.source_system,
+                                          source_component=COMPANION_COMPONENT, dialect="ardupilotmega",
+                                          autoreconnect=True)
+    except Exception as e:
+        raise InputError(f"--source {args.source}: cannot open ({type(e).__name__}: {e})") from None
+    send_lock = threading.Lock()
+    mav = mavutil.mavlink
+
+    def receive():
+        while not node.stop_event.is_set():
+            try:
+                m = conn.recv_match(blocking=True, timeout=0.2)
+            except Exception as e:      # link errors: keep trying (autoreconnect for tcp)
+                node.count("link_errors")
+                node.log_limited("recv", logging.WARNING, "link error: %s", e)
+                node.stop_event.wait(0.2)
+                continue
+            if m is None:
+                continue
+            pub.feed(m, now_us())
+        conn.close()
+
+    def send():
+        next_hb = next_ts = next_req = time.monotonic()
+        ts_period = 1.0 / args.timesync_hz if args.timesync_hz > 0 else None
+        while not node.stop_event.is_set():
+            t = time.monotonic()
+            try:
+                if t >= next_hb:
+                    with send_lock:
+                        conn.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0,
+                                                mav.MAV_STATE_ACTIVE)
+                    next_hb = t + 1.0
+                if ts_period and t >= next_ts:
+                    with pub.lock:
+                        ts1 = pub.ingest.mapper.timesync.request(time.time_ns())
+                    with send_lock:
+                        conn.mav.timesync_send(0, ts1)
+                    node.count("timesync_sent")
+                    next_ts = t + ts_period
+                sysid = pub.ingest.decoder.system_id
+                if args.request_streams and sysid is not None and t >= next_req:
+                    for name, msg_id in STREAM_IDS.items():
+                        hz = 1.0 if name == "SYSTEM_TIME" else args.stream_hz
+                        with send_lock:
+                            conn.mav.command_long_send(sysid, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                       msg_id, int(1e6 / hz), 0, 0, 0, 0, 0)
+                    node.count("stream_requests")
+                    next_req = t + 30.0
+            except Exception as e:
+                node.count("send_errors")
+                node.log_limited("send", logging.WARNING, "send failed: %s", e)
+            node.stop_event.wait(0.01)
+
+    node.worker(receive, name="receive")
+    node.worker(send, name="send")
+
+
+if __name__ == "__main__":
+    service_main("mavlink", add_arguments, body)
