@@ -63,10 +63,21 @@ def _trace(scene: Scene, R: np.ndarray, o: np.ndarray, xn: np.ndarray, yn: np.nd
     t[ground] = tg[ground]
     oid[ground] = GROUND_ID
     face = np.full(n, -1, np.int8)
+    d_norm2 = np.einsum("ij,ij->j", d, d)
     for i, box in enumerate(scene.boxes):
+        # bounding-sphere cull: only rays passing within the box's circumradius are slab-tested
+        w = np.asarray(box.center_ned_m) - o
+        radius = float(np.linalg.norm(box.half_m))
+        along = w @ d                                              # (c - o) . d
+        miss = (np.dot(w, w) - along * along / d_norm2) > radius * radius
+        if np.dot(w, w) > radius * radius:
+            miss |= along <= 0
+        cand = np.flatnonzero(~miss)
+        if cand.size == 0:
+            continue
         Rb = box.R_ned_local
         ol = Rb.T @ (o - np.asarray(box.center_ned_m))
-        dl = Rb.T @ d
+        dl = Rb.T @ d[:, cand]
         h = box.half_m
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / np.where(np.abs(dl) < 1e-15, 1e-15, dl)
@@ -76,12 +87,13 @@ def _trace(scene: Scene, R: np.ndarray, o: np.ndarray, xn: np.ndarray, yn: np.nd
         tmax = np.maximum(ta, tb)
         tnear = tmin.max(axis=0)
         tfar = tmax.min(axis=0)
-        hit = (tnear <= tfar) & (tnear > 0) & (tnear < t)
-        if not hit.any():
+        hit_c = (tnear <= tfar) & (tnear > 0) & (tnear < t[cand])
+        if not hit_c.any():
             continue
-        t[hit] = tnear[hit]
+        hit = cand[hit_c]
+        t[hit] = tnear[hit_c]
         oid[hit] = FIRST_BOX_ID + i
-        face[hit] = np.argmax(tmin[:, hit], axis=0)
+        face[hit] = np.argmax(tmin[:, hit_c], axis=0)
     return t, oid, d, face
 
 

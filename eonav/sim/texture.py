@@ -29,7 +29,10 @@ AMP_EXPONENT = 0.3            # octave amplitude ~ lambda^0.3: fine detail stays
 FADE_LO_PX, FADE_HI_PX = 2.5, 5.0   # octave weight 0 below, 1 above, centre wavelength in footprints
 
 
-@lru_cache(maxsize=8)
+N_TILES = 4                   # distinct tiles; every seed still gets its own octave rotations and offsets
+
+
+@lru_cache(maxsize=N_TILES)
 def noise_tile(seed: int) -> np.ndarray:
     """Periodic TILE_N x TILE_N float32 tile, zero mean, unit std, spectrum one raised-cosine octave band
     (radial frequency TILE_F0/2 .. 2*TILE_F0 cycles per tile, weight cos^2(pi/2 log2(f/f0)))."""
@@ -116,7 +119,7 @@ def fractal_noise(x_m: np.ndarray, y_m: np.ndarray, footprint_m: np.ndarray, see
     inv_fp = (1.0 / np.asarray(footprint_m, np.float32)).ravel()
     fp_min, fp_max = float(1.0 / inv_fp.max()), float(1.0 / inv_fp.min())
     extent = float(max(np.abs(x_m).max(), np.abs(y_m).max()))
-    tile = noise_tile(seed)
+    tile = noise_tile(int(seed) % N_TILES)
     for lam, amp, c, s, ox, oy in _octave_params(seed):
         if lam < min_lambda_m * 0.999 or lam > max_lambda_m * 1.001:
             continue
