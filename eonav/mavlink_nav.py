@@ -251,7 +251,7 @@ class NavDecoder:
             t = msg.get_type()
             if msg.get_srcComponent() != self.autopilot_component or msg.get_srcSystem() in (0, 255):
                 return False
-            if t in NAV_TYPES or (t == "HEARTBEAT" and getattr(msg, "autopilot", 8) != 8):
+            if t in NAV_TYPES or t in CLOCK_TYPES or (t == "HEARTBEAT" and getattr(msg, "autopilot", 8) != 8):
                 self.system_id = msg.get_srcSystem()
                 log.info("locked onto autopilot system %d", self.system_id)
             else:
