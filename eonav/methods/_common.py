@@ -63,9 +63,13 @@ class EpipolarMap:
     def build(cls, geo: PairGeometry, level: int, shape_a, shape_b, den_min: float = 0.05) -> "EpipolarMap":
         ca = level_camera(geo.cam_a, level, shape_a)
         cb = level_camera(geo.cam_b, level, shape_b)
-        g = PairGeometry(ca, cb, geo.R_ba, geo.t_ba_m)
-        A0, A1, A2, B = g.ray_terms()
-        B = B.astype(F32)
+        # A = R m with m = [1, x_p/fx, y_p/fy] (as PairGeometry.ray_terms), by broadcasting row/column terms
+        m1 = ((np.arange(ca.width, dtype=np.float64) - ca.cx) / ca.fx)[None, :]
+        m2 = ((np.arange(ca.height, dtype=np.float64) - ca.cy) / ca.fy)[:, None]
+        R = np.asarray(geo.R_ba, float)
+        A0, A1, A2 = [(R[i, 0] + (R[i, 1] * m1).astype(F32) + (R[i, 2] * m2).astype(F32)).astype(F32)
+                      for i in range(3)]
+        B = np.asarray(geo.t_ba_m, float).astype(F32)
         C1 = (F32(cb.fx) * (B[1] * A0 - B[0] * A1)).astype(F32)
         C2 = (F32(cb.fy) * (B[2] * A0 - B[0] * A2)).astype(F32)
         if B[0] < 0:
