@@ -1,0 +1,205 @@
+"""Time-sync pairing: frames + navigation states -> posed frames.
+
+In: schema ``frame`` on ``keys.frames_all(vehicle)`` (RingChannel: the newest frames win) and
+``nav_state`` on ``keys.nav_state(vehicle)`` (FifoChannel: must not be lost).
+Out: schema ``posed_frame`` on ``keys.posed_frame(vehicle, camera_id)`` (image publisher): the frame,
+its camera (intrinsics + mount from ``--cameras``), and the vehicle pose interpolated at the frame's
+capture stamp by :class:`eonav.timesync.NavBuffer` (slerp attitude; linear or velocity-aided Hermite
+position), with ``nav_gap_us`` (largest bracketing gap) and ``quality_flags`` (eonav.timesync QF_*).
+
+Watermark policy per pending frame (see eonav.timesync): posed as soon as attitude and position
+bracket its stamp; dropped at once when it can never be (``older_than_buffer``, ``before_first_nav``,
+``gap``); if it is still waiting after ``--max-wait-ms`` of wall time (nav late or stopped), posed by
+extrapolation up to ``--max-extrapolation-ms`` past the newest nav sample (flag QF_EXTRAPOLATED), else
+dropped as ``extrapolation_limit``. Every drop is counted as ``dropped.<reason>``; frames of a camera
+not in ``--cameras`` as ``unknown_camera``.
+
+``--cameras FILE``: JSON, either the pair file's "cameras" section (``{name: {width, height, fx, fy,
+cx, cy, mount: {l_m, eps_deg}}}``) or a whole pair file (its "cameras" key is used).
+
+The pairing logic is :class:`Pairer`, a pure object over injected times, tested without zenoh.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from eonav import InputError, schema
+from eonav import keys as K
+from eonav.bus.node import Node, add_flag, service_main
+from eonav.pairfile import parse_camera
+from eonav.timesync import NavBuffer
+
+log = logging.getLogger(__name__)
+
+
+def load_cameras(path) -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"--cameras {p}: no such file")
+    try:
+        doc = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"--cameras {p}: not valid JSON ({e})") from None
+    if isinstance(doc, dict) and isinstance(doc.get("cameras"), dict):
+        doc = doc["cameras"]
+    if not isinstance(doc, dict) or not doc:
+        raise InputError(f"--cameras {p}: expected an object of named cameras")
+    cams = {}
+    for name, c in doc.items():
+        K.check_chunk(name, "camera id")
+        cams[name] = parse_camera(name, c)
+    return cams
+
+
+class Pairer:
+    """Pending frames against a NavBuffer. ``add_frame``/``add_nav`` then ``poll(now_s)`` -> list of
+    posed_frame field dicts; drops and counts in ``counts``. Not thread-safe (the service locks)."""
+
+    def __init__(self, cameras: dict, nav: NavBuffer, max_wait_s: float = 0.3, max_pending: int = 32):
+        self.cameras = cameras
+        self.cam_msgs = {n: schema.camera_to_msg(c) for n, c in cameras.items()}
+        self.nav = nav
+        self.max_wait_s, self.max_pending = max_wait_s, max_pending
+        self.pending: list = []          # (stamp_us, arrival_s, frame dict)
+        self.counts: Counter = Counter()
+
+    def add_nav(self, msg: dict) -> None:
+        self.nav.add_state(msg)
+
+    def add_frame(self, msg: dict, now_s: float) -> None:
+        cam = self.cameras.get(msg["camera_id"])
+        if cam is None:
+            self.counts["unknown_camera"] += 1
+            return
+        img = msg["image"]
+        if img.shape[:2] != (cam.height, cam.width):
+            self.counts["dropped.wrong_size"] += 1
+            return
+        self.pending.append((int(msg["stamp_us"]), now_s, msg))
+        self.pending.sort(key=lambda x: x[0])
+        while len(self.pending) > self.max_pending:
+            self.pending.pop(0)
+            self.counts["dropped.pending_overflow"] += 1
+
+    def poll(self, now_s: float) -> list:
+        out, keep = [], []
+        for stamp, arrived, msg in self.pending:
+            d = self.nav.decide(stamp)
+            if d.state == "never":
+                self.counts[f"dropped.{d.reason}"] += 1
+                continue
+            if d.state == "wait":
+                if now_s - arrived < self.max_wait_s:
+                    keep.append((stamp, arrived, msg))
+                    continue
+                r = self.nav.pose_at(stamp, allow_extrapolation=True)
+            else:
+                r = self.nav.pose_at(stamp)
+            if not r.ok:
+                self.counts[f"dropped.{r.reason}"] += 1
+                continue
+            self.counts["posed"] += 1
+            out.append({"camera_id": msg["camera_id"], "seq": msg["seq"], "stamp_us": stamp,
+                        "stamp_source": msg["stamp_source"], "encoding": msg["encoding"], "image": msg["image"],
+                        "camera": self.cam_msgs[msg["camera_id"]], "position_ned_m": r.position_ned_m,
+                        "q_wxyz": r.q_wxyz, "velocity_ned_mps": r.velocity_ned_mps,
+                        "nav_gap_us": int(r.nav_gap_us), "quality_flags": int(r.quality_flags)})
+        self.pending = keep
+        return out
+
+
+def add_arguments(p) -> None:
+    g = p.add_argument_group("sync")
+    add_flag(g, "--cameras", env="EONAV_SYNC_CAMERAS", default=None,
+             help="JSON with the cameras (pair-file 'cameras' section or a whole pair file)")
+    add_flag(g, "--max-extrapolation-ms", env="EONAV_SYNC_MAX_EXTRAPOLATION_MS", default=20.0, type=float,
+             help="farthest a pose may be extrapolated beyond the nav samples")
+    add_flag(g, "--max-gap-ms", env="EONAV_SYNC_MAX_GAP_MS", default=250.0, type=float,
+             help="largest gap between bracketing nav samples accepted")
+    add_flag(g, "--gap-warn-ms", env="EONAV_SYNC_GAP_WARN_MS", default=60.0, type=float,
+             help="bracket gaps above this set the QF_GAP flag")
+    add_flag(g, "--max-wait-ms", env="EONAV_SYNC_MAX_WAIT_MS", default=300.0, type=float,
+             help="wall time a frame may wait for bracketing nav before extrapolation or drop")
+    add_flag(g, "--nav-buffer", env="EONAV_SYNC_NAV_BUFFER", default=4096, type=int,
+             help="nav samples kept per stream (attitude, position)")
+    add_flag(g, "--frame-ring", env="EONAV_SYNC_FRAME_RING", default=4, type=int,
+             help="frame subscriber ring size (the newest frames win)")
+    add_flag(g, "--nav-fifo", env="EONAV_SYNC_NAV_FIFO", default=2000, type=int,
+             help="nav_state subscriber FIFO size")
+    add_flag(g, "--attitude-only", env="EONAV_SYNC_ATTITUDE_ONLY", default=False, action="store_true",
+             help="pose frames without a position stream (position NaN)")
+
+
+def body(node: Node, args) -> None:
+    if not args.cameras:
+        raise InputError("--cameras is required (JSON with the camera intrinsics and mounts)")
+    cams = load_cameras(args.cameras)
+    nav = NavBuffer(max_samples=args.nav_buffer, max_extrapolation_us=int(args.max_extrapolation_ms * 1000),
+                    max_gap_us=int(args.max_gap_ms * 1000), gap_warn_us=int(args.gap_warn_ms * 1000),
+                    require_position=not args.attitude_only)
+    pairer = Pairer(cams, nav, max_wait_s=args.max_wait_ms / 1000.0)
+    lock = threading.Lock()
+    pubs = {name: node.publisher(K.posed_frame(node.vehicle, name), image=True) for name in cams}
+    frame_sub = node.subscribe(K.frames_all(node.vehicle), ring=args.frame_ring)
+    nav_sub = node.subscribe(K.nav_state(node.vehicle), fifo=args.nav_fifo)
+    reported: Counter = Counter()
+    node.log.info("sync: cameras %s; frames %s + nav %s -> %s", sorted(cams), K.frames_all(node.vehicle),
+                  K.nav_state(node.vehicle), K.posed_frame(node.vehicle, "<camera>"))
+
+    def process():
+        with lock:
+            out = pairer.poll(time.monotonic())
+            counts = Counter(pairer.counts)
+        for d in out:
+            node.put(pubs[d["camera_id"]], "posed_frame", **d)
+            node.latency("frame_to_posed", time.time() - d["stamp_us"] / 1e6)
+        for k, v in counts.items():
+            if v != reported[k]:
+                if k.startswith("dropped.") and v > reported[k]:
+                    node.log_limited(k, logging.WARNING, "frame %s", k.replace(".", ": ", 1))
+                node.count(k, v - reported[k])
+                reported[k] = v
+
+    def nav_loop():
+        for s in nav_sub:
+            msg = node.decode(s, "nav_state")
+            if msg is None:
+                continue
+            with lock:
+                pairer.add_nav(msg)
+            process()
+
+    def frame_loop():
+        for s in frame_sub:
+            msg = node.decode(s, "frame")
+            if msg is None:
+                continue
+            with lock:
+                pairer.add_frame(msg, time.monotonic())
+            process()
+
+    def tick():
+        while not node.stop_event.wait(0.02):
+            process()
+            with lock:
+                nav_counts = Counter(nav.counts)
+            for k in ("duplicate_stamp", "out_of_order", "too_old", "bad_attitude", "bad_position"):
+                d = nav_counts[k] - reported[f"nav.{k}"]
+                if d:
+                    node.count(f"nav.{k}", d)
+                    reported[f"nav.{k}"] = nav_counts[k]
+
+    node.worker(nav_loop, name="nav")
+    node.worker(frame_loop, name="frames")
+    node.worker(tick, name="tick")
+
+
+if __name__ == "__main__":
+    service_main("sync", add_arguments, body)
