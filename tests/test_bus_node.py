@@ -1,0 +1,265 @@
+"""The node skeleton (eonav.bus.node) in real processes over a real zenoh bus on loopback:
+liveliness token, health messages, config queryable, SIGINT/SIGTERM, worker failure, bad payloads."""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import textwrap
+import time
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from eonav import keys as K  # noqa: E402
+from eonav import schema  # noqa: E402
+from eonav.bus import session as S  # noqa: E402
+from eonav.bus.node import LatencyWindow, Node, RateMeter  # noqa: E402
+from eonav.bus.testing import (drain, endpoint, free_port, listener_session, start_service,  # noqa: E402
+                               stop_service, wait_until)
+
+VEHICLE = "testv"
+
+# A tiny service: counts bad payloads on nav/state (fifo), ticks a loop; --crash makes its worker raise,
+# --config-error makes body raise an InputError.
+TINY = textwrap.dedent('''
+    import time
+    from eonav import InputError, keys
+    from eonav.bus.node import service_main, add_flag
+
+    def add_arguments(p):
+        add_flag(p, "--crash-after", env="TINY_CRASH_AFTER", type=float, default=-1.0)
+        add_flag(p, "--config-error", env="TINY_CONFIG_ERROR", action="store_true")
+
+    def body(node, args):
+        if args.config_error:
+            raise InputError("--config-error given")
+        sub = node.subscribe(keys.nav_state(node.vehicle), fifo=16)
+        def consume():
+            for sample in sub:
+                node.decode(sample, expect="nav_state")
+        def loop():
+            t0 = time.monotonic()
+            while not node.stop_event.wait(0.05):
+                node.tick("loop")
+                node.latency("loop", 0.001)
+                if 0 <= args.crash_after < time.monotonic() - t0:
+                    raise RuntimeError("tiny crashed on purpose")
+        node.worker(consume, name="consume")
+        node.worker(loop, name="loop")
+
+    if __name__ == "__main__":
+        service_main("tiny", add_arguments, body)
+''')
+
+
+@pytest.fixture
+def tiny(tmp_path):
+    p = tmp_path / "tiny.py"
+    p.write_text(TINY)
+    return p
+
+
+class Bus:
+    """The test's side of the bus: a listening peer with health + liveliness subscribers."""
+
+    def __init__(self, port):
+        self.port = port
+        self.session = listener_session(port)
+        self.health_sub = self.session.declare_subscriber(K.health_all(VEHICLE), zenoh.handlers.FifoChannel(1000))
+        self.alive_sub = self.session.liveliness().declare_subscriber(
+            K.alive_all(VEHICLE), zenoh.handlers.FifoChannel(100), history=True)
+        self.health, self.alive_events = [], []
+
+    def poll(self):
+        for s in drain(self.health_sub):
+            self.health.append(schema.decode(s.payload.to_bytes(), expect="health"))
+        for s in drain(self.alive_sub):
+            self.alive_events.append((str(s.key_expr), s.kind))
+        return self
+
+    def alive(self, name):
+        state = None
+        for key, kind in self.alive_events:
+            if key == K.alive(VEHICLE, name):
+                state = kind == zenoh.SampleKind.PUT
+        return state
+
+    def close(self):
+        self.health_sub.undeclare()
+        self.alive_sub.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def bus():
+    b = Bus(free_port())
+    yield b
+    b.close()
+
+
+def _start(script, bus, *extra, name="tiny"):
+    return start_service([str(script), "--vehicle", VEHICLE, "--name", name, "--connect", endpoint(bus.port),
+                          "--health-period", "0.2", *extra])
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_token_health_config_and_clean_stop(tiny, bus, sig):
+    proc = _start(tiny, bus)
+    try:
+        wait_until(lambda: bus.poll().alive("tiny"), 20, what="liveliness token PUT")
+        wait_until(lambda: len(bus.poll().health) >= 3, 10, what="3 health messages")
+        h = bus.health[-1]
+        assert h["service"] == "tiny" and h["state"] == "ok" and h["pid"] == proc.pid
+        assert h["rates_hz"]["loop"] > 5
+        assert h["latency_ms"]["loop"]["p50"] == pytest.approx(1.0)
+        # config queryable returns the effective flags as JSON
+        replies = list(bus.session.get(K.config(VEHICLE, "tiny"), timeout=5.0))
+        cfg = json.loads(next(r.ok for r in replies if r.ok is not None).payload.to_string())
+        assert cfg["service"] == "tiny" and cfg["vehicle"] == VEHICLE
+        assert cfg["args"]["connect"] == endpoint(bus.port) and cfg["args"]["health_period"] == 0.2
+    finally:
+        code, err = stop_service(proc, sig)
+    assert code == 0, err
+    assert f"stopped ({sig.name}), exit 0" in err
+    wait_until(lambda: bus.poll().alive("tiny") is False, 10, what="liveliness token DELETE")
+
+
+def test_malformed_payloads_are_counted_not_fatal(tiny, bus):
+    proc = _start(tiny, bus)
+    try:
+        wait_until(lambda: bus.poll().alive("tiny"), 20, what="liveliness token")
+        pub = bus.session.declare_publisher(K.nav_state(VEHICLE), congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_until(lambda: pub.matching_status.matching, 10, what="subscriber match")
+        time.sleep(0.2)
+        good = schema.encode("nav_state", stamp_us=1, position_ned_m=[0, 0, 0])
+        import msgpack
+        doc = msgpack.unpackb(good)
+        doc["v"] = 99
+        pub.put(b"\xc1 not msgpack")                      # garbage
+        pub.put(msgpack.packb(doc, use_bin_type=True))     # unknown schema version
+        pub.put(schema.encode("health", service="x", stamp_us=1, state="ok"))  # wrong kind
+        pub.put(good)
+
+        def counters():
+            bus.poll()
+            c = bus.health[-1]["counters"] if bus.health else {}
+            return c if c.get("in.nav_state") == 1 and c.get("decode_errors") == 3 else None
+        c = wait_until(counters, 10, what="decode counters in health")
+        assert c["unknown_version"] == 1
+        assert proc.poll() is None and bus.health[-1]["state"] == "ok"
+        pub.undeclare()
+    finally:
+        code, err = stop_service(proc)
+    assert code == 0, err
+    assert "dropped payload" in err
+
+
+def test_worker_exception_sets_error_and_exits_nonzero(tiny, bus):
+    proc = _start(tiny, bus, "--crash-after", "0.5")
+    code = proc.wait(20)
+    err = proc.stderr.read()
+    assert code == 1, err
+    assert "tiny crashed on purpose" in err
+    bus.poll()
+    assert bus.health and bus.health[-1]["state"] == "error"
+    assert "RuntimeError" in bus.health[-1]["detail"]
+
+
+def test_configuration_error_exits_2(tiny, bus):
+    proc = _start(tiny, bus, "--config-error")
+    assert proc.wait(20) == 2
+    assert "--config-error given" in proc.stderr.read()
+
+
+def test_bad_flags_exit_2(tiny):
+    proc = start_service([str(tiny), "--vehicle", "has/slash"])
+    assert proc.wait(20) == 2
+    assert "vehicle" in proc.stderr.read()
+
+
+# ---- pure parts --------------------------------------------------------------------------------------
+
+class FakeClock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_rate_meter_sliding_window():
+    clk = FakeClock()
+    m = RateMeter(window_s=5.0, clock=clk)
+    assert m.rate_hz() == 0.0
+    for _ in range(50):  # 10 Hz for 5 s
+        m.tick()
+        clk.t += 0.1
+    assert m.rate_hz() == pytest.approx(10.0, rel=0.05)
+    clk.t += 10.0
+    assert m.rate_hz() == 0.0
+
+
+def test_latency_window_percentiles():
+    clk = FakeClock()
+    w = LatencyWindow(window_s=10.0, clock=clk)
+    assert w.summary_ms() == {"n": 0}
+    for i in range(1, 101):
+        w.add(i / 1000.0)
+    s = w.summary_ms()
+    assert s["n"] == 100 and s["p50"] == pytest.approx(50.0, abs=1.0) and s["p99"] == pytest.approx(99.0, abs=1.0)
+    assert s["max"] == 100.0
+    clk.t += 11
+    assert w.summary_ms() == {"n": 0}
+
+
+class _Sample:
+    def __init__(self, payload, key="eonav/x/nav/state"):
+        self.key_expr = key
+        self.payload = self
+        self._p = payload
+
+    def to_bytes(self):
+        return self._p
+
+
+def test_node_decode_never_raises():
+    args = argparse.Namespace(vehicle="v", health_period=1.0)
+    node = Node("unit", args, session=None)
+    assert node.decode(_Sample(b"\x00garbage"), expect="nav_state") is None
+    assert node.decode(_Sample(schema.encode("nav_state", stamp_us=5)), expect="obstacle_list") is None
+    msg = node.decode(_Sample(schema.encode("nav_state", stamp_us=5)), expect="nav_state")
+    assert msg["stamp_us"] == 5
+    c = node.counters()
+    assert c["decode_errors"] == 2 and c["in.nav_state"] == 1
+    f = node.health_fields()
+    schema.decode(schema.encode("health", **f), expect="health")  # health is always encodable
+    with pytest.raises(Exception, match="state"):
+        node.set_state("bad")
+
+
+def test_session_flags_build_config(tmp_path, monkeypatch):
+    p = argparse.ArgumentParser()
+    monkeypatch.setenv("EONAV_CONNECT", "tcp/127.0.0.1:7447, tcp/10.0.0.2:7447")
+    S.add_session_arguments(p)
+    a = p.parse_args([])
+    d = S.config_dict(a)
+    assert d == {"mode": "peer", "connect/endpoints": ["tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447"],
+                 "listen/endpoints": ["tcp/127.0.0.1:0"], "scouting/multicast/enabled": False}
+    cfg = S.build_config(a)
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447"]
+    # a file is applied first; flags override it
+    f = tmp_path / "z.json5"
+    f.write_text('{ mode: "client", connect: { endpoints: ["tcp/192.0.2.1:7447"] }, /* comment */ }')
+    a = p.parse_args(["--zenoh-config", str(f), "--connect", "tcp/127.0.0.1:9999"])
+    cfg = S.build_config(a)
+    assert json.loads(cfg.get_json("mode")) == "client"
+    assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:9999"]
+    a = p.parse_args(["--multicast", "--mode", "peer"])
+    assert S.config_dict(a)["scouting/multicast/enabled"] is True
+    with pytest.raises(Exception, match="no such file"):
+        S.build_config(p.parse_args(["--zenoh-config", str(tmp_path / "missing.json5")]))
+    with pytest.raises(Exception, match="endpoint"):
+        S.split_endpoints("localhost:7447")

@@ -1,0 +1,300 @@
+"""Camera ingest: the pure capture loop and sources (fake clock, fake capture), then the real service
+replaying an image folder over a real zenoh session on loopback."""
+from __future__ import annotations
+
+import argparse
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from eonav import InputError
+from services import camera_ingest as C
+
+
+class FakeClock(C.Clock):
+    """Realtime starts at 1_700_000_000 s; sleep advances both clocks."""
+
+    def __init__(self, now_us=1_700_000_000_000_000):
+        self.us = now_us
+        self.slept = []
+
+    def now_us(self):
+        return self.us
+
+    def monotonic(self):
+        return self.us / 1e6
+
+    def sleep(self, s, stop=None):
+        self.slept.append(s)
+        self.us += int(round(s * 1e6))
+
+    def mono_to_realtime_us(self):
+        return 0
+
+
+def _img(v, w=64, h=48, colour=False):
+    a = np.full((h, w), v, np.uint8)
+    a[0, 0] = (v + 1) % 256
+    return cv2.cvtColor(a, cv2.COLOR_GRAY2BGR) if colour else a
+
+
+def _folder(tmp_path, stamps_s=None, n=6):
+    d = tmp_path / "rec"
+    d.mkdir()
+    for i in range(n):
+        cv2.imwrite(str(d / f"frame_{i:03d}.png"), _img(10 * i, colour=(i % 2 == 0)))
+    if stamps_s is not None:
+        (d / "timestamps.txt").write_text("# recorded stamps, seconds\n" + "".join(f"{t:.6f}\n" for t in stamps_s))
+    return d
+
+
+# ---- timestamps file ---------------------------------------------------------------------------------
+
+def test_timestamps_units(tmp_path):
+    f = tmp_path / "t.txt"
+    f.write_text("100.5\n100.6 frame_001.png\n\n# comment\n101\n")
+    assert C.parse_timestamps(f) == [100_500_000, 100_600_000, 101_000_000]          # auto -> seconds
+    f.write_text("1700000000000000\n1700000000100000\n")
+    assert C.parse_timestamps(f) == [1_700_000_000_000_000, 1_700_000_000_100_000]  # auto -> microseconds
+    assert C.parse_timestamps(f, "s")[0] == 1_700_000_000_000_000 * 1_000_000
+    f.write_text("5\n6\n")
+    assert C.parse_timestamps(f, "us") == [5, 6]
+    assert C.parse_timestamps(f) == [5_000_000, 6_000_000]                          # small ints are seconds
+    f.write_text("2\n1\n")
+    with pytest.raises(InputError, match="must not decrease"):
+        C.parse_timestamps(f)
+    f.write_text("1\nabc\n")
+    with pytest.raises(InputError, match="not a number"):
+        C.parse_timestamps(f)
+
+
+def test_folder_needs_one_stamp_per_image(tmp_path):
+    d = _folder(tmp_path, stamps_s=[1.0, 2.0], n=3)
+    with pytest.raises(InputError, match="2 stamps for 3 image files"):
+        list(C.folder_frames(d))
+
+
+# ---- folder source + capture loop ----------------------------------------------------------------------
+
+def test_folder_replay_maps_recorded_stamps_onto_now(tmp_path):
+    stamps = [50.0, 50.1, 50.25, 50.3, 50.4, 50.5]
+    d = _folder(tmp_path, stamps)
+    clock = FakeClock()
+    start = clock.us
+    frames = C.folder_frames(d, clock=clock, pacer=C.Pacer("auto", clock))
+    out = []
+    st = C.capture_loop(frames, out.append, camera_id="nose")
+    assert st.published == 6
+    got = [f["stamp_us"] for f in out]
+    assert got[0] == start                                   # offset = now - first stamp
+    assert np.diff(got).tolist() == [100_000, 150_000, 50_000, 100_000, 100_000]   # spacing preserved
+    assert [f["stamp_source"] for f in out] == ["recorded"] * 6
+    assert [f["source_pts_us"] for f in out] == [int(round(t * 1e6)) for t in stamps]
+    assert [f["seq"] for f in out] == list(range(6))
+    assert all(f["image"].shape == (48, 64) and f["image"].dtype == np.uint8 for f in out)   # mono8
+    assert out[3]["image"][1, 1] == 30 and out[3]["encoding"] == "mono8"
+    assert clock.slept == pytest.approx([0.1, 0.15, 0.05, 0.1, 0.1], abs=1e-5)                       # real-time pacing
+
+
+def test_folder_keep_stamps_loop_and_fixed_rate(tmp_path):
+    d = _folder(tmp_path, [10.0, 10.2, 10.4], n=3)
+    clock = FakeClock()
+    stop = threading.Event()
+    frames = C.folder_frames(d, clock=clock, keep_stamps=True, loop=True, pacer=C.Pacer(50.0, clock), stop=stop)
+    out = []
+
+    def sink(f):
+        out.append(f)
+        if len(out) == 7:
+            stop.set()
+    C.capture_loop(frames, sink, camera_id="nose", stop=stop)
+    assert [f["stamp_us"] for f in out] == [10_000_000, 10_200_000, 10_400_000,
+                                            10_600_000, 10_800_000, 11_000_000, 11_200_000]
+    assert out[0]["stamp_source"] == "recorded_raw"
+    assert clock.slept == pytest.approx([0.02] * 6, abs=1e-5)          # --rate 50: fixed pacing
+
+
+def test_folder_without_timestamps_uses_host_clock(tmp_path):
+    d = _folder(tmp_path, None, n=3)
+    clock = FakeClock()
+    out = []
+    C.capture_loop(C.folder_frames(d, clock=clock, pacer=C.Pacer(0, clock)), out.append, camera_id="c",
+                   encoding="bgr8")
+    assert [f["stamp_source"] for f in out] == ["host"] * 3
+    assert out[1]["image"].shape == (48, 64, 3) and out[1]["encoding"] == "bgr8"
+
+
+def test_corrupt_and_wrong_size_frames_are_counted_and_skipped(tmp_path):
+    d = _folder(tmp_path, None, n=3)
+    (d / "frame_001.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)    # corrupt
+    cv2.imwrite(str(d / "frame_002b.png"), np.zeros((32, 32), np.uint8))      # wrong size
+    cv2.imwrite(str(d / "frame_003.png"), (np.ones((48, 64), np.uint16) * 65535))  # 16 bit -> 255
+
+    class M(C.NullMetrics):
+        def __init__(self):
+            self.c = {}
+
+        def count(self, name, n=1):
+            self.c[name] = self.c.get(name, 0) + n
+    m = M()
+    out = []
+    st = C.capture_loop(C.folder_frames(d, pacer=None), out.append, camera_id="c", width=64, height=48, metrics=m)
+    assert (st.published, st.corrupt, st.wrong_size) == (3, 1, 1)
+    assert m.c["corrupt_frames"] == 1 and m.c["wrong_size"] == 1 and m.c["frames_in"] == 5
+    assert [f["seq"] for f in out] == [0, 1, 2]                # seq counts published frames
+    assert out[-1]["image"].max() == 255
+
+
+def test_bad_encoding_rejected():
+    with pytest.raises(InputError, match="encoding"):
+        C.capture_loop([], lambda f: None, camera_id="c", encoding="rgb16")
+
+
+# ---- video-capture source (fake cv2.VideoCapture) ----------------------------------------------------
+
+class FakeCap:
+    def __init__(self, pts_ms, bad=(), fps=20.0):
+        self.pts_ms, self.bad, self.fps = list(pts_ms), set(bad), fps
+        self.i = -1
+        self.released = False
+
+    def grab(self):
+        self.i += 1
+        return self.i < len(self.pts_ms)
+
+    def retrieve(self):
+        if self.i in self.bad:
+            return False, None
+        return True, _img(self.i)
+
+    def get(self, prop):
+        if prop == cv2.CAP_PROP_FPS:
+            return self.fps
+        if prop == cv2.CAP_PROP_POS_MSEC:
+            return self.pts_ms[self.i]
+        return 0.0
+
+    def release(self):
+        self.released = True
+
+
+def test_file_pts_mapped_to_wallclock_origin_and_corrupt_frames():
+    clock = FakeClock()
+    start = clock.us
+    caps = []
+
+    def factory():
+        caps.append(FakeCap([0.0, 50.0, 100.0, 150.0], bad={2}))
+        return caps[-1]
+    out, stats = [], None
+    frames = C.capture_frames(factory, "file", pacer=C.Pacer("auto", clock), clock=clock)
+    stats = C.capture_loop(frames, out.append, camera_id="c")
+    assert stats.published == 3 and stats.corrupt == 1
+    assert [f["stamp_us"] - start for f in out] == [0, 50_000, 150_000]
+    assert [f["stamp_source"] for f in out] == ["pts"] * 3
+    assert [f["source_pts_us"] for f in out] == [0, 50_000, 150_000]
+    assert caps[0].released
+
+
+def test_file_loop_keeps_stamps_increasing():
+    clock = FakeClock()
+    frames = C.capture_frames(lambda: FakeCap([0.0, 50.0]), "file", loop=True, pacer=C.Pacer(0, clock), clock=clock)
+    out = []
+    stop = threading.Event()
+
+    def sink(f):
+        out.append(f)
+        if len(out) == 5:
+            stop.set()
+    C.capture_loop(frames, sink, camera_id="c", stop=stop)
+    d = np.diff([f["stamp_us"] for f in out])
+    assert (d == 50_000).all(), d
+
+
+def test_v4l2_monotonic_stamps_converted_else_host():
+    clock = FakeClock()   # its monotonic -> realtime offset is 0, so a plausible kernel stamp is close to now
+    frames = C.capture_frames(lambda: FakeCap([clock.us / 1000.0 - 3.0, 12.0]), "v4l2", clock=clock)
+    first = next(frames)
+    assert first.stamp_source == "v4l2" and first.stamp_us == clock.us - 3000
+    second = next(frames)
+    assert second.stamp_source == "host" and second.stamp_us == clock.us   # implausible driver stamp
+    frames.close()
+
+
+def test_classify_source(tmp_path):
+    assert C.classify_source("rtsp://10.0.0.5/stream") == "stream"
+    assert C.classify_source("http://cam.local/mjpg") == "stream"
+    assert C.classify_source("0") == "v4l2" and C.classify_source("/dev/video2") == "v4l2"
+    assert C.classify_source(str(tmp_path)) == "folder"
+    f = tmp_path / "a.mp4"
+    f.write_bytes(b"x")
+    assert C.classify_source(str(f)) == "file"
+    with pytest.raises(InputError, match="not a directory"):
+        C.classify_source(str(tmp_path / "nope.mp4"))
+
+
+def test_flags_have_env_defaults(monkeypatch):
+    monkeypatch.setenv("EONAV_CAMERA_RATE", "0")
+    monkeypatch.setenv("EONAV_CAMERA_LOOP", "1")
+    monkeypatch.setenv("EONAV_CAMERA_WIDTH", "640")
+    p = argparse.ArgumentParser()
+    C.add_arguments(p)
+    a = p.parse_args(["--colour"])
+    assert a.rate == 0.0 and a.loop is True and a.width == 640 and a.height is None and a.encoding == "bgr8"
+    assert p.parse_args(["--rate", "auto"]).rate == "auto"
+
+
+# ---- the real service over zenoh -----------------------------------------------------------------------
+
+def test_service_replays_folder_over_zenoh(tmp_path):
+    zenoh = pytest.importorskip("zenoh")
+    from eonav import keys as K
+    from eonav import schema
+    from eonav.bus.testing import drain, endpoint, free_port, listener_session, start_service, wait_until
+
+    stamps = [200.0, 200.05, 200.15, 200.2, 200.3, 200.35, 200.45, 200.5]
+    d = tmp_path / "rec"
+    d.mkdir()
+    for i in range(8):
+        if i == 2:
+            (d / f"f_{i:02d}.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really a png")   # corrupt
+        elif i == 5:
+            cv2.imwrite(str(d / f"f_{i:02d}.png"), np.zeros((20, 30), np.uint8))      # wrong size
+        else:
+            cv2.imwrite(str(d / f"f_{i:02d}.png"), _img(20 * i, colour=True))
+    (d / "timestamps.txt").write_text("".join(f"{t}\n" for t in stamps))
+    port = free_port()
+    with listener_session(port) as s:
+        frames_sub = s.declare_subscriber(K.frame("t1", "nose"), zenoh.handlers.FifoChannel(100))
+        health_sub = s.declare_subscriber(K.health("t1", "camera_nose"), zenoh.handlers.FifoChannel(1000))
+        proc = start_service(["-m", "services.camera_ingest", "--source", str(d), "--camera-id", "nose",
+                              "--vehicle", "t1", "--name", "camera_nose", "--connect", endpoint(port),
+                              "--width", "64", "--height", "48", "--rate", "20", "--health-period", "0.1",
+                              "--wait-subscribers", "10"])
+        try:
+            code = proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        err = proc.stderr.read()
+        assert code == 0, err
+        msgs = []
+        wait_until(lambda: len(drain(frames_sub, msgs)) >= 6, 5, what="6 frames")
+        frames = [schema.decode(m.payload.to_bytes(), expect="frame") for m in msgs]
+        health = [schema.decode(m.payload.to_bytes(), expect="health") for m in drain(health_sub)]
+    assert [f["seq"] for f in frames] == list(range(6))
+    good = [i for i in range(8) if i not in (2, 5)]
+    rec_us = [int(round(stamps[i] * 1e6)) for i in good]
+    got = [f["stamp_us"] for f in frames]
+    assert np.diff(got).tolist() == np.diff(rec_us).tolist()       # recorded spacing preserved
+    assert got[0] - rec_us[0] > 1_600_000_000_000_000 - 200_000_000  # mapped onto the current clock
+    assert all(f["stamp_source"] == "recorded" for f in frames)
+    assert [f["source_pts_us"] for f in frames] == rec_us
+    assert all(f["image"].shape == (48, 64) and f["encoding"] == "mono8" for f in frames)
+    assert [int(f["image"][10, 10]) for f in frames] == [20 * i for i in good]
+    assert health, err
+    last = health[-1]["counters"]
+    assert last["corrupt_frames"] == 1 and last["wrong_size"] == 1 and last["out.frame"] == 6
+    assert "end of source" in err

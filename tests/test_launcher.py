@@ -1,0 +1,232 @@
+"""eonav run: embedded router, supervision (restart with back-off, give up, config errors, missing
+modules), --exit-when-done, --duration, and a clean stop on SIGINT, all with real processes."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import textwrap
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from eonav import InputError
+from eonav import launcher as L
+
+zenoh = pytest.importorskip("zenoh")
+
+from eonav import keys as K  # noqa: E402
+from eonav.bus.testing import client_session, free_port, start_service, wait_until  # noqa: E402
+
+# Test services live in a throw-away package on PYTHONPATH (the launcher spawns `python -m <module>`).
+SVC = textwrap.dedent('''
+    import os, time
+    from eonav.bus.node import service_main, add_flag
+
+    def add_arguments(p):
+        add_flag(p, "--exit-after", env="T_EXIT_AFTER", type=float, default=-1.0)
+        add_flag(p, "--exit-code", env="T_EXIT_CODE", type=int, default=0)
+
+    def body(node, args):
+        def loop():
+            t0 = time.monotonic()
+            while not node.stop_event.wait(0.05):
+                node.tick("loop")
+                if 0 <= args.exit_after < time.monotonic() - t0:
+                    if args.exit_code == 0:
+                        node.stop("done")
+                        return
+                    os._exit(args.exit_code)          # a crash: no clean shutdown
+        node.worker(loop)
+
+    if __name__ == "__main__":
+        service_main("t", add_arguments, body)
+''')
+
+
+@pytest.fixture
+def svc_pkg(tmp_path, monkeypatch):
+    pkg = tmp_path / "lsvc"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "t.py").write_text(SVC)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return "lsvc.t"
+
+
+def _gone(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    # a zombie of ours counts as gone
+    try:
+        return os.waitpid(pid, os.WNOHANG)[0] == pid
+    except ChildProcessError:
+        return True
+
+
+# ---- spec -------------------------------------------------------------------------------------------
+
+def test_parse_spec_validates(tmp_path):
+    s = L.parse_spec({"services": [{"name": "camera_nose", "module": "camera_ingest", "args": ["--rate", 0]},
+                                   {"name": "x.y", "module": "pkg.mod", "restart": False, "enabled": False}]})
+    assert s[0].module == "services.camera_ingest" and s[0].args == ["--rate", "0"]
+    assert s[1].module == "pkg.mod" and not s[1].restart and not s[1].enabled
+    with pytest.raises(InputError, match="used twice"):
+        L.parse_spec({"services": [{"name": "a"}, {"name": "a"}]})
+    with pytest.raises(InputError, match="unknown key"):
+        L.parse_spec({"services": [{"name": "a", "argz": []}]})
+    with pytest.raises(InputError, match="service"):
+        L.parse_spec({"services": [{"name": "bad/name"}]})
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps({"services": [{"name": "a", "args": ["{spec_dir}/x"]}]}))
+    (sp,) = L.parse_spec(str(f))
+    assert sp.env["EONAV_SPEC_DIR"] == str(tmp_path.resolve())
+    f.write_text("{nope")
+    with pytest.raises(InputError, match="not valid JSON"):
+        L.parse_spec(str(f))
+
+
+def test_default_spec_cameras():
+    spec = L.default_spec(["nose=/dev/video0", "rtsp://cam/a?x=1", "tail=clip.mp4"], mavlink="udpin:0.0.0.0:14550")
+    names = [s["name"] for s in spec["services"]]
+    assert names[:3] == ["camera_nose", "camera_cam1", "camera_tail"]
+    assert spec["services"][1]["args"] == ["--source", "rtsp://cam/a?x=1", "--camera-id", "cam1"]
+    mav = next(s for s in spec["services"] if s["name"] == "mavlink")
+    assert mav["args"] == ["--source", "udpin:0.0.0.0:14550"]
+    assert {"sync", "locator", "obstacles"} <= set(names)
+    L.parse_spec(spec)
+
+
+# ---- router ------------------------------------------------------------------------------------------
+
+def test_router_process_prints_ready_and_stops_on_sigint():
+    port = free_port()
+    proc = start_service(["-m", "eonav.bus.router", "--listen", f"tcp/127.0.0.1:{port}"])
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("EONAV_ROUTER READY") and f"tcp/127.0.0.1:{port}" in line
+        with client_session(f"tcp/127.0.0.1:{port}") as s:      # a client reaches it
+            assert list(s.info.routers_zid())
+        second = start_service(["-m", "eonav.bus.router", "--listen", f"tcp/127.0.0.1:{port}"])
+        assert second.wait(15) == 2                              # port taken: configuration error
+        assert "Address already in use" in second.stderr.read()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+# ---- supervision -------------------------------------------------------------------------------------
+
+def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_path):
+    spec = {"services": [
+        {"name": "crashy", "module": svc_pkg, "args": ["--exit-after", "0.3", "--exit-code", "3"], "max_restarts": 2},
+        {"name": "steady", "module": svc_pkg, "args": ["--health-period", "0.2"]},
+        {"name": "badflags", "module": svc_pkg, "args": ["--no-such-flag"]},
+        {"name": "ghost", "module": "services.not_written_yet"},
+    ]}
+    seen = []
+    t0 = time.monotonic()
+    code = L.run_pipeline(spec, vehicle="lt", duration=9.0, on_status=seen.append, quiet=True,
+                          log_dir=str(tmp_path / "logs"))
+    assert time.monotonic() - t0 < 25
+    final = seen[-1]
+    assert final["crashy"]["state"] == "failed" and final["crashy"]["restarts"] == 2
+    assert final["crashy"]["exit_code"] == 3
+    assert final["badflags"]["state"] == "config_error"
+    assert final["ghost"]["state"] == "missing"
+    assert final["steady"]["state"] == "stopped" and final["steady"]["exit_code"] == 0
+    # the status came from the health topic: steady reported "ok" with a loop rate while running
+    running = [s["steady"]["health"] for s in seen if s["steady"]["health"]]
+    assert running and running[-1]["state"] == "ok" and running[-1]["rates_hz"]["loop"] > 5
+    assert any(s["steady"]["alive"] for s in seen)
+    restarting = [s["crashy"]["state"] for s in seen]
+    assert "restarting" in restarting or final["crashy"]["restarts"] == 2
+    assert code == 1                       # a service failed for good
+    pids = {s[n]["pid"] for s in seen for n in ("crashy", "steady") if s[n]["pid"]}
+    assert all(_gone(p) for p in pids)
+    assert (tmp_path / "logs" / "steady.log").read_text().count("stopped (SIGINT), exit 0") == 1
+
+
+def test_exit_when_done(svc_pkg):
+    spec = {"services": [{"name": "replay", "module": svc_pkg, "args": ["--exit-after", "1.0"]},
+                         {"name": "worker", "module": svc_pkg}]}
+    t0 = time.monotonic()
+    code = L.run_pipeline(spec, vehicle="lt2", duration=30, exit_when_done="replay", quiet=True)
+    assert code == 0
+    assert time.monotonic() - t0 < 15
+    with pytest.raises(InputError, match="no such service"):
+        L.run_pipeline(spec, exit_when_done="nope", quiet=True)
+
+
+def test_eonav_run_camera_replay_until_done(tmp_path):
+    d = tmp_path / "rec"
+    d.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(d / f"{i}.png"), np.full((24, 32), 40 * i, np.uint8))
+    spec = tmp_path / "pipeline.json"
+    spec.write_text(json.dumps({"services": [
+        {"name": "camera_nose", "module": "camera_ingest",
+         "args": ["--source", "{spec_dir}/rec", "--camera-id", "nose", "--rate", "10", "--wait-subscribers", "0"]}]}))
+    out = start_service(["-m", "eonav.cli", "run", "--pipeline", str(spec), "--vehicle", "lt3",
+                         "--exit-when-done", "camera_nose"])
+    code = out.wait(60)
+    err = out.stderr.read()
+    assert code == 0, err
+    assert "camera_nose=done" in err
+
+
+def test_sigint_to_launcher_stops_everything(svc_pkg):
+    port = free_port()
+    spec = json.dumps({"services": [{"name": "s1", "module": svc_pkg}, {"name": "s2", "module": svc_pkg}]})
+    proc = start_service(["-c", "import sys, json; from eonav.launcher import run_pipeline; "
+                          f"sys.exit(run_pipeline(json.loads({spec!r}), vehicle='lt4', port={port}))"])
+    try:
+        _wait_port(port)
+        with client_session(f"tcp/127.0.0.1:{port}") as s:
+            alive = s.liveliness().declare_subscriber(K.alive_all("lt4"), zenoh.handlers.FifoChannel(64), history=True)
+            state = {}
+
+            def poll():
+                while (x := alive.try_recv()) is not None:
+                    state[str(x.key_expr).rsplit("/", 1)[-1]] = x.kind == zenoh.SampleKind.PUT
+                return state
+            wait_until(lambda: poll().get("s1") and poll().get("s2"), 30, what="both services alive")
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(20) == 0
+            alive.undeclare()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = proc.stderr.read()
+    assert "eonav run: SIGINT" in err and "s1=stopped" in err and "s2=stopped" in err, err
+    assert err.count("stopped (SIGINT), exit 0") == 2, err    # each service got exactly one SIGINT
+
+
+def _wait_port(port, timeout=20):
+    import socket
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return True
+        time.sleep(0.05)
+    raise AssertionError(f"router port {port} never opened")
+
+
+def test_eonav_service_command_passes_args(tmp_path):
+    proc = start_service(["-m", "eonav.cli", "service", "camera_ingest", "--source", str(tmp_path / "missing"),
+                          "--vehicle", "x"])
+    assert proc.wait(30) == 2
+    assert "not a directory" in proc.stderr.read()
+    proc = start_service(["-m", "eonav.cli", "service", "nope_service"])
+    assert proc.wait(30) == 2
+    assert "camera_ingest" in proc.stderr.read()           # lists what exists
+    assert sys.executable
