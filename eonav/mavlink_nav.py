@@ -712,7 +712,8 @@ class TlogStats:
     bad_data: int = 0         # records whose packet failed to decode (CRC, length, unknown layout)
     resync_bytes: int = 0     # bytes skipped looking for the next record after garbage
     truncated_bytes: int = 0  # bytes at the end of the file that do not form a whole record
-    backwards_headers: int = 0
+    backwards_headers: int = 0  # headers earlier than the previous one: replaced by the previous
+    header_jumps: int = 0       # headers > max_header_step_us from the previous, unconfirmed: replaced
 
 
 class TlogReader:
@@ -723,8 +724,11 @@ class TlogReader:
     (timestamp within ``max_header_jump_us`` of the last one, then a packet marker). A file cut
     mid-record ends cleanly with ``stats.truncated_bytes`` > 0."""
 
-    def __init__(self, path, max_header_jump_us: int = 3 * 86400 * 10**6, chunk: int = 1 << 16):
+    def __init__(self, path, max_header_jump_us: int = 3 * 86400 * 10**6, chunk: int = 1 << 16,
+                 max_header_step_us: int = 60_000_000):
         self.path = str(path)
+        self.max_step = max_header_step_us
+        self._jump_candidate: int | None = None
         self.stats = TlogStats()
         self.max_jump = max_header_jump_us
         self._f = open(self.path, "rb")
@@ -753,6 +757,31 @@ class TlogReader:
                 self._eof = True
             self._buf += b
         return len(self._buf) >= n
+
+    def _check_header(self, h: int) -> int:
+        """Receive times only move forward: a header before the previous one (a corrupt byte, or a
+        clock step on the recording host) is replaced by the previous one; a jump of more than
+        ``max_header_step_us`` is accepted only when the next record confirms it (a real gap in the
+        recording), else replaced. Keeps replay pacing and min-filter clock estimates sane."""
+        st, last = self.stats, self._last_header
+        if last is None:
+            self._last_header = h
+            return h
+        if abs(h - last) > self.max_step:
+            cand = self._jump_candidate
+            if cand is not None and abs(h - cand) <= self.max_step and h >= cand:
+                self._jump_candidate = None
+                self._last_header = h
+                return h
+            self._jump_candidate = h
+            st.header_jumps += 1
+            return last
+        self._jump_candidate = None
+        if h < last:
+            st.backwards_headers += 1
+            return last
+        self._last_header = h
+        return h
 
     def _record_len(self, i: int) -> int | None:
         """Length of the record starting at buffer index i, or None if no packet marker there."""
@@ -813,9 +842,7 @@ class TlogReader:
                 st.resync_bytes += 1
                 continue
             del self._buf[:n]
-            if self._last_header is not None and header_us < self._last_header:
-                st.backwards_headers += 1
-            self._last_header = header_us
+            header_us = self._check_header(header_us)
             st.records += 1
             msg._timestamp = header_us / 1e6
             yield header_us, msg

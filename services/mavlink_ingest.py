@@ -237,6 +237,10 @@ def _run_tlog(node: Node, args, pub: Publisher) -> None:
     pub.publish(rest, now_us())
     st = reader.stats
     node.count("tlog_records", st.records)
+    if st.bad_data:
+        node.count("bad_data", st.bad_data)
+    if st.resync_bytes:
+        node.count("resync_bytes", st.resync_bytes)
     if st.truncated_bytes:
         node.count("truncated_bytes", st.truncated_bytes)
         node.log.warning("tlog ends with %d bytes of a truncated record", st.truncated_bytes)

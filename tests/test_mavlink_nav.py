@@ -391,3 +391,25 @@ def test_corrupt_packet_in_generated_tlog(tmp_path):
     r = TlogReader(p)
     got = [m.time_boot_ms for _, m in r]
     assert got == [0, 20, 60, 80] and r.stats.bad_data == 1
+
+
+def test_corrupt_header_times_do_not_move_the_clock(tmp_path):
+    import struct
+    mav = ML.MAVLink(None, srcSystem=1, srcComponent=1)
+    t0 = 1_700_000_000_000_000
+    hdrs = [t0 + k * 20_000 for k in range(8)]
+    hdrs[3] -= 5_000_000                                # a header 5 s in the past
+    hdrs[5] += 3600 * 10**6                             # and one an hour ahead, unconfirmed
+    p = tmp_path / "h.tlog"
+    p.write_bytes(b"".join(struct.pack(">Q", h) + ML.MAVLink_attitude_message(k * 20, 0, 0, 0, 0, 0, 0).pack(mav)
+                           for k, h in enumerate(hdrs)))
+    r = TlogReader(p)
+    got = [h for h, _ in r]
+    assert got == [t0, t0 + 20_000, t0 + 40_000, t0 + 40_000, t0 + 80_000, t0 + 80_000, t0 + 120_000, t0 + 140_000]
+    assert r.stats.backwards_headers == 1 and r.stats.header_jumps == 1
+    # a real gap (two records agree on the new time base) is kept
+    hdrs = [t0, t0 + 20_000, t0 + 600 * 10**6, t0 + 600 * 10**6 + 20_000]
+    p.write_bytes(b"".join(struct.pack(">Q", h) + ML.MAVLink_attitude_message(k * 20, 0, 0, 0, 0, 0, 0).pack(mav)
+                           for k, h in enumerate(hdrs)))
+    r = TlogReader(p)
+    assert [h for h, _ in r] == [t0, t0 + 20_000, t0 + 20_000, t0 + 600 * 10**6 + 20_000]

@@ -1,0 +1,213 @@
+"""MAVLink ingest service: replay logic, then the real process over a real zenoh session on loopback
+(tlog replay; live TIMESYNC against a simulated autopilot over UDP, pymavlink on both ends)."""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from eonav import keys as K
+from eonav import schema
+from eonav.geometry import T_body_ned_from_quat
+from eonav.mavlink_nav import mavutil_v2
+from eonav.sim.record import DEFAULT_START_UNIX_US, nav_truth, write_tlog
+from services import mavlink_ingest as MI
+
+BOOT_OFFSET_US = DEFAULT_START_UNIX_US - 123_456_000
+
+
+def _angle(q_a, q_b):
+    R = T_body_ned_from_quat(q_a) @ T_body_ned_from_quat(q_b).T
+    return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+
+
+@pytest.fixture(scope="module")
+def tlog(tmp_path_factory):
+    p = tmp_path_factory.mktemp("tlog") / "flight.tlog"
+    counts = write_tlog(p, "turning", 2.0, start_unix_us=DEFAULT_START_UNIX_US, boot_offset_us=BOOT_OFFSET_US,
+                        latency_us=(1000, 3000), seed=2)
+    return p, counts
+
+
+def test_replay_tlog_maps_headers_onto_now_and_paces(tlog):
+    path, counts = tlog
+    got = []
+    stop = threading.Event()
+    t0 = time.monotonic()
+    reader = MI.replay_tlog(path, lambda m, rx: got.append((m, rx)), rate=4.0, stop=stop, clock=lambda: 5_000_000)
+    elapsed = time.monotonic() - t0
+    assert len(got) == sum(counts.values()) == reader.stats.records
+    hdr = np.array([int(round(m._timestamp * 1e6)) for m, _ in got])
+    rx = np.array([r for _, r in got])
+    assert rx[0] == 5_000_000 and np.all(rx - hdr == rx[0] - hdr[0])     # one shift for the whole file
+    span_s = (hdr[-1] - hdr[0]) / 1e6
+    assert span_s / 4.0 - 0.05 < elapsed < span_s / 4.0 + 0.5            # paced at 4x real time
+
+
+def test_clock_flag_and_origin_parsing():
+    assert MI.parse_clock("auto", tlog=True) == ("receive",)
+    assert MI.parse_clock("auto", tlog=False) == ("timesync", "system_time", "receive")
+    with pytest.raises(Exception, match="--clock"):
+        MI.parse_clock("gps", tlog=False)
+    assert MI.parse_origin("47.1,8.2,400") == (47.1, 8.2, 400.0)
+    with pytest.raises(Exception, match="--origin"):
+        MI.parse_origin("47.1,8.2")
+
+
+def _run(args, subs, timeout=30):
+    from eonav.bus.testing import endpoint, free_port, listener_session, start_service, stop_service
+    zenoh = pytest.importorskip("zenoh")
+    port = free_port()
+    with listener_session(port) as s:
+        chans = {k: s.declare_subscriber(k, zenoh.handlers.FifoChannel(20000)) for k in subs}
+        proc = start_service(["-m", "services.mavlink_ingest", "--vehicle", "t2", "--connect", endpoint(port),
+                              "--health-period", "0.2", *args])
+        return s, chans, proc, stop_service
+
+
+def _drain_all(sub):
+    from eonav.bus.testing import drain
+    return [schema.decode(m.payload.to_bytes()) for m in drain(sub)]
+
+
+def test_service_replays_generated_tlog(tlog, tmp_path):
+    from eonav.bus.testing import endpoint, free_port, listener_session, start_service, stop_service, wait_until
+    zenoh = pytest.importorskip("zenoh")
+    path, counts = tlog
+    # a copy with a corrupt packet in the middle and a truncated last record
+    data = bytearray(path.read_bytes())
+    i = k = 0
+    while k < 100:                                    # walk to record 100 (MAVLink 2: 8 + 10 + len + 2)
+        i += 8 + 10 + data[i + 9] + 2
+        k += 1
+    data[i + 8 + 10 + 3] ^= 0xFF                      # a payload byte of record 100: its CRC fails
+    bad = tmp_path / "bad.tlog"
+    bad.write_bytes(bytes(data[:-7]))
+    port = free_port()
+    with listener_session(port) as s:
+        nav_sub = s.declare_subscriber(K.nav_state("t2"), zenoh.handlers.FifoChannel(20000))
+        clk_sub = s.declare_subscriber(K.nav_clock("t2"), zenoh.handlers.FifoChannel(1000))
+        h_sub = s.declare_subscriber(K.health("t2", "mavlink"), zenoh.handlers.FifoChannel(1000))
+        t_start_us = time.time_ns() // 1000
+        proc = start_service(["-m", "services.mavlink_ingest", "--source", str(bad), "--rate", "0",
+                              "--vehicle", "t2", "--connect", endpoint(port), "--health-period", "0.2",
+                              "--position-source", "LOCAL_POSITION_NED", "--wait-subscribers", "10"])
+        try:
+            code = proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                stop_service(proc)
+        err = proc.stderr.read()
+        assert code == 0, err
+        assert "end of tlog" in err
+        nav, clk, health = [], [], []
+        wait_until(lambda: len(nav.__iadd__(_drain_all(nav_sub))) >= 150, 5, what="nav states")
+        time.sleep(0.2)
+        nav += _drain_all(nav_sub)
+        clk = _drain_all(clk_sub)
+        health = _drain_all(h_sub)
+    n_att = counts["ATTITUDE"] + counts["ATTITUDE_QUATERNION"]
+    n_pos = counts["LOCAL_POSITION_NED"]
+    assert n_att + n_pos - 3 <= len(nav) <= n_att + n_pos              # one corrupt, one truncated record
+    t_s = np.array([(m["autopilot_time_us"] + BOOT_OFFSET_US - DEFAULT_START_UNIX_US) / 1e6 for m in nav])
+    tr = nav_truth("turning", t_s)
+    for k, m in enumerate(nav):
+        assert m["kind"] == "nav_state" and m["system_id"] == 1
+        if m["source"] == "LOCAL_POSITION_NED":
+            np.testing.assert_allclose(m["position_ned_m"], tr["position_ned_m"][k], atol=1e-4)
+            assert np.all(np.isnan(m["q_wxyz"]))
+        else:
+            assert _angle(m["q_wxyz"], tr["q_wxyz"][k]) < 1e-6
+            assert np.all(np.isnan(m["position_ned_m"]))
+    # stamps: recorded times mapped onto the current clock, spacing kept to within the latency spread
+    st = np.array([m["stamp_us"] for m in nav])
+    unix_rec = t_s * 1e6 + DEFAULT_START_UNIX_US
+    shift = st - unix_rec
+    assert np.ptp(shift) < 2500
+    assert abs(np.median(shift) - (t_start_us - DEFAULT_START_UNIX_US)) < 5_000_000      # "now" at start
+    for src in ("ATTITUDE", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED"):
+        s_src = [m["stamp_us"] for m in nav if m["source"] == src]
+        assert np.all(np.diff(s_src) > 0), src
+    assert clk and clk[-1]["method"] == "receive"
+    assert clk[-1]["offset_us"] == nav[-1]["clock_offset_us"]
+    c = health[-1]["counters"]
+    assert c["bad_data"] == 1 and c["truncated_bytes"] > 0
+    assert c["msg.HEARTBEAT"] == counts["HEARTBEAT"]
+    assert c["rejected.position_source_not_selected"] >= counts["GLOBAL_POSITION_INT"] - 2
+
+
+def _free_udp_port():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+def test_service_timesync_against_simulated_autopilot():
+    """The service is the companion (udpout); a pymavlink autopilot (udpin) answers TIMESYNC with its
+    boot clock in ns, streams ATTITUDE on the same clock and records the companion's HEARTBEAT."""
+    from eonav.bus.testing import endpoint, free_port, listener_session, start_service, stop_service, wait_until
+    zenoh = pytest.importorskip("zenoh")
+    mavutil = mavutil_v2()
+    udp = _free_udp_port()
+    boot_offset_ns = time.time_ns() - 987_654_321_000          # booted 987.65 s ago
+    ap = mavutil.mavlink_connection(f"udpin:127.0.0.1:{udp}", source_system=1, source_component=1,
+                                    dialect="ardupilotmega")
+    stop = threading.Event()
+    seen = {"hb": [], "ts": 0}
+
+    def autopilot():
+        next_att = time.monotonic()
+        while not stop.is_set():
+            m = ap.recv_match(blocking=True, timeout=0.01)
+            if m is not None:
+                if m.get_type() == "TIMESYNC" and m.tc1 == 0:
+                    ap.mav.timesync_send(time.time_ns() - boot_offset_ns, m.ts1)
+                    seen["ts"] += 1
+                elif m.get_type() == "HEARTBEAT":
+                    seen["hb"].append((m.type, m.autopilot, m.get_srcComponent()))
+            if time.monotonic() >= next_att and seen["ts"]:
+                boot_ms = (time.time_ns() - boot_offset_ns) // 1_000_000
+                ap.mav.attitude_send(boot_ms, 0.01, 0.02, 0.5, 0, 0, 0)
+                next_att += 0.02
+
+    th = threading.Thread(target=autopilot)
+    th.start()
+    port = free_port()
+    proc = None
+    try:
+        with listener_session(port) as s:
+            nav_sub = s.declare_subscriber(K.nav_state("t3"), zenoh.handlers.FifoChannel(5000))
+            clk_sub = s.declare_subscriber(K.nav_clock("t3"), zenoh.handlers.FifoChannel(1000))
+            proc = start_service(["-m", "services.mavlink_ingest", "--source", f"udpout:127.0.0.1:{udp}",
+                                  "--vehicle", "t3", "--connect", endpoint(port), "--timesync-hz", "10"])
+            clk = []
+            wait_until(lambda: any(c["method"] == "timesync" and c["samples"] >= 10
+                                   for c in clk.__iadd__(_drain_all(clk_sub))) or None, 15,
+                       what="a TIMESYNC clock estimate from 10 exchanges")
+            time.sleep(0.3)
+            nav = _drain_all(nav_sub)
+            code, err = stop_service(proc)
+            clk += _drain_all(clk_sub)
+    finally:
+        stop.set()
+        th.join()
+        ap.close()
+        if proc is not None and proc.poll() is None:
+            stop_service(proc)
+    assert code == 0, err
+    ts = [c for c in clk if c["method"] == "timesync"]
+    best = ts[-1]
+    assert abs(best["offset_us"] - boot_offset_ns / 1000) < 1000, (best, boot_offset_ns)    # within 1 ms
+    assert 0 <= best["rtt_us"] < 10_000
+    assert (18, 8, 191) in seen["hb"]        # MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, comp 191
+    assert nav, err
+    late = [m for m in nav if m["clock_offset_us"] == best["offset_us"]]
+    assert late
+    for m in late:
+        # stamp = autopilot time + offset: the autopilot's send time on our clock, to ~1 ms (ms truncation)
+        assert abs(m["stamp_us"] - (m["autopilot_time_us"] + boot_offset_ns / 1000)) < 2000
