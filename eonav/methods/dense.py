@@ -209,7 +209,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  far_parallax_px: float = 0.5, tex_k: float = 1.5, orient_min: float = 0.02,
                  occ_k: float = 3.0, trunc_px: float = 0.5, std_scale: float = 1.0, fill_sigma: float = 4.0,
                  fill_c: float = 0.3, smooth_win: int = 0, highpass_sigma: float = 0.0,
-                 highpass_levels: int = 9, bias: bool = True) -> RangeResult:
+                 highpass_levels: int = 9, bias: bool = True,
+                 match_floor_px: float = 0.05) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range (default: largest displacement 0.3 * image size).
@@ -313,11 +314,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
             np.clip(new, F32(0), cap, out=new)
             if lev == 0 and it == n_it - 1:
                 step_px = np.abs(new - rho) * np.sqrt(E2)
-                final = (wv, inv, r, J, E2, wgt)
+                final = (wv, inv, r, J, E2, wgt, H)
             rho = new
 
     # --- 3. uncertainty and flags, from the last linearisation at level 0
-    wv, inv, r, J, E2, wgt = final
+    wv, inv, r, J, E2, wgt, Hf = final
     inview = (wv[..., 3] > 0.999) & (inv > 0)
     mf = inview.astype(F32)
     sigma = _robust_sigma(r, inview)
@@ -329,7 +330,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     R2 = _box(mf * r * r, window)
     cover = _box(mf, window)
     with np.errstate(divide="ignore", invalid="ignore"):
-        std = np.sqrt(F32(sigma * sigma / n_win) / HJ) * F32(std_scale)
+        # normal-equation information (Huber-weighted, brightness offset eliminated) of the last linearisation
+        # plus a floor of match_floor_px pixels of displacement (interpolation bias, surface slant, ...)
+        std = np.sqrt(F32(sigma * sigma / n_win) / Hf + F32(match_floor_px ** 2) / E2) * F32(std_scale)
         orient = HJ / (E2 * G)
     bad = np.zeros((ha, wa), np.uint8)
     bad[~inview | (cover < 0.5)] |= OUT_OF_VIEW
