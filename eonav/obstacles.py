@@ -9,7 +9,8 @@ Distances and bearings are measured from the vehicle origin x_v (where the autop
 sensor), not from the lens: with a nose camera 7.6 m ahead of the origin the difference matters up close.
 
 Points on or near the ground below the vehicle are not obstacles: a point whose down coordinate is within
-``ground_clearance_m`` of the ground estimate (or below it) is ground. The ground estimate is
+``ground_clearance_m`` plus ``ground_sigma_k`` standard deviations of its down coordinate (range std times the
+ray's down slope) of the ground estimate, or below it, is ground. The ground estimate is
 ``ground_down_m`` when configured (local NED origin at home: 0 m for a take-off from the ground), else the
 90th percentile of the down coordinate of the confident points below the vehicle (ground points are the
 lowest dense surface in view), else 0 m. Points beyond ``max_distance_m`` are not obstacles either; they
@@ -52,14 +53,16 @@ class ObstacleConfig:
     min_distance_m: float = 0.5        # OBSTACLE_DISTANCE min_distance
     max_distance_m: float = 150.0      # OBSTACLE_DISTANCE max_distance; farther points are "clear" evidence
     ground_down_m: float | None = None  # NED down of the ground; None: estimate from the points (see module doc)
-    ground_clearance_m: float = 0.6    # points within this of the ground (or below it) are ground
+    ground_clearance_m: float = 0.6    # points within this of the ground (or below it) are ground ...
+    ground_sigma_k: float = 3.0        # ... plus this many 1-sigma of the point's down coordinate (from the range std)
     max_height_above_m: float = 200.0  # points higher than this above the vehicle are ignored (top of the band)
     percentile: float = 5.0            # robust minimum of a sector / an obstacle
     min_sector_pixels: int = 4         # obstacle pixels a sector needs to report a distance
     min_clear_pixels: int = 20         # evidence pixels a sector needs to report "clear"
     max_obstacle_distance_m: float = 100.0   # obstacle list: only components nearer than this
     max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative)
-    min_obstacle_pixels: int = 12      # smallest component reported
+    min_obstacle_pixels: int = 12      # smallest component kept (list and sectors)
+    min_obstacle_height_m: float = 0.3  # flatter components (5..95 % of down) are mismatch speckle, dropped
     max_obstacles: int = 32            # nearest first
 
     def __post_init__(self):
@@ -253,18 +256,29 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     pts = pixel_points(range_m, camera, state, conf_m, confidence, inv_range_std_per_m)
     ground = estimate_ground_down_m(pts, state, cfg)
     z = pts.ned_m[:, 2]
-    above_ground = z < ground - cfg.ground_clearance_m
+    clearance = np.full(z.shape, cfg.ground_clearance_m)
+    if pts.sigma_m is not None and cfg.ground_sigma_k > 0:
+        # a range error moves a point along its ray: sigma_down = sigma_r |d down / d x_c|. Far ground seen at a
+        # grazing angle is lifted by metres for a few per cent of range error, so the clearance grows with it.
+        lens_down = state.position_ned_m[2] + (state.T_body_ned.T @ camera.l_body_m)[2]
+        slope = np.abs(z - lens_down) / pts.range_m
+        sig = np.nan_to_num(pts.sigma_m, nan=0.0, posinf=0.0)
+        clearance = clearance + cfg.ground_sigma_k * sig * slope
+    above_ground = z < ground - clearance
     in_band = above_ground & (z > state.position_ned_m[2] - cfg.max_height_above_m)
     obstacle = in_band & (pts.hdist_m <= cfg.max_distance_m)
-    sectors = _sectors(pts, obstacle, ~obstacle, camera, range_m, flags, cfg)
-    obstacles = _components(pts, obstacle & (pts.dist_m <= cfg.max_obstacle_distance_m), camera, range_m, state, cfg)
+    # speckle (small or flat blobs: mismatched ground patches) is neither an obstacle nor in the sectors
+    comps, kept = _components(pts, obstacle, camera, range_m, state, cfg)
+    sectors = _sectors(pts, kept, ~obstacle, camera, range_m, flags, cfg)
+    obstacles = [o for o in comps if o.distance_m <= cfg.max_obstacle_distance_m][:cfg.max_obstacles]
+    for i, o in enumerate(obstacles):
+        o.id = i + 1
     sectors_now = None
     if now_state is not None:
         moved = relative_to(pts, now_state)
-        obstacle_now = in_band & (moved.hdist_m <= cfg.max_distance_m)
-        sectors_now = _sectors(moved, obstacle_now, ~obstacle_now, camera, range_m, flags, cfg)
-    return ObstacleResult(sectors, obstacles, ground, int(pts.idx.size), int(np.count_nonzero(obstacle)),
-                          sectors_now)
+        sectors_now = _sectors(moved, kept & (moved.hdist_m <= cfg.max_distance_m),
+                               in_band & (moved.hdist_m > cfg.max_distance_m) | ~in_band, camera, range_m, flags, cfg)
+    return ObstacleResult(sectors, obstacles, ground, int(pts.idx.size), int(np.count_nonzero(kept)), sectors_now)
 
 
 def relative_to(pts: Points, state: VehicleState) -> Points:
@@ -310,14 +324,16 @@ def _sectors(pts: Points, obstacle, evidence, camera, range_m, flags, cfg: Obsta
     return Sectors(out, inc, off, min_cm, max_cm, counts)
 
 
-def _components(pts: Points, sel, camera: Camera, range_m, state: VehicleState, cfg: ObstacleConfig) -> list:
+def _components(pts: Points, sel, camera: Camera, range_m, state: VehicleState, cfg: ObstacleConfig):
+    """Obstacles (nearest first) and the mask over ``pts`` of the pixels of the components kept."""
     from scipy import ndimage
     H, W = camera.height, camera.width
+    kept = np.zeros(pts.idx.size, bool)
     mask = np.zeros(H * W, bool)
     mask[pts.idx[sel]] = True
     mask = mask.reshape(H, W)
     if not mask.any():
-        return []
+        return [], kept
     r = np.where(mask, np.asarray(range_m, np.float64), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         lr = np.log(r)
@@ -332,7 +348,11 @@ def _components(pts: Points, sel, camera: Camera, range_m, state: VehicleState, 
         cut[:-1, :] |= jump & (dy < 0)
     labels, n = ndimage.label(mask & ~cut)
     if n == 0:
-        return []
+        return [], kept
+    sizes = np.bincount(labels.ravel())
+    big = sizes >= cfg.min_obstacle_pixels
+    big[0] = False
+    labels = np.where(big[labels], labels, 0)
     # map each selected point to its label
     pos = np.full(H * W, -1, np.int64)
     pos[pts.idx] = np.arange(pts.idx.size)
@@ -348,10 +368,13 @@ def _components(pts: Points, sel, camera: Camera, range_m, state: VehicleState, 
         if grp_p.size < cfg.min_obstacle_pixels:
             continue
         q = cfg.percentile
-        dist = pts.dist_m[grp_p]
         ned = pts.ned_m[grp_p]
-        body_med = np.median(pts.body_m[grp_p], axis=0)
         p5, p95 = np.percentile(ned, [5, 95], axis=0)
+        if p95[2] - p5[2] < cfg.min_obstacle_height_m:
+            continue
+        kept[grp_p] = True
+        dist = pts.dist_m[grp_p]
+        body_med = np.median(pts.body_m[grp_p], axis=0)
         los = np.median(ned, axis=0) - state.position_ned_m
         across = np.array([-los[1], los[0], 0.0])
         n_across = np.linalg.norm(across)
@@ -372,10 +395,7 @@ def _components(pts: Points, sel, camera: Camera, range_m, state: VehicleState, 
             pixel_count=int(grp_p.size), confidence=float(np.median(pts.confidence[grp_p])),
             bbox_px=[int(u.min()), int(v.min()), int(u.max()), int(v.max())]))
     out.sort(key=lambda o: o.distance_m)
-    out = out[:cfg.max_obstacles]
-    for i, o in enumerate(out):
-        o.id = i + 1
-    return out
+    return out, kept
 
 
 class ObstacleTracker:

@@ -1,0 +1,206 @@
+"""Locator: posed frames -> range maps with confidence.
+
+Subscribes ``keys.posed_frames_all(vehicle)`` (or one camera with ``--camera``) through a RingChannel: the
+newest frames win, so a locator slower than the camera skips frames instead of growing a queue (skipped
+frames show as ``frames_skipped`` from the ``seq`` gaps). A small history per camera feeds
+``eonav.pair_policy`` (parallax at a reference range, max age, max rotation, stereo rig); for every pair it
+runs ``eonav.locate.locate(view_a, view_b, method=--method)`` and publishes schema ``range_map`` on
+``keys.range_map(vehicle, camera_id)`` with the reference (newest) frame's stamp, camera and pose.
+
+Health: counters ``pairs_computed``, ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
+``locate_errors``, ``frames_skipped``; latencies ``capture_to_published`` (frame capture stamp -> range map
+put, the pipeline's figure), ``capture_to_received`` and ``compute``.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from eonav import InputError
+from eonav import keys as K
+from eonav.bus.node import Node, add_flag, now_us, service_main
+
+log = logging.getLogger("eonav.service.locator")
+
+
+def add_arguments(p):
+    add_flag(p, "--method", env="EONAV_LOCATOR_METHOD", default="dense",
+             help="range estimator (eonav.locate.METHODS): dense (default), paper, dis")
+    p.add_argument("--method-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="extra keyword for the method, e.g. search_window=7 (repeatable; numbers parsed)")
+    add_flag(p, "--cv-threads", env="EONAV_CV_THREADS", default=-1, type=int, metavar="N",
+             help="cv2.setNumThreads(N); -1 keeps OpenCV's default, 0 disables its threading")
+    add_flag(p, "--camera", env="EONAV_LOCATOR_CAMERA", default=None,
+             help="only this camera id (default: every camera of the vehicle)")
+    add_flag(p, "--ring", env="EONAV_LOCATOR_RING", default=2, type=int,
+             help="RingChannel depth of the posed-frame subscriber (newest N kept)")
+    g = p.add_argument_group("pair policy (eonav.pair_policy)")
+    add_flag(g, "--min-disparity", env="EONAV_PAIR_MIN_DISPARITY", default=2.0, type=float, metavar="PX",
+             help="median translational disparity of a point at --ref-range needed for a pair")
+    add_flag(g, "--ref-range", env="EONAV_PAIR_REF_RANGE", default=50.0, type=float, metavar="M",
+             help="range at which parallax is judged")
+    add_flag(g, "--min-baseline", env="EONAV_PAIR_MIN_BASELINE", default=0.0, type=float, metavar="M",
+             help="a baseline of at least this also qualifies (0: off)")
+    add_flag(g, "--max-age", env="EONAV_PAIR_MAX_AGE", default=1.0, type=float, metavar="S",
+             help="oldest earlier frame used")
+    add_flag(g, "--max-rotation", env="EONAV_PAIR_MAX_ROTATION", default=10.0, type=float, metavar="DEG",
+             help="largest rotation between the two frames of a motion pair")
+    add_flag(g, "--history", env="EONAV_PAIR_HISTORY", default=8, type=int, help="frames kept per camera")
+    add_flag(g, "--stereo", env="EONAV_PAIR_STEREO", default=None, metavar="REF,PARTNER",
+             help="stereo rig: two camera ids, the first is the reference")
+    add_flag(g, "--max-stereo-dt", env="EONAV_PAIR_MAX_STEREO_DT", default=0.002, type=float, metavar="S",
+             help="largest stamp difference within a stereo pair")
+
+
+def parse_params(items) -> dict:
+    out = {}
+    for it in items:
+        name, sep, val = str(it).partition("=")
+        if not sep or not name.isidentifier():
+            raise InputError(f"--method-param {it!r}: expected NAME=VALUE")
+        for conv in (int, float):
+            try:
+                out[name] = conv(val)
+                break
+            except ValueError:
+                continue
+        else:
+            out[name] = {"true": True, "false": False, "none": None}.get(val.lower(), val)
+    return out
+
+
+def policy_config(args):
+    from eonav.pair_policy import PairPolicyConfig
+    rig = None
+    if args.stereo:
+        rig = tuple(s.strip() for s in args.stereo.split(","))
+        for c in rig:
+            K.check_chunk(c, "--stereo camera id")
+    return PairPolicyConfig(min_disparity_px=args.min_disparity, ref_range_m=args.ref_range,
+                            min_baseline_m=args.min_baseline, max_age_s=args.max_age,
+                            max_rotation_deg=args.max_rotation, history=args.history, stereo_rig=rig,
+                            max_stereo_dt_s=args.max_stereo_dt)
+
+
+def grey_image(msg: dict) -> np.ndarray:
+    """The posed frame's image as float32 grey H x W (mono8/mono16 as is, bgr8 converted)."""
+    img = msg["image"]
+    enc = msg.get("encoding", "mono8")
+    if enc in ("mono8", "mono16") and img.ndim == 2:
+        return img.astype(np.float32)
+    if enc in ("bgr8", "rgb8") and img.ndim == 3 and img.shape[2] == 3:
+        import cv2
+        code = cv2.COLOR_BGR2GRAY if enc == "bgr8" else cv2.COLOR_RGB2GRAY
+        return cv2.cvtColor(np.ascontiguousarray(img), code).astype(np.float32)
+    raise InputError(f"posed frame image: encoding {enc!r} with shape {img.shape} not understood "
+                     "(expected mono8/mono16 H x W or bgr8/rgb8 H x W x 3)")
+
+
+def frame_info(msg: dict):
+    """Schema posed_frame -> PosedFrameInfo (camera, pose, grey image as payload). Raises InputError."""
+    from eonav.camera import VehicleState
+    from eonav.pair_policy import PosedFrameInfo
+    from eonav.schema import camera_from_msg
+    cam = camera_from_msg(msg["camera"])
+    q = np.asarray(msg["q_wxyz"], float)
+    if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+        raise InputError(f"posed frame {msg['camera_id']}/{msg['seq']}: q_wxyz {q.tolist()} is not a unit quaternion")
+    state = VehicleState.from_quat(msg["position_ned_m"], q, msg["stamp_us"] * 1e-6)
+    img = grey_image(msg)
+    if img.shape != (cam.height, cam.width):
+        raise InputError(f"posed frame {msg['camera_id']}/{msg['seq']}: image {img.shape[1]}x{img.shape[0]} but "
+                         f"camera says {cam.width}x{cam.height}")
+    return PosedFrameInfo(msg["camera_id"], int(msg["seq"]), int(msg["stamp_us"]), cam, state,
+                          payload={"image": img, "q_wxyz": q, "camera_msg": msg["camera"]})
+
+
+def body(node: Node, args) -> None:
+    from eonav.locate import get_method
+    from eonav.pair_policy import PairPolicy
+    if args.cv_threads >= 0:
+        import cv2
+        cv2.setNumThreads(args.cv_threads)
+    get_method(args.method)                     # unknown method: configuration error (exit 2)
+    params = parse_params(args.method_param)
+    policy = PairPolicy(policy_config(args))
+    if args.ring < 1:
+        raise InputError(f"--ring must be >= 1, got {args.ring}")
+    key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
+    sub = node.subscribe(key, ring=args.ring)
+    node.worker(locate_loop, node, sub, policy, args.method, params, name="locate")
+    node.log.info("locator: method %s, %s, policy %s", args.method, key, policy.config)
+
+
+def locate_loop(node: Node, sub, policy, method: str, params: dict) -> None:
+    from eonav.camera import View
+    from eonav.locate import locate
+    pubs: dict = {}
+    last_seq: dict = {}
+    errors_in_row = 0
+    for sample in sub:
+        msg = node.decode(sample, expect="posed_frame")
+        if msg is None:
+            continue
+        t_rx = now_us()
+        node.latency("capture_to_received", (t_rx - msg["stamp_us"]) * 1e-6)
+        try:
+            K.check_chunk(msg["camera_id"], "camera id")
+            f = frame_info(msg)
+        except InputError as e:
+            node.count("bad_frames")
+            node.log_limited("bad_frame", logging.WARNING, "bad posed frame on %s: %s", sample.key_expr, e)
+            continue
+        prev = last_seq.get(f.camera_id)
+        if prev is not None and f.seq > prev + 1:
+            node.count("frames_skipped", f.seq - prev - 1)        # ring channel dropped them while we computed
+        last_seq[f.camera_id] = f.seq
+        d = policy.offer(f)
+        node.count(f"pairs.{d.reason}")
+        if not d.ok:
+            node.count("skipped")
+            node.count(f"skipped.{d.reason}")
+            node.log_limited(f"skip:{d.reason}", logging.INFO, "frame %s/%d: no pair (%s): %s",
+                             f.camera_id, f.seq, d.reason, d.detail)
+            continue
+        a, b = d.a, d.b
+        t0 = time.perf_counter()
+        try:
+            res = locate(View(a.camera, a.state, a.payload["image"]), View(b.camera, b.state, b.payload["image"]),
+                         method=method, **params)
+        except Exception as e:  # one bad pair must not stop the locator; a persistent failure degrades it
+            node.count("locate_errors")
+            errors_in_row += 1
+            node.log_limited("locate_error", logging.ERROR, "locate %s/%d with %s/%d failed: %s: %s",
+                             a.camera_id, a.seq, b.camera_id, b.seq, type(e).__name__, e)
+            if errors_in_row >= 3:
+                node.set_state("degraded", f"locate failing: {type(e).__name__}: {e}")
+            continue
+        compute_s = time.perf_counter() - t0
+        errors_in_row = 0
+        if node.state != "ok":
+            node.set_state("ok")
+        pub = pubs.get(a.camera_id)
+        if pub is None:
+            pub = pubs[a.camera_id] = node.publisher(K.range_map(node.vehicle, a.camera_id), image=True)
+        node.put(pub, "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
+                 other_camera_id=b.camera_id, other_seq=b.seq, other_stamp_us=b.stamp_us, method=res.method,
+                 range_m=res.range_m.astype(np.float32), confidence=res.confidence.astype(np.float32),
+                 inv_range_std_per_m=(None if res.inv_range_std_per_m is None
+                                      else res.inv_range_std_per_m.astype(np.float32)),
+                 flags=None if res.flags is None else res.flags.astype(np.uint8),
+                 camera=a.payload["camera_msg"], position_ned_m=a.state.position_ned_m,
+                 q_wxyz=a.payload["q_wxyz"], baseline_m=d.baseline_m, compute_s=compute_s)
+        node.count("pairs_computed")
+        node.count(f"pairs_computed.{d.reason}")
+        node.tick("pairs_computed")
+        node.latency("compute", compute_s)
+        node.latency("capture_to_published", (now_us() - a.stamp_us) * 1e-6)
+        valid = np.isfinite(res.range_m)
+        node.count("range_pixels_valid", int(valid.sum()))
+        node.count("range_pixels_total", int(valid.size))
+
+
+if __name__ == "__main__":
+    service_main("locator", add_arguments, body)

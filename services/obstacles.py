@@ -1,0 +1,193 @@
+"""Obstacle publisher: range maps (+ navigation) -> obstacle list for guidance, and MAVLink OBSTACLE_DISTANCE.
+
+Subscribes ``keys.range_maps_all(vehicle)`` (RingChannel: the newest map wins) and ``keys.nav_state`` (ring of
+1: only the latest pose matters). For each range map ``eonav.obstacles.analyse`` gives the 72 OBSTACLE_DISTANCE
+sectors and the obstacle list (ids kept across maps by ``ObstacleTracker``), published as schema
+``obstacle_list`` on ``keys.obstacles(vehicle)``: a reliable, small, express message (the node's default
+non-image publisher: CongestionControl.BLOCK, DATA_HIGH, express). Everything in it refers to the range map's
+capture stamp and pose, so guidance can use the absolute ``position_ned_m`` of each obstacle.
+
+With ``--mavlink-out udpout:127.0.0.1:14560`` (any pymavlink connection string) a sender thread emits
+OBSTACLE_DISTANCE at ``--mavlink-rate`` (>= 10 Hz) with the latest sectors while they are fresh, then
+all-UINT16_MAX (see ``eonav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz. The sectors sent to
+the autopilot are measured from the latest navigation pose when one newer than the map is at hand
+(``sectors_now``): the autopilot applies them relative to where it is on arrival.
+
+Health: ``maps_processed``, ``obstacles_published``, ``bad_maps``, MAVLink counters; latencies
+``capture_to_obstacles`` (frame capture -> obstacle list put: the pipeline's end-to-end figure) and ``compute``.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from eonav import InputError
+from eonav import keys as K
+from eonav.bus.node import Node, add_flag, now_us, service_main
+
+log = logging.getLogger("eonav.service.obstacles")
+
+NAV_MAX_AHEAD_S = 1.0        # a nav state newer than the map by more than this is from another timeline
+
+
+def add_arguments(p):
+    add_flag(p, "--mavlink-out", env="EONAV_MAVLINK_OUT", default=None, metavar="CONNECTION",
+             help="send OBSTACLE_DISTANCE on this pymavlink connection, e.g. udpout:127.0.0.1:14560")
+    add_flag(p, "--mavlink-sysid", env="EONAV_MAVLINK_SYSID", default=1, type=int,
+             help="MAVLink system id (the autopilot's); component is 191 (onboard computer)")
+    add_flag(p, "--mavlink-rate", env="EONAV_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
+             help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)")
+    add_flag(p, "--stale", env="EONAV_OBSTACLE_STALE", default=0.5, type=float, metavar="S",
+             help="after this long without a new range map, send 'unknown' sectors")
+    add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
+             help="do not re-reference MAVLink sectors to the latest navigation pose")
+    g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
+    add_flag(g, "--min-distance", env="EONAV_OBST_MIN_DISTANCE", default=0.5, type=float, metavar="M")
+    add_flag(g, "--max-distance", env="EONAV_OBST_MAX_DISTANCE", default=150.0, type=float, metavar="M",
+             help="OBSTACLE_DISTANCE max_distance; farther is 'clear'")
+    add_flag(g, "--max-obstacle-distance", env="EONAV_OBST_MAX_LIST_DISTANCE", default=100.0, type=float,
+             metavar="M", help="obstacle list: only objects nearer than this")
+    add_flag(g, "--ground-down", env="EONAV_OBST_GROUND_DOWN", default="auto", metavar="M|auto",
+             help="NED down coordinate of the ground (0 = home level), or auto (estimated from the points)")
+    add_flag(g, "--ground-clearance", env="EONAV_OBST_GROUND_CLEARANCE", default=0.6, type=float, metavar="M")
+    add_flag(g, "--min-confidence", env="EONAV_OBST_MIN_CONFIDENCE", default=0.0, type=float)
+    add_flag(g, "--max-rel-std", env="EONAV_OBST_MAX_REL_STD", default=0.25, type=float,
+             help="ignore pixels whose relative range 1-sigma exceeds this")
+    add_flag(g, "--min-obstacle-pixels", env="EONAV_OBST_MIN_PIXELS", default=12, type=int)
+
+
+def obstacle_config(args):
+    from eonav.obstacles import ObstacleConfig
+    if str(args.ground_down).lower() == "auto":
+        ground = None
+    else:
+        try:
+            ground = float(args.ground_down)
+        except ValueError:
+            raise InputError(f"--ground-down {args.ground_down!r}: expected metres or 'auto'") from None
+    return ObstacleConfig(min_confidence=args.min_confidence, max_rel_std=args.max_rel_std,
+                          min_distance_m=args.min_distance, max_distance_m=args.max_distance,
+                          ground_down_m=ground, ground_clearance_m=args.ground_clearance,
+                          max_obstacle_distance_m=args.max_obstacle_distance,
+                          min_obstacle_pixels=args.min_obstacle_pixels)
+
+
+class LatestNav:
+    """The newest nav_state (pose + stamp), filled by a worker; read by the obstacle loop."""
+
+    def __init__(self):
+        import threading
+        self._lock = threading.Lock()
+        self.state = None
+        self.stamp_us = None
+
+    def set(self, state, stamp_us):
+        with self._lock:
+            if self.stamp_us is None or stamp_us >= self.stamp_us:
+                self.state, self.stamp_us = state, stamp_us
+
+    def get(self):
+        with self._lock:
+            return self.state, self.stamp_us
+
+
+def body(node: Node, args) -> None:
+    from eonav.obstacles import ObstacleTracker
+    cfg = obstacle_config(args)
+    sender = None
+    if args.mavlink_out:
+        from eonav.mavlink_out import ObstacleDistanceSender
+        if args.mavlink_rate < 10.0:
+            node.log.warning("--mavlink-rate %.1f Hz is below the 10 Hz the autopilots are tuned for",
+                             args.mavlink_rate)
+        sender = ObstacleDistanceSender(args.mavlink_out, system_id=args.mavlink_sysid, rate_hz=args.mavlink_rate,
+                                        stale_s=args.stale)
+    pub = node.publisher(K.obstacles(node.vehicle))          # reliable, small, express
+    maps = node.subscribe(K.range_maps_all(node.vehicle), ring=2)
+    nav = LatestNav()
+    if not args.no_nav:
+        navsub = node.subscribe(K.nav_state(node.vehicle), ring=1)
+        node.worker(nav_loop, node, navsub, nav, name="nav")
+    node.worker(obstacle_loop, node, maps, pub, cfg, ObstacleTracker(), nav, sender, args, name="obstacles")
+    if sender is not None:
+        def send_loop():
+            try:
+                last = 0.0
+                while not node.stop_event.wait(sender.tick()):
+                    if time.monotonic() - last >= 0.5:
+                        last = time.monotonic()
+                        mirror_counters(node, sender)
+            finally:
+                mirror_counters(node, sender)
+                sender.close()
+        node.worker(send_loop, name="mavlink")
+        node.log.info("OBSTACLE_DISTANCE to %s at %.0f Hz (stale after %.2f s)", args.mavlink_out,
+                      args.mavlink_rate, args.stale)
+
+
+def mirror_counters(node: Node, sender) -> None:
+    """The sender's counters into the node's health counters (as mavlink.<name>)."""
+    have = node.counters()
+    for k, v in dict(sender.counters).items():
+        d = v - have.get(f"mavlink.{k}", 0)
+        if d:
+            node.count(f"mavlink.{k}", d)
+
+
+def nav_loop(node: Node, sub, nav: LatestNav) -> None:
+    from eonav.camera import VehicleState
+    for sample in sub:
+        msg = node.decode(sample, expect="nav_state")
+        if msg is None:
+            continue
+        p, q = np.asarray(msg["position_ned_m"], float), np.asarray(msg["q_wxyz"], float)
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
+            node.count("nav_incomplete")
+            continue
+        nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]))
+
+
+def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, args) -> None:
+    from eonav import obstacles as ob
+    from eonav.camera import VehicleState
+    from eonav.schema import camera_from_msg
+    for sample in sub:
+        msg = node.decode(sample, expect="range_map")
+        if msg is None:
+            continue
+        t0 = time.perf_counter()
+        try:
+            K.check_chunk(msg["camera_id"], "camera id")
+            cam = camera_from_msg(msg["camera"])
+            q = np.asarray(msg["q_wxyz"], float)
+            if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+                raise InputError(f"q_wxyz {q.tolist()} is not a unit quaternion")
+            state = VehicleState.from_quat(msg["position_ned_m"], q)
+            now_state, nav_stamp = (None, None) if args.no_nav else nav.get()
+            if now_state is not None and not (0 <= nav_stamp - msg["stamp_us"] <= NAV_MAX_AHEAD_S * 1e6):
+                now_state = None                  # older than the map, or from another clock: use the capture pose
+            res = ob.analyse(msg["range_m"], cam, state, confidence=msg["confidence"], flags=msg["flags"],
+                             inv_range_std_per_m=msg["inv_range_std_per_m"], cfg=cfg, now_state=now_state)
+        except InputError as e:
+            node.count("bad_maps")
+            node.log_limited("bad_map", logging.WARNING, "range map %s/%s rejected: %s", msg.get("camera_id"),
+                             msg.get("seq"), e)
+            continue
+        tracker.update(res.obstacles, msg["stamp_us"])
+        node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
+                 obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
+                 position_ned_m=msg["position_ned_m"], q_wxyz=q)
+        compute_s = time.perf_counter() - t0
+        node.count("maps_processed")
+        node.count("obstacles_published", len(res.obstacles))
+        node.latency("compute", compute_s)
+        node.latency("capture_to_obstacles", (now_us() - msg["stamp_us"]) * 1e-6)
+        if sender is not None:
+            sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"])
+            node.count("mavlink.nav_compensated" if res.sectors_now is not None else "mavlink.capture_pose")
+
+
+if __name__ == "__main__":
+    service_main("obstacles", add_arguments, body)

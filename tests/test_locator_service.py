@@ -1,0 +1,201 @@
+"""The locator and obstacle services as real processes on a real zenoh bus (loopback, multicast off):
+posed frames of a simulated flight go in, range maps are checked against the renderer's ground-truth range,
+the obstacle list and the MAVLink OBSTACLE_DISTANCE bytes against the boxes' true distances, health against
+what was sent (including malformed input), and both processes must exit 0 on SIGINT."""
+import math
+import os
+import signal
+import time
+
+os.environ["MAVLINK20"] = "1"
+
+import numpy as np
+import pytest
+
+from eonav import keys as K
+from eonav import schema
+from eonav.bus.testing import (client_session, drain, free_port, router_process, start_service, stop_service,
+                               wait_until)
+from eonav.geometry import quat_wxyz_from_rotation
+from eonav.rangemap import VALID
+
+VEHICLE = "loctest"
+N_FRAMES = 6
+RATE_HZ = 10.0
+T0_S = 3.0                  # approach flight: 0 m north at t = 3 s, truck ahead at ~57 m
+
+
+@pytest.fixture(scope="module")
+def flight_frames():
+    from eonav.sim.flight import flight, render_flight
+    frames = list(render_flight("approach", n_frames=N_FRAMES, rate_hz=RATE_HZ, size=256, t0_s=T0_S, seed=1))
+    return frames, flight("approach")
+
+
+def posed_frame_payload(seq, stamp_us, view, image=None):
+    return schema.encode("posed_frame", camera_id="nose", seq=seq, stamp_us=stamp_us, encoding="mono8",
+                         image=np.clip(np.round(view.image if image is None else image), 0, 255).astype(np.uint8),
+                         camera=schema.camera_to_msg(view.camera), position_ned_m=view.state.position_ned_m,
+                         q_wxyz=quat_wxyz_from_rotation(view.state.T_body_ned.T))
+
+
+def box_distance(box, p_ned):
+    local = box.R_ned_local.T @ (np.asarray(p_ned) - np.asarray(box.center_ned_m))
+    return float(np.linalg.norm(local - np.clip(local, -box.half_m, box.half_m)))
+
+
+def latest_health(samples):
+    out = {}
+    for s in samples:
+        m = schema.decode(s.payload.to_bytes(), expect="health")
+        out[m["service"]] = m
+    return out
+
+
+def test_locator_and_obstacles_services(flight_frames):
+    import zenoh
+    from eonav.mavlink_out import mavutil
+    frames, fl = flight_frames
+    mu = mavutil()
+    udp = free_port()
+    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{udp}")
+    procs = {}
+    try:
+        with router_process() as ep, client_session(ep) as s:
+            maps_sub = s.declare_subscriber(K.range_maps_all(VEHICLE), zenoh.handlers.FifoChannel(64))
+            obs_sub = s.declare_subscriber(K.obstacles(VEHICLE), zenoh.handlers.FifoChannel(64))
+            health_sub = s.declare_subscriber(K.health_all(VEHICLE), zenoh.handlers.FifoChannel(1024))
+            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.5"]
+            procs["locator"] = start_service(["-m", "services.locator", *common, "--cv-threads", "1"])
+            procs["obstacles"] = start_service(["-m", "services.obstacles", *common, "--ground-down", "0",
+                                                "--mavlink-out", f"udpout:127.0.0.1:{udp}"])
+            pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
+            health = []
+            wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
+                       timeout=30, what="both services' first health message")
+            wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
+            time.sleep(0.3)
+            # malformed input first: garbage, and a frame whose image does not match its camera
+            pub.put(b"\x93not msgpack at all")
+            pub.put(posed_frame_payload(100, time.time_ns() // 1000 - 10_000_000, frames[0][1],
+                                        image=np.zeros((10, 10))))
+            sent = {}
+            for i, (t_s, view, truth) in enumerate(frames):
+                stamp = time.time_ns() // 1000            # captured "now": latencies are the pipeline's own
+                sent[i] = (stamp, view, truth)
+                pub.put(posed_frame_payload(i, stamp, view))
+                time.sleep(1.0 / RATE_HZ * 2)             # 5 Hz: the locator (~50 ms) keeps up
+            maps, obstacles = [], []
+            wait_until(lambda: len(drain(maps_sub, maps)) >= N_FRAMES - 1, timeout=20, what="range maps")
+            wait_until(lambda: len(drain(obs_sub, obstacles)) >= N_FRAMES - 1, timeout=20, what="obstacle lists")
+            t_last = time.monotonic()
+
+            # -- range maps vs the renderer's ground truth ------------------------------------------
+            errs, cover = [], []
+            for smp in maps:
+                m = schema.decode(smp.payload.to_bytes(), expect="range_map")
+                assert str(smp.key_expr) == K.range_map(VEHICLE, "nose")
+                stamp, view, truth = sent[m["seq"]]
+                assert m["stamp_us"] == stamp and m["other_seq"] == m["seq"] - 1 and m["method"] == "dense"
+                assert m["baseline_m"] == pytest.approx(np.linalg.norm(
+                    view.state.position_ned_m - sent[m["other_seq"]][1].state.position_ned_m), rel=0.05)
+                ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(truth.range_m)
+                rel = np.abs(m["range_m"][ok] - truth.range_m[ok]) / truth.range_m[ok]
+                errs.append(float(np.median(rel)))
+                cover.append(float(ok.mean()))
+            assert max(errs) < 0.05, errs
+            assert min(cover) > 0.2, cover
+
+            # -- obstacle list vs the boxes ---------------------------------------------------------
+            boxes = {b.name: b for b in fl.scene.boxes}
+            truck_ids = []
+            for smp in obstacles:
+                m = schema.decode(smp.payload.to_bytes(), expect="obstacle_list")
+                view = next(v for st, v, _ in sent.values() if st == m["stamp_us"])
+                pos = view.state.position_ned_m
+                truck = box_distance(boxes["truck"], pos)
+                c = np.asarray(boxes["truck"].center_ned_m) - pos
+                bearing = math.degrees(math.atan2(c[1], c[0]))
+                # the truck (nearest box) is in the list at its true distance and bearing
+                match = [o for o in m["obstacles"] if abs(o["bearing_deg"] - bearing) < 3.0]
+                assert match, (bearing, m["obstacles"])
+                assert match[0]["distance_m"] == pytest.approx(truck, rel=0.08), (match[0], truck)
+                truck_ids.append(match[0]["id"])
+                assert len(m["sectors"]["distances_cm"]) == 72
+            assert len(set(truck_ids)) == 1, truck_ids     # the tracker keeps the truck's id
+
+            # -- MAVLink: fresh sectors with the truck, then 'unknown' once stale ------------------
+            od = []
+            while True:
+                msg = rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.3)
+                if msg is None:
+                    break
+                od.append((time.monotonic(), msg))
+                if time.monotonic() - t_last > 2.0:
+                    break
+            fresh = [msg for _, msg in od if set(msg.distances) != {65535}]
+            assert fresh, "no fresh OBSTACLE_DISTANCE received"
+            last_fresh = fresh[-1]
+            assert last_fresh.frame == 12 and last_fresh.get_srcComponent() == 191
+            last_pos = sent[N_FRAMES - 1][1].state.position_ned_m
+            c = np.asarray(boxes["truck"].center_ned_m) - last_pos
+            j = int((math.degrees(math.atan2(c[1], c[0])) - last_fresh.angle_offset) // last_fresh.increment_f)
+            near = min(last_fresh.distances[j - 1:j + 2])   # bins at the truck's centre bearing
+            truck_h = box_distance(boxes["truck"], [*last_pos[:2], -1.5])
+            assert near / 100 == pytest.approx(truck_h, rel=0.1)
+            assert set(od[-1][1].distances) == {65535}       # stale: explicit unknown
+            assert len(od) >= 10                             # >= 10 Hz, kept up after the data stopped
+
+            # -- health --------------------------------------------------------------------------------
+            time.sleep(0.8)
+            h = latest_health(drain(health_sub, health))
+            loc, obs = h["locator"], h["obstacles"]
+            assert loc["state"] == "ok" and obs["state"] == "ok"
+            c = loc["counters"]
+            assert c["pairs_computed"] == N_FRAMES - 1 and c["decode_errors"] == 1 and c["bad_frames"] == 1
+            assert c["skipped.first_frame"] == 1
+            assert loc["latency_ms"]["capture_to_published"]["n"] == N_FRAMES - 1
+            assert obs["counters"]["maps_processed"] == N_FRAMES - 1
+            assert obs["counters"]["mavlink.od_sent_fresh"] >= 1
+            assert obs["latency_ms"]["capture_to_obstacles"]["p99"] < 2000
+
+            for name in ("locator", "obstacles"):
+                code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
+                assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
+    except BaseException:
+        for name, p in procs.items():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+            try:
+                err = p.communicate(timeout=10)[1]
+            except Exception:
+                p.kill()
+                err = p.communicate()[1]
+            print(f"---- {name} (exit {p.returncode}) stderr:\n{err[-4000:]}")
+        raise
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+        rx.close()
+
+
+def test_locator_rejects_bad_configuration():
+    with router_process() as ep:
+        p = start_service(["-m", "services.locator", "--vehicle", VEHICLE, "--connect", ep, "--method", "nonsense"])
+        try:
+            p.wait(30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        err = p.communicate()[1]
+        assert p.returncode == 2 and "unknown method 'nonsense'" in err
+        p = start_service(["-m", "services.obstacles", "--vehicle", VEHICLE, "--connect", ep, "--ground-down", "x"])
+        try:
+            p.wait(30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        err = p.communicate()[1]
+        assert p.returncode == 2 and "--ground-down 'x'" in err
