@@ -67,7 +67,7 @@ class EpipolarMap:
         m1 = ((np.arange(ca.width, dtype=np.float64) - ca.cx) / ca.fx)[None, :]
         m2 = ((np.arange(ca.height, dtype=np.float64) - ca.cy) / ca.fy)[:, None]
         R = np.asarray(geo.R_ba, float)
-        A0, A1, A2 = [(R[i, 0] + (R[i, 1] * m1).astype(F32) + (R[i, 2] * m2).astype(F32)).astype(F32)
+        A0, A1, A2 = [np.add((R[i, 0] + R[i, 1] * m1).astype(F32), (R[i, 2] * m2).astype(F32))
                       for i in range(3)]
         B = np.asarray(geo.t_ba_m, float).astype(F32)
         C1 = (F32(cb.fx) * (B[1] * A0 - B[0] * A1)).astype(F32)

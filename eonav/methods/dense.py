@@ -324,18 +324,16 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     sigma = _robust_sigma(r, inview)
     g0, gG = _noise_gains(float(presmooth_sigma))
     noise_G = (sigma * sigma / (2.0 * g0)) * gG          # gradient energy of the noise alone
-    HJ = _box(mf * J * J, window)
     gxa, gya = _grad(pa[0])
     G = _box(mf * (gxa * gxa + gya * gya), window)
     R2 = _box(mf * r * r, window)
-    cover = _box(mf, window)
     with np.errstate(divide="ignore", invalid="ignore"):
         # normal-equation information (Huber-weighted, brightness offset eliminated) of the last linearisation
         # plus a floor of match_floor_px pixels of displacement (interpolation bias, surface slant, ...)
         std = np.sqrt(F32(sigma * sigma / n_win) / Hf + F32(match_floor_px ** 2) / E2) * F32(std_scale)
-        orient = HJ / (E2 * G)
+        orient = Hf / (E2 * G)     # share of the gradient energy along the epipolar direction
     bad = np.zeros((ha, wa), np.uint8)
-    bad[~inview | (cover < 0.5)] |= OUT_OF_VIEW
+    bad[~inview] |= OUT_OF_VIEW
     bad[R2 > F32((occ_k * sigma) ** 2)] |= OUT_OF_VIEW
     low = G < F32((1.0 + tex_k * tex_k) * noise_G)
     bad[low] |= LOW_TEXTURE
