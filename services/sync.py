@@ -151,7 +151,7 @@ def body(node: Node, args) -> None:
     nav_sub = node.subscribe(K.nav_state(node.vehicle), fifo=args.nav_fifo)
     reported: Counter = Counter()
     node.log.info("sync: cameras %s; frames %s + nav %s -> %s", sorted(cams), K.frames_all(node.vehicle),
-                  K.nav_state(node.vehicle), K.posed_frame(node.vehicle, "<camera>"))
+                  K.nav_state(node.vehicle), K.posed_frame(node.vehicle, "CAMERA"))
 
     def process():
         with lock:
