@@ -53,10 +53,10 @@ def middlebury_cases(data_dir):
 
 
 def kitti_cases(data_dir):
-    from .methods.flow_baseline import sgbm_range
+    from .methods.flow_baseline import locate_sgbm
     from .realdata import kitti_views
     views, right0 = kitti_views(data_dir)
-    ref = sgbm_range(views[0], right0)
+    ref = locate_sgbm(views[0], right0).range_m
     mask = np.isfinite(ref) & (ref < 40)
     label = "StereoSGBM on the KITTI stereo pair (approximate, NOT ground truth)"
     return [Case("kitti:motion 0->1", views[0], views[1], ref, mask, label),
@@ -107,17 +107,9 @@ def run_bench(methods, cases, repeat, json_out=None):
         print(f"\n== {case.name}  ({w}x{h}, reference: {case.truth_label}, {int(case.mask.sum())} scored pixels)")
         print(f"   {'method':<14}{'median err':>11}{'within 5%':>11}{'coverage':>10}{'ms/pair':>10}{'peak MB':>9}")
         per = {}
-        extra = []
-        if case.stereo_rectified:
-            from .methods.flow_baseline import sgbm_range
-            extra.append(("sgbm", lambda a, b: _as_result(sgbm_range(a, b))))
-        for m in list(methods) + extra:
-            name, fn = (m, None) if isinstance(m, str) else m
-            try:
-                fn = fn or get_method(name)
-            except (ImportError, AttributeError) as e:
-                print(f"   {name:<14} not available ({e})")
-                continue
+        names = list(methods) + (["sgbm"] if case.stereo_rectified and "sgbm" not in methods else [])
+        for name in names:
+            fn = get_method(name)
             res, secs, peak = time_method(fn, case.view_a, case.view_b, repeat)
             s = score(res.range_m, case.truth_m, case.mask)
             per[name] = res
@@ -135,11 +127,6 @@ def run_bench(methods, cases, repeat, json_out=None):
         with open(json_out, "w") as f:
             json.dump(results, f, indent=1)
     return results
-
-
-def _as_result(range_m):
-    from .rangemap import RangeResult
-    return RangeResult(range_m, np.isfinite(range_m).astype(np.float32), "sgbm")
 
 
 def add_arguments(p):

@@ -18,6 +18,8 @@ METHODS = {
               "the paper, faithfully: recursive estimators (36)-(42), closed form (28), eq. (7) test"),
     "dis": ("eonav.methods.flow_baseline", "locate_dis",
             "baseline: OpenCV DIS optical flow + triangulation with the known motion"),
+    "sgbm": ("eonav.methods.flow_baseline", "locate_sgbm",
+             "baseline for rectified stereo pairs only: OpenCV StereoSGBM"),
 }
 DEFAULT_METHOD = "dense"
 

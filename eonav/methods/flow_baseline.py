@@ -20,6 +20,7 @@ import time
 import cv2
 import numpy as np
 
+from .. import InputError
 from ..camera import View, pair_geometry
 from ..rangemap import OUT_OF_VIEW, RangeResult
 from ._common import F32, classify, far_inverse_range, no_motion_result, rectified_stereo_baseline, to_u8
@@ -31,7 +32,7 @@ DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DI
 def dis_flow(img_a: np.ndarray, img_b: np.ndarray, preset: str = "medium") -> np.ndarray:
     """Dense flow a -> b (H x W x 2, pixels) from OpenCV DIS on 8-bit images of equal size."""
     if preset not in DIS_PRESETS:
-        raise ValueError(f"unknown DIS preset {preset!r}; expected one of {sorted(DIS_PRESETS)}")
+        raise InputError(f"unknown DIS preset {preset!r}; expected one of {sorted(DIS_PRESETS)}")
     dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
     return dis.calc(to_u8(img_a), to_u8(img_b), None)
 
@@ -111,11 +112,11 @@ def sgbm_disparity(img_l: np.ndarray, img_r: np.ndarray, *, max_disp: int = 64, 
 
 def locate_sgbm(view_a: View, view_b: View, *, max_disp: int | None = None, block_size: int = 5) -> RangeResult:
     """StereoSGBM on a rectified horizontal stereo pair (b to the right of a, same intrinsics, R = I):
-    rho = d / (f b). Raises ValueError for any other geometry."""
+    rho = d / (f b). Raises InputError for any other geometry."""
     geo = pair_geometry(view_a, view_b)
     fb = rectified_stereo_baseline(geo)
     if fb is None:
-        raise ValueError("locate_sgbm needs a rectified horizontal stereo pair (b right of a, R = I, same intrinsics)")
+        raise InputError("locate_sgbm needs a rectified horizontal stereo pair (b right of a, R = I, same intrinsics)")
     f, b = fb
     h, w = view_a.image.shape
     md = max_disp if max_disp is not None else int(0.3 * w)
