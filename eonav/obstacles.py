@@ -335,15 +335,22 @@ def _components(pts: Points, sel, camera: Camera, range_m, state: VehicleState, 
     if not mask.any():
         return [], kept
     r = np.where(mask, np.asarray(range_m, np.float64), np.nan)
+    # relative 1-sigma per pixel: a jump must beat both max_rel_jump and 3 sigma of the difference, or noisy
+    # far objects shatter into speckle
+    rel_sig = np.zeros(H * W)
+    if pts.sigma_m is not None:
+        rel_sig[pts.idx] = np.nan_to_num(pts.sigma_m / pts.range_m, nan=0.0, posinf=0.0)
+    rel_sig = rel_sig.reshape(H, W)
+    base = math.log1p(cfg.max_rel_jump)
     with np.errstate(invalid="ignore", divide="ignore"):
         lr = np.log(r)
         cut = np.zeros((H, W), bool)
         dx = lr[:, 1:] - lr[:, :-1]                       # > 0: right pixel farther
-        jump = np.abs(dx) > math.log1p(cfg.max_rel_jump)
+        jump = np.abs(dx) > np.maximum(base, 3.0 * np.hypot(rel_sig[:, 1:], rel_sig[:, :-1]))
         cut[:, 1:] |= jump & (dx > 0)
         cut[:, :-1] |= jump & (dx < 0)
         dy = lr[1:, :] - lr[:-1, :]
-        jump = np.abs(dy) > math.log1p(cfg.max_rel_jump)
+        jump = np.abs(dy) > np.maximum(base, 3.0 * np.hypot(rel_sig[1:, :], rel_sig[:-1, :]))
         cut[1:, :] |= jump & (dy > 0)
         cut[:-1, :] |= jump & (dy < 0)
     labels, n = ndimage.label(mask & ~cut)
