@@ -1,0 +1,201 @@
+"""``eonav bench pipeline``: frame capture -> range map published -> obstacles published, over the real bus.
+
+Starts the embedded router and the locator and obstacle services as processes, then plays posed frames of a
+simulated flight (rendered once per image size, cycled with fresh stamps) at a fixed rate straight onto the
+posed-frame key (camera ingest and sync are not in the loop: their cost is a copy each, measured in their own
+benches). A frame's ``stamp_us`` is the moment it is put ("capture"); the bench's subscriber stamps the arrival of
+the range map and of the obstacle list carrying that ``stamp_us`` on the same host clock. Reported per case:
+latency p50/p99 of capture -> range map and capture -> obstacles, throughput, drops (frames without a range map:
+the locator's RingChannel keeps the newest frames, so a slow locator skips frames instead of queueing them),
+the locator's own compute time, and whether payloads arrived through zenoh shared memory.
+
+``run_bench(cases, seconds=...)`` is the pipeline function; ``add_arguments``/``run`` are the CLI hooks that
+``eonav bench pipeline`` delegates to.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+
+log = logging.getLogger("eonav.bench_pipeline")
+
+DEFAULT_CASES = ((30.0, 640, 480), (30.0, 512, 512), (15.0, 640, 480), (15.0, 512, 512))
+
+
+def _frames(width: int, height: int, n: int = 4, rate_hz: float = 10.0):
+    """n rendered frames of the approach flight at width x height (as posed_frame fields)."""
+    from .geometry import quat_wxyz_from_rotation
+    from .schema import camera_to_msg
+    from .sim.flight import render_flight
+    out = []
+    for _, view, _ in render_flight("approach", n_frames=n, rate_hz=rate_hz, size=(width, height), t0_s=2.5,
+                                    supersample=1):
+        out.append({"image": np.clip(np.round(view.image), 0, 255).astype(np.uint8),
+                    "camera": camera_to_msg(view.camera), "position_ned_m": view.state.position_ned_m,
+                    "q_wxyz": quat_wxyz_from_rotation(view.state.T_body_ned.T)})
+    return out
+
+
+def _pct(v, q):
+    return float(np.percentile(v, q)) if len(v) else math.nan
+
+
+def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, frames: list, *, method: str = "dense",
+               cv_threads: int = 1, vehicle: str = "bench") -> dict:
+    import zenoh
+    from . import keys as K
+    from . import schema
+    from .bus.testing import client_session, start_service, stop_service, wait_until
+    common = ["--vehicle", vehicle, "--connect", ep, "--health-period", "1", "--log-level", "warning"]
+    procs = [start_service(["-m", "services.locator", *common, "--method", method, "--cv-threads", str(cv_threads)]),
+             start_service(["-m", "services.obstacles", *common, "--ground-down", "0"])]
+    res = {"fps": fps, "width": width, "height": height, "method": method}
+    try:
+        with client_session(ep) as s:
+            rx_map, rx_obs, shm = {}, {}, {"maps": 0, "maps_shm": 0}
+            health = {}
+            lock = threading.Lock()
+            subs = [s.declare_subscriber(K.range_maps_all(vehicle), zenoh.handlers.FifoChannel(256)),
+                    s.declare_subscriber(K.obstacles(vehicle), zenoh.handlers.FifoChannel(256)),
+                    s.declare_subscriber(K.health_all(vehicle), zenoh.handlers.FifoChannel(256))]
+
+            def consume(sub, kind):
+                try:
+                    for smp in sub:
+                        t = time.time_ns() // 1000
+                        m = schema.decode(smp.payload.to_bytes(), expect=kind)
+                        with lock:
+                            if kind == "range_map":
+                                rx_map[m["stamp_us"]] = (t, m["compute_s"])
+                                shm["maps"] += 1
+                                shm["maps_shm"] += smp.payload.as_shm() is not None
+                            elif kind == "obstacle_list":
+                                rx_obs[m["stamp_us"]] = t
+                            else:
+                                health[m["service"]] = m
+                except Exception:
+                    pass
+
+            threads = [threading.Thread(target=consume, args=(sub, k))
+                       for sub, k in zip(subs, ("range_map", "obstacle_list", "health"))]
+            for t in threads:
+                t.start()
+            pub = s.declare_publisher(K.posed_frame(vehicle, "nose"))
+            wait_until(lambda: {"locator", "obstacles"} <= set(health), timeout=60, what="services up")
+            wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
+            time.sleep(0.5)
+            # warm-up: a few frames not counted
+            sent = []
+            period = 1.0 / fps
+            t_next = time.monotonic()
+            n_total = int(round((seconds + 2.0) * fps))
+            for i in range(n_total):
+                fr = frames[i % len(frames)]
+                stamp = time.time_ns() // 1000
+                pub.put(schema.encode("posed_frame", camera_id="nose", seq=i, stamp_us=stamp, encoding="mono8", **fr))
+                if i >= int(2.0 * fps):
+                    sent.append(stamp)
+                t_next += period
+                dt = t_next - time.monotonic()
+                if dt > 0:
+                    time.sleep(dt)
+            time.sleep(1.5)
+            with lock:
+                maps = {k: v for k, v in rx_map.items() if k in set(sent)}
+                obs = {k: v for k, v in rx_obs.items() if k in set(sent)}
+            lat_r = [(v[0] - k) / 1e3 for k, v in maps.items()]
+            lat_o = [(v - k) / 1e3 for k, v in obs.items()]
+            comp = [v[1] * 1e3 for v in maps.values()]
+            loc = health.get("locator", {}).get("counters", {})
+            res.update(frames_sent=len(sent), range_maps=len(maps), obstacle_lists=len(obs),
+                       frames_dropped=len(sent) - len(maps), drop_fraction=(len(sent) - len(maps)) / max(1, len(sent)),
+                       throughput_maps_hz=len(maps) / seconds,
+                       capture_to_range_ms={"p50": _pct(lat_r, 50), "p99": _pct(lat_r, 99), "max": _pct(lat_r, 100)},
+                       capture_to_obstacles_ms={"p50": _pct(lat_o, 50), "p99": _pct(lat_o, 99),
+                                                "max": _pct(lat_o, 100)},
+                       locate_compute_ms={"p50": _pct(comp, 50), "p99": _pct(comp, 99)},
+                       locator_skipped=loc.get("frames_skipped", 0),
+                       range_map_payloads_via_shm=f"{shm['maps_shm']}/{shm['maps']}",
+                       payload_bytes_per_frame=len(schema.encode("posed_frame", camera_id="nose", seq=0, stamp_us=0,
+                                                                 encoding="mono8", **frames[0])))
+            for sub in subs:
+                sub.undeclare()
+            for t in threads:
+                t.join(5)
+    finally:
+        codes = []
+        for p in procs:
+            try:
+                codes.append(stop_service(p, signal.SIGINT, timeout=15)[0])
+            except AssertionError:
+                codes.append(None)
+        res["service_exit_codes"] = codes
+    return res
+
+
+def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense", cv_threads: int = 1,
+              stream=None) -> list:
+    """Run each (fps, width, height) case; print one line each and return the result dicts."""
+    import zenoh
+    from .bus.testing import router_process
+    stream = stream or sys.stdout
+    shm_cfg = json.loads(zenoh.Config().get_json("transport/shared_memory"))
+    print(f"zenoh {zenoh.__version__ if hasattr(zenoh, '__version__') else ''} shared memory config (default): "
+          f"{json.dumps(shm_cfg)}", file=stream)
+    out = []
+    rendered = {}
+    with router_process() as ep:
+        for fps, w, h in cases:
+            if (w, h) not in rendered:
+                rendered[(w, h)] = _frames(w, h)
+            r = bench_case(ep, fps, w, h, seconds, rendered[(w, h)], method=method, cv_threads=cv_threads)
+            out.append(r)
+            print(f"{fps:4.0f} fps {w}x{h} {method}: capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
+                  f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
+                  f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
+                  f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} | "
+                  f"compute p50 {r['locate_compute_ms']['p50']:.0f} ms | shm {r['range_map_payloads_via_shm']}",
+                  file=stream, flush=True)
+    return out
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--case", action="append", default=[], metavar="FPS@WxH",
+                   help="a case, e.g. 30@640x480 (repeatable; default: 30@640x480 30@512x512 15@640x480 15@512x512)")
+    p.add_argument("--seconds", type=float, default=8.0, help="measured seconds per case (after 2 s warm-up)")
+    p.add_argument("--method", default="dense", help="locator method")
+    p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
+    p.add_argument("--json", action="store_true", help="print the results as JSON at the end")
+
+
+def parse_case(s: str):
+    from . import InputError
+    try:
+        fps, size = s.split("@")
+        w, h = size.lower().split("x")
+        return float(fps), int(w), int(h)
+    except ValueError:
+        raise InputError(f"--case {s!r}: expected FPS@WIDTHxHEIGHT, e.g. 30@640x480") from None
+
+
+def run(args) -> int:
+    cases = [parse_case(c) for c in args.case] or list(DEFAULT_CASES)
+    res = run_bench(cases, seconds=args.seconds, method=args.method, cv_threads=args.cv_threads)
+    if args.json:
+        print(json.dumps(res))
+    return 0
+
+
+if __name__ == "__main__":
+    import argparse
+    ap = argparse.ArgumentParser(prog="python -m eonav.bench_pipeline")
+    add_arguments(ap)
+    logging.basicConfig(level=logging.WARNING)
+    sys.exit(run(ap.parse_args()))
