@@ -89,7 +89,7 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                 t.start()
             pub = s.declare_publisher(K.posed_frame(vehicle, "nose"))
             wait_until(lambda: {"locator", "obstacles"} <= set(health), timeout=60, what="services up")
-            wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
+            wait_until(lambda: pub.matching_status.matching, timeout=60, what="locator subscribed")
             time.sleep(0.5)
             # warm-up: a few frames not counted
             sent = []
@@ -152,10 +152,12 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
     out = []
     rendered = {}
     with router_process() as ep:
-        for fps, w, h in cases:
+        for k, (fps, w, h) in enumerate(cases):
             if (w, h) not in rendered:
                 rendered[(w, h)] = _frames(w, h)
-            r = bench_case(ep, fps, w, h, seconds, rendered[(w, h)], method=method, cv_threads=cv_threads)
+            # a vehicle name per case: no health or subscriber of the previous case's services can be mistaken
+            r = bench_case(ep, fps, w, h, seconds, rendered[(w, h)], method=method, cv_threads=cv_threads,
+                           vehicle=f"bench{k}")
             out.append(r)
             print(f"{fps:4.0f} fps {w}x{h} {method}: capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
                   f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
