@@ -28,7 +28,8 @@ other exit (crash, signal) = restarted after an exponential back-off (0.5 s, 1 s
 most ``max_restarts`` times; the count resets after 30 s of stable running.
 
 Stopping: Ctrl-C or SIGTERM, ``--duration S``, ``--exit-when-done SERVICE`` (that service exited 0),
-or nothing left running. Services get SIGINT (they run in their own process groups, so a terminal
+or nothing left running (an empty pipeline, e.g. ``--watch``, only watches the health topic: services
+started elsewhere show up as ``remote``, until stopped). Services get SIGINT (they run in their own process groups, so a terminal
 Ctrl-C reaches only the launcher, which forwards it once), ``--grace`` seconds, then SIGKILL; the
 router last. Exit code 0 after a clean stop; 1 if a service failed for good (gave up restarting,
 config error) or the ``--exit-when-done`` service failed; 2 if the router could not start.
@@ -218,6 +219,7 @@ class Supervisor:
         env.update(self.extra_env)
         env.update({k: _subst(v, self.ctx) for k, v in p.spec.env.items()})
         env.setdefault("PYTHONUNBUFFERED", "1")
+        env["EONAV_SUPERVISOR_PID"] = str(os.getpid())
         stdout = stderr = None
         if self.log_dir:
             f = open(Path(self.log_dir) / f"{p.name}.log", "ab")
@@ -317,8 +319,9 @@ def start_router(port: int, *, host: str = "127.0.0.1", timeout_s: float = 15.0,
     argv = [sys.executable, "-m", "eonav.bus.router", "--listen", endpoint, "--log-level", log_level]
     if zenoh_config:
         argv += ["--zenoh-config", zenoh_config]
+    env = dict(os.environ, EONAV_SUPERVISOR_PID=str(os.getpid()))
     pp = subprocess.Popen(argv, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
-                          start_new_session=True)
+                          start_new_session=True, env=env)
     ready = threading.Event()
 
     def reader():
@@ -347,7 +350,9 @@ class HealthMonitor:
 
     def __init__(self, vehicle: str, router: str, procs: list[Proc]):
         self.vehicle, self.router = vehicle, router
+        self.procs = procs
         self.by_name = {p.name: p for p in procs}
+        self._lock = threading.Lock()
         self.session = None
         self._subs = []
         self._threads = []
@@ -377,9 +382,8 @@ class HealthMonitor:
                 except schema.SchemaError as e:
                     log.debug("bad health payload on %s: %s", s.key_expr, e)
                     continue
-                p = self.by_name.get(msg["service"])
-                if p is not None:
-                    p.health, p.health_mono = msg, time.monotonic()
+                p = self._proc(msg["service"])
+                p.health, p.health_mono = msg, time.monotonic()
         except Exception:
             pass
 
@@ -388,11 +392,19 @@ class HealthMonitor:
         try:
             for s in sub:
                 name = str(s.key_expr).rsplit("/", 1)[-1]
-                p = self.by_name.get(name)
-                if p is not None:
-                    p.alive = s.kind == zenoh.SampleKind.PUT
+                self._proc(name).alive = s.kind == zenoh.SampleKind.PUT
         except Exception:
             pass
+
+    def _proc(self, name: str) -> Proc:
+        """The Proc of ``name``; a service that is not ours (another host, another launcher) is added
+        with state "remote" so the status line shows it too."""
+        with self._lock:
+            p = self.by_name.get(name)
+            if p is None:
+                p = self.by_name[name] = Proc(ServiceSpec(name=name, module="", restart=False), state="remote")
+                self.procs.append(p)
+            return p
 
     def __exit__(self, *exc):
         for s in self._subs:
@@ -408,7 +420,10 @@ class HealthMonitor:
 
 def _fmt_service(p: Proc, now: float) -> str:
     h = p.health
-    if p.state != "running" or h is None:
+    if p.state == "remote":
+        if h is None or not p.alive:
+            return f"{p.name} remote {'alive' if p.alive else 'gone'}"
+    elif p.state != "running" or h is None:
         extra = f"({p.exit_code})" if p.exit_code not in (None, 0) and p.state != "running" else ""
         r = f" r{p.restarts}" if p.restarts else ""
         return f"{p.name} {p.state if p.state != 'running' else 'starting'}{extra}{r}"
@@ -434,12 +449,12 @@ def _fmt_service(p: Proc, now: float) -> str:
 
 def status_line(procs: list[Proc], vehicle: str, elapsed_s: float) -> str:
     now = time.monotonic()
-    return f"[eonav {vehicle} {elapsed_s:5.0f}s] " + " | ".join(_fmt_service(p, now) for p in procs)
+    return f"[eonav {vehicle} {elapsed_s:5.0f}s] " + " | ".join(_fmt_service(p, now) for p in list(procs))
 
 
 def status_dict(procs: list[Proc]) -> dict:
     return {p.name: {"state": p.state, "pid": p.popen.pid if p.popen else None, "restarts": p.restarts,
-                     "exit_code": p.exit_code, "alive": p.alive, "health": p.health} for p in procs}
+                     "exit_code": p.exit_code, "alive": p.alive, "health": p.health} for p in list(procs)}
 
 
 class StatusPrinter:
@@ -564,7 +579,7 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                 if duration is not None and now - t0 >= duration:
                     reason["why"] = f"duration {duration:g} s"
                     break
-                if not sup.active():
+                if services and not sup.active():
                     if not any(p.popen is not None for p in sup.procs):
                         reason["why"], code = "no service could be started", 1
                     else:
@@ -631,6 +646,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_flag(p, "--log-dir", env="EONAV_LOG_DIR", default=None, metavar="DIR",
              help="one log file per service here (default: services log to this terminal)")
     add_flag(p, "--quiet", env="EONAV_QUIET", action="store_true", help="no status line")
+    p.add_argument("--watch", action="store_true",
+                   help="start nothing: show the status of the services already on the bus (use with --router)")
     p.add_argument("--print-spec", action="store_true", help="print the effective pipeline spec as JSON and exit")
 
 
@@ -639,7 +656,11 @@ def run(args) -> int:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if logging.getLogger().level > logging.INFO:
         log.setLevel(logging.INFO)
-    spec = args.pipeline or default_spec(args.camera, args.mavlink)
+    if not (args.watch or args.pipeline or args.camera or args.mavlink or args.print_spec):
+        # no pipeline and no source: the newcomer's demo (a recorded simulated flight through the whole pipeline)
+        from .demo import run as run_demo
+        return run_demo(args)
+    spec = {"services": []} if args.watch else (args.pipeline or default_spec(args.camera, args.mavlink))
     if args.print_spec:
         doc = json.loads(Path(spec).read_text()) if isinstance(spec, str) else spec
         print(json.dumps(doc, indent=2))

@@ -230,3 +230,71 @@ def test_eonav_service_command_passes_args(tmp_path):
     assert proc.wait(30) == 2
     assert "camera_ingest" in proc.stderr.read()           # lists what exists
     assert sys.executable
+
+
+def test_watch_mode_shows_remote_services(svc_pkg):
+    from eonav.bus.testing import router_process, stop_service
+    with router_process() as ep:
+        svc = start_service(["-m", svc_pkg, "--connect", ep, "--vehicle", "lt5", "--name", "elsewhere",
+                             "--health-period", "0.2"])
+        try:
+            seen = []
+            code = L.run_pipeline({"services": []}, vehicle="lt5", router=ep, duration=4.0, on_status=seen.append,
+                                  quiet=True)
+            assert code == 0
+            assert seen[-1]["elsewhere"]["state"] == "remote" and seen[-1]["elsewhere"]["alive"]
+            assert seen[-1]["elsewhere"]["health"]["state"] == "ok"
+            assert svc.poll() is None                      # watching never touches other processes
+        finally:
+            code, err = stop_service(svc)
+        assert code == 0, err
+
+
+def test_deploy_configs_are_valid_zenoh_configs():
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / "deploy"
+    r = zenoh.Config.from_file(str(root / "zenoh" / "router.json5"))
+    assert json.loads(r.get_json("mode")) == "router"
+    assert "tcp/127.0.0.1:7447" in json.loads(r.get_json("listen/endpoints"))
+    assert json.loads(r.get_json("scouting/multicast/enabled")) is False
+    p = zenoh.Config.from_file(str(root / "zenoh" / "peer.json5"))
+    assert json.loads(p.get_json("mode")) == "peer"
+    assert json.loads(p.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(p.get_json("scouting/multicast/enabled")) is False
+    unit = (root / "systemd" / "eonav@.service").read_text()
+    for line in ("ExecStart=/opt/eonav/venv/bin/python -m services.%i", "EnvironmentFile=/etc/eonav/%i.env",
+                 "KillSignal=SIGINT", "Restart=on-failure", "After=network-online.target zenohd.service"):
+        assert line in unit
+    for env in (root / "env").glob("*.env"):
+        for ln in env.read_text().splitlines():
+            if ln.strip() and not ln.startswith("#"):
+                assert "=" in ln and (ln.startswith("EONAV_") or ln.split("=")[0] in ("RUST_LOG",
+                                                                                   "OPENCV_FFMPEG_CAPTURE_OPTIONS")), ln
+
+
+def test_children_stop_when_launcher_is_killed(svc_pkg):
+    import shutil
+    if not shutil.which("pgrep"):
+        pytest.skip("needs pgrep (procps)")
+    port = free_port()
+    spec = json.dumps({"services": [{"name": "orphan", "module": svc_pkg}]})
+    proc = start_service(["-c", "import sys, json; from eonav.launcher import run_pipeline; "
+                          f"sys.exit(run_pipeline(json.loads({spec!r}), vehicle='lt6', port={port}, quiet=True))"])
+    try:
+        _wait_port(port)
+        with client_session(f"tcp/127.0.0.1:{port}") as s:
+            alive = s.liveliness().declare_subscriber(K.alive_all("lt6"), zenoh.handlers.FifoChannel(64), history=True)
+            wait_until(lambda: alive.try_recv() is not None, 30, what="service alive")
+            alive.undeclare()
+        import subprocess
+        pids = []
+        for pattern in ("--vehicle lt6", f"eonav.bus.router --listen tcp/127.0.0.1:{port}"):
+            out = subprocess.run(["pgrep", "-f", "--", pattern], capture_output=True, text=True).stdout.split()
+            pids += [int(p) for p in out if int(p) != proc.pid]
+        assert len(pids) == 2, pids                           # the service and the router
+        proc.kill()                                           # no chance to clean up
+        proc.wait(10)
+        wait_until(lambda: all(_gone(p) for p in pids), 15, what="orphaned service and router to exit")
+    finally:
+        if proc.poll() is None:
+            proc.kill()

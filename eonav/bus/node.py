@@ -483,6 +483,15 @@ def _setup_logging(level: str, name: str) -> None:
     root.setLevel(getattr(logging, level.upper(), logging.INFO))
 
 
+def _supervisor_pid() -> int:
+    """``EONAV_SUPERVISOR_PID``: set by ``eonav run`` for its children, which stop cleanly when their
+    parent is gone (e.g. the launcher was SIGKILLed) instead of lingering as orphans."""
+    try:
+        return int(os.environ.get("EONAV_SUPERVISOR_PID", "0"))
+    except ValueError:
+        return 0
+
+
 def run_node(name: str, args, body: Callable) -> int:
     """Open the session, run ``body``, wait for a stop, shut down. Returns the exit code.
     Installs SIGINT/SIGTERM handlers when called from the main thread."""
@@ -526,8 +535,10 @@ def run_node(name: str, args, body: Callable) -> int:
                 node._shutdown()
                 return EXIT_ERROR
             log.info("running (vehicle %s, pid %d)", node.vehicle, os.getpid())
+            parent = _supervisor_pid()
             while not node.stop_event.wait(0.25):
-                pass
+                if parent and os.getppid() != parent:
+                    node.stop(f"supervisor (pid {parent}) is gone")
             node._shutdown()
             code = EXIT_ERROR if node.failed else EXIT_OK
             log.info("stopped (%s), exit %d", node.stop_reason, code)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -70,8 +71,11 @@ def serve(args, stop: threading.Event, on_ready=None) -> int:
         log.info("router %s listening on %s", zid, ", ".join(endpoints) or "(config)")
         if on_ready:
             on_ready(zid, endpoints)
+        parent = int(os.environ.get("EONAV_SUPERVISOR_PID", "0") or 0)
         while not stop.wait(0.25):
-            pass
+            if parent and os.getppid() != parent:
+                log.warning("supervisor (pid %d) is gone; stopping", parent)
+                break
         log.info("router stopping")
     return 0
 
