@@ -8,7 +8,9 @@
         proc = start_service(["-m", "services.camera_ingest", "--connect", f"tcp/127.0.0.1:{port}", ...])
 
 A service started with ``--connect tcp/127.0.0.1:<port>`` reaches the test's session directly
-(peer to peer, no router). ``router_process(port)`` starts the embedded router when a test needs one.
+(peer to peer, no router). That is enough for ONE service talking to the test. Peers do not forward
+for each other, so when two services must talk to each other, use ``router_process()`` (the
+embedded router in a subprocess) plus ``client_session(ep)`` for the test, as ``eonav run`` does.
 """
 from __future__ import annotations
 
