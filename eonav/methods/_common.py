@@ -105,6 +105,41 @@ def no_motion_result(shape, method: str, reason: str) -> RangeResult:
                        flags=np.full((h, w), ILL_CONDITIONED, np.uint8), info={"no_parallax": reason})
 
 
+def classify_into(rho, std, flags, rng, conf, *, rho_far: float, max_rel_std: float):
+    """The per-pixel rules of ``classify`` in place, on any block of pixels (whole image or a strip):
+    ``flags`` (uint8, with the method's bad bits already set) gains ILL_CONDITIONED / AT_INFINITY / VALID,
+    ``rng`` and ``conf`` (float32, same shape) are written. Returns (n_valid, n_at_infinity)."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        finite = np.isfinite(rho)
+        finite &= np.isfinite(std)
+        two = std * F32(2.0)
+        near0 = rho < two
+        near0 &= finite
+        inf_ok = two < F32(rho_far)
+        inf_ok &= near0
+        rel = np.divide(std, rho, out=two)
+        ill = rel <= F32(max_rel_std)                     # ill: finite & ~near0 & ~(rel <= max_rel_std)
+        np.logical_not(ill, out=ill)
+        ill &= finite
+        ill &= ~near0
+        ill |= near0 & ~inf_ok
+        ill |= ~finite
+        flags |= ill.view(np.uint8) * np.uint8(ILL_CONDITIONED)
+        ok = (flags & np.uint8(OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION)) == 0
+        at_inf = ok & inf_ok
+        val = ok
+        val &= ~inf_ok
+        flags |= at_inf.view(np.uint8) * np.uint8(AT_INFINITY | VALID)
+        flags |= val.view(np.uint8) * np.uint8(VALID)
+        rng.fill(np.nan)
+        np.divide(F32(1.0), rho, out=rng, where=val)
+        rng[at_inf] = np.inf
+        conf.fill(0)
+        np.divide(rho, std, out=conf, where=val)
+        np.divide(F32(rho_far), std, out=conf, where=at_inf)
+    return int(np.count_nonzero(val)), int(np.count_nonzero(at_inf))
+
+
 def classify(rho, std, *, bad_flags, method: str, rho_far: float, max_rel_std: float, info: dict,
              extra_flags=None) -> RangeResult:
     """Turn per-pixel inverse range and its 1-sigma into a RangeResult.
@@ -121,31 +156,20 @@ def classify(rho, std, *, bad_flags, method: str, rho_far: float, max_rel_std: f
     flags = bad_flags.astype(np.uint8, copy=True)
     if extra_flags is not None:
         flags |= extra_flags
-    finite = np.isfinite(rho) & np.isfinite(std)
-    near0 = finite & (rho < 2.0 * std)
-    inf_ok = near0 & (2.0 * std < rho_far)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel = std / rho
-    ill = (near0 & ~inf_ok) | (finite & ~near0 & ~(rel <= max_rel_std)) | ~finite
-    flags[ill] |= ILL_CONDITIONED
-    ok = (flags & (OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION)) == 0
-    at_inf = ok & inf_ok
-    val = ok & ~inf_ok
-    flags[at_inf] |= AT_INFINITY | VALID
-    flags[val] |= VALID
-    rng = np.full(rho.shape, np.nan, F32)
-    with np.errstate(divide="ignore"):
-        rng[val] = (1.0 / rho[val]).astype(F32)
-    rng[at_inf] = np.inf
-    conf = np.zeros(rho.shape, F32)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        conf[val] = (rho[val] / std[val]).astype(F32)
-        conf[at_inf] = (rho_far / std[at_inf]).astype(F32)
+    rho = np.asarray(rho, F32)
+    std = np.asarray(std, F32)
+    rng = np.empty(rho.shape, F32)
+    conf = np.empty(rho.shape, F32)
+    n_val, n_inf = classify_into(rho, std, flags, rng, conf, rho_far=rho_far, max_rel_std=max_rel_std)
+    return make_result(rho, std, flags, rng, conf, method, n_val, n_inf, info)
+
+
+def make_result(rho, std, flags, rng, conf, method: str, n_val: int, n_inf: int, info: dict) -> RangeResult:
     info = dict(info)
-    info["valid_fraction"] = float(val.mean() + at_inf.mean())
-    info["at_infinity_fraction"] = float(at_inf.mean())
-    return RangeResult(range_m=rng, confidence=conf, method=method,
-                       inv_range_per_m=rho.astype(F32, copy=False), inv_range_std_per_m=std.astype(F32, copy=False),
+    n = max(int(rho.size), 1)
+    info["valid_fraction"] = float((n_val + n_inf) / n)
+    info["at_infinity_fraction"] = float(n_inf / n)
+    return RangeResult(range_m=rng, confidence=conf, method=method, inv_range_per_m=rho, inv_range_std_per_m=std,
                        flags=flags, info=info)
 
 
@@ -175,5 +199,5 @@ def rectified_stereo_baseline(geo: PairGeometry, tol: float = 1e-6):
     return float(ca.fx), float(-t[1])
 
 
-__all__ = ["EpipolarMap", "level_camera", "pyramid", "pyr_up_to", "classify", "no_motion_result",
+__all__ = ["EpipolarMap", "level_camera", "pyramid", "pyr_up_to", "classify", "classify_into", "make_result", "no_motion_result",
            "far_inverse_range", "to_u8", "rectified_stereo_baseline", "pair_geometry", "View"]

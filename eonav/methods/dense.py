@@ -12,8 +12,9 @@ denominator of eqs. 25-26) is linear in rho. We solve it
 2. then coarse-to-fine by re-linearised Gauss-Newton: at each level warp b at the current rho
    (cv2.remap), so that the Taylor remainder (eq. 7) stays small, and solve the windowed (box), Huber-
    weighted normal equations of r + J (rho' - rho) = 0, r = I_b(map(rho)) - I_a,
-   J = grad I_b(warped) . d(u_b, v_b)/d rho (analytic derivative of the rational map), with a
-   Levenberg trust term worth about ``trust_px`` pixels of displacement.
+   J = grad I . d(u_b, v_b)/d rho (analytic derivative of the rational map) with the gradient averaged over
+   I_a and the warped I_b (eq. 27's symmetric form: a second-order step, half the interpolation bias of a
+   one-sided gradient), with a Levenberg trust term worth about ``trust_px`` pixels of displacement.
 
 Per-pixel 1-sigma of rho from the normal equations and the noise (robust MAD of the final residual),
 confidence = rho / sigma. Flags: OUT_OF_VIEW (map leaves b, behind b, or occluded = high windowed
@@ -22,7 +23,10 @@ gradient perpendicular to the epipolar direction, relative std above ``max_rel_s
 (eq. 7-style: the last update still moved by more than ``trunc_px``), AT_INFINITY (rho within 2 sigma
 of 0 with a tight sigma: range +inf).
 
-All per-pixel work is float32 numpy / OpenCV on whole images: no per-pixel Python.
+All per-pixel work is float32 numpy / OpenCV: no per-pixel Python. The Gauss-Newton steps, the flags and
+the classification run on strips of rows (``strip_px`` pixels each, plus a half-window halo so the box sums
+are exactly those of the whole image): the ~30 temporaries of a strip stay in the CPU cache and are reused
+by the allocator instead of being fresh (page-faulting) full-size arrays.
 """
 from __future__ import annotations
 
@@ -35,7 +39,8 @@ import numpy as np
 
 from ..camera import View, pair_geometry
 from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OUT_OF_VIEW, TRUNCATION, RangeResult
-from ._common import F32, EpipolarMap, classify, far_inverse_range, no_motion_result, pyr_up_to, pyramid
+from ._common import (F32, EpipolarMap, classify_into, far_inverse_range, level_camera, make_result,
+                      no_motion_result, pyr_up_to, pyramid)
 
 METHOD = "dense"
 _BR = cv2.BORDER_REFLECT
@@ -70,10 +75,11 @@ def _noise_gains(presmooth_sigma: float):
 def _robust_sigma(r: np.ndarray, mask: np.ndarray | None = None, step: int = 3, floor: float = 0.3) -> float:
     """1.4826 * median |r| over a subsampled (masked) grid: the noise of the residual image."""
     rs = r[::step, ::step]
-    vals = np.abs(rs[mask[::step, ::step]] if mask is not None else rs)
+    vals = np.abs(rs[mask[::step, ::step]] if mask is not None else rs).ravel()
     if vals.size < 16:
         return floor
-    return max(float(1.4826 * np.median(vals)), floor)
+    k = vals.size // 2
+    return max(float(1.4826 * np.partition(vals, k)[k]), floor)
 
 
 def _sparse(emap: EpipolarMap, n: int = 17) -> EpipolarMap:
@@ -86,39 +92,45 @@ def _sparse(emap: EpipolarMap, n: int = 17) -> EpipolarMap:
                        emap.rho_cap[g])
 
 
-def _max_disparity(sub: EpipolarMap, rho: float, u0, v0) -> float:
-    """Largest displacement (level pixels) over the sparse grid between rho = 0 and rho; inf if some
-    point would be at or behind camera b."""
-    den = sub.A0 + sub.B[0] * F32(rho)
-    if np.any(den <= 0.05):
-        return math.inf
-    u1, v1, _ = sub(F32(rho))
-    return float(np.sqrt((u1 - u0) ** 2 + (v1 - v0) ** 2).max())
+def _disp_coeffs(sub: EpipolarMap):
+    """Displacement of a grid point between rho = 0 and rho is exactly rho |C| / (A0 (A0 + B0 rho)) (level
+    pixels): returns (|C|, A0, B0) of the sparse grid."""
+    return np.hypot(sub.C1, sub.C2).astype(np.float64).ravel(), sub.A0.astype(np.float64).ravel(), float(sub.B[0])
+
+
+def _max_disparity(sub: EpipolarMap, rho, coeffs=None):
+    """Largest displacement (level pixels) over the sparse grid between rho = 0 and each rho; inf if some
+    point would be at or behind camera b (depth ratio <= 0.05)."""
+    cn, a0, b0 = coeffs if coeffs is not None else _disp_coeffs(sub)
+    rho = np.atleast_1d(np.asarray(rho, np.float64))[:, None]
+    den = a0[None] + b0 * rho
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = rho * cn[None] / (a0[None] * den)
+    d = np.where((den <= 0.05).any(axis=1, keepdims=True) | (a0[None] <= 0.05).any(axis=1, keepdims=True),
+                 np.inf, d)
+    return d.max(axis=1)
 
 
 def _find_rho_max(sub: EpipolarMap, max_disp: float) -> float:
-    """Inverse range at which the largest displacement reaches max_disp (level pixels); inf if never."""
-    u0, v0, _ = sub(F32(0.0))
-    lo, hi = 0.0, 1e-6
-    while _max_disparity(sub, hi, u0, v0) < max_disp:
-        lo, hi = hi, hi * 10.0
-        if hi > 1e9:
-            return math.inf
-    for _ in range(30):
-        mid = 0.5 * (lo + hi)
-        if _max_disparity(sub, mid, u0, v0) < max_disp:
-            lo = mid
-        else:
-            hi = mid
-    return lo
+    """Inverse range at which the largest displacement reaches max_disp (level pixels); inf if never.
+    Closed form per grid point: rho_i = D A0^2 / (|C| - D A0 B0) (monotone in rho while A0 + B0 rho > 0)."""
+    cn, a0, b0 = _disp_coeffs(sub)
+    if np.any(a0 <= 0.05):
+        return 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = cn - max_disp * a0 * b0
+        r_i = np.where(denom > 0, max_disp * a0 * a0 / denom, np.inf)
+    r = float(r_i.min())
+    if b0 < 0:   # the map runs off to infinity where a point reaches the plane of camera b: stop short of it
+        r = min(r, float(((a0 - 0.05) / -b0).min()))
+    return r if r < 1e9 else math.inf
 
 
 def _hypotheses(sub: EpipolarMap, rho_max: float, step_px: float) -> np.ndarray:
     """Inverse-range hypotheses 0 = rho_0 < ... = rho_max such that the largest displacement in the image
     grows by ``step_px`` level pixels from one to the next (uniform in displacement, not in rho)."""
-    u0, v0, _ = sub(F32(0.0))
     grid = np.linspace(0.0, rho_max, 65)
-    d = np.array([_max_disparity(sub, r, u0, v0) for r in grid])
+    d = _max_disparity(sub, grid)
     fin = np.isfinite(d)
     d = np.maximum.accumulate(np.where(fin, d, d[fin].max()))
     n = max(2, int(math.ceil(d[-1] / step_px)) + 1)
@@ -171,35 +183,81 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
 
 
 class _Level:
-    """Per-level constants: the epipolar map with the intrinsics folded in, and b with its gradients."""
+    """Per-level constants: the epipolar map with the intrinsics folded in, and b with its gradients.
 
-    def __init__(self, geo, lev, ia, ib):
-        em = EpipolarMap.build(geo, lev, ia.shape, ib.shape)
-        cb = em.cam_b
-        B = em.B
-        self.em = em
+    Every geometric map is affine in the pixel's normalised coordinates m = [1, m1, m2] of camera a (A = R m):
+    den = A0 + B0 rho, u_b = (P1 + Q1 rho) / den, v_b = (P2 + Q2 rho) / den, d(u_b, v_b)/d rho = (C1, C2) / den^2
+    (see _common.EpipolarMap). They are stored as a row part (c0 + c1 m1, per column) and a column part
+    (c2 m2, per row) and built block by block (one broadcast add each), never as full-size arrays."""
+
+    def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05):
+        ca = level_camera(geo.cam_a, lev, ia.shape)
+        cb = level_camera(geo.cam_b, lev, ib.shape)
+        m1 = (np.arange(ca.width, dtype=np.float64) - ca.cx) / ca.fx
+        m2 = (np.arange(ca.height, dtype=np.float64) - ca.cy) / ca.fy
+        R = np.asarray(geo.R_ba, float)
+        t = np.asarray(geo.t_ba_m, float)
+        a0, a1, a2 = R[0], R[1], R[2]
+
+        def aff(c):
+            return (c[0] + c[1] * m1).astype(F32)[None, :], (c[2] * m2).astype(F32)[:, None]
+
+        self.h, self.w = ia.shape
         self.ia = ia
-        self.A0 = em.A0
-        self.B0 = F32(B[0])
-        # u_b = (P1 + Q1 rho) / den with P1 = fx A1 + cx A0, Q1 = fx B1 + cx B0 (likewise v)
-        self.P1 = F32(cb.fx) * em.A1 + F32(cb.cx) * em.A0
-        self.Q1 = F32(cb.fx * B[1] + cb.cx * B[0])
-        self.P2 = F32(cb.fy) * em.A2 + F32(cb.cy) * em.A0
-        self.Q2 = F32(cb.fy * B[2] + cb.cy * B[0])
-        self.C1, self.C2 = em.C1, em.C2
-        self.Csq = em.C1 * em.C1 + em.C2 * em.C2
-        self.cap = em.rho_cap
+        self.A0 = aff(a0)
+        self.B0 = F32(t[0])
+        self.P1 = aff(cb.fx * a1 + cb.cx * a0)
+        self.Q1 = F32(cb.fx * t[1] + cb.cx * t[0])
+        self.P2 = aff(cb.fy * a2 + cb.cy * a0)
+        self.Q2 = F32(cb.fy * t[2] + cb.cy * t[0])
+        self.C1 = aff(cb.fx * (t[1] * a0 - t[0] * a1))
+        self.C2 = aff(cb.fy * (t[2] * a0 - t[0] * a2))
+        # largest rho keeping den >= den_min (only bounded when b moves towards the scene), and at most rho_hi
+        self.cap = aff(np.array([a0[0] - den_min, a0[1], a0[2]]) / -t[0]) if t[0] < 0 else None
+        self.rho_hi = F32(rho_hi)
         gx, gy = _grad(ib)
         self.b4 = cv2.merge([ib, gx, gy, np.ones_like(ib)])
-        self.shape_b = ib.shape
 
-    def warp(self, rho):
-        """Warped [I_b, gx_b, gy_b, in-view] at rho, and 1/den."""
-        inv = cv2.divide(1.0, self.A0 + self.B0 * rho)
-        ub = (self.P1 + self.Q1 * rho) * inv
-        vb = (self.P2 + self.Q2 * rho) * inv
+    @staticmethod
+    def rows(c, s: slice) -> np.ndarray:
+        return np.add(c[0], c[1][s])
+
+    def grad_a(self, ya: int, yb: int):
+        """Gradient of a on rows [ya, yb) (one extra row each side when available, so the Scharr kernel sees
+        the image's own rows and reflects only at the image border)."""
+        y0, y1 = max(0, ya - 1), min(self.h, yb + 1)
+        gx, gy = _grad(self.ia[y0:y1])
+        return gx[ya - y0:yb - y0], gy[ya - y0:yb - y0]
+
+    def warp(self, rho, s: slice):
+        """Warped [I_b, gx_b, gy_b, in-view] at rho (rows s of a), and 1/den."""
+        inv = rho * self.B0
+        inv += self.rows(self.A0, s)
+        np.divide(F32(1.0), inv, out=inv)
+        ub = rho * self.Q1
+        ub += self.rows(self.P1, s)
+        ub *= inv
+        vb = rho * self.Q2
+        vb += self.rows(self.P2, s)
+        vb *= inv
         wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return wv, inv
+
+    def noise(self, rho, step: int = 3):
+        """Robust residual noise on the subsampled grid (every ``step``-th pixel) at rho: over all pixels
+        (Huber scale) and over the fully in-view ones (the final noise)."""
+        sr, sc = slice(0, self.h, step), slice(0, self.w, step)
+        rs = np.ascontiguousarray(rho[sr, sc])
+        B0, Q1, Q2 = self.B0, self.Q1, self.Q2
+        sub = lambda c: (np.ascontiguousarray(c[0][:, sc]), c[1][sr])
+        A0, P1, P2 = sub(self.A0), sub(self.P1), sub(self.P2)
+        inv = F32(1.0) / (rs * B0 + np.add(*A0))
+        ub = (rs * Q1 + np.add(*P1)) * inv
+        vb = (rs * Q2 + np.add(*P2)) * inv
+        wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        r = wv[..., 0] - self.ia[sr, sc]
+        inview = (wv[..., 3] > F32(0.999)) & (inv > 0)
+        return _robust_sigma(r, step=1), _robust_sigma(r, inview, step=1)
 
 
 def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None, min_range_m: float | None = None,
@@ -210,7 +268,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  occ_k: float = 3.0, trunc_px: float = 0.5, std_scale: float = 1.0, fill_sigma: float = 4.0,
                  fill_c: float = 0.3, smooth_win: int = 0, highpass_sigma: float = 0.0,
                  highpass_levels: int = 9, bias: bool = True,
-                 match_floor_px: float = 0.05) -> RangeResult:
+                 match_floor_px: float = 0.05, strip_px: int = 32768) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range (default: largest displacement 0.3 * image size).
@@ -227,6 +285,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     occ_k: occluded (OUT_OF_VIEW) where the windowed RMS residual exceeds occ_k x noise.
     trunc_px: TRUNCATION where the last update still moves the match by more than this (level-0 px).
     std_scale: calibration factor of the reported sigma.
+    strip_px: pixels per strip of rows of the Gauss-Newton steps (<= 0: whole image at once; same result).
     """
     t_start = time.perf_counter()
     geo = pair_geometry(view_a, view_b)
@@ -268,81 +327,171 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         rho = (wf * rho + (1 - wf) * nc).astype(F32)
     rho_hi = F32(rho_max * 1.25)
 
-    # --- 2. coarse-to-fine re-linearised Gauss-Newton
+    # --- 2. coarse-to-fine re-linearised Gauss-Newton, block by block (strips of rows: every temporary
+    # stays in cache), each block with a halo of half a window so the box sums are those of the whole image
     iters = list(iters)
     while len(iters) < nlev:
         iters.insert(0, iters[0])
     iters = iters[-nlev:]
-    n_win = float(window * window)
-    sigma = 2.0
+    prm = dict(window=window, huber_k=huber_k, lam_k=1.0 / (window * window * trust_px * trust_px), bias=bias)
+    g0, gG = _noise_gains(float(presmooth_sigma))
+    out = None
     for lev in range(L, -1, -1):
-        lv = _Level(geo, lev, pa[lev], pb[lev])
+        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi)
         if rho.shape != pa[lev].shape:
             rho = pyr_up_to(rho, pa[lev].shape)
-        cap = np.minimum(lv.cap, rho_hi)
-        lam_k = F32(1.0 / (n_win * trust_px * trust_px))
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
+        h, w = pa[lev].shape
+        step = max(8, strip_px // w) if strip_px > 0 else h
         for it in range(n_it):
-            wv, inv = lv.warp(rho)
-            r = wv[..., 0] - lv.ia
-            inv2 = inv * inv
-            J = (wv[..., 1] * lv.C1 + wv[..., 2] * lv.C2) * inv2
+            last = lev == 0 and it == n_it - 1
+            if it == 0 or last:
+                sig_all, sig_in = lv.noise(rho)
             if it == 0:
-                sigma = _robust_sigma(r)
-            # Huber weights times the in-view mask
-            wgt = np.minimum(F32(1.0), F32(huber_k * sigma) / (np.abs(r) + F32(1e-6)))
-            wgt *= wv[..., 3]
-            wJ = wgt * J
-            q = J * rho - r
-            H = _box(wJ * J, window)
-            g = _box(wJ * q, window)
-            if bias:   # unknown brightness offset per window, eliminated (Schur complement)
-                S0 = _box(wgt, window) + F32(1e-6)
-                S1 = _box(wJ, window)
-                Sq = _box(wgt * q, window)
-                S1n = S1 / S0
-                H -= S1n * S1
-                g -= S1n * Sq
-            E2 = lv.Csq * (inv2 * inv2)
-            lam = E2 * F32(sigma * sigma) * lam_k
-            if smooth_win > 0:   # prior: confidence-weighted mean of the neighbours (diffuses into flat areas)
-                Hs = H + lam
-                prior = _box(Hs * rho, smooth_win) / _box(Hs, smooth_win)
-            else:
-                prior = rho
-            new = (g + lam * prior) / (H + lam + F32(1e-30))
-            np.clip(new, F32(0), cap, out=new)
-            if lev == 0 and it == n_it - 1:
-                step_px = np.abs(new - rho) * np.sqrt(E2)
-                final = (wv, inv, r, J, E2, wgt, H)
+                sigma = sig_all
+            new = np.empty_like(rho)
+            if last:
+                fin = _Final(rho.shape, sig_in, g0, gG, window, presmooth_sigma, tex_k, occ_k, trunc_px,
+                             match_floor_px, std_scale, orient_min, far_inverse_range(geo, far_parallax_px),
+                             max_rel_std)
+            for y0 in range(0, h, step):
+                _gn_block(lv, rho, new, y0, min(h, y0 + step), sigma, prm, fin if last else None)
             rho = new
+    info = {"seconds": time.perf_counter() - t_start, "noise_sigma": fin.sigma, "rho_max_per_m": rho_max,
+            "n_hypotheses": int(len(rhos)), "search_level": L, "baseline_m": geo.baseline_m}
+    return make_result(rho, fin.std, fin.flags, fin.rng, fin.conf, METHOD, fin.n_val, fin.n_inf, info)
 
-    # --- 3. uncertainty and flags, from the last linearisation at level 0
-    wv, inv, r, J, E2, wgt, Hf = final
-    inview = (wv[..., 3] > 0.999) & (inv > 0)
-    mf = inview.astype(F32)
-    sigma = _robust_sigma(r, inview)
-    g0, gG = _noise_gains(float(presmooth_sigma))
-    noise_G = (sigma * sigma / (2.0 * g0)) * gG          # gradient energy of the noise alone
-    gxa, gya = _grad(pa[0])
-    G = _box(mf * (gxa * gxa + gya * gya), window)
-    R2 = _box(mf * r * r, window)
+
+class _Final:
+    """Output arrays and thresholds of the last linearisation at level 0 (uncertainty, flags, classification),
+    filled block by block."""
+
+    def __init__(self, shape, sigma, g0, gG, window, presmooth_sigma, tex_k, occ_k, trunc_px, match_floor_px,
+                 std_scale, orient_min, rho_far, max_rel_std):
+        self.sigma = sigma
+        n_win = float(window * window)
+        self.var_k = F32(sigma * sigma / n_win)
+        self.floor2 = F32(match_floor_px ** 2)
+        self.std_scale = F32(std_scale)
+        noise_G = (sigma * sigma / (2.0 * g0)) * gG          # gradient energy of the noise alone
+        self.low_thr = F32((1.0 + tex_k * tex_k) * noise_G)
+        self.occ_thr = F32((occ_k * sigma) ** 2)
+        self.trunc2 = F32(trunc_px * trunc_px)
+        self.orient_min = F32(orient_min)
+        self.rho_far, self.max_rel_std = rho_far, max_rel_std
+        self.std = np.empty(shape, F32)
+        self.flags = np.empty(shape, np.uint8)
+        self.rng = np.empty(shape, F32)
+        self.conf = np.empty(shape, F32)
+        self.n_val = self.n_inf = 0
+
+
+def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, fin: _Final | None):
+    """One re-linearised Gauss-Newton step for rows [y0, y1) of ``rho``, written into ``new``; with ``fin``,
+    also the uncertainty, flags and classification of those rows."""
+    win = prm["window"]
+    p = win // 2
+    ya, yb = max(0, y0 - p), min(lv.h, y1 + p)
+    s = slice(ya, yb)
+    o = slice(y0 - ya, y1 - ya)
+    R = rho[s]
+    wv, inv = lv.warp(R, s)
+    r = wv[..., 0] - lv.ia[s]
+    gxa, gya = lv.grad_a(ya, yb)
+    C1, C2 = lv.rows(lv.C1, s), lv.rows(lv.C2, s)
+    # J = grad I . d(u_b, v_b)/d rho with the gradient averaged over both images (eq. 27's symmetric form:
+    # second-order accurate in the step, and the interpolation bias of a one-sided gradient halves)
+    gx = wv[..., 1] + gxa
+    gy = wv[..., 2] + gya
+    J = gx * C1
+    J += np.multiply(gy, C2, out=gy)
+    inv2 = inv * inv
+    J *= inv2
+    J *= F32(0.5)
+    # Huber weights times the in-view mask
+    wgt = np.abs(r)
+    wgt += F32(1e-6)
+    np.divide(F32(prm["huber_k"] * sigma), wgt, out=wgt)
+    np.minimum(wgt, F32(1.0), out=wgt)
+    mask = wv[..., 3]
+    wgt *= mask
+    wJ = wgt * J
+    q = J * R
+    q -= r
+    H = _box(wJ * J, win)
+    g = _box(wJ * q, win)
+    if prm["bias"]:   # unknown brightness offset per window, eliminated (Schur complement)
+        S0 = _box(wgt, win)
+        S0 += F32(1e-6)
+        S1 = _box(wJ, win)
+        Sq = _box(np.multiply(wgt, q, out=q), win)
+        S1n = S1 / S0
+        Sq *= S1n
+        g -= Sq
+        S1 *= S1n
+        H -= S1
+    # squared sensitivity |d(u_b, v_b)/d rho|^2 = |C|^2 / den^4
+    E2 = np.multiply(C1, C1, out=C1)
+    E2 += np.multiply(C2, C2, out=C2)
+    inv2 *= inv2
+    E2 *= inv2
+    lam = E2 * F32(sigma * sigma * prm["lam_k"])
+    num = lam * R
+    num += g
+    lam += H
+    lam += F32(1e-30)
+    num /= lam
+    if lv.cap is not None:
+        cap = lv.rows(lv.cap, s)
+        np.clip(cap, F32(0), lv.rho_hi, out=cap)
+        np.clip(num, F32(0), cap, out=num)
+    else:
+        np.clip(num, F32(0), lv.rho_hi, out=num)
+    new[y0:y1] = num[o]
+    if fin is None:
+        return
+    # --- uncertainty and flags of rows [y0, y1), from this (the last) linearisation
+    Hf, E2o, d = H[o], E2[o], num[o]
+    d -= R[o]
+    d *= d
+    d *= E2o
+    trunc = d > fin.trunc2
+    inview = mask > F32(0.999)
+    inview &= inv > 0
+    mf = inview.view(np.uint8).astype(F32)
+    G = np.multiply(gxa, gxa, out=gxa)
+    G += np.multiply(gya, gya, out=gya)
+    G *= mf
+    G = _box(G, win)[o]
+    r *= r
+    r *= mf
+    R2 = _box(r, win)[o]
+    std = fin.std[y0:y1]
     with np.errstate(divide="ignore", invalid="ignore"):
         # normal-equation information (Huber-weighted, brightness offset eliminated) of the last linearisation
         # plus a floor of match_floor_px pixels of displacement (interpolation bias, surface slant, ...)
-        std = np.sqrt(F32(sigma * sigma / n_win) / Hf + F32(match_floor_px ** 2) / E2) * F32(std_scale)
-        orient = Hf / (E2 * G)     # share of the gradient energy along the epipolar direction
-    bad = np.zeros((ha, wa), np.uint8)
-    bad[~inview] |= OUT_OF_VIEW
-    bad[R2 > F32((occ_k * sigma) ** 2)] |= OUT_OF_VIEW
-    low = G < F32((1.0 + tex_k * tex_k) * noise_G)
-    bad[low] |= LOW_TEXTURE
-    bad[~low & ~(orient >= orient_min)] |= ILL_CONDITIONED
-    bad[step_px > trunc_px] |= TRUNCATION
-    info = {"seconds": time.perf_counter() - t_start, "noise_sigma": sigma, "rho_max_per_m": rho_max,
-            "n_hypotheses": int(len(rhos)), "search_level": L, "baseline_m": geo.baseline_m}
-    return classify(rho, std.astype(F32), bad_flags=bad, method=METHOD,
-                    rho_far=far_inverse_range(geo, far_parallax_px), max_rel_std=max_rel_std, info=info)
+        np.divide(fin.var_k, Hf, out=std)
+        std += np.divide(fin.floor2, E2o, out=d)
+        np.sqrt(std, out=std)
+        if fin.std_scale != 1.0:
+            std *= fin.std_scale
+        E2o *= G
+        orient = np.divide(Hf, E2o, out=E2o)     # share of the gradient energy along the epipolar direction
+    low = G < fin.low_thr
+    oov = ~inview[o]
+    oov |= R2 > fin.occ_thr
+    ill = orient >= fin.orient_min
+    np.logical_not(ill, out=ill)
+    ill &= ~low
+    flags = fin.flags[y0:y1]
+    np.multiply(oov.view(np.uint8), np.uint8(OUT_OF_VIEW), out=flags)
+    flags |= low.view(np.uint8) * np.uint8(LOW_TEXTURE)
+    flags |= ill.view(np.uint8) * np.uint8(ILL_CONDITIONED)
+    flags |= trunc.view(np.uint8) * np.uint8(TRUNCATION)
+    nv, ni = classify_into(new[y0:y1], std, flags, fin.rng[y0:y1], fin.conf[y0:y1], rho_far=fin.rho_far,
+                           max_rel_std=fin.max_rel_std)
+    fin.n_val += nv
+    fin.n_inf += ni
 
 
 __all__ = ["locate_dense"]
