@@ -10,12 +10,13 @@
    maps, median relative range error on confident pixels, coverage, obstacles vs the true nearest box, latency
    p50/p99 capture->range and capture->obstacles, drops) and write a colour-mapped PNG of the last range map.
 
-Replay clocks: both replays run with ``--keep-stamps``, so frames and navigation keep the recording's own
-(consistent) UNIX stamps. Mapping each replay onto "now at its start" separately would shift the camera
-against the navigation by the difference of the two start times (and erase the recording's 0.2 s lead of
-navigation over the first frame), i.e. metres of pose error at 20 m/s. Latencies are therefore measured by the
-monitor on its own clock: from the moment a frame appears on the bus (the camera ingest publishes it when the
-replay "captures" it) to the moment the range map / obstacle list for that frame (same ``stamp_us``) arrives.
+Replay clocks: the recording holds frames and navigation on one clock. Both replays get the same
+``--replay-shift-us D`` (D = now + a start-up lead - the recording's first stamp): every record is stamped
+recorded + D and released when the host clock reaches that stamp, so the camera and the navigation stay aligned
+to the microsecond (mapping each replay onto "now at its own start" would shift them by the difference of the
+two start times: metres of pose error at 20 m/s) and the services' own latency figures (now - stamp) are real.
+The monitor also measures latency on its own clock: from the moment a frame appears on the bus to the moment
+the range map / obstacle list for that frame (same ``stamp_us``) arrives.
 
 The monitor (:class:`Monitor`) and truth (:class:`Truth`) are reused by ``tests/test_pipeline_e2e.py``.
 """
@@ -40,6 +41,9 @@ DEFAULT_FLIGHT = "approach"
 DEFAULT_FRAMES = 16
 DEFAULT_RATE_HZ = 5.0
 DEFAULT_SIZE = 256
+# Navigation runs before the camera, as on a vehicle: the MAVLink ingest needs 2 s of autopilot time to lock its
+# clock-offset estimate before it publishes, so the recording starts the frames 3 s into the flight.
+NAV_LEAD_S = 3.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -50,13 +54,14 @@ def recording(flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, rate
     """A recorded simulated flight, rendered once and cached (keyed by its parameters)."""
     from .sim.record import record_flight
     base = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / "eonav-demo"
-    out = base / f"{flight}_n{n_frames}_r{rate_hz:g}_{size}px_s{seed}"
+    out = base / f"{flight}_n{n_frames}_r{rate_hz:g}_{size}px_s{seed}_lead{NAV_LEAD_S:g}"
     if (out / "manifest.json").is_file():
         return out
     base.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=out.name + ".", dir=base))
     log.info("recording simulated flight %s (%d frames, %dx%d) into %s", flight, n_frames, size, size, out)
-    record_flight(tmp, name=flight, n_frames=n_frames, rate_hz=rate_hz, size=(size, size), seed=seed)
+    record_flight(tmp, name=flight, n_frames=n_frames, rate_hz=rate_hz, size=(size, size), seed=seed,
+                  frames_start_s=NAV_LEAD_S)
     try:
         tmp.rename(out)
     except OSError:                       # another run finished first: use theirs
@@ -67,13 +72,14 @@ def recording(flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, rate
 class Truth:
     """Ground truth of a recording: per-frame range (x_c) and pose, and the scene's boxes."""
 
-    def __init__(self, rec_dir):
+    def __init__(self, rec_dir, shift_us: int = 0):
+        """``shift_us``: the replay shift (bus stamp = recorded stamp + shift_us)."""
         from .sim.flight import flight
         from .sim.scene import FIRST_BOX_ID
         self.dir = Path(rec_dir)
         self.manifest = json.loads((self.dir / "manifest.json").read_text())
         z = np.load(self.dir / "truth.npz")
-        self.stamp_us = z["stamp_us"].astype(np.int64)
+        self.stamp_us = z["stamp_us"].astype(np.int64) + int(shift_us)
         self.range_m = z["range_m"]
         self.object_id = z["object_id"]
         self.position_ned_m = z["position_ned_m"]
@@ -312,29 +318,43 @@ def range_picture(msg: dict, truth_range=None, max_range_m: float = 150.0) -> np
 # --------------------------------------------------------------------------------------------------
 # the pipeline
 
-def pipeline_spec(rec_dir, *, method: str = "dense", cv_threads: int = 1, mavlink_out: str | None = None) -> dict:
-    """The demo pipeline: replays of the recording + sync, locator, obstacles (launcher spec)."""
+def recording_start_us(rec_dir) -> int:
+    """The first stamp of a recording: the earlier of its first frame stamp and its first tlog record."""
+    import struct
+    rec = Path(rec_dir)
+    man = json.loads((rec / "manifest.json").read_text())
+    first_frame_us = round(float((rec / man["timestamps"]).read_text().split()[0]) * 1e6)
+    with open(rec / man["tlog"], "rb") as f:
+        first_tlog_us = struct.unpack(">Q", f.read(8))[0]
+    return min(first_frame_us, first_tlog_us)
+
+
+def replay_shift_us(rec_dir, start_in_s: float = 4.0) -> int:
+    """The shift that replays the recording's first record ``start_in_s`` from now (process start-up time)."""
+    return time.time_ns() // 1000 + int(start_in_s * 1e6) - recording_start_us(rec_dir)
+
+
+def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: int = 1,
+                  mavlink_out: str | None = None) -> dict:
+    """The demo pipeline: replays of the recording (both shifted by ``shift_us``) + sync, locator, obstacles."""
     rec = Path(rec_dir).resolve()
     man = json.loads((rec / "manifest.json").read_text())
+    shift_us = str(int(shift_us))
     obst = ["--ground-down", "0",                       # local NED origin at the take-off (ground) level
             "--max-obstacle-distance", "150"]
     if mavlink_out:
         obst += ["--mavlink-out", mavlink_out]
     return {"services": [
         {"name": "camera", "module": "camera_ingest", "restart": False,
-         "args": ["--source", str(rec / man["frames"]), "--camera-id", man["camera_id"], "--keep-stamps",
-                  "--wait-subscribers", "5"]},
+         "args": ["--source", str(rec / man["frames"]), "--camera-id", man["camera_id"],
+                  "--replay-shift-us", shift_us]},
         {"name": "mavlink", "module": "mavlink_ingest", "restart": False,
-         # 2x real time: navigation stays ahead of the frames, so sync never holds frames back in a burst
          # --origin: the recording's local NED origin (take-off point on the ground), not the first GPS fix, so that
          # positions match the truth and the ground is at down = 0
-         "args": ["--source", str(rec / man["tlog"]), "--keep-stamps", "--wait-subscribers", "5", "--rate", "2",
+         "args": ["--source", str(rec / man["tlog"]), "--replay-shift-us", shift_us,
                   "--origin", ",".join(str(x) for x in man["origin_lla"])]},
-        {"name": "sync", "module": "sync", "args": ["--cameras", str(rec / man["cameras"]), "--max-wait-ms", "5000"]},
-        # ring 16: a replay can hand the locator a burst of posed frames (sync releases frames held for navigation
-        # together); a bounded queue lets it range them all instead of keeping only the newest two
-        {"name": "locator", "module": "locator", "args": ["--method", method, "--cv-threads", str(cv_threads),
-                                                          "--ring", "16"]},
+        {"name": "sync", "module": "sync", "args": ["--cameras", str(rec / man["cameras"])]},
+        {"name": "locator", "module": "locator", "args": ["--method", method, "--cv-threads", str(cv_threads)]},
         {"name": "obstacles", "module": "obstacles", "args": obst},
     ]}
 
@@ -348,7 +368,8 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     from .launcher import run_pipeline
     stream = stream or sys.stdout
     rec = recording(flight, n_frames, rate_hz, size, seed, cache_dir)
-    truth = Truth(rec)
+    shift_us = replay_shift_us(rec)
+    truth = Truth(rec, shift_us)
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     stop = threading.Event()
@@ -359,7 +380,7 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         status.update(st)
 
     def pipeline():
-        result["code"] = run_pipeline(pipeline_spec(rec, method=method, mavlink_out=mavlink_out), vehicle=vehicle,
+        result["code"] = run_pipeline(pipeline_spec(rec, shift_us, method=method, mavlink_out=mavlink_out), vehicle=vehicle,
                                       port=port, on_status=on_status, stop_event=stop, quiet=quiet,
                                       log_dir=log_dir)
 

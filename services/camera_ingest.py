@@ -16,7 +16,8 @@ Stamps (integer ``stamp_us``, UNIX-epoch microseconds on this host's realtime cl
 ``stamp_source`` field that says where each came from:
 
 - ``recorded``: an image folder with a timestamps file, mapped onto the current clock preserving the
-  spacing (offset = now at start - first recorded stamp); ``recorded_raw`` with ``--keep-stamps``;
+  spacing (offset = now at start - first recorded stamp), or shifted by ``--replay-shift-us`` (below);
+  ``recorded_raw`` with ``--keep-stamps``;
 - ``pts``: the stream/file presentation time (``CAP_PROP_POS_MSEC``) mapped to a wall-clock origin
   taken at the first frame; the PTS itself travels in ``source_pts_us``;
 - ``v4l2``: the kernel buffer timestamp (``CAP_PROP_POS_MSEC`` of the V4L2 backend), converted from
@@ -30,6 +31,12 @@ Pacing (``--rate``) applies to files and folders only; live sources are paced by
 ``auto`` (default) = real time from the recorded stamps / PTS / the file's fps (``--default-fps`` for
 a folder without timestamps), a number = that many frames per second, ``0`` = as fast as possible.
 ``--loop`` replays a file source forever (stamps keep increasing across laps).
+
+Joint replays: a recording holds several streams (frames + a MAVLink tlog) on one clock. Replayed by
+separate services that each map "now at my start" to "my first record", they would drift apart by the
+difference of their start times. ``--replay-shift-us D`` (the same D for every replay of one recording,
+``EONAV_REPLAY_SHIFT_US``; ``eonav run`` sets it) instead stamps each record at recorded + D and publishes
+it when the host clock reaches that stamp, so all replays stay aligned to the microsecond.
 
 Output: ``--encoding mono8`` (default; the locators work on grey) or ``bgr8``; 16-bit input is
 scaled to 8 bit (/257). Corrupt or unreadable frames are counted (``corrupt_frames``), logged and
@@ -195,8 +202,10 @@ def _median_dt_us(stamps: list[int], fallback_us: int) -> int:
 def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", keep_stamps: bool = False,
                   loop: bool = False, pacer: Pacer | None = None, clock: Clock | None = None,
                   default_fps: float = 10.0, stop: threading.Event | None = None,
-                  reader: Callable | None = None) -> Iterator[RawFrame]:
-    """Frames of an image folder (sorted files), stamped from the timestamps file if there is one."""
+                  reader: Callable | None = None, replay_shift_us: int | None = None) -> Iterator[RawFrame]:
+    """Frames of an image folder (sorted files), stamped from the timestamps file if there is one.
+    With ``replay_shift_us``, each frame is stamped recorded + shift and released when the host clock
+    reaches that stamp (joint replays; the pacer is then not used)."""
     import cv2
     clock = clock or Clock()
     folder = Path(folder)
@@ -209,6 +218,11 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
         raise InputError(f"--timestamps {tpath}: no such file")
     if tpath.is_file():
         rec = parse_timestamps(tpath, unit)
+    if replay_shift_us is not None and (rec is None or keep_stamps):
+        raise InputError("--replay-shift-us needs recorded stamps (a timestamps file) and excludes --keep-stamps")
+    if replay_shift_us is not None:
+        pacer = None
+    if tpath.is_file():
         if len(rec) != len(files):
             raise InputError(f"{tpath}: {len(rec)} stamps for {len(files)} image files in {folder}; "
                              "expected one stamp per line per sorted image file")
@@ -227,11 +241,15 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
                 media_us = (index * period_us)
             if pacer:
                 pacer.wait(media_us / 1e6)
+            if replay_shift_us is not None:
+                clock.sleep((media_us + replay_shift_us - clock.now_us()) / 1e6, stop)
             t_grab = clock.monotonic()
             host_us = clock.now_us()
             if rec is not None:
                 if keep_stamps:
                     stamp, src = media_us, "recorded_raw"
+                elif replay_shift_us is not None:
+                    stamp, src = media_us + replay_shift_us, "recorded"
                 else:
                     if offset_us is None:
                         offset_us = host_us - rec[0]
@@ -518,6 +536,8 @@ def add_arguments(p) -> None:
              help="s = seconds, us = integer microseconds, auto = us if all integers >= 1e11 else s")
     add_flag(g, "--keep-stamps", env="EONAV_CAMERA_KEEP_STAMPS", action="store_true",
              help="publish recorded stamps as they are instead of mapping them onto the current clock")
+    add_flag(g, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default=None, type=int, metavar="D",
+             help="joint replay: stamp recorded + D and release at that host time (same D for every replay)")
     add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float,
              help="frame rate assumed for folders without timestamps / files without fps (pacing in auto mode)")
     add_flag(g, "--wait-subscribers", env="EONAV_CAMERA_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
@@ -541,7 +561,9 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
     if kind == "folder":
         return folder_frames(args.source, timestamps=args.timestamps, unit=args.timestamps_unit,
                              keep_stamps=args.keep_stamps, loop=args.loop, pacer=pacer, clock=clock,
-                             default_fps=args.default_fps, stop=stop)
+                             default_fps=args.default_fps, stop=stop, replay_shift_us=args.replay_shift_us)
+    if args.replay_shift_us is not None:
+        raise InputError("--replay-shift-us applies to image folders with a timestamps file")
     if args.timestamps:
         raise InputError("--timestamps applies to image folders only")
     open_capture(args.source, kind, args).release()  # fail early, as a configuration error

@@ -137,10 +137,24 @@ class Publisher:
 
 
 def replay_tlog(path, feed, *, rate: float, stop: threading.Event, keep_stamps: bool = False,
-                clock=now_us, sleep=None) -> TlogReader:
+                clock=now_us, sleep=None, shift_us: int | None = None) -> TlogReader:
     """Replay a tlog into ``feed(msg, rx_us)``: header times shifted onto the current clock, paced at
-    ``rate`` x real time (0 = as fast as possible). Returns the reader (its ``stats``)."""
+    ``rate`` x real time (0 = as fast as possible). With ``shift_us`` (joint replays, see the camera
+    ingest), each record is stamped header + shift_us and released when the clock reaches that stamp.
+    Returns the reader (its ``stats``)."""
     sleep = sleep or (lambda s: stop.wait(s))
+    if shift_us is not None:
+        if keep_stamps or rate != 1.0:
+            raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --rate != 1")
+        with TlogReader(path) as reader:
+            for header_us, msg in reader:
+                if stop.is_set():
+                    break
+                wait_s = (header_us + shift_us - clock()) / 1e6
+                if wait_s > 0.001:
+                    sleep(wait_s)
+                feed(msg, header_us + shift_us)
+        return reader
     reader = TlogReader(path)
     shift = None
     t_start_mono = time.monotonic()
@@ -180,6 +194,8 @@ def add_arguments(p) -> None:
     add_flag(g, "--baud", env="EONAV_MAVLINK_BAUD", default=57600, type=int, help="serial baud rate")
     add_flag(g, "--rate", env="EONAV_MAVLINK_RATE", default=1.0, type=float,
              help="tlog replay speed factor (1 = real time, 0 = as fast as possible)")
+    add_flag(g, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default=None, type=int, metavar="D",
+             help="tlog joint replay: stamp header + D and release at that host time (same D for every replay)")
     add_flag(g, "--keep-stamps", env="EONAV_MAVLINK_KEEP_STAMPS", default=False, action="store_true",
              help="tlog: keep the recorded header times instead of mapping them onto the current clock")
     add_flag(g, "--system-id", env="EONAV_MAVLINK_SYSTEM_ID", default=None, type=int,
@@ -216,6 +232,8 @@ def body(node: Node, args) -> None:
         raise InputError(f"--source {args.source}: no such tlog file")
     if args.rate < 0:
         raise InputError(f"--rate {args.rate}: expected >= 0 (0 = as fast as possible)")
+    if args.replay_shift_us is not None and (args.keep_stamps or args.rate != 1.0):
+        raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --rate != 1")
     ingest = make_ingest(args, tlog)
     pub = Publisher(node, ingest)
     node.log.info("mavlink %s source %s -> %s", "tlog" if tlog else "live", args.source,
@@ -229,7 +247,8 @@ def body(node: Node, args) -> None:
 def _run_tlog(node: Node, args, pub: Publisher) -> None:
     if args.wait_subscribers > 0:
         _wait_matching(node, pub.nav_pub, args.wait_subscribers)
-    reader = replay_tlog(args.source, pub.feed, rate=args.rate, stop=node.stop_event, keep_stamps=args.keep_stamps)
+    reader = replay_tlog(args.source, pub.feed, rate=args.rate, stop=node.stop_event, keep_stamps=args.keep_stamps,
+                         shift_us=args.replay_shift_us)
     if node.stop_event.is_set():
         return
     with pub.lock:

@@ -142,8 +142,11 @@ def write_tlog(path, name: str, t_end_s: float, *, start_unix_us: int, boot_offs
 def record_flight(out_dir, name: str = "approach", n_frames: int = 20, rate_hz: float = 10.0, size=(160, 120),
                   seed: int = 0, *, camera_id: str = "nose", start_unix_us: int = DEFAULT_START_UNIX_US,
                   boot_at_start_s: float = 123.456, origin_lla=DEFAULT_ORIGIN_LLA, latency_us=(1000, 3000),
-                  supersample: int = 3, noise_sigma: float = 1.0) -> Path:
-    """Render flight ``name`` and write the recording (see module docstring). Returns ``out_dir``."""
+                  supersample: int = 3, noise_sigma: float = 1.0, frames_start_s: float = FRAME_T0_S) -> Path:
+    """Render flight ``name`` and write the recording (see module docstring). Returns ``out_dir``.
+    Navigation starts at flight time 0, the first frame at ``frames_start_s`` (navigation lead)."""
+    if not (np.isfinite(frames_start_s) and frames_start_s >= 0):
+        raise InputError(f"frames_start_s must be >= 0, got {frames_start_s!r}")
     if name not in FLIGHTS:
         raise InputError(f"unknown flight {name!r}; expected one of {', '.join(FLIGHTS)}")
     if not (int(n_frames) == n_frames and n_frames >= 1):
@@ -160,7 +163,7 @@ def record_flight(out_dir, name: str = "approach", n_frames: int = 20, rate_hz: 
     stamps, t_list, ranges, oids, cam = [], [], [], [], None
     for i, (t_s, view, rend) in enumerate(render_flight(name, n_frames=int(n_frames), rate_hz=float(rate_hz),
                                                         size=size, seed=seed, supersample=supersample,
-                                                        noise_sigma=noise_sigma, t0_s=FRAME_T0_S)):
+                                                        noise_sigma=noise_sigma, t0_s=frames_start_s)):
         cam = view.camera
         img = np.clip(np.round(view.image), 0, 255).astype(np.uint8)
         if not cv2.imwrite(str(frames_dir / f"{i:06d}.png"), img):
@@ -185,7 +188,7 @@ def record_flight(out_dir, name: str = "approach", n_frames: int = 20, rate_hz: 
         "size": [cam.width, cam.height], "camera_id": camera_id,
         "frames": "frames", "timestamps": "frames/timestamps.txt", "tlog": "flight.tlog",
         "cameras": "cameras.json", "truth": "truth.npz",
-        "start_unix_us": int(start_unix_us), "frame_t0_s": FRAME_T0_S,
+        "start_unix_us": int(start_unix_us), "frame_t0_s": float(frames_start_s),
         "boot_offset_us": int(boot_offset_us), "boot_at_start_s": float(boot_at_start_s),
         "clock_note": "unix_us = t_s*1e6 + start_unix_us; time_boot_ms = (unix_us - boot_offset_us) // 1000; "
                       "tlog header = unix send time + latency in latency_us",
