@@ -98,6 +98,24 @@ def test_folder_replay_maps_recorded_stamps_onto_now(tmp_path):
     assert clock.slept == pytest.approx([0.1, 0.15, 0.05, 0.1, 0.1], abs=1e-5)                       # real-time pacing
 
 
+def test_folder_joint_replay_shift_stamps_and_releases_at_the_shifted_time(tmp_path):
+    # Two replays of one recording get the same shift D: each frame is stamped recorded + D and released when
+    # the host clock reaches that stamp, whenever this process happened to start.
+    stamps = [50.0, 50.1, 50.25]
+    d = _folder(tmp_path, stamps, n=3)
+    clock = FakeClock()
+    shift = clock.us + 2_000_000 - 50_000_000        # first frame due 2 s from now
+    out = []
+    C.capture_loop(C.folder_frames(d, clock=clock, pacer=C.Pacer("auto", clock), replay_shift_us=shift),
+                   out.append, camera_id="nose")
+    assert [f["stamp_us"] for f in out] == [int(round(t * 1e6)) + shift for t in stamps]
+    assert clock.slept == pytest.approx([2.0, 0.1, 0.15], abs=1e-5)   # released at the stamp, not at start
+    assert clock.us == out[-1]["stamp_us"]
+    with pytest.raises(InputError, match="replay-shift-us needs recorded stamps"):
+        (tmp_path / "x").mkdir()
+        next(C.folder_frames(_folder(tmp_path / "x", None, n=1), clock=clock, replay_shift_us=shift))
+
+
 def test_folder_keep_stamps_loop_and_fixed_rate(tmp_path):
     d = _folder(tmp_path, [10.0, 10.2, 10.4], n=3)
     clock = FakeClock()

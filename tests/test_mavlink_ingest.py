@@ -9,6 +9,8 @@ import time
 import numpy as np
 import pytest
 
+from eonav import InputError
+
 from eonav import keys as K
 from eonav import schema
 from eonav.geometry import T_body_ned_from_quat
@@ -45,6 +47,32 @@ def test_replay_tlog_maps_headers_onto_now_and_paces(tlog):
     assert rx[0] == 5_000_000 and np.all(rx - hdr == rx[0] - hdr[0])     # one shift for the whole file
     span_s = (hdr[-1] - hdr[0]) / 1e6
     assert span_s / 4.0 - 0.05 < elapsed < span_s / 4.0 + 0.5            # paced at 4x real time
+
+
+def test_replay_tlog_joint_shift_releases_each_record_at_its_shifted_stamp(tlog):
+    path, counts = tlog
+    now = {"us": 7_000_000}
+    slept = []
+
+    def sleep(s):
+        slept.append(s)
+        now["us"] += int(round(s * 1e6))
+
+    got = []
+    with open(path, "rb") as f:
+        first_hdr = int.from_bytes(f.read(8), "big")
+    shift = now["us"] + 500_000 - first_hdr             # first record due 0.5 s from now
+    MI.replay_tlog(path, lambda m, rx: got.append((m, rx, now["us"])), rate=1.0, stop=threading.Event(),
+                   clock=lambda: now["us"], sleep=sleep, shift_us=shift)
+    assert len(got) == sum(counts.values())
+    hdr = np.array([int(round(m._timestamp * 1e6)) for m, _, _ in got])
+    rx = np.array([r for _, r, _ in got])
+    released = np.array([t for _, _, t in got])
+    assert np.all(np.abs(rx - hdr - shift) <= 1)          # stamped header + shift
+    assert np.all(released >= rx - 1000)                   # never released more than 1 ms before its stamp
+    assert slept[0] == pytest.approx(0.5, abs=1e-3)
+    with pytest.raises(InputError, match="excludes --keep-stamps"):
+        MI.replay_tlog(path, lambda m, rx: None, rate=2.0, stop=threading.Event(), shift_us=shift)
 
 
 def test_clock_flag_and_origin_parsing():
