@@ -315,10 +315,12 @@ def test_disparity_matches_map_to_b():
 # the simulator's replica of the paper's flight
 
 def test_paper_preset_table1():
-    """Sim "paper" preset, default (paper-faithful) settings. Measured (seed 0), median over each
-    vehicle's VALID pixels: vehicle 1 +15.7 % (176 px), vehicle 2 +28.4 % (42 px), vehicle 3 +36.2 %
-    (80 px); valid coverage 3.5 %. Bounds: about 1.5x the measured errors. True disparities there are
-    ~1.3, ~2.5 and ~7 px (with ~1 px from rotation alone), past the first-order model's comfort."""
+    """Sim "paper" preset, default (paper-faithful) settings. Measured (seed 0, final preset with the
+    vehicles at exactly 356.4 / 607.0 / 232.8 ft), median over each vehicle's VALID pixels: vehicle 1
+    +20.7 % (184 px), vehicle 2 +36.8 % (68 px), vehicle 3 +67.3 % (129 px); valid coverage 3.2 %.
+    Bounds: about 1.3x the measured errors, so a regression shows. True disparities there are ~1.3,
+    ~2.5 and ~7 px (with ~1 px from rotation alone), past the first-order model's comfort: the paper's
+    own Table I errors were 5.8 / 34.8 / 13.2 %."""
     presets = pytest.importorskip("eonav.sim.presets")
     sp = presets.make_pair("paper", seed=0)
     a, b = sp.views
@@ -326,7 +328,7 @@ def test_paper_preset_table1():
     res = locate_paper(a, b)
     ok = (res.flags & VALID) > 0
     ids = {n: i for i, n in sp.objects.items()}
-    bounds = {"vehicle1": 0.25, "vehicle2": 0.45, "vehicle3": 0.55}
+    bounds = {"vehicle1": 0.27, "vehicle2": 0.48, "vehicle3": 0.88}
     for name, bound in bounds.items():
         m = ok & (oid == ids[name])
         assert m.sum() >= 20, name
