@@ -56,6 +56,9 @@ def add_arguments(p):
     add_flag(g, "--max-rel-std", env="EONAV_OBST_MAX_REL_STD", default=0.25, type=float,
              help="ignore pixels whose relative range 1-sigma exceeds this")
     add_flag(g, "--min-obstacle-pixels", env="EONAV_OBST_MIN_PIXELS", default=12, type=int)
+    add_flag(g, "--max-width", env="EONAV_OBST_MAX_WIDTH", default=160, type=int, metavar="PX",
+             help="analyse the range map pooled to at most this many columns (robust minimum per block; "
+                  "0: full resolution)")
 
 
 def obstacle_config(args):
@@ -71,7 +74,7 @@ def obstacle_config(args):
                           min_distance_m=args.min_distance, max_distance_m=args.max_distance,
                           ground_down_m=ground, ground_clearance_m=args.ground_clearance,
                           max_obstacle_distance_m=args.max_obstacle_distance,
-                          min_obstacle_pixels=args.min_obstacle_pixels)
+                          min_obstacle_pixels=args.min_obstacle_pixels, max_width_px=args.max_width)
 
 
 class LatestNav:
@@ -94,6 +97,8 @@ class LatestNav:
 
 
 def body(node: Node, args) -> None:
+    import scipy.ndimage  # noqa: F401  (imported now: the first map must not pay ~0.5 s of import)
+
     from eonav.obstacles import ObstacleTracker
     cfg = obstacle_config(args)
     sender = None

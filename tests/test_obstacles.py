@@ -369,3 +369,29 @@ def test_sectors_now_move_with_the_vehicle():
     assert abs(int(res.sectors.distances_cm[j]) - 2000) <= 2
     assert abs(int(res.sectors_now.distances_cm[j]) - 1800) <= 2
     assert res.obstacles[0].horizontal_distance_m == pytest.approx(20.0, rel=0.02)   # list stays at capture pose
+
+
+@pytest.mark.parametrize("max_width_px", [0, 128, 64])
+def test_pooled_analysis_keeps_nearest_distances(fast_scene, max_width_px):
+    """Pooling to k x k blocks (robust minimum per block) keeps every box at its true distance and the sectors at
+    the full-resolution values within a few per cent; 0 = full resolution, 64 = 4 x 4 blocks of the 256 px map."""
+    sp = fast_scene
+    v, gt = sp.views[0], sp.truth[0]
+    full = ob.analyse(gt.range_m, v.camera, v.state, cfg=ob.ObstacleConfig(ground_down_m=0.0, max_width_px=0))
+    res = ob.analyse(gt.range_m, v.camera, v.state,
+                     cfg=ob.ObstacleConfig(ground_down_m=0.0, max_width_px=max_width_px))
+    pos = v.state.position_ned_m
+    for b in sp.scene.boxes:
+        want = box_distance(b, pos)
+        if want > 100:
+            continue
+        got = min(res.obstacles, key=lambda o: abs(o.distance_m - want))
+        assert got.distance_m == pytest.approx(want, rel=0.03), b.name
+        assert got.distance_m <= want * 1.01                  # a robust minimum never pushes an obstacle away
+    f, p = full.sectors.distances_cm.astype(float), res.sectors.distances_cm.astype(float)
+    both = (f < 15001) & (p < 15001)                           # bins with a distance in both (not clear, not unknown)
+    assert both.sum() >= 10
+    np.testing.assert_allclose(p[both], f[both], rtol=0.05)
+    assert ((f < 15001) == (p < 15001)).mean() >= 0.9          # same bins report an obstacle
+    total = sum(o.pixel_count for o in full.obstacles[:3])
+    assert sum(o.pixel_count for o in res.obstacles[:3]) == pytest.approx(total, rel=0.25)   # full-res pixel units
