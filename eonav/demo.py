@@ -490,11 +490,17 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    log_dir = getattr(args, "log_dir", None)
+    if log_dir is None and not getattr(args, "verbose", 0):
+        # A newcomer sees the status line and the summary; each service's log goes to a file.
+        log_dir = str(Path(getattr(args, "cache_dir", None) or Path(tempfile.gettempdir()) / "eonav-demo") / "logs")
+        print(f"eonav demo: simulated flight -> camera, MAVLink, sync, locator, obstacle services over an embedded "
+              f"zenoh router; service logs in {log_dir} (-v to see them here)", flush=True)
     s = run_demo(flight=getattr(args, "flight", DEFAULT_FLIGHT), n_frames=getattr(args, "frames", DEFAULT_FRAMES),
                  rate_hz=getattr(args, "fps", DEFAULT_RATE_HZ), size=getattr(args, "size", DEFAULT_SIZE),
                  method=getattr(args, "method", "dense"), png=getattr(args, "png", None),
                  cache_dir=getattr(args, "cache_dir", None), vehicle=getattr(args, "vehicle", "demo") or "demo",
-                 quiet=getattr(args, "quiet", False), log_dir=getattr(args, "log_dir", None))
+                 quiet=getattr(args, "quiet", False), log_dir=log_dir)
     print(format_summary(s))
     if getattr(args, "json", False):
         print(json.dumps(s, default=str))

@@ -654,12 +654,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if logging.getLogger().level > logging.INFO:
-        log.setLevel(logging.INFO)
     if not (args.watch or args.pipeline or args.camera or args.mavlink or args.print_spec):
         # no pipeline and no source: the newcomer's demo (a recorded simulated flight through the whole pipeline)
         from .demo import run as run_demo
         return run_demo(args)
+    if logging.getLogger().level > logging.INFO:
+        log.setLevel(logging.INFO)
     spec = {"services": []} if args.watch else (args.pipeline or default_spec(args.camera, args.mavlink))
     if args.print_spec:
         doc = json.loads(Path(spec).read_text()) if isinstance(spec, str) else spec
