@@ -1,0 +1,73 @@
+"""``eonav sim`` -> ``eonav locate`` end to end, as a user runs them (real processes, real files)."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+
+def eonav(*args, check=True):
+    out = subprocess.run([sys.executable, "-m", "eonav.cli", *map(str, args)], capture_output=True, text=True,
+                         timeout=240)
+    if check:
+        assert out.returncode == 0, out.stderr
+    return out
+
+
+@pytest.fixture(scope="module")
+def fast_pair(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fast")
+    eonav("sim", "fast", "--size", 160, "--out", d)
+    return d
+
+
+def test_sim_then_locate_writes_the_contract_and_is_accurate(fast_pair, tmp_path):
+    out = tmp_path / "range.npz"
+    png = tmp_path / "range.png"
+    r = eonav("locate", fast_pair / "pair.json", "--out", out, "--png", png, "--truth", fast_pair / "truth.npz",
+              "--timing", "--repeat", 2)
+    with np.load(out) as z:
+        rng, conf = z["range_m"], z["confidence"]
+        assert rng.dtype == np.float32 and rng.shape == (160, 160) and conf.shape == (160, 160)
+        truth = np.load(fast_pair / "truth.npz")["range_m"]
+    est = np.isfinite(rng) & np.isfinite(truth) & (rng > 0)
+    assert est.mean() > 0.3
+    assert np.median(np.abs(rng[est] / truth[est] - 1)) < 0.03        # independent check of the written file
+    assert (conf[~np.isfinite(rng)] == 0).all()
+    assert "accuracy vs truth: median relative error" in r.stdout
+    timing = json.loads(r.stdout.strip().splitlines()[-1])            # the contract: last stdout line is JSON
+    assert timing["seconds_per_pair"] > 0 and timing["repeat"] == 2
+    assert png.is_file() and png.stat().st_size > 1000
+
+
+def test_paper_method_is_selectable(fast_pair, tmp_path):
+    out = tmp_path / "paper.npz"
+    eonav("locate", fast_pair / "pair.json", "--out", out, "--method", "paper")
+    with np.load(out) as z:
+        assert z["range_m"].shape == (160, 160) and "flags" in z.files
+
+
+def test_stereo_pair_through_the_cli(tmp_path):
+    d = tmp_path / "stereo"
+    eonav("sim", "stereo", "--size", 160, "--out", d)
+    doc = json.loads((d / "pair.json").read_text())
+    assert len(doc["cameras"]) == 2 and doc["frames"][0]["camera"] != doc["frames"][1]["camera"]
+    eonav("locate", d / "pair.json", "--out", d / "r.npz")
+    rng = np.load(d / "r.npz")["range_m"]
+    truth = np.load(d / "truth.npz")["range_m"]
+    est = np.isfinite(rng) & np.isfinite(truth) & (rng > 0)
+    assert est.mean() > 0.2 and np.median(np.abs(rng[est] / truth[est] - 1)) < 0.03
+
+
+def test_bad_pair_file_exits_2_naming_the_field(fast_pair, tmp_path):
+    doc = json.loads((fast_pair / "pair.json").read_text())
+    doc["frames"][1]["camera"] = "tail"
+    bad = fast_pair / "bad.json"
+    bad.write_text(json.dumps(doc))
+    r = eonav("locate", bad, "--out", tmp_path / "x.npz", check=False)
+    assert r.returncode == 2
+    assert "frames[1].camera: 'tail' is not one of the cameras" in r.stderr
+    assert not (tmp_path / "x.npz").exists()
+    r = eonav("locate", fast_pair / "pair.json", "--out", tmp_path / "x.npz", "--method", "magic", check=False)
+    assert r.returncode == 2 and "invalid choice" in r.stderr
