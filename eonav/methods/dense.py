@@ -51,8 +51,16 @@ def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(img, (k, k), sigma, borderType=_BR)
 
 
+@lru_cache(maxsize=8)
+def _box_kernel(win: int) -> np.ndarray:
+    return np.full(win, 1.0 / win, F32)
+
+
 def _box(img: np.ndarray, win: int) -> np.ndarray:
-    return cv2.boxFilter(img, -1, (win, win), borderType=_BR)
+    """Mean over a win x win window (reflected border). A separable direct filter: for the small windows
+    used here OpenCV's SIMD sepFilter2D is ~1.6x faster than its running-sum boxFilter."""
+    k = _box_kernel(win)
+    return cv2.sepFilter2D(img, -1, k, k, borderType=_BR)
 
 
 def _grad(img: np.ndarray):
@@ -137,10 +145,61 @@ def _hypotheses(sub: EpipolarMap, rho_max: float, step_px: float) -> np.ndarray:
     return np.interp(np.linspace(0.0, d[-1], n), d, grid)
 
 
-def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, win: int, noise: float):
-    """Windowed ZNCC along the epipolar curve for all hypotheses at once (stacked into one tall image,
-    each slab padded by symmetric rows so the box filters do not mix hypotheses); winner-take-all with a
-    parabola sub-sample fit. Returns rho (h x w) and the best cost (1 - ZNCC)."""
+def _sgm_paths(C: np.ndarray, img: np.ndarray, P1: float, P2: float, tau: float) -> np.ndarray:
+    """Semi-global aggregation (Hirschmueller) along axis 0 of C (m, n, k), both directions at once:
+    L(i, d) = C(i, d) + min(L(i-1, d), L(i-1, d +- 1) + P1, min L(i-1) + P2') - min L(i-1), with the jump
+    penalty P2' = max(P1, P2 / (1 + |img(i) - img(i-1)| / tau)) lower across intensity edges (img (m, k)).
+    Returns the sum of the forward and the backward path costs (m, n, k)."""
+    m = C.shape[0]
+    Lf = np.empty_like(C)
+    Lb = np.empty_like(C)
+    Cb = C[::-1]
+    prev = np.stack([C[0], Cb[0]])          # (2, n, k): the forward and the backward path in one array
+    Lf[0] = prev[0]
+    Lb[m - 1] = prev[1]
+    a = np.empty_like(prev)
+    t = np.empty_like(prev[:, 1:])
+    p1 = F32(P1)
+    dI = np.abs(np.diff(img, axis=0))
+    if tau > 0:
+        p2s = np.maximum(F32(P2) / (F32(1.0) + dI * F32(1.0 / tau)), p1).astype(F32)   # (m-1, k)
+    else:
+        p2s = np.full(dI.shape, F32(P2), F32)
+    p2 = np.empty((2, 1, C.shape[2]), F32)
+    for i in range(1, m):
+        p2[0, 0] = p2s[i - 1]
+        p2[1, 0] = p2s[m - 1 - i]
+        mn = prev.min(axis=1, keepdims=True)
+        np.add(prev[:, :-1], p1, out=t)
+        np.minimum(prev[:, 1:], t, out=a[:, 1:])
+        a[:, 0] = prev[:, 0]
+        np.add(prev[:, 1:], p1, out=t)
+        np.minimum(a[:, :-1], t, out=a[:, :-1])
+        np.minimum(a, mn + p2, out=a)
+        a -= mn
+        a[0] += C[i]
+        a[1] += Cb[i]
+        Lf[i] = a[0]
+        Lb[m - 1 - i] = a[1]
+        prev, a = a, prev
+    Lf += Lb
+    return Lf
+
+
+def _sgm(cost: np.ndarray, img: np.ndarray, P1: float, P2: float, tau: float) -> np.ndarray:
+    """Sum of the 4 scanline path costs (left/right, up/down) of the cost volume (n, h, w) of image img."""
+    ch = np.ascontiguousarray(cost.transpose(2, 0, 1))       # (w, n, h): paths along rows
+    cv = np.ascontiguousarray(cost.transpose(1, 0, 2))       # (h, n, w): paths along columns
+    return (_sgm_paths(ch, img.T, P1, P2, tau).transpose(1, 2, 0)
+            + _sgm_paths(cv, img, P1, P2, tau).transpose(1, 0, 2))
+
+
+def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, win: int, noise: float,
+            sgm_p1: float = 0.0, sgm_p2: float = 0.0, sgm_tau: float = 0.0):
+    """Windowed ZNCC along the epipolar curve for all hypotheses at once (b warped for every hypothesis into
+    one tall image, each slab padded by symmetric rows so the box filters do not mix hypotheses);
+    optional semi-global aggregation (sgm_p2 > 0); winner-take-all with a parabola sub-sample fit.
+    Returns rho (h x w) and the confidence of the winner."""
     h, w = a.shape
     n = len(rhos)
     p = win // 2
@@ -156,30 +215,42 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
     ubs = np.pad(ub, pad, mode="symmetric").reshape(n * hp, w)
     vbs = np.pad(vb, pad, mode="symmetric").reshape(n * hp, w)
     bw = cv2.remap(b, ubs, vbs, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    at = np.ascontiguousarray(np.broadcast_to(np.pad(a, ((p, p), (0, 0)), mode="symmetric")[None], (n, hp, w))
-                              ).reshape(n * hp, w)
-    ksz = (win, win)
-    ma = cv2.boxFilter(at, -1, ksz, borderType=_BR)
-    va = cv2.boxFilter(at * at, -1, ksz, borderType=_BR) - ma * ma
-    mb = cv2.boxFilter(bw, -1, ksz, borderType=_BR)
-    vbb = cv2.boxFilter(bw * bw, -1, ksz, borderType=_BR) - mb * mb
-    cab = cv2.boxFilter(at * bw, -1, ksz, borderType=_BR) - ma * mb
-    den = np.sqrt(np.maximum(va, 0) * np.maximum(vbb, 0) + F32(noise ** 4))
-    cost = (1.0 - cab / den).reshape(n, hp, w)[:, p:p + h, :]
+    ap = np.pad(a, ((p, p), (0, 0)), mode="symmetric")
+    ma = _box(ap, win)
+    va = _box(ap * ap, win) - ma * ma
+    mb = _box(bw, win)
+    vbb = (_box(bw * bw, win) - mb * mb).reshape(n, hp, w)
+    cab = _box((bw.reshape(n, hp, w) * ap[None]).reshape(n * hp, w), win).reshape(n, hp, w)
+    cab -= ma[None] * mb.reshape(n, hp, w)
+    np.maximum(vbb, 0, out=vbb)
+    vbb *= np.maximum(va, 0)[None]
+    vbb += F32(noise ** 4)
+    np.sqrt(vbb, out=vbb)
+    cab /= vbb
+    cost = np.subtract(F32(1.0), cab[:, p:p + h, :])
     cost[bad] = 2.0
-    kbest = np.argmin(cost, axis=0)
+    vat = va[p:p + h]
+    tex = vat / (vat + F32(noise * noise))
+    kf, cbest = _wta(_sgm(cost, a, sgm_p1, sgm_p2, sgm_tau) if sgm_p2 > 0 else cost, cost)
+    # confidence of the winner: correlation (>= 0) times texture (windowed variance against the noise)
+    conf = np.clip(1.0 - cbest, 0.0, 1.0) ** 2 * tex
+    rho = np.interp(kf.ravel(), np.arange(n), rhos).reshape(h, w).astype(F32)
+    return rho, conf.astype(F32)
+
+
+def _wta(agg: np.ndarray, cost: np.ndarray):
+    """Winner-take-all over axis 0 of agg with a parabola sub-sample fit: fractional index and the (raw)
+    cost of the winner."""
+    n = agg.shape[0]
+    kbest = np.argmin(agg, axis=0)
     cbest = np.take_along_axis(cost, kbest[None], 0)[0]
-    cm = np.take_along_axis(cost, np.clip(kbest - 1, 0, n - 1)[None], 0)[0]
-    cp = np.take_along_axis(cost, np.clip(kbest + 1, 0, n - 1)[None], 0)[0]
-    curv = cm - 2 * cbest + cp
+    a0 = np.take_along_axis(agg, kbest[None], 0)[0]
+    cm = np.take_along_axis(agg, np.clip(kbest - 1, 0, n - 1)[None], 0)[0]
+    cp = np.take_along_axis(agg, np.clip(kbest + 1, 0, n - 1)[None], 0)[0]
+    curv = cm - 2 * a0 + cp
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.where((curv > 1e-6) & (kbest > 0) & (kbest < n - 1), 0.5 * (cm - cp) / curv, 0.0)
-    kf = kbest + np.clip(off, -0.5, 0.5)
-    rho = np.interp(kf.ravel(), np.arange(n), rhos).reshape(h, w).astype(F32)
-    # confidence of the winner: correlation (>= 0) times texture (windowed variance against the noise)
-    vat = va.reshape(n, hp, w)[0, p:p + h, :]
-    conf = np.clip(1.0 - cbest, 0.0, 1.0) ** 2 * (vat / (vat + F32(noise * noise)))
-    return rho, conf.astype(F32)
+    return kbest + np.clip(off, -0.5, 0.5), cbest
 
 
 class _Level:
@@ -268,7 +339,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  occ_k: float = 3.0, trunc_px: float = 0.5, std_scale: float = 1.0, fill_sigma: float = 4.0,
                  fill_c: float = 0.3, smooth_win: int = 0, highpass_sigma: float = 0.0,
                  highpass_levels: int = 9, bias: bool = True,
-                 match_floor_px: float = 0.05, strip_px: int = 32768) -> RangeResult:
+                 match_floor_px: float = 0.05, strip_px: int = 32768, sgm: bool = False,
+                 sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range (default: largest displacement 0.3 * image size).
@@ -286,6 +358,13 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     trunc_px: TRUNCATION where the last update still moves the match by more than this (level-0 px).
     std_scale: calibration factor of the reported sigma.
     strip_px: pixels per strip of rows of the Gauss-Newton steps (<= 0: whole image at once; same result).
+    sgm: semi-global aggregation (4 scanline paths) of the coarse ZNCC cost volume before winner-take-all;
+    sgm_p1 / sgm_p2: penalties (cost units, 1 - ZNCC) of a one-hypothesis / larger jump between neighbours,
+    sgm_tau: grey levels over which the jump penalty halves across an intensity edge. Off by default:
+    measured on Middlebury it lowers the raw all-pixel median error (teddy 0.94 -> 0.83 %, venus 1.51 ->
+    1.41 %, share of pixels off by > 5 %: teddy 22.5 -> 17.2 %, venus 25.6 -> 19.8 %), but on the paper
+    preset it pulls the small far vehicles into their background at the coarse level (vehicle2 +2.7 ->
+    +8.8 %, vehicle1 -0.0 -> -1.3 %), whatever the penalties (0.2/2 .. 1/8, tau 1 .. 8).
     """
     t_start = time.perf_counter()
     geo = pair_geometry(view_a, view_b)
@@ -317,7 +396,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         if not math.isfinite(rho_max):
             return no_motion_result((ha, wa), METHOD, "no parallax at any range")
     rhos = _hypotheses(sub, rho_max, search_step_px)
-    rho, conf = _search(pa[L], pb[L], em_s, rhos, search_window, noise=2.0)
+    rho, conf = _search(pa[L], pb[L], em_s, rhos, search_window, noise=2.0, sgm_p1=sgm_p1,
+                        sgm_p2=sgm_p2 if sgm else 0.0, sgm_tau=sgm_tau)
     if median:
         rho = cv2.medianBlur(rho, 3)
     if fill_sigma > 0:
@@ -441,7 +521,8 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     lam += H
     lam += F32(1e-30)
     num /= lam
-    if lv.cap is not None:
+    cr, cc = lv.cap if lv.cap is not None else (None, None)
+    if cr is not None and float(cr.min()) + float(cc[s].min()) < lv.rho_hi:   # the den >= den_min cap binds here
         cap = lv.rows(lv.cap, s)
         np.clip(cap, F32(0), lv.rho_hi, out=cap)
         np.clip(num, F32(0), cap, out=num)
