@@ -169,8 +169,34 @@ class PairPolicy:
     def history(self, camera_id: str) -> list:
         return list(self._hist.get(camera_id, ()))
 
+    def remember(self, f: PosedFrameInfo) -> bool:
+        """Add ``f`` to the history without a decision: a frame the locator skipped because a newer one of the same
+        camera was already waiting (latest frame wins) may still be the partner of a later frame. Same ordering rules
+        as ``offer``; returns False when ``f`` was dropped as out of order."""
+        d = self._admit(f)
+        if d is None:
+            self._hist[f.camera_id].append(f)
+            return True
+        return d.reason != OUT_OF_ORDER
+
     def offer(self, f: PosedFrameInfo) -> PairDecision:
         """Decide on the new frame ``f`` and add it to the history (unless dropped as out of order)."""
+        cfg = self.config
+        d = self._admit(f)
+        if d is not None:
+            return d
+        hist = self._hist[f.camera_id]
+        earlier = list(hist)
+        hist.append(f)
+        if cfg.stereo_rig is not None and f.camera_id in cfg.stereo_rig:
+            d = self._stereo(f)
+            if d is not None:
+                return d
+        return self._motion(f, earlier)
+
+    def _admit(self, f: PosedFrameInfo) -> PairDecision | None:
+        """None when ``f`` may join its camera's history; else the decision (out of order, history reset or camera
+        mismatch; the latter two have already restarted the history with ``f``)."""
         cfg = self.config
         hist = self._hist.setdefault(f.camera_id, deque(maxlen=cfg.history))
         if hist:
@@ -188,13 +214,7 @@ class PairPolicy:
                 hist.append(f)
                 return PairDecision(CAMERA_MISMATCH, detail=f"camera {f.camera_id!r} changed size to "
                                     f"{f.camera.width}x{f.camera.height}; history cleared")
-        earlier = list(hist)
-        hist.append(f)
-        if cfg.stereo_rig is not None and f.camera_id in cfg.stereo_rig:
-            d = self._stereo(f)
-            if d is not None:
-                return d
-        return self._motion(f, earlier)
+        return None
 
     # -- stereo -------------------------------------------------------------------------------
     def _stereo(self, f: PosedFrameInfo) -> PairDecision | None:

@@ -3,6 +3,11 @@
     {"kind": "frame", "v": 1, "camera_id": "nose", "seq": 12, "stamp_us": ..., "image": {array}, ...}
 
 Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian).
+``range_map`` sends ``range_m`` as float32, ``confidence`` and ``inv_range_std_per_m`` as float16 (3 significant
+digits: plenty for a gate; half the bytes) and ``flags`` as uint8; readers must not assume float32 (numpy promotes
+float16 in arithmetic; ``np.asarray(a, np.float32)`` where a float32 copy is wanted). float16 was added to the
+allowed dtypes without a version bump: an older build rejects such a message (counted decode error), it never
+misreads it.
 ``decode`` rejects anything malformed or hostile (wrong kind, unknown version, missing or mistyped
 field, array whose byte count does not match dtype x shape, absurd sizes) with ``SchemaError`` naming
 the problem; services count those and keep running. New fields are appended with defaults, so a
@@ -22,7 +27,7 @@ from . import InputError
 SCHEMA_VERSION = 1
 SUPPORTED_VERSIONS = (1,)
 MAX_ARRAY_ELEMENTS = 64 * 1024 * 1024
-ARRAY_DTYPES = ("uint8", "uint16", "int16", "int32", "uint32", "float32", "float64")
+ARRAY_DTYPES = ("uint8", "uint16", "int16", "int32", "uint32", "float16", "float32", "float64")
 
 
 class SchemaError(InputError):
@@ -67,6 +72,9 @@ FIELDS = {
         **_CAMERA_FIELDS,
         "position_ned_m": ("vec3", REQUIRED), "q_wxyz": ("vec4", REQUIRED),
         "baseline_m": ("float", math.nan), "compute_s": ("float", math.nan),
+        # appended (v1 readers default them): the locator's working scale (0.5: ranges computed on half-resolution
+        # images and upsampled, nearest neighbour, to the frame's grid) and its own per-message overhead
+        "scale": ("float", 1.0), "overhead_s": ("float", math.nan),
     },
     "obstacle_list": {
         "stamp_us": ("int", REQUIRED), "camera_id": ("str", ""), "obstacles": ("list", REQUIRED),

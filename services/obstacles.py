@@ -13,7 +13,10 @@ all-UINT16_MAX (see ``eonav.mavlink_out`` for why), plus a companion HEARTBEAT a
 the autopilot are measured from the latest navigation pose when one newer than the map is at hand
 (``sectors_now``): the autopilot applies them relative to where it is on arrival.
 
-Health: ``maps_processed``, ``obstacles_published``, ``bad_maps``, MAVLink counters; latencies
+Latest map wins: after each map the worker drains the ring and analyses only the newest map of each camera (older
+ones count ``maps_superseded``). The range map is analysed pooled to <= ``--max-width`` columns (eonav.obstacles).
+
+Health: ``maps_processed``, ``obstacles_published``, ``bad_maps``, ``maps_superseded``, MAVLink counters; latencies
 ``capture_to_obstacles`` (frame capture -> obstacle list put: the pipeline's end-to-end figure) and ``compute``.
 """
 from __future__ import annotations
@@ -97,8 +100,6 @@ class LatestNav:
 
 
 def body(node: Node, args) -> None:
-    import scipy.ndimage  # noqa: F401  (imported now: the first map must not pay ~0.5 s of import)
-
     from eonav.obstacles import ObstacleTracker
     cfg = obstacle_config(args)
     sender = None
@@ -155,43 +156,54 @@ def nav_loop(node: Node, sub, nav: LatestNav) -> None:
 
 
 def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, args) -> None:
+    import scipy.ndimage  # noqa: F401  (now, with the subscriber declared: the first map must not pay ~0.5 s)
+
     from eonav import obstacles as ob
     from eonav.camera import VehicleState
-    from eonav.schema import camera_from_msg
-    for sample in sub:
-        msg = node.decode(sample, expect="range_map")
-        if msg is None:
-            continue
-        t0 = time.perf_counter()
-        try:
-            K.check_chunk(msg["camera_id"], "camera id")
-            cam = camera_from_msg(msg["camera"])
-            q = np.asarray(msg["q_wxyz"], float)
-            if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
-                raise InputError(f"q_wxyz {q.tolist()} is not a unit quaternion")
-            state = VehicleState.from_quat(msg["position_ned_m"], q)
-            now_state, nav_stamp = (None, None) if args.no_nav else nav.get()
-            if now_state is not None and not (0 <= nav_stamp - msg["stamp_us"] <= NAV_MAX_AHEAD_S * 1e6):
-                now_state = None                  # older than the map, or from another clock: use the capture pose
-            res = ob.analyse(msg["range_m"], cam, state, confidence=msg["confidence"], flags=msg["flags"],
-                             inv_range_std_per_m=msg["inv_range_std_per_m"], cfg=cfg, now_state=now_state)
-        except InputError as e:
-            node.count("bad_maps")
-            node.log_limited("bad_map", logging.WARNING, "range map %s/%s rejected: %s", msg.get("camera_id"),
-                             msg.get("seq"), e)
-            continue
-        tracker.update(res.obstacles, msg["stamp_us"])
-        node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
-                 obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
-                 position_ned_m=msg["position_ned_m"], q_wxyz=q)
-        compute_s = time.perf_counter() - t0
-        node.count("maps_processed")
-        node.count("obstacles_published", len(res.obstacles))
-        node.latency("compute", compute_s)
-        node.latency("capture_to_obstacles", (now_us() - msg["stamp_us"]) * 1e-6)
-        if sender is not None:
-            sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"])
-            node.count("mavlink.nav_compensated" if res.sectors_now is not None else "mavlink.capture_pose")
+    from services.locator import CameraCache, drain_latest
+    cameras = CameraCache()
+    for first in sub:
+        for sample, newest in drain_latest(first, sub):
+            if not newest:                  # a newer map of the same camera is waiting: latest wins
+                node.count("maps_superseded")
+                continue
+            process_map(node, sample, pub, cfg, tracker, nav, sender, args, cameras, ob, VehicleState)
+
+
+def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, args, cameras, ob, VehicleState):
+    msg = node.decode(sample, expect="range_map")
+    if msg is None:
+        return
+    t0 = time.perf_counter()
+    try:
+        K.check_chunk(msg["camera_id"], "camera id")
+        cam = cameras.get(msg["camera"])[0]
+        q = np.asarray(msg["q_wxyz"], float)
+        if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise InputError(f"q_wxyz {q.tolist()} is not a unit quaternion")
+        state = VehicleState.from_quat(msg["position_ned_m"], q)
+        now_state, nav_stamp = (None, None) if args.no_nav else nav.get()
+        if now_state is not None and not (0 <= nav_stamp - msg["stamp_us"] <= NAV_MAX_AHEAD_S * 1e6):
+            now_state = None                  # older than the map, or from another clock: use the capture pose
+        res = ob.analyse(msg["range_m"], cam, state, confidence=msg["confidence"], flags=msg["flags"],
+                         inv_range_std_per_m=msg["inv_range_std_per_m"], cfg=cfg, now_state=now_state)
+    except InputError as e:
+        node.count("bad_maps")
+        node.log_limited("bad_map", logging.WARNING, "range map %s/%s rejected: %s", msg.get("camera_id"),
+                         msg.get("seq"), e)
+        return
+    tracker.update(res.obstacles, msg["stamp_us"])
+    node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
+             obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
+             position_ned_m=msg["position_ned_m"], q_wxyz=q)
+    compute_s = time.perf_counter() - t0
+    node.count("maps_processed")
+    node.count("obstacles_published", len(res.obstacles))
+    node.latency("compute", compute_s)
+    node.latency("capture_to_obstacles", (now_us() - msg["stamp_us"]) * 1e-6)
+    if sender is not None:
+        sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"])
+        node.count("mavlink.nav_compensated" if res.sectors_now is not None else "mavlink.capture_pose")
 
 
 if __name__ == "__main__":

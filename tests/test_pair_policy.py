@@ -209,3 +209,17 @@ def test_stereo_falls_back_to_motion_when_partner_silent():
 def test_bad_config_is_rejected(kw, match):
     with pytest.raises(InputError, match=match):
         pp.PairPolicyConfig(**kw)
+
+
+def test_remember_adds_a_partner_without_a_decision():
+    """A frame the locator skipped (a newer one was waiting) still serves as the partner of the next frame."""
+    cam = Camera("nose", 256, 256, 128.0, 128.0, 127.5, 127.5)
+    fr = [pp.PosedFrameInfo("nose", i, 1_000_000 + i * 100_000, cam,
+                         VehicleState.from_ypr([2.0 * i, 0.0, -10.0], [0.0, 0.0, 0.0])) for i in range(3)]
+    p = pp.PairPolicy(pp.PairPolicyConfig(min_disparity_px=0.5))
+    assert p.offer(fr[0]).reason == pp.FIRST_FRAME
+    assert p.remember(fr[1]) is True
+    d = p.offer(fr[2])
+    assert d.ok and d.b.seq == 1                                    # the remembered frame, the newest partner
+    assert p.remember(fr[1]) is False                              # out of order: not added
+    assert [f.seq for f in p.history("nose")] == [0, 1, 2]
