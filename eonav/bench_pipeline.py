@@ -10,7 +10,8 @@ the locator's RingChannel keeps the newest frames, so a slow locator skips frame
 the locator's own compute time, and whether payloads arrived through zenoh shared memory.
 
 ``run_bench(cases, seconds=...)`` is the pipeline function; ``add_arguments``/``run`` are the CLI hooks that
-``eonav bench pipeline`` delegates to.
+``eonav bench pipeline`` delegates to. ``--scale 0.5`` passes the locator's ``--scale`` (half-resolution locate);
+``--accuracy`` instead measures, in process, what a scale costs against the simulator's truth (``accuracy``).
 """
 from __future__ import annotations
 
@@ -48,15 +49,16 @@ def _pct(v, q):
 
 
 def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, frames: list, *, method: str = "dense",
-               cv_threads: int = 1, vehicle: str = "bench") -> dict:
+               cv_threads: int = 1, vehicle: str = "bench", scale: float = 1.0) -> dict:
     import zenoh
     from . import keys as K
     from . import schema
     from .bus.testing import client_session, start_service, stop_service, wait_until
     common = ["--vehicle", vehicle, "--connect", ep, "--health-period", "1", "--log-level", "warning"]
-    procs = [start_service(["-m", "services.locator", *common, "--method", method, "--cv-threads", str(cv_threads)]),
+    procs = [start_service(["-m", "services.locator", *common, "--method", method, "--cv-threads", str(cv_threads),
+                            "--scale", str(scale)]),
              start_service(["-m", "services.obstacles", *common, "--ground-down", "0"])]
-    res = {"fps": fps, "width": width, "height": height, "method": method}
+    res = {"fps": fps, "width": width, "height": height, "method": method, "scale": scale}
     try:
         with client_session(ep) as s:
             rx_map, rx_obs, shm = {}, {}, {"maps": 0, "maps_shm": 0}
@@ -73,7 +75,7 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                         m = schema.decode(smp.payload.to_bytes(), expect=kind)
                         with lock:
                             if kind == "range_map":
-                                rx_map[m["stamp_us"]] = (t, m["compute_s"])
+                                rx_map[m["stamp_us"]] = (t, m["compute_s"], m["overhead_s"])
                                 shm["maps"] += 1
                                 shm["maps_shm"] += smp.payload.as_shm() is not None
                             elif kind == "obstacle_list":
@@ -113,7 +115,9 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
             lat_r = [(v[0] - k) / 1e3 for k, v in maps.items()]
             lat_o = [(v - k) / 1e3 for k, v in obs.items()]
             comp = [v[1] * 1e3 for v in maps.values()]
+            over = [v[2] * 1e3 for v in maps.values() if math.isfinite(v[2])]
             loc = health.get("locator", {}).get("counters", {})
+            obs_h = health.get("obstacles", {})
             res.update(frames_sent=len(sent), range_maps=len(maps), obstacle_lists=len(obs),
                        frames_dropped=len(sent) - len(maps), drop_fraction=(len(sent) - len(maps)) / max(1, len(sent)),
                        throughput_maps_hz=len(maps) / seconds,
@@ -121,7 +125,11 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                        capture_to_obstacles_ms={"p50": _pct(lat_o, 50), "p99": _pct(lat_o, 99),
                                                 "max": _pct(lat_o, 100)},
                        locate_compute_ms={"p50": _pct(comp, 50), "p99": _pct(comp, 99)},
+                       locator_overhead_ms={"p50": _pct(over, 50), "p99": _pct(over, 99)},
+                       obstacles_compute_ms=obs_h.get("latency_ms", {}).get("compute", {}),
                        locator_skipped=loc.get("frames_skipped", 0),
+                       locator_superseded=loc.get("frames_superseded", 0),
+                       obstacles_superseded=obs_h.get("counters", {}).get("maps_superseded", 0),
                        range_map_payloads_via_shm=f"{shm['maps_shm']}/{shm['maps']}",
                        payload_bytes_per_frame=len(schema.encode("posed_frame", camera_id="nose", seq=0, stamp_us=0,
                                                                  encoding="mono8", **frames[0])))
@@ -141,7 +149,7 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
 
 
 def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense", cv_threads: int = 1,
-              stream=None) -> list:
+              stream=None, scale: float = 1.0) -> list:
     """Run each (fps, width, height) case; print one line each and return the result dicts."""
     import zenoh
     from .bus.testing import router_process
@@ -157,14 +165,78 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
                 rendered[(w, h)] = _frames(w, h)
             # a vehicle name per case: no health or subscriber of the previous case's services can be mistaken
             r = bench_case(ep, fps, w, h, seconds, rendered[(w, h)], method=method, cv_threads=cv_threads,
-                           vehicle=f"bench{k}")
+                           vehicle=f"bench{k}", scale=scale)
             out.append(r)
-            print(f"{fps:4.0f} fps {w}x{h} {method}: capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
+            print(f"{fps:4.0f} fps {w}x{h} {method} x{scale:g}: capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
                   f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
                   f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
                   f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} | "
-                  f"compute p50 {r['locate_compute_ms']['p50']:.0f} ms | shm {r['range_map_payloads_via_shm']}",
+                  f"compute p50 {r['locate_compute_ms']['p50']:.0f} ms, locator overhead p50 "
+                  f"{r['locator_overhead_ms']['p50']:.1f} ms, obstacles p50 "
+                  f"{r['obstacles_compute_ms'].get('p50', math.nan):.1f} ms | shm {r['range_map_payloads_via_shm']}",
                   file=stream, flush=True)
+    return out
+
+
+def accuracy(size=(640, 480), scales=(1.0, 0.5), n_frames: int = 5, rate_hz: float = 10.0, method: str = "dense",
+             stream=None) -> list:
+    """What the locator's ``--scale`` costs, in process, against the simulator's truth: consecutive frames of the
+    approach flight (the bench's frames) ranged through the locator's own code path (``frame_info`` at the scale,
+    locate, ``to_full_grid``), scored on the full-resolution grid: median |relative range error| and coverage of
+    confident pixels, and the obstacle list's nearest distance against the one from the true range map."""
+    import cv2
+    from services.locator import CameraCache, frame_info, to_full_grid
+    from . import obstacles as ob
+    from . import schema
+    from .camera import View
+    from .geometry import quat_wxyz_from_rotation
+    from .locate import locate
+    from .rangemap import VALID
+    from .sim.flight import render_flight
+    cv2.setNumThreads(1)
+    stream = stream or sys.stdout
+    w, h = size
+    rendered = list(render_flight("approach", n_frames=n_frames, rate_hz=rate_hz, size=(w, h), t0_s=2.5,
+                                  supersample=1))
+    msgs = [schema.decode(schema.encode("posed_frame", camera_id="nose", seq=i, stamp_us=int(t * 1e6) + 1,
+                                        encoding="mono8",
+                                        image=np.clip(np.round(v.image), 0, 255).astype(np.uint8),
+                                        camera=schema.camera_to_msg(v.camera), position_ned_m=v.state.position_ned_m,
+                                        q_wxyz=quat_wxyz_from_rotation(v.state.T_body_ned.T)))
+            for i, (t, v, _) in enumerate(rendered)]
+    cfg = ob.ObstacleConfig(ground_down_m=0.0)
+    out = []
+    for scale in scales:
+        cams = CameraCache(scale)
+        infos = [frame_info(m, cams) for m in msgs]
+        errs, cover, near_err, t_loc = [], [], [], []
+        for i in range(1, len(infos)):
+            a, b = infos[i], infos[i - 1]
+            t0 = time.perf_counter()
+            res = locate(View(a.payload["camera"], a.state, a.payload["image"]),
+                         View(b.payload["camera"], b.state, b.payload["image"]), method=method)
+            t_loc.append(time.perf_counter() - t0)
+            r = to_full_grid(np.asarray(res.range_m, np.float32), a.camera)
+            fl = to_full_grid(np.asarray(res.flags, np.uint8), a.camera)
+            std = to_full_grid(res.inv_range_std_per_m, a.camera)
+            conf = to_full_grid(res.confidence, a.camera)
+            truth = rendered[i][2].range_m
+            ok = ((fl & VALID) != 0) & np.isfinite(r) & np.isfinite(truth)
+            errs.append(float(np.median(np.abs(r[ok] - truth[ok]) / truth[ok])))
+            cover.append(float(ok.mean()))
+            est = ob.analyse(r, a.camera, a.state, confidence=conf, flags=fl, inv_range_std_per_m=std, cfg=cfg)
+            tru = ob.analyse(truth.astype(np.float32), a.camera, a.state, cfg=cfg)
+            if est.obstacles and tru.obstacles:
+                near_err.append(est.obstacles[0].distance_m / tru.obstacles[0].distance_m - 1.0)
+        row = {"width": w, "height": h, "scale": scale, "median_rel_error": float(np.median(errs)),
+               "worst_map_median_rel_error": float(np.max(errs)), "coverage": float(np.mean(cover)),
+               "nearest_obstacle_rel_error": [round(x, 4) for x in near_err],
+               "locate_ms_p50": 1e3 * float(np.median(t_loc))}
+        out.append(row)
+        print(f"{w}x{h} scale {scale:g}: median |rel range error| {100 * row['median_rel_error']:.2f} % (worst map "
+              f"{100 * row['worst_map_median_rel_error']:.2f} %), coverage {100 * row['coverage']:.1f} %, nearest "
+              f"obstacle vs truth {[f'{100 * x:+.1f} %' for x in near_err]}, locate p50 {row['locate_ms_p50']:.0f} ms",
+              file=stream, flush=True)
     return out
 
 
@@ -174,6 +246,10 @@ def add_arguments(p) -> None:
     p.add_argument("--seconds", type=float, default=8.0, help="measured seconds per case (after 2 s warm-up)")
     p.add_argument("--method", default="dense", help="locator method")
     p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
+    p.add_argument("--scale", type=float, default=1.0, help="locator --scale (0.5: half-resolution locate)")
+    p.add_argument("--accuracy", action="store_true",
+                   help="instead of the pipeline: range error, coverage and nearest obstacle vs simulator truth at "
+                        "scales 1 and 0.5 (in process, the locator's code path) for each case's image size")
     p.add_argument("--json", action="store_true", help="print the results as JSON at the end")
 
 
@@ -189,7 +265,13 @@ def parse_case(s: str):
 
 def run(args) -> int:
     cases = [parse_case(c) for c in args.case] or list(DEFAULT_CASES)
-    res = run_bench(cases, seconds=args.seconds, method=args.method, cv_threads=args.cv_threads)
+    if args.accuracy:
+        sizes = list(dict.fromkeys((w, h) for _, w, h in cases))
+        res = [r for size in sizes for r in accuracy(size, scales=sorted({1.0, args.scale, 0.5}, reverse=True),
+                                                      method=args.method)]
+    else:
+        res = run_bench(cases, seconds=args.seconds, method=args.method, cv_threads=args.cv_threads,
+                        scale=args.scale)
     if args.json:
         print(json.dumps(res))
     return 0
