@@ -139,3 +139,24 @@ def test_service_poses_frames_against_truth(tmp_path):
     assert c["dropped.before_first_nav"] == 1
     assert c["dropped.extrapolation_limit"] == 1
     assert c["out.posed_frame"] == len(frame_t)
+
+
+def test_pairer_position_lead_releases_on_attitude(tmp_path):
+    """With a position lead, a frame is posed as soon as attitude brackets it while position (25 Hz) is at most the
+    lead behind: flagged extrapolated, still within millimetres of the truth; without it the frame waits."""
+    p, cam = _cameras_file(tmp_path)
+    msgs = _nav_msgs(0, 0.47)                 # attitude every 20 ms up to 0.46 s, position every 40 ms up to 0.44 s
+    t_frame = 0.455                           # attitude brackets it; position is 15 ms behind
+    tr = nav_truth("turning", np.array([t_frame]))
+    for lead, want in ((0.0, []), (0.02, [1])):
+        pr = S.Pairer(S.load_cameras(p), NavBuffer(), max_wait_s=0.3, position_lead_s=lead)
+        for m in msgs:
+            pr.add_nav({"q_wxyz": [np.nan] * 4, "position_ned_m": [np.nan] * 3, "velocity_ned_mps": [np.nan] * 3,
+                        **m})
+        pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, t_frame, 1))), now_s=0.0)
+        out = pr.poll(now_s=0.0)
+        assert [o["seq"] for o in out] == want
+        if out:
+            assert out[0]["quality_flags"] & QF_EXTRAPOLATED
+            np.testing.assert_allclose(out[0]["position_ned_m"], tr["position_ned_m"][0], atol=0.01)
+            assert _angle(out[0]["q_wxyz"], tr["q_wxyz"][0]) < 1e-4
