@@ -65,10 +65,12 @@ def sine_texture(x, y, seed=0, k=60):
 
 # ---------------------------------------------------------------- analytic scenes
 
-def test_fronto_parallel_plane_subpixel():
-    """Rectified pair of a textured plane at 1/rho = f b / d: disparity 12.3 px recovered to < 0.05 px
-    (measured: median error 0.01-0.02 px, the bilinear-interpolation bias)."""
-    h, w, d, f, b = 160, 200, 12.3, 500.0, 0.1
+@pytest.mark.parametrize("d", [12.3, 12.75, 3.25])
+def test_fronto_parallel_plane_subpixel(d):
+    """Rectified pair of a textured plane at 1/rho = f b / d: the disparity recovered to < 0.025 px
+    (measured: median error -0.008 / +0.004 / +0.011 px at d = 12.75 / 12.3 / 3.25, the bilinear-interpolation
+    bias), every core pixel VALID, median range error ~0.1-0.35 %."""
+    h, w, f, b = 160, 200, 500.0, 0.1
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
     rng = np.random.default_rng(1)
     left = sine_texture(x, y) + rng.normal(0, 1.0, (h, w)).astype(np.float32)
@@ -76,9 +78,9 @@ def test_fronto_parallel_plane_subpixel():
     res = locate_dense(*rectified_views(left, right, f, b))
     core = (slice(10, -10), slice(30, -10))
     d_est = res.inv_range_per_m[core] * f * b
-    assert abs(np.median(d_est) - d) < 0.05
+    assert abs(np.median(d_est) - d) < 0.025
     valid = (res.flags[core] & VALID) > 0
-    assert valid.mean() > 0.95
+    assert valid.mean() > 0.98
     assert np.median(np.abs(res.range_m[core][valid] / (f * b / d) - 1)) < 0.005
 
 
@@ -94,7 +96,7 @@ def test_textured_scene_at_infinity():
     res = locate_dense(a, b)
     assert not np.any(np.isfinite(res.range_m))        # +inf or NaN only
     at_inf = (res.flags & AT_INFINITY) > 0
-    assert at_inf.mean() > 0.8                           # measured ~0.9 (borders: out of view / window)
+    assert at_inf.mean() > 0.9                           # measured 0.996
     assert np.all(np.isposinf(res.range_m[at_inf]))
 
 
@@ -114,8 +116,9 @@ def test_identical_poses_invent_no_range():
 @pytest.mark.parametrize("preset", ["fast", "turning", "climbing"])
 def test_sim_motion_accuracy_beats_dis(preset):
     """Forward flight / turn / climb at 256 px: median relative range error over VALID non-sky pixels.
-    Measured (seed 0, 256 px): fast 1.3 %, turning 1.5 %, climbing ~1.3 % (DIS: 2.8 / 1.8 / ~1.9 %);
-    coverage of the measurable (in view of b) non-sky pixels ~0.7-0.8."""
+    Measured (seeds 0-2, 256 px): fast 1.16-1.17 %, turning 1.30-1.34 %, climbing 1.41-1.44 % (DIS: 2.3 /
+    1.8 / 1.8-2.0 %); coverage of the measurable (in view of b) non-sky pixels 0.79-0.81; raw estimates
+    over all measurable pixels 1.45 / 1.71-1.76 / 1.75-1.77 % (DIS 2.9-3.1 / 2.8-3.0 / 2.7-2.9 %)."""
     sp = sim(preset)
     a, b = sp.views
     gt = sp.truth[0].range_m
@@ -123,9 +126,9 @@ def test_sim_motion_accuracy_beats_dis(preset):
     dis = locate_dis(a, b)
     measurable = in_view_of_b(sp)
     fin = np.isfinite(res.range_m) & measurable
-    assert fin.sum() / measurable.sum() > 0.6
+    assert fin.sum() / measurable.sum() > 0.74
     e = rel_err(res, gt)[fin]
-    assert np.median(e) < 0.022
+    assert np.median(e) < 0.017
     fin_d = np.isfinite(dis.range_m) & measurable
     assert np.median(e) < np.median(rel_err(dis, gt)[fin_d])
     # fair comparison on the same pixels: the raw estimates of both over all measurable pixels
@@ -137,7 +140,8 @@ def test_sim_motion_accuracy_beats_dis(preset):
 
 def test_stereo_rig_different_intrinsics():
     """Two cameras with different focal lengths, principal points and mount angles at one instant.
-    Measured at 256 px: median error 0.64 % over VALID pixels, every object within 3 %."""
+    Measured at 256 px (seeds 0-2): median error 0.64 % over VALID pixels, coverage of the object pixels
+    0.55, every object within 2.2 %."""
     sp = sim("stereo")
     a, b = sp.views
     assert a.camera.fx != b.camera.fx
@@ -145,8 +149,8 @@ def test_stereo_rig_different_intrinsics():
     oid = sp.truth[0].object_id
     res = locate_dense(a, b)
     fin = np.isfinite(res.range_m) & (oid != 0)
-    assert fin.sum() > 0.3 * (oid != 0).sum()
-    assert np.median(rel_err(res, gt)[fin]) < 0.012
+    assert fin.sum() > 0.48 * (oid != 0).sum()
+    assert np.median(rel_err(res, gt)[fin]) < 0.009
     for i, name in sp.objects.items():
         if i < 2:
             continue
@@ -176,8 +180,9 @@ def test_hover_invents_no_range():
 
 
 def test_confidence_ranks_errors():
-    """High-confidence pixels have lower errors than low-confidence ones, and the reported sigma is the
-    right order of magnitude (robust z-score spread between 0.3 and 3)."""
+    """High-confidence pixels have lower errors than low-confidence ones (measured: median error ratio
+    0.36-0.37), and the reported sigma is calibrated (robust spread of (rho - rho_true) / sigma measured
+    1.11-1.12 at 256 px, 0.8-1.1 over the 512 px presets)."""
     sp = sim("fast")
     gt = sp.truth[0].range_m
     res = locate_dense(*sp.views)
@@ -185,19 +190,21 @@ def test_confidence_ranks_errors():
     e = rel_err(res, gt)[fin]
     c = res.confidence[fin]
     hi = c >= np.median(c)
-    assert np.median(e[hi]) < 0.7 * np.median(e[~hi])
+    assert np.median(e[hi]) < 0.5 * np.median(e[~hi])
     q = np.quantile(c, [0.0, 0.25, 0.5, 0.75, 1.0])
     meds = [np.median(e[(c >= lo) & (c <= up)]) for lo, up in zip(q[:-1], q[1:])]
     assert meds[0] > meds[-1]
     z = (res.inv_range_per_m[fin] - 1.0 / gt[fin]) / res.inv_range_std_per_m[fin]
     spread = 1.4826 * np.median(np.abs(z - np.median(z)))
-    assert 0.3 < spread < 3.0
+    assert 0.75 < spread < 1.5
 
 
 def test_paper_preset_vehicles():
-    """Replica of the paper's flight (Table I vehicles). Measured at 512 px: vehicle1 -3.9 %, vehicle3
-    +0.5 %, vehicle2 (607 ft, ~40 valid px) +10 %: vehicles 1 and 3 within 5 %, vehicle 2 within 20 %
-    (paper: 5.8 / 34.8 / 13.2 %)."""
+    """Replica of the paper's flight (Table I vehicles). Measured at 512 px, seed 0: vehicle1 -1.4 %,
+    vehicle2 (607 ft, 108 valid px, parallax 1.4 px) +1.6 %, vehicle3 +0.5 %: every one within 3 %
+    (paper: 5.8 / 34.8 / 13.2 %). Other seeds (1-3): vehicles 1 and 3 within 1.6 %, but vehicle2 +2.4 to
+    +8.6 % (a nearly uniform 12 x 13 px object: its windows see the background), so only seed 0 is held
+    to 3 % for it."""
     sp = sim("paper", size=512)
     gt = sp.truth[0].range_m
     oid = sp.truth[0].object_id
@@ -208,8 +215,8 @@ def test_paper_preset_vehicles():
         m = (oid == ids[name]) & np.isfinite(res.range_m)
         assert m.sum() >= 20, name
         errs[name] = np.median(res.range_m[m]) / np.median(gt[oid == ids[name]]) - 1
-    assert abs(errs["vehicle1"]) < 0.05 and abs(errs["vehicle3"]) < 0.05, errs
-    assert abs(errs["vehicle2"]) < 0.20, errs
+    assert abs(errs["vehicle1"]) < 0.03 and abs(errs["vehicle3"]) < 0.03, errs
+    assert abs(errs["vehicle2"]) < 0.03, errs
 
 
 # ---------------------------------------------------------------- real data
@@ -219,7 +226,7 @@ def test_paper_preset_vehicles():
 def test_middlebury_cones_beats_dis():
     """Middlebury 2003 'cones' as a rectified stereo pair (f = 1000 px, b = 0.1 m chosen; range = f b / d).
     Median relative range error over non-occluded ground-truth pixels, raw estimates of both methods on the
-    same pixels. Measured: dense 0.66 %, DIS 0.86 %."""
+    same pixels. Measured: dense 0.59 %, DIS 0.86 %."""
     from eonav.imageio import load_grey
     d = MIDDLEBURY / "cones"
     left, right = load_grey(d / "imL.png"), load_grey(d / "imR.png")
@@ -236,4 +243,29 @@ def test_middlebury_cones_beats_dis():
             e = np.abs(rho_gt / res.inv_range_per_m - 1)[mask]
         errs[name] = np.median(np.where(np.isfinite(e), e, np.inf))
     assert errs["dense"] < errs["dis"], errs
-    assert errs["dense"] < 0.009, errs
+    assert errs["dense"] < 0.0072, errs
+
+
+def test_strips_equal_whole_image():
+    """The strip-by-strip Gauss-Newton (halo of half a window) gives the whole-image result."""
+    sp = sim("turning")
+    r1 = locate_dense(*sp.views)
+    r0 = locate_dense(*sp.views, strip_px=0)
+    np.testing.assert_allclose(r1.inv_range_per_m, r0.inv_range_per_m, rtol=1e-5, atol=1e-9)
+    assert (r1.flags != r0.flags).mean() < 1e-3
+
+
+@pytest.mark.realdata
+@pytest.mark.skipif(not MIDDLEBURY.is_dir(), reason=f"real data not found at {MIDDLEBURY} (../shared/data)")
+def test_sgm_reduces_gross_errors_teddy():
+    """Optional semi-global aggregation of the coarse cost volume: fewer raw estimates off by > 5 % on
+    Middlebury 'teddy' (measured 22.5 % -> 17.2 % of the non-occluded GT pixels)."""
+    from eonav.realdata import middlebury_pair
+    a, b, truth, mask = middlebury_pair(DATA, "teddy")
+    out = {}
+    for sgm in (False, True):
+        res = locate_dense(a, b, sgm=sgm)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            e = np.abs(1.0 / (truth * res.inv_range_per_m) - 1)[mask]
+        out[sgm] = float(np.mean(~(e < 0.05)))
+    assert out[True] < out[False] - 0.03, out
