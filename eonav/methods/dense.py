@@ -195,7 +195,7 @@ def _sgm(cost: np.ndarray, img: np.ndarray, P1: float, P2: float, tau: float) ->
 
 
 def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, win: int, noise: float,
-            sgm_p1: float = 0.0, sgm_p2: float = 0.0, sgm_tau: float = 0.0):
+            sgm_p1: float = 0.0, sgm_p2: float = 0.0, sgm_tau: float = 0.0, chunk_px: int = 65536):
     """Windowed ZNCC along the epipolar curve for all hypotheses at once (b warped for every hypothesis into
     one tall image, each slab padded by symmetric rows so the box filters do not mix hypotheses);
     optional semi-global aggregation (sgm_p2 > 0); winner-take-all with a parabola sub-sample fit.
@@ -203,34 +203,45 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
     h, w = a.shape
     n = len(rhos)
     p = win // 2
-    R = rhos.astype(F32)[:, None, None]
     B = emap.B
     cb = emap.cam_b
     hp = h + 2 * p
-    # the maps of every hypothesis on the rows of a padded by p symmetric rows (one tall remap)
-    A0, A1, A2 = (np.pad(x, ((p, p), (0, 0)), mode="symmetric")[None] for x in (emap.A0, emap.A1, emap.A2))
-    inv = F32(1.0) / (A0 + B[0] * R)
-    ub = (A1 * F32(cb.fx) + A0 * F32(cb.cx) + F32(cb.fx * B[1] + cb.cx * B[0]) * R) * inv
-    vb = (A2 * F32(cb.fy) + A0 * F32(cb.cy) + F32(cb.fy * B[2] + cb.cy * B[0]) * R) * inv
     hb, wb = b.shape
-    c = (slice(None), slice(p, p + h))
-    bad = ~((ub[c] >= 0) & (ub[c] <= wb - 1) & (vb[c] >= 0) & (vb[c] <= hb - 1) & (inv[c] > 0))
-    bw = cv2.remap(b, ub.reshape(n * hp, w), vb.reshape(n * hp, w), cv2.INTER_LINEAR,
-                   borderMode=cv2.BORDER_REPLICATE)
+    # maps on the rows of a padded by p symmetric rows; hypotheses in chunks of ~chunk_px pixels (one tall
+    # remap and box filtering per chunk: the temporaries stay in cache, the peak memory stays small)
+    A0, A1, A2 = (np.pad(x, ((p, p), (0, 0)), mode="symmetric")[None] for x in (emap.A0, emap.A1, emap.A2))
+    P1 = A1 * F32(cb.fx) + A0 * F32(cb.cx)
+    P2 = A2 * F32(cb.fy) + A0 * F32(cb.cy)
+    Q1, Q2 = F32(cb.fx * B[1] + cb.cx * B[0]), F32(cb.fy * B[2] + cb.cy * B[0])
     ap = np.pad(a, ((p, p), (0, 0)), mode="symmetric")
     ma = _box(ap, win)
     va = _box(ap * ap, win) - ma * ma
-    mb = _box(bw, win)
-    vbb = (_box(bw * bw, win) - mb * mb).reshape(n, hp, w)
-    cab = _box((bw.reshape(n, hp, w) * ap[None]).reshape(n * hp, w), win).reshape(n, hp, w)
-    cab -= ma[None] * mb.reshape(n, hp, w)
-    np.maximum(vbb, 0, out=vbb)
-    vbb *= np.maximum(va, 0)[None]
-    vbb += F32(noise ** 4)
-    np.sqrt(vbb, out=vbb)
-    cab /= vbb
-    cost = np.subtract(F32(1.0), cab[:, p:p + h, :])
-    cost[bad] = 2.0
+    va_pos = np.maximum(va, 0)[None]
+    cost = np.empty((n, h, w), F32)
+    c = (slice(None), slice(p, p + h))
+    step = max(1, chunk_px // (hp * w))
+    for k0 in range(0, n, step):
+        k1 = min(n, k0 + step)
+        m = k1 - k0
+        R = rhos[k0:k1].astype(F32)[:, None, None]
+        inv = F32(1.0) / (A0 + B[0] * R)
+        ub = (P1 + Q1 * R) * inv
+        vb = (P2 + Q2 * R) * inv
+        bad = ~((ub[c] >= 0) & (ub[c] <= wb - 1) & (vb[c] >= 0) & (vb[c] <= hb - 1) & (inv[c] > 0))
+        bw = cv2.remap(b, ub.reshape(m * hp, w), vb.reshape(m * hp, w), cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)
+        mb = _box(bw, win)
+        vbb = (_box(bw * bw, win) - mb * mb).reshape(m, hp, w)
+        cab = _box((bw.reshape(m, hp, w) * ap[None]).reshape(m * hp, w), win).reshape(m, hp, w)
+        cab -= ma[None] * mb.reshape(m, hp, w)
+        np.maximum(vbb, 0, out=vbb)
+        vbb *= va_pos
+        vbb += F32(noise ** 4)
+        np.sqrt(vbb, out=vbb)
+        cab /= vbb
+        ck = cost[k0:k1]
+        np.subtract(F32(1.0), cab[c], out=ck)
+        ck[bad] = 2.0
     vat = va[p:p + h]
     tex = vat / (vat + F32(noise * noise))
     kf, cbest = _wta(_sgm(cost, a, sgm_p1, sgm_p2, sgm_tau) if sgm_p2 > 0 else cost, cost)
