@@ -246,7 +246,8 @@ def test_session_flags_build_config(tmp_path, monkeypatch):
     a = p.parse_args([])
     d = S.config_dict(a)
     assert d == {"mode": "peer", "connect/endpoints": ["tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447"],
-                 "listen/endpoints": ["tcp/127.0.0.1:0"], "scouting/multicast/enabled": False}
+                 "listen/endpoints": ["tcp/127.0.0.1:0"], "scouting/multicast/enabled": False,
+                 "transport/shared_memory/enabled": False}
     cfg = S.build_config(a)
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
     assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447"]
@@ -259,6 +260,10 @@ def test_session_flags_build_config(tmp_path, monkeypatch):
     assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:9999"]
     a = p.parse_args(["--multicast", "--mode", "peer"])
     assert S.config_dict(a)["scouting/multicast/enabled"] is True
+    # shared memory: off by default, on with --shm; with a config file and no flag the file decides
+    assert json.loads(S.build_config(p.parse_args(["--shm"])).get_json("transport/shared_memory/enabled")) is True
+    assert "transport/shared_memory/enabled" not in S.config_dict(p.parse_args(["--zenoh-config", str(f)]))
+    assert S.config_dict(p.parse_args(["--zenoh-config", str(f), "--no-shm"]))["transport/shared_memory/enabled"] is False
     with pytest.raises(Exception, match="no such file"):
         S.build_config(p.parse_args(["--zenoh-config", str(tmp_path / "missing.json5")]))
     with pytest.raises(Exception, match="endpoint"):

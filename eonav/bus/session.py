@@ -13,6 +13,14 @@ A peer that was given ``--connect`` but no ``--listen`` (and no config file) lis
 router's gossip and talk directly (and over shared memory), while the router carries the legs
 between hosts.
 
+Shared memory (``--shm`` / ``--no-shm``, ``EONAV_ZENOH_SHM``): zenoh 1.10 moves same-host payloads over
+3 KB through SHM by default. eonav turns it **off** unless asked: with SHM on, the locator -> obstacles leg
+lost every range map of a run in 3 of 4 repeated runs of tests/test_pipeline_e2e.py followed by
+tests/test_locator_service.py (the test's own subscriber, through the router, received them), and 0 of 4 with
+SHM off. Public reports of the same family: ros2/rmw_zenoh#977 (no data through a router with SHM on),
+#220, #616. Over loopback TCP a 2.8 MB range map costs a few ms more; correctness first. With a config
+file and neither flag, the file's setting stands.
+
 No heavy import at module level: ``zenoh`` is imported inside :func:`build_config`.
 """
 from __future__ import annotations
@@ -81,6 +89,11 @@ def add_session_arguments(p: argparse.ArgumentParser, *, modes=("peer", "client"
              help="zenoh session mode (default: the config file's, else peer)")
     add_flag(g, "--multicast", env="EONAV_ZENOH_MULTICAST", default=False, action="store_true",
              help="enable multicast scouting (off by default: name endpoints instead)")
+    shm = env_default("EONAV_ZENOH_SHM")
+    g.add_argument("--shm", action=argparse.BooleanOptionalAction,
+                   default=None if shm is None else shm.strip().lower() in _TRUE,
+                   help="zenoh shared-memory transport for same-host payloads (default off, see "
+                        "eonav.bus.session; with --zenoh-config the file decides) (env EONAV_ZENOH_SHM)")
 
 
 def config_dict(args) -> dict:
@@ -99,6 +112,9 @@ def config_dict(args) -> dict:
     elif mode == "peer" and connect and not zfile:
         out["listen/endpoints"] = ["tcp/127.0.0.1:0"]
     out["scouting/multicast/enabled"] = bool(getattr(args, "multicast", False))
+    shm = getattr(args, "shm", None)
+    if shm is not None or not zfile:
+        out["transport/shared_memory/enabled"] = bool(shm)
     return out
 
 
