@@ -36,11 +36,11 @@ NAV_MAX_AHEAD_S = 1.0        # a nav state newer than the map by more than this 
 
 
 def add_arguments(p):
-    add_flag(p, "--mavlink-out", env="EONAV_MAVLINK_OUT", default=None, metavar="CONNECTION",
+    add_flag(p, "--mavlink-out", env="EONAV_OBSTACLES_MAVLINK_OUT", default=None, metavar="CONNECTION",
              help="send OBSTACLE_DISTANCE on this pymavlink connection, e.g. udpout:127.0.0.1:14560")
-    add_flag(p, "--mavlink-sysid", env="EONAV_MAVLINK_SYSID", default=1, type=int,
+    add_flag(p, "--mavlink-sysid", env="EONAV_OBSTACLES_MAVLINK_SYSID", default=1, type=int,
              help="MAVLink system id (the autopilot's); component is 191 (onboard computer)")
-    add_flag(p, "--mavlink-rate", env="EONAV_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
+    add_flag(p, "--mavlink-rate", env="EONAV_OBSTACLES_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
              help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)")
     add_flag(p, "--stale", env="EONAV_OBSTACLE_STALE", default=0.5, type=float, metavar="S",
              help="after this long without a new range map, send 'unknown' sectors")
