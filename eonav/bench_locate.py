@@ -117,7 +117,7 @@ def run_bench(methods, cases, repeat, json_out=None):
                   f"{100 * s['coverage']:>9.1f}%{1000 * secs:>10.1f}{peak / 2**20:>9.1f}")
             results.append({"case": case.name, "method": name, "seconds_per_pair": secs, "peak_bytes": peak, **s})
         if case.objects and per:
-            print(f"   Table I style (range in m / ft):")
+            print("   Table I style (range in m / ft):")
             print(f"   {'object':<12}{'method':<8}{'actual':>16}{'estimated':>18}{'error':>8}{'points':>8}")
             for name, res in per.items():
                 for obj, actual, est, err, pts in object_rows(case, res.range_m):

@@ -76,7 +76,6 @@ advance its stream is dropped as ``stamp_backwards_after_offset``.
 """
 from __future__ import annotations
 
-import bisect
 import logging
 import math
 import os

@@ -123,15 +123,29 @@ def parse_pair(doc: dict, base: Path) -> PairFile:
     return PairFile(cameras, [parse_frame(i, fr, cameras, base) for i, fr in enumerate(frames)])
 
 
-def load_pair_file(path) -> PairFile:
+def read_json(path, what: str = "pair file"):
+    """A JSON document, with errors that say which file (``what``) and why."""
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"pair file not found: {p}")
+        raise InputError(f"{what} not found: {p}")
     try:
-        doc = json.loads(p.read_text())
+        return json.loads(p.read_text())
     except json.JSONDecodeError as e:
-        raise InputError(f"pair file {p}: not valid JSON ({e})") from None
-    return parse_pair(doc, p.parent)
+        raise InputError(f"{what} {p}: not valid JSON ({e})") from None
+
+
+def load_pair_file(path) -> PairFile:
+    return parse_pair(read_json(path), Path(path).parent)
+
+
+def load_cameras(path, what: str = "cameras file") -> dict:
+    """Named cameras from a JSON file holding a pair file's "cameras" section, or a whole pair file."""
+    doc = read_json(path, what)
+    if isinstance(doc, dict) and isinstance(doc.get("cameras"), dict):
+        doc = doc["cameras"]
+    if not isinstance(doc, dict) or not doc:
+        raise InputError(f"{what} {path}: expected an object of named cameras")
+    return {name: parse_camera(name, c) for name, c in doc.items()}
 
 
 def camera_to_dict(cam: Camera) -> dict:

@@ -52,7 +52,6 @@ metrics object, testable without zenoh or a camera.
 from __future__ import annotations
 
 import logging
-import os
 import re
 import threading
 import time

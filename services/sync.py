@@ -28,40 +28,26 @@ The pairing logic is :class:`Pairer`, a pure object over injected times, tested 
 """
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
 from collections import Counter
-from pathlib import Path
 
-import numpy as np
 
 from eonav import InputError, schema
 from eonav import keys as K
 from eonav.bus.node import Node, add_flag, service_main
-from eonav.pairfile import parse_camera
+from eonav import pairfile
 from eonav.timesync import NavBuffer
 
 log = logging.getLogger(__name__)
 
 
 def load_cameras(path) -> dict:
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"--cameras {p}: no such file")
-    try:
-        doc = json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(f"--cameras {p}: not valid JSON ({e})") from None
-    if isinstance(doc, dict) and isinstance(doc.get("cameras"), dict):
-        doc = doc["cameras"]
-    if not isinstance(doc, dict) or not doc:
-        raise InputError(f"--cameras {p}: expected an object of named cameras")
-    cams = {}
-    for name, c in doc.items():
+    """The --cameras file (eonav.pairfile.load_cameras); camera names must be plain key chunks."""
+    cams = pairfile.load_cameras(path, "--cameras")
+    for name in cams:
         K.check_chunk(name, "camera id")
-        cams[name] = parse_camera(name, c)
     return cams
 
 

@@ -1,6 +1,5 @@
 """eonav.mavlink_nav: decoding, validation, reboots, clock offsets, tlogs (real bytes through pymavlink)."""
 import math
-import shutil
 import threading
 import time
 from collections import Counter

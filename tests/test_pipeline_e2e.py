@@ -4,7 +4,6 @@ obstacles) fed by ``eonav.sim.record.record_flight``; the demo's monitor scores 
 recording's ground truth (range per pixel, true box positions)."""
 import math
 
-import pytest
 
 from eonav.demo import format_summary, run_demo
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from .. import InputError
 from ..camera import Camera, VehicleState, View
-from .render import Render, render
+from .render import render
 from .scene import Box, Runway, Scene
 
 FT_M = 0.3048
