@@ -290,25 +290,20 @@ def _yaw_deg(q_wxyz) -> float:
 
 
 def range_picture(msg: dict, truth_range=None, max_range_m: float = 150.0) -> np.ndarray:
-    """BGR picture: estimated range (inverse-range colour map, black = no estimate), truth beside it."""
+    """BGR picture: estimated range (VALID pixels; black = no estimate) and the truth beside it, one fixed
+    colour scale from 5 m (red) to ``max_range_m`` (blue)."""
     import cv2
     from .rangemap import VALID
-
-    def colour(r, valid):
-        inv = np.where(valid, np.clip(1.0 / np.maximum(r, 1e-3), 0, 1.0 / 5.0), 0.0)
-        v = np.clip(np.sqrt(inv * 5.0) * 255, 0, 255).astype(np.uint8)         # near = hot
-        img = cv2.applyColorMap(v, cv2.COLORMAP_TURBO)
-        img[~valid] = 0
-        return img
+    from .viz import inverse_range_colours
 
     r = np.asarray(msg["range_m"], np.float32)
     valid = np.isfinite(r) & (r > 0) & (r < max_range_m)
     if msg.get("flags") is not None:
         valid &= (msg["flags"] & VALID) != 0
-    tiles = [colour(r, valid)]
+    tiles = [inverse_range_colours(r, valid, 5.0, max_range_m)]
     if truth_range is not None:
         g = np.asarray(truth_range, np.float32)
-        tiles.append(colour(g, np.isfinite(g) & (g < max_range_m)))
+        tiles.append(inverse_range_colours(g, np.isfinite(g) & (g < max_range_m), 5.0, max_range_m))
     pic = np.concatenate([np.pad(t, ((0, 0), (0, 4), (0, 0))) for t in tiles], axis=1)
     scale = max(1, 512 // pic.shape[0])
     return cv2.resize(pic, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
