@@ -57,7 +57,8 @@ N_SECTORS = 72
 @dataclass(frozen=True)
 class ObstacleConfig:
     min_confidence: float = 0.0        # pixels with confidence below this are ignored
-    max_rel_std: float = 0.25          # ... and those whose 1-sigma range error exceeds this fraction of range
+    max_rel_std: float = 0.34          # ... and those whose 1-sigma range error exceeds this fraction of range
+                                       # (the dense method's own VALID threshold; its sigma is calibrated on truth)
     min_distance_m: float = 0.5        # OBSTACLE_DISTANCE min_distance
     max_distance_m: float = 150.0      # OBSTACLE_DISTANCE max_distance; farther points are "clear" evidence
     ground_down_m: float | None = None  # NED down of the ground; None: estimate from the points (see module doc)
