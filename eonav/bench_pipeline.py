@@ -151,12 +151,10 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
 def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense", cv_threads: int = 1,
               stream=None, scale: float = 1.0) -> list:
     """Run each (fps, width, height) case; print one line each and return the result dicts."""
-    import zenoh
     from .bus.testing import router_process
     stream = stream or sys.stdout
-    shm_cfg = json.loads(zenoh.Config().get_json("transport/shared_memory"))
-    print(f"zenoh {zenoh.__version__ if hasattr(zenoh, '__version__') else ''} shared memory config (default): "
-          f"{json.dumps(shm_cfg)}", file=stream)
+    print("services: eonav session defaults (zenoh shared memory off, see eonav.bus.session); the bench's own "
+          "subscriber is a client of the embedded router", file=stream)
     out = []
     rendered = {}
     with router_process() as ep:
@@ -244,7 +242,9 @@ def add_arguments(p) -> None:
     p.add_argument("--case", action="append", default=[], metavar="FPS@WxH",
                    help="a case, e.g. 30@640x480 (repeatable; default: 30@640x480 30@512x512 15@640x480 15@512x512)")
     p.add_argument("--seconds", type=float, default=8.0, help="measured seconds per case (after 2 s warm-up)")
-    p.add_argument("--method", default="dense", help="locator method")
+    p.add_argument("--methods", default="dense,dis",
+                   help="locator methods, each over every case in the same run (default dense,dis: DIS is the "
+                        "OpenCV optical-flow baseline)")
     p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
     p.add_argument("--scale", type=float, default=1.0, help="locator --scale (0.5: half-resolution locate)")
     p.add_argument("--accuracy", action="store_true",
@@ -265,13 +265,15 @@ def parse_case(s: str):
 
 def run(args) -> int:
     cases = [parse_case(c) for c in args.case] or list(DEFAULT_CASES)
+    methods = [m for m in args.methods.split(",") if m]
     if args.accuracy:
         sizes = list(dict.fromkeys((w, h) for _, w, h in cases))
-        res = [r for size in sizes for r in accuracy(size, scales=sorted({1.0, args.scale, 0.5}, reverse=True),
-                                                      method=args.method)]
+        res = [r for m in methods for size in sizes
+               for r in accuracy(size, scales=sorted({1.0, args.scale, 0.5}, reverse=True), method=m)]
     else:
-        res = run_bench(cases, seconds=args.seconds, method=args.method, cv_threads=args.cv_threads,
-                        scale=args.scale)
+        # every method in the same run: the OpenCV DIS baseline ("dis") beside the default ("dense")
+        res = [r for m in methods for r in run_bench(cases, seconds=args.seconds, method=m,
+                                                      cv_threads=args.cv_threads, scale=args.scale)]
     if args.json:
         print(json.dumps(res))
     return 0
