@@ -192,21 +192,21 @@ def test_locator_and_obstacles_services(flight_frames):
         rx.close()
 
 
+def run_to_exit(argv, timeout=30):
+    """Start a service, wait for it to exit by itself; returns (exit code, stderr)."""
+    p = start_service(argv)
+    try:
+        p.wait(timeout)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    return p.returncode, p.communicate()[1]
+
+
 def test_locator_rejects_bad_configuration():
     with router_process() as ep:
-        p = start_service(["-m", "services.locator", "--vehicle", VEHICLE, "--connect", ep, "--method", "nonsense"])
-        try:
-            p.wait(30)
-        finally:
-            if p.poll() is None:
-                p.kill()
-        err = p.communicate()[1]
-        assert p.returncode == 2 and "unknown method 'nonsense'" in err
-        p = start_service(["-m", "services.obstacles", "--vehicle", VEHICLE, "--connect", ep, "--ground-down", "x"])
-        try:
-            p.wait(30)
-        finally:
-            if p.poll() is None:
-                p.kill()
-        err = p.communicate()[1]
-        assert p.returncode == 2 and "--ground-down 'x'" in err
+        code, err = run_to_exit(["-m", "services.locator", "--vehicle", VEHICLE, "--connect", ep, "--method", "nonsense"])
+        assert code == 2 and "unknown method 'nonsense'" in err
+        code, err = run_to_exit(["-m", "services.obstacles", "--vehicle", VEHICLE, "--connect", ep,
+                                 "--ground-down", "x"])
+        assert code == 2 and "--ground-down 'x'" in err
