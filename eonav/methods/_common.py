@@ -108,36 +108,41 @@ def no_motion_result(shape, method: str, reason: str) -> RangeResult:
 def classify_into(rho, std, flags, rng, conf, *, rho_far: float, max_rel_std: float):
     """The per-pixel rules of ``classify`` in place, on any block of pixels (whole image or a strip):
     ``flags`` (uint8, with the method's bad bits already set) gains ILL_CONDITIONED / AT_INFINITY / VALID,
-    ``rng`` and ``conf`` (float32, same shape) are written. Returns (n_valid, n_at_infinity)."""
+    ``rng`` and ``conf`` (float32, same shape) are written. Returns (n_valid, n_at_infinity).
+    Full-array arithmetic only (no boolean indexing, masked ufuncs or masked copies: ~5x faster)."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        finite = np.isfinite(rho)
-        finite &= np.isfinite(std)
         two = std * F32(2.0)
-        near0 = rho < two
-        near0 &= finite
         inf_ok = two < F32(rho_far)
-        inf_ok &= near0
+        near0 = rho < two
+        inf_ok &= near0                                   # rho within 2 sigma of 0, and sigma tight
         rel = np.divide(std, rho, out=two)
-        ill = rel <= F32(max_rel_std)                     # ill: finite & ~near0 & ~(rel <= max_rel_std)
-        np.logical_not(ill, out=ill)
-        ill &= finite
-        ill &= ~near0
-        ill |= near0 & ~inf_ok
-        ill |= ~finite
-        flags |= ill.view(np.uint8) * np.uint8(ILL_CONDITIONED)
+        good = rel <= F32(max_rel_std)                    # relative std small enough (rho > 0 not near 0)
+        good &= ~near0
+        good |= inf_ok
+        good &= np.isfinite(rho)
+        good &= np.isfinite(std)                          # ILL_CONDITIONED = not good (NaN/inf included)
+        flags |= np.subtract(np.uint8(ILL_CONDITIONED), good.view(np.uint8) * np.uint8(ILL_CONDITIONED))
         ok = (flags & np.uint8(OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION)) == 0
         at_inf = ok & inf_ok
-        val = ok
-        val &= ~inf_ok
+        val = inf_ok
+        np.logical_not(inf_ok, out=val)
+        val &= ok
         flags |= at_inf.view(np.uint8) * np.uint8(AT_INFINITY | VALID)
         flags |= val.view(np.uint8) * np.uint8(VALID)
-        rng.fill(np.nan)
-        np.divide(F32(1.0), rho, out=rng, where=val)
-        rng[at_inf] = np.inf
-        conf.fill(0)
-        np.divide(rho, std, out=conf, where=val)
-        np.divide(F32(rho_far), std, out=conf, where=at_inf)
-    return int(np.count_nonzero(val)), int(np.count_nonzero(at_inf))
+        # branch-free outputs (masked copies cost ~20x an arithmetic pass on fragmented masks):
+        # range = ok / |rho * val|: 1/rho where VALID, +inf at infinity (1/0), NaN elsewhere (0/0);
+        # confidence = max((rho * val + rho_far * at_inf) / std, 0): 0 elsewhere (0/std, or NaN -> 0)
+        valf = val.astype(F32)
+        inff = at_inf.astype(F32)
+        den = np.multiply(rho, valf)
+        np.abs(den, out=den)
+        np.divide(np.add(valf, inff), den, out=rng)
+        num = np.multiply(rho, valf, out=valf)
+        num += np.multiply(inff, F32(rho_far), out=inff)
+        np.divide(num, std, out=conf)
+        np.fmax(conf, F32(0), out=conf)
+        nv, ni = int(np.count_nonzero(val)), int(np.count_nonzero(at_inf))
+    return nv, ni
 
 
 def classify(rho, std, *, bad_flags, method: str, rho_far: float, max_rel_std: float, info: dict,
