@@ -24,9 +24,10 @@ gradient perpendicular to the epipolar direction, relative std above ``max_rel_s
 of 0 with a tight sigma: range +inf).
 
 All per-pixel work is float32 numpy / OpenCV: no per-pixel Python. The Gauss-Newton steps, the flags and
-the classification run on strips of rows (``strip_px`` pixels each, plus a half-window halo so the box sums
-are exactly those of the whole image): the ~30 temporaries of a strip stay in the CPU cache and are reused
-by the allocator instead of being fresh (page-faulting) full-size arrays.
+the classification run on strips of rows (``strip_px`` pixels each including a half-window halo, so the
+box sums are exactly those of the whole image): the ~30 temporaries of a strip stay in the CPU cache and are
+reused by the allocator instead of being fresh (page-faulting) full-size arrays; the large per-level
+buffers (warp source, gradients, cost volume) are per-thread work buffers reused from call to call (_ws).
 """
 from __future__ import annotations
 
@@ -404,11 +405,16 @@ class _Level:
         sr, sc = slice(0, self.h, step), slice(0, self.w, step)
         rs = np.ascontiguousarray(rho[sr, sc])
         B0, Q1, Q2 = self.B0, self.Q1, self.Q2
-        sub = lambda c: (np.ascontiguousarray(c[0][:, sc]), c[1][sr])   # row part, column part
-        A0, P1, P2 = sub(self.A0), sub(self.P1), sub(self.P2)
-        inv = F32(1.0) / (rs * B0 + np.add(*A0))
-        ub = (rs * Q1 + np.add(*P1)) * inv
-        vb = (rs * Q2 + np.add(*P2)) * inv
+        sub = lambda c: np.matmul(c[2][sr], np.ascontiguousarray(c[3][:, sc]))   # the map on the grid (exact)
+        inv = rs * B0
+        inv += sub(self.A0)
+        np.divide(F32(1.0), inv, out=inv)
+        ub = rs * Q1
+        ub += sub(self.P1)
+        ub *= inv
+        vb = rs * Q2
+        vb += sub(self.P2)
+        vb *= inv
         wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         r = wv[..., 0] - self.ia[sr, sc]
         inview = (wv[..., 3] > F32(0.999)) & (inv > 0)
@@ -455,7 +461,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     std_scale: calibration factor of the reported sigma: 1.35 = the measured robust spread of
     (rho - rho_true) / sigma on the sim presets (1.1-1.5; the window's samples are correlated by the
     pre-smoothing and the interpolation). max_rel_std is 0.25 x 1.35 so that VALID is unchanged by it.
-    strip_px: pixels per strip of rows of the Gauss-Newton steps (<= 0: whole image at once; same result).
+    strip_px: pixels per strip of rows of the Gauss-Newton steps, halo included; strips balanced in height
+    (<= 0: whole image at once; same result). 32768 keeps a strip's float32 temporaries under the allocator's
+    128 KiB mmap threshold and in L2.
     sgm: semi-global aggregation (4 scanline paths) of the coarse ZNCC cost volume before winner-take-all;
     sgm_p1 / sgm_p2: penalties (cost units, 1 - ZNCC) of a one-hypothesis / larger jump between neighbours,
     sgm_tau: grey levels over which the jump penalty halves across an intensity edge. Off by default:
@@ -524,6 +532,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         # strip arrays incl. the halo within strip_px: at 32768 px (128 KiB of float32, the allocator's mmap
         # threshold) the temporaries are recycled by malloc instead of page-faulting as fresh mappings
         step = max(8, strip_px // w - 2 * (window // 2)) if strip_px > 0 else h
+        step = -(-h // -(-h // step))      # balanced: no thin last strip (each strip costs ~50 calls)
         for it in range(n_it):
             last = lev == 0 and it == n_it - 1
             if it == 0 or last:
