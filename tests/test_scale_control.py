@@ -1,0 +1,172 @@
+"""The locator's adaptive scale controller (eonav.scale_control), edge case by edge case."""
+import pytest
+
+from eonav import InputError
+from eonav.scale_control import ScaleController, ladder, parse_scale
+
+FPS15_US = 66_667
+
+
+def feed_frames(c, n, interval_us=FPS15_US, seq0=0, stamp0=1_000_000):
+    for i in range(n):
+        c.observe_frame(seq0 + i, stamp0 + i * interval_us)
+
+
+def run(c, costs_by_scale, n):
+    """n pairs, each ranged at the controller's current scale with cost ``costs_by_scale[scale]``; the changes."""
+    out = []
+    for _ in range(n):
+        s = c.scale
+        ch = c.observe_compute(s, costs_by_scale[s])
+        if ch is not None:
+            out.append(ch)
+    return out
+
+
+def test_parse_scale_and_ladder():
+    assert parse_scale("auto") is None and parse_scale("AUTO") is None and parse_scale(None) is None
+    assert parse_scale("0.5") == 0.5 and parse_scale(1) == 1.0
+    for bad in ("0", "1.5", "x", "nan", "-1"):
+        with pytest.raises(InputError):
+            parse_scale(bad)
+    assert ladder(0.5) == (1.0, 0.5)
+    assert ladder(1.0) == (1.0,)
+    assert ladder(0.25) == (1.0, 0.5, 0.25)
+    assert ladder(0.3) == (1.0, 0.5, 0.3)
+    with pytest.raises(InputError):
+        ladder(0)
+
+
+def test_budget_from_frame_interval():
+    c = ScaleController()
+    assert c.budget_s() == pytest.approx(0.2)                  # unknown interval: the upper bound
+    feed_frames(c, 10)                                         # 15 fps
+    assert c.budget_s() == pytest.approx(0.6 / 15, rel=1e-3)
+    c2 = ScaleController()
+    c2.observe_frame(0, 0)
+    c2.observe_frame(2, 2 * FPS15_US)                          # a seq gap (ring skipped one): still 15 fps
+    c2.observe_frame(3, 3 * FPS15_US + 20_000)                 # one late frame does not move the median much
+    c2.observe_frame(4, 4 * FPS15_US)
+    assert c2.budget_s() == pytest.approx(0.04, rel=1e-3)
+    fast, slow = ScaleController(), ScaleController()
+    feed_frames(fast, 10, interval_us=5_000)                   # 200 fps: clamped to 20 ms
+    feed_frames(slow, 10, interval_us=2_000_000)               # 0.5 fps: clamped to 200 ms
+    assert fast.budget_s() == pytest.approx(0.02) and slow.budget_s() == pytest.approx(0.2)
+    assert ScaleController(budget_s=0.03).budget_s() == 0.03   # --budget-ms wins over the interval
+
+
+def test_steps_down_when_over_budget():
+    c = ScaleController()
+    feed_frames(c, 10)                                         # budget 40 ms
+    changes = run(c, {1.0: 0.044, 0.5: 0.012}, 2)
+    assert not changes and c.scale == 1.0                      # fewer than min_samples pairs: no verdict yet
+    changes = run(c, {1.0: 0.044, 0.5: 0.012}, 1)
+    assert [(x.old, x.new, x.direction) for x in changes] == [(1.0, 0.5, "down")]
+    assert "over the budget" in changes[0].reason
+    # at 0.5: learnt ratio 44/12 ~ 3.7: predicted full 44 ms > 0.7 x 40 ms: it stays down
+    assert not run(c, {1.0: 0.044, 0.5: 0.012}, 50) and c.scale == 0.5
+
+
+def test_single_slow_pair_does_not_step_down():
+    c = ScaleController()
+    feed_frames(c, 10)
+    costs = iter([0.030, 0.200, 0.030, 0.031, 0.029, 0.030])  # one outlier under the median
+    for x in costs:
+        assert c.observe_compute(c.scale, x) is None
+    assert c.scale == 1.0
+
+
+def test_steps_back_up_with_headroom_after_n_pairs():
+    c = ScaleController(up_after=5)
+    feed_frames(c, 10)
+    run(c, {1.0: 0.060, 0.5: 0.015}, 3)                        # contention: down
+    assert c.scale == 0.5
+    run(c, {1.0: 0.060, 0.5: 0.015}, 10)
+    assert c.scale == 0.5
+    # the load goes away: 0.5 now costs 4 ms, full predicted 4 x 60/15 = 16 ms < 28 ms
+    changes = run(c, {1.0: 0.016, 0.5: 0.004}, 4)
+    assert not changes and c.scale == 0.5                      # the window median needs to fall, then N pairs
+    changes = run(c, {1.0: 0.016, 0.5: 0.004}, 10)
+    assert [(x.old, x.new, x.direction) for x in changes] == [(0.5, 1.0, "up")]
+    assert "below" in changes[0].reason
+    assert not run(c, {1.0: 0.016, 0.5: 0.004}, 50) and c.scale == 1.0
+
+
+def test_up_count_restarts_on_a_pair_without_headroom():
+    c = ScaleController(up_after=3, window=1, min_samples=1)
+    feed_frames(c, 10)                                         # budget 40 ms, up below 28 ms predicted full
+    run(c, {1.0: 0.050, 0.5: 0.0125}, 1)
+    assert c.scale == 0.5
+    assert c.observe_compute(0.5, 0.0125) is None              # learnt ratio 50 / 12.5 = 4 from the first pair at 0.5
+    assert c.ratio(1.0, 0.5) == pytest.approx(4.0)
+    for x in (0.005, 0.005, 0.009, 0.005, 0.005):              # 20, 20, 36 (no headroom), 20, 20 ms predicted
+        assert c.observe_compute(0.5, x) is None
+    assert c.observe_compute(0.5, 0.005) is not None and c.scale == 1.0
+
+
+def test_no_oscillation_at_the_boundary():
+    # full costs just under the budget, half just over a quarter of it: neither step qualifies
+    c = ScaleController()
+    feed_frames(c, 10)
+    assert not run(c, {1.0: 0.039, 0.5: 0.0098}, 200) and c.scale == 1.0
+    # full just over the budget: one step down and no way back (predicted 41 ms > 28 ms)
+    c = ScaleController()
+    feed_frames(c, 10)
+    changes = run(c, {1.0: 0.041, 0.5: 0.0103}, 200)
+    assert [x.new for x in changes] == [0.5]
+    # the area prediction is optimistic (true ratio 3 but measured 0.5 cost when entering would say x4): the
+    # learnt ratio keeps it from bouncing. Full 45 ms, half 15 ms under load; then half 8 ms: predicted 24 ms full,
+    # true 24 ms: up once, stays up
+    c = ScaleController()
+    feed_frames(c, 10)
+    changes = run(c, {1.0: 0.045, 0.5: 0.015}, 30) + run(c, {1.0: 0.024, 0.5: 0.008}, 100)
+    assert [x.new for x in changes] == [0.5, 1.0]
+    # a load that alternates pair by pair around the budget: the median and the N-pair rule keep it steady
+    c = ScaleController()
+    feed_frames(c, 10)
+    n_changes = 0
+    for i in range(300):
+        s = c.scale
+        cost = (0.036 if i % 2 else 0.046) * (s * s)
+        n_changes += c.observe_compute(s, cost) is not None
+    assert n_changes <= 1
+
+
+def test_respects_min_scale():
+    c = ScaleController(min_scale=0.5)
+    feed_frames(c, 10)
+    run(c, {1.0: 0.5, 0.5: 0.2}, 100)                          # hopeless even at 0.5: stays at the lowest rung
+    assert c.scale == 0.5
+    c = ScaleController(min_scale=0.25)
+    feed_frames(c, 10)
+    changes = run(c, {1.0: 0.5, 0.5: 0.2, 0.25: 0.05}, 100)
+    assert [x.new for x in changes] == [0.5, 0.25] and c.scale == 0.25
+    c = ScaleController(min_scale=1.0)
+    feed_frames(c, 10)
+    assert not run(c, {1.0: 0.5}, 50) and c.scale == 1.0
+
+
+def test_fixed_scale_never_changes():
+    for fixed in (1.0, 0.5):
+        c = ScaleController(fixed=fixed)
+        feed_frames(c, 10)
+        assert c.ladder == (fixed,)
+        assert not run(c, {fixed: 0.5}, 50) and c.scale == fixed
+        assert not run(c, {fixed: 0.0001}, 50) and c.scale == fixed
+
+
+def test_pairs_at_another_scale_do_not_decide():
+    c = ScaleController()
+    feed_frames(c, 10)
+    for _ in range(10):                                        # e.g. a pair computed before a change was applied
+        assert c.observe_compute(0.5, 1.0) is None
+    assert c.scale == 1.0
+
+
+def test_bad_configuration():
+    with pytest.raises(InputError):
+        ScaleController(budget_s=0.0)
+    with pytest.raises(InputError):
+        ScaleController(min_scale=2.0)
+    with pytest.raises(InputError):
+        ScaleController(fixed="x")
