@@ -17,13 +17,21 @@ Message: ``range_m`` float32, ``confidence`` float16, ``flags`` uint8, ``inv_ran
 f16``, the default: the obstacle service gates and sizes ground clearance with it), float32 (``f32``) or not sent
 (``off``); 7-9 bytes per pixel instead of 13.
 
-``--scale S`` (default 1): locate on the grey images resized by S (cv2.INTER_AREA; the camera's intrinsics scaled
+Scale: ``--scale auto`` (the default) chooses, per camera and per pair, the largest rung of the ladder 1, 0.5, ...
+``--min-scale`` whose compute time fits a budget (``--budget-ms``, default 60 % of the camera's measured frame
+interval, clamped to [20, 200] ms): ``eonav.scale_control.ScaleController`` steps down when the recent median compute
+time exceeds the budget and back up only when the predicted cost one rung up stays below 70 % of it for 5 pairs in a
+row. Both frames of a pair use the pair's scale: the history keeps the full-resolution grey images and each pair
+resizes on use (kept in the frame's payload, so a partner is resized once per scale). Each change is logged with its
+reason and counted (``scale_changes``, ``scale_changes.up|down``); the counter ``scale_pct.<camera>`` is the camera's
+current scale in percent (a gauge kept by deltas) and ``pairs_computed.scale_<pct>`` counts the pairs per scale.
+``--scale S`` (a number) always locates at S: on the grey images resized by S (cv2.INTER_AREA; the camera's intrinsics scaled
 with pixel centres kept: fx' = S fx, cx' = S (cx + 0.5) - 0.5) and bring the maps back to the frame's grid by
 nearest neighbour (pixel u takes the scaled pixel floor((u + 0.5) S)); the message says ``scale``. The pair policy
 still judges parallax on the full-resolution camera. 0.5 costs roughly a quarter of the locate time; what it costs in
 accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range error and coverage vs truth).
 
-Health: counters ``pairs_computed``, ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
+Health: counters ``pairs_computed``, ``scale_changes``, ``scale_pct.<camera>`` (above), ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
 ``locate_errors``, ``frames_skipped``, ``frames_superseded``; latencies ``capture_to_published`` (frame capture stamp
 -> range map put, the pipeline's figure), ``capture_to_received``, ``compute`` (the locate call) and ``overhead``
 (everything else this service does per ranged frame: decode, camera/pose, grey image, scaling, encode, put).
@@ -53,9 +61,16 @@ def add_arguments(p):
              help="only this camera id (default: every camera of the vehicle)")
     add_flag(p, "--ring", env="EONAV_LOCATOR_RING", default=2, type=int,
              help="RingChannel depth of the posed-frame subscriber (newest N kept)")
-    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default=1.0, type=float, metavar="S",
-             help="locate on images resized by S (0 < S <= 1; 0.5 = half resolution, ~4x less work) and upsample "
-                  "the range map to the frame's grid (nearest)")
+    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|S",
+             help="auto: per camera and pair, the largest scale of the ladder (1, 0.5, ... --min-scale) whose "
+                  "compute time fits --budget-ms (eonav.scale_control); a number S in (0, 1]: always locate on images "
+                  "resized by S (0.5 = half resolution, ~4x less work). The range map is upsampled to the frame's "
+                  "grid (nearest)")
+    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="S",
+             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (S itself is the last rung)")
+    add_flag(p, "--budget-ms", env="EONAV_LOCATOR_BUDGET_MS", default=None, type=float, metavar="MS",
+             help="--scale auto: compute-time budget per pair; default 60 %% of the camera's measured frame interval, "
+                  "clamped to [20, 200] ms")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.pair_policy)")
@@ -135,11 +150,25 @@ def upsample_index(full: int, small: int) -> np.ndarray:
 
 
 class CameraCache:
-    """``camera_from_msg`` once per distinct camera map (the sync service sends the same one with every frame)."""
+    """``camera_from_msg`` once per distinct camera map (the sync service sends the same one with every frame), and
+    the camera scaled for locate at ``scale`` (the default of ``get``) or any other scale (``scaled``)."""
 
     def __init__(self, scale: float = 1.0):
         self.scale = scale
         self._c: dict = {}
+        self._scaled: dict = {}
+
+    def scaled(self, cam, scale: float):
+        """``cam`` (a camera this cache returned) for images resized by ``scale``; ``cam`` itself at 1."""
+        if scale == 1.0:
+            return cam
+        k = (id(cam), scale)
+        hit = self._scaled.get(k)
+        if hit is None or hit[0] is not cam:
+            if len(self._scaled) >= 64:
+                self._scaled.clear()
+            hit = self._scaled[k] = (cam, scaled_camera(cam, scale))
+        return hit[1]
 
     @staticmethod
     def _key(d: dict):
@@ -156,7 +185,7 @@ class CameraCache:
         hit = self._c.get(key) if key is not None else None
         if hit is None:
             cam = camera_from_msg(d)
-            hit = (cam, cam if self.scale == 1.0 else scaled_camera(cam, self.scale))
+            hit = (cam, self.scaled(cam, self.scale))
             if key is not None:
                 if len(self._c) >= 32:
                     self._c.clear()
@@ -167,7 +196,8 @@ class CameraCache:
 def frame_info(msg: dict, cameras: CameraCache | None = None):
     """Schema posed_frame -> PosedFrameInfo (camera, pose, grey image as payload). Raises InputError.
 
-    The payload carries the grey image at the locate scale, the camera for locate, the quaternion and the camera map."""
+    The payload carries the grey image at the cache's scale and the camera for it, the quaternion, the camera map and
+    ``scaled``: the grey images at other scales made so far (``pair_views``)."""
     from eonav.camera import VehicleState
     from eonav.pair_policy import PosedFrameInfo
     cameras = cameras or CameraCache()
@@ -184,7 +214,23 @@ def frame_info(msg: dict, cameras: CameraCache | None = None):
         import cv2
         img = cv2.resize(img, (loc_cam.width, loc_cam.height), interpolation=cv2.INTER_AREA)
     return PosedFrameInfo(msg["camera_id"], int(msg["seq"]), int(msg["stamp_us"]), cam, state,
-                          payload={"image": img, "camera": loc_cam, "q_wxyz": q, "camera_msg": msg["camera"]})
+                          payload={"image": img, "camera": loc_cam, "q_wxyz": q, "camera_msg": msg["camera"],
+                                   "scaled": {}})
+
+
+def scaled_view(f, scale: float, cameras: CameraCache):
+    """The View of frame ``f`` (from ``frame_info`` with a scale-1 cache: full-resolution grey image) at ``scale``. The
+    resized image is kept in the frame's payload, so a frame that is the partner of the next pair is resized once."""
+    from eonav.camera import View
+    p = f.payload
+    if scale == 1.0:
+        return View(p["camera"], f.state, p["image"])
+    img = p["scaled"].get(scale)
+    cam = cameras.scaled(f.camera, scale)
+    if img is None:
+        import cv2
+        img = p["scaled"][scale] = cv2.resize(p["image"], (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+    return View(cam, f.state, img)
 
 
 def to_full_grid(a, cam):
@@ -205,12 +251,26 @@ def body(node: Node, args) -> None:
     policy = PairPolicy(policy_config(args))
     if args.ring < 1:
         raise InputError(f"--ring must be >= 1, got {args.ring}")
-    if not 0 < args.scale <= 1:
-        raise InputError(f"--scale must be in (0, 1], got {args.scale}")
+    new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
+    new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
     key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
     sub = node.subscribe(key, ring=args.ring)
-    node.worker(locate_loop, node, sub, policy, args.method, params, args.scale, args.range_std, name="locate")
-    node.log.info("locator: method %s, scale %g, %s, policy %s", args.method, args.scale, key, policy.config)
+    node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, name="locate")
+    node.log.info("locator: method %s, scale %s (ladder %s, budget %s), %s, policy %s", args.method, args.scale,
+                  new_controller().ladder, "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms", key,
+                  policy.config)
+
+
+def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
+    """A factory of per-camera ``ScaleController``s for ``--scale`` (``auto`` or a number), ``--min-scale`` and
+    ``--budget-ms``. Raises InputError on a bad value."""
+    from eonav.scale_control import ScaleController, ladder, parse_scale
+    fixed = parse_scale(scale)
+    ladder(min_scale)
+    budget_s = None if budget_ms is None else budget_ms * 1e-3
+    if budget_s is not None and not budget_s > 0:
+        raise InputError(f"--budget-ms must be > 0, got {budget_ms!r}")
+    return lambda: ScaleController(fixed=fixed, min_scale=min_scale, budget_s=budget_s)
 
 
 def drain_latest(first, sub) -> list:
@@ -228,13 +288,15 @@ def drain_latest(first, sub) -> list:
     return [(s, i in newest) for i, s in enumerate(batch)]
 
 
-def locate_loop(node: Node, sub, policy, method: str, params: dict, scale: float = 1.0,
+def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controller=None,
                 range_std: str = "f16") -> None:
-    from eonav.camera import View
+    """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1)."""
     from eonav.locate import locate
+    new_controller = new_controller or scale_controllers(1.0)
     pubs: dict = {}
     last_seq: dict = {}
-    cameras = CameraCache(scale)
+    scalers: dict = {}
+    cameras = CameraCache(1.0)                  # the history keeps full-resolution grey images; pairs resize on use
     errors_in_row = 0
     for first in sub:
         for sample, newest in drain_latest(first, sub):
@@ -255,6 +317,11 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, scale: float
             if prev is not None and f.seq > prev + 1:
                 node.count("frames_skipped", f.seq - prev - 1)        # ring channel dropped them while we computed
             last_seq[f.camera_id] = f.seq
+            sc = scalers.get(f.camera_id)
+            if sc is None:
+                sc = scalers[f.camera_id] = new_controller()
+                node.count(f"scale_pct.{f.camera_id}", round(100 * sc.scale))     # a gauge: changes add deltas
+            sc.observe_frame(f.seq, f.stamp_us)
             if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map: a put right
                 # after the declaration can miss subscribers the route to which is not set up yet (ECOSYSTEM 1.5)
                 pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
@@ -270,18 +337,28 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, scale: float
                 node.log_limited(f"skip:{d.reason}", logging.INFO, "frame %s/%d: no pair (%s): %s",
                                  f.camera_id, f.seq, d.reason, d.detail)
                 continue
-            errors_in_row = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row, t_rx0,
-                                       View, locate)
+            scale = sc.scale                    # one scale for both frames of the pair
+            errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
+                                                  t_rx0, cameras, locate)
+            if compute_s is not None:
+                change = sc.observe_compute(scale, compute_s)
+                if change is not None:
+                    node.count("scale_changes")
+                    node.count(f"scale_changes.{change.direction}")
+                    node.count(f"scale_pct.{f.camera_id}", round(100 * change.new) - round(100 * change.old))
+                    node.log.info("camera %s: locate scale %g -> %g: %s", f.camera_id, change.old, change.new,
+                                  change.reason)
 
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
-               errors_in_row: int, t_rx0: float, View, locate) -> int:
-    """Locate one pair and publish its range map; returns the count of locate errors in a row."""
+               errors_in_row: int, t_rx0: float, cameras: CameraCache, locate) -> tuple:
+    """Locate one pair at ``scale`` (both frames) and publish its range map; returns (the count of locate errors in a
+    row, the locate call's seconds or None when it failed)."""
     a, b = d.a, d.b
+    va, vb = scaled_view(a, scale, cameras), scaled_view(b, scale, cameras)
     t0 = time.perf_counter()
     try:
-        res = locate(View(a.payload["camera"], a.state, a.payload["image"]),
-                     View(b.payload["camera"], b.state, b.payload["image"]), method=method, **params)
+        res = locate(va, vb, method=method, **params)
     except Exception as e:  # one bad pair must not stop the locator; a persistent failure degrades it
         node.count("locate_errors")
         errors_in_row += 1
@@ -289,7 +366,7 @@ def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: floa
                          a.camera_id, a.seq, b.camera_id, b.seq, type(e).__name__, e)
         if errors_in_row >= 3:
             node.set_state("degraded", f"locate failing: {type(e).__name__}: {e}")
-        return errors_in_row
+        return errors_in_row, None
     t1 = time.perf_counter()
     compute_s = t1 - t0
     if node.state != "ok":
@@ -318,7 +395,8 @@ def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: floa
     valid = np.isfinite(range_m)
     node.count("range_pixels_valid", int(np.count_nonzero(valid)))
     node.count("range_pixels_total", int(valid.size))
-    return 0
+    node.count(f"pairs_computed.scale_{round(100 * scale)}")
+    return 0, compute_s
 
 
 if __name__ == "__main__":

@@ -108,6 +108,9 @@ def test_locator_and_obstacles_services(flight_frames):
                 assert str(smp.key_expr) == K.range_map(VEHICLE, "nose")
                 stamp, view, truth = sent[m["seq"]]
                 assert m["stamp_us"] == stamp and m["other_seq"] == m["seq"] - 1 and m["method"] == "dense"
+                # --scale auto (default): 256 x 256 at <= 5 Hz fits the budget at full scale on any machine we know;
+                # the figures below hold at 0.5 too, so the scale is only checked to be a rung of the ladder
+                assert m["scale"] in (1.0, 0.5) and m["range_m"].shape == truth.range_m.shape
                 assert m["baseline_m"] == pytest.approx(np.linalg.norm(
                     view.state.position_ned_m - sent[m["other_seq"]][1].state.position_ned_m), rel=0.05)
                 ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(truth.range_m)
@@ -165,6 +168,8 @@ def test_locator_and_obstacles_services(flight_frames):
             c = loc["counters"]
             assert c["pairs_computed"] == N_FRAMES - 1 and c["decode_errors"] == 1 and c["bad_frames"] == 1
             assert c["skipped.first_frame"] == 1 and c.get("frames_superseded", 0) == 0
+            assert c["scale_pct.nose"] in (100, 50)                    # the camera's current scale (gauge)
+            assert c["scale_pct.nose"] == 100 - 50 * c.get("scale_changes.down", 0) + 50 * c.get("scale_changes.up", 0)
             assert loc["latency_ms"]["capture_to_published"]["n"] == N_FRAMES - 1
             assert obs["counters"]["maps_processed"] == N_FRAMES - 1
             assert obs["counters"]["mavlink.od_sent_fresh"] >= 1
@@ -207,6 +212,28 @@ def test_locator_rejects_bad_configuration():
     with router_process() as ep:
         code, err = run_to_exit(["-m", "services.locator", "--vehicle", VEHICLE, "--connect", ep, "--method", "nonsense"])
         assert code == 2 and "unknown method 'nonsense'" in err
+        for bad, text in ((["--scale", "fast"], "--scale must be 'auto' or a number"),
+                          (["--scale", "1.5"], "--scale must be 'auto' or a number"),
+                          (["--min-scale", "0"], "--min-scale must be in (0, 1]"),
+                          (["--budget-ms", "-5"], "--budget-ms must be > 0")):
+            code, err = run_to_exit(["-m", "services.locator", "--vehicle", VEHICLE, "--connect", ep, *bad])
+            assert code == 2 and text in err, (bad, code, err[-2000:])
         code, err = run_to_exit(["-m", "services.obstacles", "--vehicle", VEHICLE, "--connect", ep,
                                  "--ground-down", "x"])
         assert code == 2 and "--ground-down 'x'" in err
+
+def test_scaled_view_matches_frame_info_at_that_scale(flight_frames):
+    """The history keeps full-resolution frames; a pair at 0.5 resizes them on use, exactly as a fixed --scale 0.5
+    frame_info does, and the resized image is made once per frame and scale."""
+    from services.locator import CameraCache, frame_info, scaled_view
+    frames, _ = flight_frames
+    msg = schema.decode(posed_frame_payload(0, 1_000_000, frames[0][1]), expect="posed_frame")
+    full = CameraCache(1.0)
+    f = frame_info(msg, full)
+    ref = frame_info(msg, CameraCache(0.5))
+    v = scaled_view(f, 0.5, full)
+    assert v.image.shape == (128, 128) and np.array_equal(v.image, ref.payload["image"])
+    assert v.camera == ref.payload["camera"]
+    assert scaled_view(f, 0.5, full).image is v.image                 # cached in the frame's payload
+    v1 = scaled_view(f, 1.0, full)
+    assert v1.image is f.payload["image"] and v1.camera is f.camera
