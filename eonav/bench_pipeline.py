@@ -10,7 +10,8 @@ the locator's RingChannel keeps the newest frames, so a slow locator skips frame
 the locator's own compute time, and whether payloads arrived through zenoh shared memory.
 
 ``run_bench(cases, seconds=...)`` is the pipeline function; ``add_arguments``/``run`` are the CLI hooks that
-``eonav bench pipeline`` delegates to. ``--scale 0.5`` passes the locator's ``--scale`` (half-resolution locate);
+``eonav bench pipeline`` delegates to. ``--scale`` passes the locator's ``--scale`` (default ``auto``: the adaptive
+scale; a number fixes it, e.g. 0.5 = half-resolution locate); each line reports the scales the range maps came at;
 ``--accuracy`` instead measures, in process, what a scale costs against the simulator's truth (``accuracy``).
 """
 from __future__ import annotations
@@ -49,7 +50,7 @@ def _pct(v, q):
 
 
 def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, frames: list, *, method: str = "dense",
-               cv_threads: int = 1, vehicle: str = "bench", scale: float = 1.0) -> dict:
+               cv_threads: int = 1, vehicle: str = "bench", scale="auto") -> dict:
     import zenoh
     from . import keys as K
     from . import schema
@@ -75,7 +76,7 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                         m = schema.decode(smp.payload.to_bytes(), expect=kind)
                         with lock:
                             if kind == "range_map":
-                                rx_map[m["stamp_us"]] = (t, m["compute_s"], m["overhead_s"])
+                                rx_map[m["stamp_us"]] = (t, m["compute_s"], m["overhead_s"], m.get("scale", 1.0))
                                 shm["maps"] += 1
                                 shm["maps_shm"] += smp.payload.as_shm() is not None
                             elif kind == "obstacle_list":
@@ -117,6 +118,9 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
             comp = [v[1] * 1e3 for v in maps.values()]
             over = [v[2] * 1e3 for v in maps.values() if math.isfinite(v[2])]
             loc = health.get("locator", {}).get("counters", {})
+            scales = {}
+            for v in maps.values():
+                scales[f"{v[3]:g}"] = scales.get(f"{v[3]:g}", 0) + 1
             obs_h = health.get("obstacles", {})
             res.update(frames_sent=len(sent), range_maps=len(maps), obstacle_lists=len(obs),
                        frames_dropped=len(sent) - len(maps), drop_fraction=(len(sent) - len(maps)) / max(1, len(sent)),
@@ -128,6 +132,7 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                        locator_overhead_ms={"p50": _pct(over, 50), "p99": _pct(over, 99)},
                        obstacles_compute_ms=obs_h.get("latency_ms", {}).get("compute", {}),
                        locator_skipped=loc.get("frames_skipped", 0),
+                       maps_per_scale=scales, locator_scale_changes=loc.get("scale_changes", 0),
                        locator_superseded=loc.get("frames_superseded", 0),
                        obstacles_superseded=obs_h.get("counters", {}).get("maps_superseded", 0),
                        range_map_payloads_via_shm=f"{shm['maps_shm']}/{shm['maps']}",
@@ -149,7 +154,7 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
 
 
 def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense", cv_threads: int = 1,
-              stream=None, scale: float = 1.0) -> list:
+              stream=None, scale="auto") -> list:
     """Run each (fps, width, height) case; print one line each and return the result dicts."""
     from .bus.testing import router_process
     stream = stream or sys.stdout
@@ -165,7 +170,9 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
             r = bench_case(ep, fps, w, h, seconds, rendered[(w, h)], method=method, cv_threads=cv_threads,
                            vehicle=f"bench{k}", scale=scale)
             out.append(r)
-            print(f"{fps:4.0f} fps {w}x{h} {method} x{scale:g}: capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
+            scales = ", ".join(f"{k}: {n}" for k, n in sorted(r["maps_per_scale"].items(), reverse=True))
+            print(f"{fps:4.0f} fps {w}x{h} {method} scale {scale} (maps at {scales or '-'}; "
+                  f"{r['locator_scale_changes']} changes): capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
                   f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
                   f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
                   f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} | "
@@ -246,7 +253,8 @@ def add_arguments(p) -> None:
                    help="locator methods, each over every case in the same run (default dense,dis: DIS is the "
                         "OpenCV optical-flow baseline)")
     p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
-    p.add_argument("--scale", type=float, default=1.0, help="locator --scale (0.5: half-resolution locate)")
+    p.add_argument("--scale", default="auto",
+                   help="locator --scale: auto (default, adaptive) or a number (1: full, 0.5: half-resolution locate)")
     p.add_argument("--accuracy", action="store_true",
                    help="instead of the pipeline: range error, coverage and nearest obstacle vs simulator truth at "
                         "scales 1 and 0.5 (in process, the locator's code path) for each case's image size")
@@ -266,14 +274,17 @@ def parse_case(s: str):
 def run(args) -> int:
     cases = [parse_case(c) for c in args.case] or list(DEFAULT_CASES)
     methods = [m for m in args.methods.split(",") if m]
+    from .scale_control import parse_scale
+    fixed = parse_scale(args.scale)              # None: auto; InputError on anything else
+    scale = "auto" if fixed is None else fixed
     if args.accuracy:
         sizes = list(dict.fromkeys((w, h) for _, w, h in cases))
         res = [r for m in methods for size in sizes
-               for r in accuracy(size, scales=sorted({1.0, args.scale, 0.5}, reverse=True), method=m)]
+               for r in accuracy(size, scales=sorted({1.0, fixed or 1.0, 0.5}, reverse=True), method=m)]
     else:
         # every method in the same run: the OpenCV DIS baseline ("dis") beside the default ("dense")
         res = [r for m in methods for r in run_bench(cases, seconds=args.seconds, method=m,
-                                                      cv_threads=args.cv_threads, scale=args.scale)]
+                                                      cv_threads=args.cv_threads, scale=scale)]
     if args.json:
         print(json.dumps(res))
     return 0
