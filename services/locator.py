@@ -197,7 +197,7 @@ def frame_info(msg: dict, cameras: CameraCache | None = None):
     """Schema posed_frame -> PosedFrameInfo (camera, pose, grey image as payload). Raises InputError.
 
     The payload carries the grey image at the cache's scale and the camera for it, the quaternion, the camera map and
-    ``scaled``: the grey images at other scales made so far (``pair_views``)."""
+    ``scaled``: the grey images at other scales made so far (``scaled_view``)."""
     from eonav.camera import VehicleState
     from eonav.pair_policy import PosedFrameInfo
     cameras = cameras or CameraCache()
@@ -337,6 +337,8 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
                 node.log_limited(f"skip:{d.reason}", logging.INFO, "frame %s/%d: no pair (%s): %s",
                                  f.camera_id, f.seq, d.reason, d.detail)
                 continue
+            ref = d.a.camera_id                 # the reference camera's controller (a stereo pair's `a` may
+            sc = scalers[ref]                   # be the rig frame that arrived before f)
             scale = sc.scale                    # one scale for both frames of the pair
             errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
                                                   t_rx0, cameras, locate)
@@ -345,9 +347,8 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
                 if change is not None:
                     node.count("scale_changes")
                     node.count(f"scale_changes.{change.direction}")
-                    node.count(f"scale_pct.{f.camera_id}", round(100 * change.new) - round(100 * change.old))
-                    node.log.info("camera %s: locate scale %g -> %g: %s", f.camera_id, change.old, change.new,
-                                  change.reason)
+                    node.count(f"scale_pct.{ref}", round(100 * change.new) - round(100 * change.old))
+                    node.log.info("camera %s: locate scale %g -> %g: %s", ref, change.old, change.new, change.reason)
 
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
