@@ -41,7 +41,7 @@ import numpy as np
 
 from ..camera import View, pair_geometry
 from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OUT_OF_VIEW, TRUNCATION, RangeResult
-from ._common import (F32, EpipolarMap, classify_into, far_inverse_range, level_camera, make_result,
+from ._common import (F32, EpipolarMap, classify_into, far_inverse_range, make_result,
                       no_motion_result, pyr_up_to, pyramid)
 
 METHOD = "dense"
@@ -522,7 +522,6 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     prm = dict(window=window, occ_window=min(int(occ_window), window), huber_k=huber_k,
                lam_k=1.0 / (window * window * trust_px * trust_px), bias=bias)
     g0, gG = _noise_gains(float(presmooth_sigma))
-    out = None
     for lev in range(L, -1, -1):
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
         lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1)
