@@ -434,7 +434,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range (default: largest displacement 0.3 * image size).
-    search_level: pyramid level of the epipolar search (default: coarsest level with >= 64 px, at most 3).
+    search_level: pyramid level of the epipolar search (default: coarsest level of geometric-mean size >= 64 px, at most 3).
     search_step_px: hypothesis spacing, pixels of displacement at the search level.
     iters: Gauss-Newton iterations per level, finest level last (padded with its first entry if short).
     (3, 3, 1, 1) is ~8 % faster and as accurate on the sim presets, but leaves a 0.03 px disparity bias on
@@ -479,7 +479,10 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     if search_level is None:
-        m = min(ha, wa, *Ib.shape)
+        # coarsest level whose geometric-mean size is >= 64 px (at most 3): the search's resolution follows the
+        # image's area, not its short side (640 x 480 searches at 80 x 60 like 512 x 512 at 64 x 64; with the
+        # short side it searched at 160 x 120: 4x the work, 2x the locate time, no accuracy gain: 1.05 -> 1.02 %)
+        m = math.sqrt(min(ha * wa, Ib.shape[0] * Ib.shape[1]))
         search_level = int(max(0, min(3, math.floor(math.log2(m / 64.0)))))
     L = search_level
     nlev = L + 1
