@@ -183,11 +183,16 @@ def test_eonav_run_camera_replay_until_done(tmp_path):
     assert "camera_nose=done" in err
 
 
+def start_launcher(spec: dict, kwargs: str):
+    """``run_pipeline(spec, <kwargs>)`` in its own process (so the test can signal or kill the launcher)."""
+    return start_service(["-c", "import sys, json; from eonav.launcher import run_pipeline; "
+                          f"sys.exit(run_pipeline(json.loads({json.dumps(spec)!r}), {kwargs}))"])
+
+
 def test_sigint_to_launcher_stops_everything(svc_pkg):
     port = free_port()
-    spec = json.dumps({"services": [{"name": "s1", "module": svc_pkg}, {"name": "s2", "module": svc_pkg}]})
-    proc = start_service(["-c", "import sys, json; from eonav.launcher import run_pipeline; "
-                          f"sys.exit(run_pipeline(json.loads({spec!r}), vehicle='lt4', port={port}))"])
+    proc = start_launcher({"services": [{"name": "s1", "module": svc_pkg}, {"name": "s2", "module": svc_pkg}]},
+                          "vehicle='lt4', port=%d" % port)
     try:
         _wait_port(port)
         with client_session(f"tcp/127.0.0.1:{port}") as s:
@@ -277,9 +282,8 @@ def test_children_stop_when_launcher_is_killed(svc_pkg):
     if not shutil.which("pgrep"):
         pytest.skip("needs pgrep (procps)")
     port = free_port()
-    spec = json.dumps({"services": [{"name": "orphan", "module": svc_pkg}]})
-    proc = start_service(["-c", "import sys, json; from eonav.launcher import run_pipeline; "
-                          f"sys.exit(run_pipeline(json.loads({spec!r}), vehicle='lt6', port={port}, quiet=True))"])
+    proc = start_launcher({"services": [{"name": "orphan", "module": svc_pkg}]},
+                          "vehicle='lt6', port=%d, quiet=True" % port)
     try:
         _wait_port(port)
         with client_session(f"tcp/127.0.0.1:{port}") as s:
