@@ -143,8 +143,12 @@ class Subscription:
             for s in self._sub:
                 yield s
         except Exception:  # ZError after undeclare: the channel is closed
-            if not self.closed and not self.node.stop_event.is_set():
+            if not self._shutting_down():
                 raise
+
+    def _shutting_down(self) -> bool:
+        """A channel error is expected (and means "no more samples") once the subscriber or node is closing."""
+        return self.closed or self.node.stop_event.is_set()
 
     def try_recv(self):
         if self.closed:
@@ -152,7 +156,7 @@ class Subscription:
         try:
             return self._sub.try_recv()
         except Exception:
-            if self.closed or self.node.stop_event.is_set():
+            if self._shutting_down():
                 return None
             raise
 
@@ -162,7 +166,7 @@ class Subscription:
             try:
                 return self._sub.recv()
             except Exception:
-                if self.closed or self.node.stop_event.is_set():
+                if self._shutting_down():
                     return None
                 raise
         deadline = time.monotonic() + timeout
