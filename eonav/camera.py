@@ -81,8 +81,14 @@ class VehicleState:
         return cls(position_ned_m, T_body_ned_from_ypr(y, p, r), t_s)
 
     @classmethod
-    def from_quat(cls, position_ned_m, q_wxyz, t_s: float = 0.0) -> "VehicleState":
-        return cls(position_ned_m, T_body_ned_from_quat(q_wxyz), t_s)
+    def from_quat(cls, position_ned_m, q_wxyz, t_s: float = 0.0, what: str = "q_wxyz") -> "VehicleState":
+        """From the attitude quaternion (MAVLink ATTITUDE_QUATERNION: body -> NED). A quaternion whose norm is
+        off 1 by more than 1e-3 is an error (InputError naming ``what``), not silently normalised."""
+        q = np.asarray(q_wxyz, float).reshape(4)
+        n = float(np.linalg.norm(q))
+        if not (np.isfinite(n) and abs(n - 1.0) <= 1e-3):
+            raise InputError(f"{what}: expected a unit quaternion, got {q.tolist()} (norm {n:.6f})")
+        return cls(position_ned_m, T_body_ned_from_quat(q), t_s)
 
 
 @dataclass

@@ -103,10 +103,7 @@ def parse_frame(i: int, fr: dict, cameras: dict, base: Path) -> dict:
     if has_ypr:
         state = VehicleState.from_ypr(pos, np.deg2rad(_vec(fr, "ypr_deg", 3, where)), t)
     else:
-        q = _vec(fr, "q_wxyz", 4, where)
-        if abs(np.linalg.norm(q) - 1.0) > 1e-3:
-            raise InputError(f"{where}.q_wxyz: expected a unit quaternion, norm is {np.linalg.norm(q):.6f}")
-        state = VehicleState.from_quat(pos, q, t)
+        state = VehicleState.from_quat(pos, _vec(fr, "q_wxyz", 4, where), t, what=f"{where}.q_wxyz")
     return {"image_path": (base / img), "camera": cam, "t": t, "state": state}
 
 

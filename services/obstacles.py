@@ -179,8 +179,6 @@ def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, a
         K.check_chunk(msg["camera_id"], "camera id")
         cam = cameras.get(msg["camera"])[0]
         q = np.asarray(msg["q_wxyz"], float)
-        if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
-            raise InputError(f"q_wxyz {q.tolist()} is not a unit quaternion")
         state = VehicleState.from_quat(msg["position_ned_m"], q)
         now_state, nav_stamp = (None, None) if args.no_nav else nav.get()
         if now_state is not None and not (0 <= nav_stamp - msg["stamp_us"] <= NAV_MAX_AHEAD_S * 1e6):

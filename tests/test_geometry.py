@@ -69,6 +69,8 @@ def test_bad_quaternion_is_rejected():
         rotation_from_quat_wxyz([0, 0, 0, 0])
     with pytest.raises(InputError, match="finite"):
         VehicleState([0, 0, np.nan], np.eye(3))
+    with pytest.raises(InputError, match=r"attitude: expected a unit quaternion.*norm 2\.0"):
+        VehicleState.from_quat([0, 0, 0], [2, 0, 0, 0], what="attitude")
 
 
 def test_slerp_midpoint_and_shortest_path():
