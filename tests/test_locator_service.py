@@ -238,3 +238,24 @@ def test_scaled_view_matches_frame_info_at_that_scale(flight_frames):
     assert scaled_view(f, 0.5, full).image is v.image                 # cached in the frame's payload
     v1 = scaled_view(f, 1.0, full)
     assert v1.image is f.payload["image"] and v1.camera is f.camera
+
+
+def test_to_full_grid_odd_sizes_match_the_nearest_pixel_centre_rule():
+    """The upsampling of a map computed at a locate scale: pixel u of the full grid takes scaled pixel
+    floor((u + 0.5) small / full), for sizes that are not a multiple of the scale, every dtype sent, NaN kept."""
+    from types import SimpleNamespace
+
+    from services.locator import to_full_grid
+    cam = SimpleNamespace(width=15, height=11)
+    small = np.random.default_rng(3).random((5, 7)) * 100
+    small[2, 3] = np.nan
+    rows = [int((v + 0.5) * 5 / 11) for v in range(11)]
+    cols = [int((u + 0.5) * 7 / 15) for u in range(15)]
+    for dt in (np.float32, np.float16, np.uint8):
+        a = (np.nan_to_num(small) if dt is np.uint8 else small).astype(dt)
+        want = np.array([[a[r, c] for c in cols] for r in rows], dt)
+        got = to_full_grid(a, cam)
+        assert got.dtype == dt and got.shape == (11, 15)
+        assert np.array_equal(got, want, equal_nan=dt is not np.uint8)
+    same = np.zeros((11, 15), np.float32)
+    assert to_full_grid(same, cam) is same and to_full_grid(None, cam) is None
