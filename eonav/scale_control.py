@@ -23,6 +23,15 @@ Decision after each computed pair (``observe_compute``), with hysteresis:
 Between ``up_margin * budget`` (predicted one rung up) and ``budget`` (measured) nothing changes: a cost at the
 boundary does not oscillate. A fixed scale (``fixed=S``) never changes.
 
+Calibrated start (``calibrate``): the locator times one locate call per rung on a synthetic pair of the camera's size
+before it ranges that camera's first pair. Until the first pair is computed, the rung is the largest whose calibrated
+cost fits the budget (re-chosen at every frame, as the frame-interval estimate and so the budget settle), and the
+calibrated cost ratios seed the prediction one rung up. Without it the controller starts at full scale and needs
+``min_samples`` pairs over the budget before it steps down: the first pairs of a 640x480 camera at 15 fps then took
+~45 ms each against a 40 ms budget, and frames were dropped in the first seconds. The steady-state hysteresis is
+unchanged: a calibration is a measurement made before any frame, not a reaction to one slow pair, and it never
+moves the rung once a pair has been computed.
+
 No zenoh, no images: the locator owns one controller per camera and reports changes (health counter, log line).
 """
 from __future__ import annotations
@@ -101,6 +110,8 @@ class ScaleController:
         self._up_streak = 0
         self._ratio: dict = {}                       # rung -> cost ratio to the next rung down, learnt at changes
         self._pending = None                         # (rung left, its median) until the new rung has min_samples
+        self._calibrated: dict = {}                  # rung -> seconds of one locate call timed before any pair
+        self._computed = 0                           # pairs observed (at any rung)
 
     # -- inputs -------------------------------------------------------------------------------
     @property
@@ -116,6 +127,33 @@ class ScaleController:
             elif stamp_us <= pstamp:                 # replay restart or out of order: keep the estimate, re-anchor
                 pass
         self._last_frame = (seq, stamp_us)
+        if self._calibrated and not self._computed:
+            self._i = self._calibrated_start()
+
+    def calibrate(self, costs: dict) -> float:
+        """Seconds of one locate call per rung ({scale: seconds}, timed before any pair: see the module docstring).
+        Rungs not on the ladder and bad values are ignored. Returns the scale the controller now starts at (the
+        largest calibrated rung that fits the budget; the lowest calibrated rung when none does). After the first
+        computed pair it only seeds the cost ratios and leaves the rung alone."""
+        good = {s: float(t) for s, t in costs.items()
+                if s in self._cost and isinstance(t, (int, float)) and math.isfinite(t) and t > 0}
+        if self.fixed is not None or not good:
+            return self.scale
+        self._calibrated = good
+        for hi, lo in zip(self.ladder, self.ladder[1:]):
+            if hi in good and lo in good and hi not in self._ratio:
+                self._ratio[hi] = max(1.0, good[hi] / good[lo])
+        if not self._computed:
+            self._i = self._calibrated_start()
+        return self.scale
+
+    def _calibrated_start(self) -> int:
+        budget = self.budget_s()
+        rungs = [i for i, s in enumerate(self.ladder) if s in self._calibrated]
+        for i in rungs:
+            if self._calibrated[self.ladder[i]] <= budget:
+                return i
+        return rungs[-1]
 
     def frame_interval_s(self) -> float | None:
         if not self._intervals:
@@ -165,6 +203,7 @@ class ScaleController:
         """Record the compute time of a pair ranged at ``scale``; returns the change of scale it causes, if any."""
         if scale in self._cost and math.isfinite(seconds) and seconds >= 0:
             self._cost[scale].append(seconds)
+            self._computed += 1
         if self.fixed is not None or scale != self.scale:
             return None
         budget = self.budget_s()

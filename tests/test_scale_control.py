@@ -187,3 +187,68 @@ def test_noisy_costs_near_the_budget_change_rarely(full_ms, half_ms, max_changes
         cost = max(1.0, rng.normal(base, sd) + (30.0 if rng.random() < 0.02 else 0.0)) * 1e-3
         n += c.observe_compute(s, cost) is not None
     assert n <= max_changes
+
+
+# -- calibrated start: one locate call per rung timed before any pair (the locator's warm-up) --------------------
+
+def test_calibrated_start_takes_the_largest_rung_that_fits_before_any_pair():
+    c = ScaleController()
+    feed_frames(c, 3)                                          # 15 fps: budget 40 ms
+    assert c.calibrate({1.0: 0.045, 0.5: 0.015}) == 0.5 and c.scale == 0.5
+    assert c.ratio(1.0, 0.5) == pytest.approx(3.0)             # the calibrated ratio, not the area's 4
+    c = ScaleController()
+    feed_frames(c, 3)
+    assert c.calibrate({1.0: 0.030, 0.5: 0.010}) == 1.0        # fits: full scale, as without calibration
+
+
+def test_calibrated_start_follows_the_budget_until_the_first_pair():
+    c = ScaleController()
+    assert c.calibrate({1.0: 0.045, 0.5: 0.015}) == 1.0        # no frame yet: budget 200 ms, full fits
+    feed_frames(c, 3)                                          # the interval is known: 40 ms, full does not fit
+    assert c.scale == 0.5
+    c.observe_compute(0.5, 0.015)                              # the first pair: from now on only the controller moves
+    feed_frames(c, 10, interval_us=1_000_000, seq0=3, stamp0=1_000_000 + 3 * FPS15_US)   # budget back at 200 ms
+    assert c.scale == 0.5
+
+
+def test_calibrated_start_when_no_rung_fits_takes_the_lowest_calibrated_rung():
+    c = ScaleController(min_scale=0.25)
+    feed_frames(c, 3)
+    assert c.calibrate({1.0: 0.5, 0.5: 0.2}) == 0.5            # 0.25 not calibrated: the lowest that was
+
+
+def test_calibration_after_the_first_pair_only_seeds_the_ratios():
+    c = ScaleController()
+    feed_frames(c, 3)
+    c.observe_compute(1.0, 0.030)
+    assert c.calibrate({1.0: 0.045, 0.5: 0.015}) == 1.0 and c.scale == 1.0
+    assert c.ratio(1.0, 0.5) == pytest.approx(3.0)
+
+
+def test_calibration_ignores_bad_values_unknown_rungs_and_a_fixed_scale():
+    c = ScaleController()
+    feed_frames(c, 3)
+    assert c.calibrate({1.0: float("nan"), 0.5: -1.0, 0.3: 0.001, 2.0: 0.001}) == 1.0
+    assert c.ratio(1.0, 0.5) == pytest.approx(4.0)             # nothing learnt from bad values
+    f = ScaleController(fixed=0.5)
+    feed_frames(f, 3)
+    assert f.calibrate({0.5: 1.0}) == 0.5 and f.scale == 0.5
+
+
+def test_single_slow_pair_does_not_step_down_after_a_calibrated_start():
+    """The calibrated start does not weaken the steady-state hysteresis: one outlier still changes nothing."""
+    c = ScaleController()
+    feed_frames(c, 10)
+    assert c.calibrate({1.0: 0.030, 0.5: 0.010}) == 1.0
+    for x in (0.030, 0.200, 0.030, 0.031, 0.029, 0.030):
+        assert c.observe_compute(c.scale, x) is None
+    assert c.scale == 1.0
+
+
+def test_calibrated_start_below_full_steps_up_when_the_pairs_show_headroom():
+    """A calibration made under a passing load (start at 0.5) is corrected by the ordinary step-up rule."""
+    c = ScaleController(up_after=5)
+    feed_frames(c, 10)
+    assert c.calibrate({1.0: 0.045, 0.5: 0.015}) == 0.5
+    changes = run(c, {1.0: 0.021, 0.5: 0.007}, 20)             # predicted full 7 x 3 = 21 ms < 28 ms
+    assert [x.new for x in changes] == [1.0] and c.scale == 1.0
