@@ -21,7 +21,11 @@ Scale: ``--scale auto`` (the default) chooses, per camera and per pair, the larg
 ``--min-scale`` whose compute time fits a budget (``--budget-ms``, default 60 % of the camera's measured frame
 interval, clamped to [20, 200] ms): ``eonav.scale_control.ScaleController`` steps down when the recent median compute
 time exceeds the budget and back up only when the predicted cost one rung up stays below 70 % of it for 5 pairs in a
-row. Both frames of a pair use the pair's scale: the history keeps the full-resolution grey images and each pair
+row. Warm-up (``--warmup``, on by default): at a camera's first frame (which cannot make a pair yet) the locator times
+one locate call per rung on a synthetic pair made of that frame (``calibrate_camera``) and hands the timings to the
+controller, whose first pairs then run warm and at the largest rung whose calibrated cost fits the budget, instead of
+at full scale until ``min_samples`` pairs over the budget (frames dropped in the first seconds at 15 fps 640x480).
+Both frames of a pair use the pair's scale: the history keeps the full-resolution grey images and each pair
 resizes on use (kept in the frame's payload, so a partner is resized once per scale). Each change is logged with its
 reason and counted (``scale_changes``, ``scale_changes.up|down``); the counter ``scale_pct.<camera>`` is the camera's
 current scale in percent (a gauge kept by deltas) and ``pairs_computed.scale_<pct>`` counts the pairs per scale.
@@ -32,12 +36,13 @@ still judges parallax on the full-resolution camera. 0.5 costs roughly a quarter
 accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range error and coverage vs truth).
 
 Health: counters ``pairs_computed``, ``scale_changes``, ``scale_pct.<camera>`` (above), ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
-``locate_errors``, ``frames_skipped``, ``frames_superseded``; latencies ``capture_to_published`` (frame capture stamp
+``locate_errors``, ``warmup_errors``, ``frames_skipped``, ``frames_superseded``; latencies ``warmup`` (per camera), ``capture_to_published`` (frame capture stamp
 -> range map put, the pipeline's figure), ``capture_to_received``, ``compute`` (the locate call) and ``overhead``
 (everything else this service does per ranged frame: decode, camera/pose, grey image, scaling, encode, put).
 """
 from __future__ import annotations
 
+import argparse
 import logging
 import time
 
@@ -46,6 +51,7 @@ import numpy as np
 from eonav import InputError
 from eonav import keys as K
 from eonav.bus.node import Node, add_flag, now_us, service_main
+from eonav.bus.session import env_flag
 
 log = logging.getLogger("eonav.service.locator")
 
@@ -71,6 +77,11 @@ def add_arguments(p):
     add_flag(p, "--budget-ms", env="EONAV_LOCATOR_BUDGET_MS", default=None, type=float, metavar="MS",
              help="--scale auto: compute-time budget per pair; default 60 %% of the camera's measured frame interval, "
                   "clamped to [20, 200] ms")
+    p.add_argument("--warmup", action=argparse.BooleanOptionalAction,
+                   default=env_flag("EONAV_LOCATOR_WARMUP", True),
+                   help="at a camera's first frame, time one locate call per scale rung on a synthetic pair made of "
+                        "that frame (its first pair then runs warm, at a rung that fits the budget: "
+                        "calibrate_camera) (env EONAV_LOCATOR_WARMUP; default on)")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.pair_policy)")
@@ -259,7 +270,8 @@ def body(node: Node, args) -> None:
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
     key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
     sub = node.subscribe(key, ring=args.ring)
-    node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, name="locate")
+    node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, args.warmup,
+                name="locate")
     node.log.info("locator: method %s, scale %s (ladder %s, budget %s), %s, policy %s", args.method, args.scale,
                   new_controller().ladder, "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms", key,
                   policy.config)
@@ -292,14 +304,73 @@ def drain_latest(first, sub) -> list:
     return [(s, i in newest) for i, s in enumerate(batch)]
 
 
+def synthetic_partner(f):
+    """A partner for frame ``f`` made of ``f`` itself: the same image and camera, taken 0.1 s earlier from 2 m behind
+    along the body x axis (forward flight: parallax everywhere but at the focus of expansion). Its ranges mean
+    nothing; it exists so that a locate call on the camera's size can be timed before the first real pair."""
+    from dataclasses import replace
+
+    from eonav.camera import VehicleState
+    st = f.state
+    back = VehicleState(st.position_ned_m - 2.0 * st.T_body_ned[0], st.T_body_ned, st.t_s - 0.1)
+    return replace(f, seq=f.seq - 1, stamp_us=f.stamp_us - 100_000, state=back, payload=dict(f.payload, scaled={}))
+
+
+def calibrate_camera(f, controller, method: str, params: dict, cameras: CameraCache, locate) -> dict:
+    """Warm-up at a camera's first frame: one untimed locate call at the lowest rung (the process's first call pays
+    imports, OpenCV and work-buffer set-up: 71 ms instead of 44 ms for a 640x480 dense pair on the bench machine),
+    then one timed call per rung of ``controller``'s ladder on ``synthetic_partner(f)``. Returns {scale: seconds}
+    for ``controller.calibrate``, so the camera's first real pairs run warm and at a rung that fits the budget.
+    Raises what locate raises."""
+    b = synthetic_partner(f)
+    rungs = sorted(controller.ladder)
+    locate(scaled_view(f, rungs[0], cameras), scaled_view(b, rungs[0], cameras), method=method, **params)
+    out = {}
+    for scale in rungs:
+        va, vb = scaled_view(f, scale, cameras), scaled_view(b, scale, cameras)
+        t0 = time.perf_counter()
+        locate(va, vb, method=method, **params)
+        out[scale] = time.perf_counter() - t0
+    return out
+
+
+def warm_up_camera(node: Node, f, controller, method: str, params: dict, cameras: CameraCache, locate) -> None:
+    """``calibrate_camera`` and hand the timings to the controller; a failure is counted (``warmup_errors``) and
+    logged, and the camera then starts uncalibrated at full scale as before."""
+    t0 = time.perf_counter()
+    try:
+        costs = calibrate_camera(f, controller, method, params, cameras, locate)
+    except Exception as e:  # the real pairs will say whether the method works; a warm-up must not stop the service
+        node.count("warmup_errors")
+        node.log_limited("warmup_error", logging.WARNING, "warm-up for camera %s failed: %s: %s", f.camera_id,
+                         type(e).__name__, e)
+        return
+    new = controller.calibrate(costs)
+    node.latency("warmup", time.perf_counter() - t0)
+    node.log.info("camera %s: warm-up %s; starts at scale %g (budget %.1f ms)", f.camera_id,
+                  ", ".join(f"scale {s:g}: {t * 1e3:.1f} ms" for s, t in sorted(costs.items(), reverse=True)), new,
+                  controller.budget_s() * 1e3)
+
+
+def show_scale(node: Node, camera_id: str, controller, shown: dict) -> None:
+    """The gauge ``scale_pct.<camera>`` (a counter kept by deltas) follows the controller's scale."""
+    pct = round(100 * controller.scale)
+    d = pct - shown.get(camera_id, 0)
+    if d or camera_id not in shown:
+        node.count(f"scale_pct.{camera_id}", d)
+        shown[camera_id] = pct
+
+
 def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controller=None,
-                range_std: str = "f16") -> None:
-    """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1)."""
+                range_std: str = "f16", warmup: bool = False) -> None:
+    """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1);
+    ``warmup``: ``warm_up_camera`` at each camera's first frame."""
     from eonav.locate import locate
     new_controller = new_controller or scale_controllers(1.0)
     pubs: dict = {}
     last_seq: dict = {}
     scalers: dict = {}
+    shown: dict = {}                            # camera -> scale_pct gauge value reported so far
     cameras = CameraCache(1.0)                  # the history keeps full-resolution grey images; pairs resize on use
     errors_in_row = 0
     for first in sub:
@@ -324,8 +395,10 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             sc = scalers.get(f.camera_id)
             if sc is None:
                 sc = scalers[f.camera_id] = new_controller()
-                node.count(f"scale_pct.{f.camera_id}", round(100 * sc.scale))     # a gauge: changes add deltas
-            sc.observe_frame(f.seq, f.stamp_us)
+                if warmup:
+                    warm_up_camera(node, f, sc, method, params, cameras, locate)
+            sc.observe_frame(f.seq, f.stamp_us)          # (a calibrated start may move with the budget: gauge it)
+            show_scale(node, f.camera_id, sc, shown)
             if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map: a put right
                 # after the declaration can miss subscribers the route to which is not set up yet (ECOSYSTEM 1.5)
                 pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
@@ -351,7 +424,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
                 if change is not None:
                     node.count("scale_changes")
                     node.count(f"scale_changes.{change.direction}")
-                    node.count(f"scale_pct.{ref}", round(100 * change.new) - round(100 * change.old))
+                    show_scale(node, ref, sc, shown)
                     node.log.info("camera %s: locate scale %g -> %g: %s", ref, change.old, change.new, change.reason)
 
 
