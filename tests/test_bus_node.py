@@ -268,3 +268,22 @@ def test_session_flags_build_config(tmp_path, monkeypatch):
         S.build_config(p.parse_args(["--zenoh-config", str(tmp_path / "missing.json5")]))
     with pytest.raises(Exception, match="endpoint"):
         S.split_endpoints("localhost:7447")
+
+
+def test_gc_pauses_are_timed_into_latencies_and_unwatched():
+    """Collections of generations 1 and 2 show up as latencies gc.gen1 / gc.gen2; unwatch_gc removes the hook."""
+    import gc
+    from types import SimpleNamespace
+    node = Node("gcwatch", SimpleNamespace(vehicle="v"), None)
+    n_callbacks = len(gc.callbacks)
+    node.watch_gc()
+    try:
+        gc.collect(2)
+        gc.collect(1)
+        gc.collect(0)                                     # generation 0: not recorded
+        lat = node.health_fields()["latency_ms"]
+        assert lat["gc.gen2"]["n"] >= 1 and lat["gc.gen1"]["n"] >= 1 and "gc.gen0" not in lat
+    finally:
+        node.unwatch_gc()
+    assert len(gc.callbacks) == n_callbacks
+    node.unwatch_gc()                                     # twice: harmless

@@ -215,6 +215,33 @@ class Node:
         self._health_pub = None
         self._last_log: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
+        self._gc_t0 = None
+        self._gc_cb = None
+
+    # ---- garbage collector ------------------------------------------------------------------------
+    def watch_gc(self) -> None:
+        """Time every collection of the interpreter's cyclic garbage collector into the latencies ``gc.gen<N>``
+        (collections of generation 1 and 2 only: generation 0 is frequent and short). A collection stops every
+        thread of the service: a full one over the ~42,000 objects a service holds after its imports (numpy,
+        OpenCV, scipy, zenoh) took 20-35 ms on the bench machine, as long as a locate call."""
+        import gc
+
+        def cb(phase, info):
+            if info.get("generation", 0) < 1:
+                return
+            if phase == "start":
+                self._gc_t0 = time.perf_counter()
+            elif self._gc_t0 is not None:
+                self.latency(f"gc.gen{info['generation']}", time.perf_counter() - self._gc_t0)
+                self._gc_t0 = None
+        self._gc_cb = cb
+        gc.callbacks.append(cb)
+
+    def unwatch_gc(self) -> None:
+        import gc
+        if self._gc_cb is not None and self._gc_cb in gc.callbacks:
+            gc.callbacks.remove(self._gc_cb)
+        self._gc_cb = None
 
     # ---- declarations ---------------------------------------------------------------------------
     def publisher(self, key: str, image: bool = False, *, priority=None, express: bool | None = None):
@@ -496,9 +523,10 @@ def _supervisor_pid() -> int:
         return 0
 
 
-def run_node(name: str, args, body: Callable) -> int:
+def run_node(name: str, args, body: Callable, freeze_gc: bool = False) -> int:
     """Open the session, run ``body``, wait for a stop, shut down. Returns the exit code.
-    Installs SIGINT/SIGTERM handlers when called from the main thread."""
+    Installs SIGINT/SIGTERM handlers when called from the main thread. ``freeze_gc``: ``freeze_startup_objects``
+    after ``body`` (a service process of its own; not in a test process that runs several nodes)."""
     log = logging.getLogger(f"eonav.service.{getattr(args, 'name', name)}")
     node_ref: list[Node] = []
     signals = {"n": 0}
@@ -527,6 +555,7 @@ def run_node(name: str, args, body: Callable) -> int:
         with session_cm as session:
             node = Node(args.name, args, session, log)
             node_ref.append(node)
+            node.watch_gc()
             try:
                 node._declare_infrastructure()
                 body(node, args)
@@ -538,6 +567,8 @@ def run_node(name: str, args, body: Callable) -> int:
                 node.fail(f"body raised {type(e).__name__}: {e}", exc=True)
                 node._shutdown()
                 return EXIT_ERROR
+            if freeze_gc:
+                freeze_startup_objects()
             log.info("running (vehicle %s, pid %d)", node.vehicle, os.getpid())
             parent = _supervisor_pid()
             while not node.stop_event.wait(0.25):
@@ -551,16 +582,29 @@ def run_node(name: str, args, body: Callable) -> int:
         log.info("interrupted before start")
         return EXIT_OK
     finally:
+        if node_ref:
+            node_ref[0].unwatch_gc()
         for sig, h in old.items():
             signal.signal(sig, h)
 
 
+def freeze_startup_objects() -> None:
+    """``gc.freeze()`` once ``body`` has declared everything and imported its modules: the objects made so far
+    (modules, functions, classes: ~42,000 in the locator) move to the permanent generation, and later full collections
+    scan only what the service allocated since (0.0 ms instead of 20-35 ms for ``gc.collect()`` in a process with the
+    locator's imports, on the bench machine). Nothing is leaked: frozen objects are the ones a service keeps for its
+    life anyway."""
+    import gc
+    gc.collect()
+    gc.freeze()
+
+
 def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None) -> None:
     """Parse flags, run the node, ``sys.exit`` with its code. ``argv`` defaults to ``sys.argv[1:]``."""
-    sys.exit(main(name, add_arguments, body, argv))
+    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True))
 
 
-def main(name: str, add_arguments: Callable | None, body: Callable, argv=None) -> int:
+def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False) -> int:
     """Like :func:`service_main` but returns the exit code (for ``eonav service`` and tests)."""
     parser = build_parser(name, add_arguments)
     args = parser.parse_args(argv)
@@ -570,4 +614,4 @@ def main(name: str, add_arguments: Callable | None, body: Callable, argv=None) -
         K.check_chunk(args.vehicle, "--vehicle")
     except EonavError as e:
         parser.error(str(e))
-    return run_node(name, args, body)
+    return run_node(name, args, body, freeze_gc=freeze_gc)
