@@ -259,3 +259,37 @@ def test_to_full_grid_odd_sizes_match_the_nearest_pixel_centre_rule():
         assert np.array_equal(got, want, equal_nan=dt is not np.uint8)
     same = np.zeros((11, 15), np.float32)
     assert to_full_grid(same, cam) is same and to_full_grid(None, cam) is None
+
+
+def test_warm_up_times_every_rung_on_a_synthetic_partner_and_calibrates(flight_frames):
+    """The warm-up at a camera's first frame: one timing per rung of the ladder (both positive, no assertion on their
+    size), the partner is the frame's own image from behind, and the controller is calibrated (scale_pct-style
+    gauge untouched here: that is the loop's job)."""
+    from types import SimpleNamespace
+
+    from eonav.locate import locate
+    from eonav.scale_control import ScaleController
+    from services.locator import CameraCache, calibrate_camera, frame_info, synthetic_partner
+    frames, _ = flight_frames
+    cams = CameraCache(1.0)
+    f = frame_info(schema.decode(posed_frame_payload(0, 1_000_000, frames[0][1]), expect="posed_frame"), cams)
+    b = synthetic_partner(f)
+    assert b.payload["image"] is f.payload["image"] and b.payload["scaled"] is not f.payload["scaled"]
+    assert np.linalg.norm(b.state.position_ned_m - f.state.position_ned_m) == pytest.approx(2.0)
+    assert b.stamp_us < f.stamp_us and b.camera is f.camera
+    c = ScaleController()
+    costs = calibrate_camera(f, c, "dense", {}, cams, locate)
+    assert sorted(costs) == [0.5, 1.0] and all(t > 0 for t in costs.values())
+    calls = []
+
+    def failing(va, vb, method, **kw):
+        calls.append(va.image.shape)
+        raise ValueError("boom")
+    from services.locator import warm_up_camera
+    counted = {}
+    node = SimpleNamespace(count=lambda k, n=1: counted.__setitem__(k, counted.get(k, 0) + n),
+                           log_limited=lambda *a, **k: None, latency=lambda *a: None,
+                           log=SimpleNamespace(info=lambda *a: None))
+    c2 = ScaleController()
+    warm_up_camera(node, f, c2, "dense", {}, cams, failing)
+    assert counted == {"warmup_errors": 1} and c2.scale == 1.0 and len(calls) == 1
