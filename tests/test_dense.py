@@ -16,6 +16,7 @@ from eonav.camera import Camera, VehicleState, View, pair_geometry
 from eonav.methods.dense import locate_dense
 from eonav.methods.flow_baseline import locate_dis
 from eonav.rangemap import AT_INFINITY, VALID
+from eonav.sim.visibility import measurable_in_b
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MIDDLEBURY = DATA / "middlebury2001_2003"
@@ -29,13 +30,7 @@ def sim(name, size=256, seed=0):
 
 def in_view_of_b(sp):
     """Non-sky pixels of the reference frame whose true match lies inside image b (measurable at all)."""
-    a, b = sp.views
-    gt = sp.truth[0].range_m
-    rho = np.where(np.isfinite(gt), 1.0 / gt, 0.0).astype(np.float32)
-    ub, vb, den = pair_geometry(a, b).map_to_b(rho)
-    cb = b.camera
-    return ((ub >= 0) & (ub <= cb.width - 1) & (vb >= 0) & (vb <= cb.height - 1) & (den > 0)
-            & (sp.truth[0].object_id != 0))
+    return measurable_in_b(*sp.views, sp.truth[0].range_m)
 
 
 def rel_err(res, gt):
