@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from eonav.camera import Camera, VehicleState, View, pair_geometry
+from eonav.camera import Camera, VehicleState, View
 from eonav.methods.dense import locate_dense
 from eonav.methods.flow_baseline import locate_dis
 from eonav.rangemap import AT_INFINITY, VALID
