@@ -30,16 +30,19 @@ class Case:
     objects: dict = field(default_factory=dict)
     stereo_rectified: bool = False
     scale_check: bool = False      # reference of another pair: also print the median range ratio to it
+    measurable: np.ndarray | None = None   # scored pixels a two-view method can range at all (sim: in view of b)
 
 
 def sim_cases(presets, size):
     from .sim.presets import make_pair
+    from .sim.visibility import measurable_in_b
     out = []
     for name in presets:
         sp = make_pair(name, seed=0, size=size if name != "paper" else None)
         t = sp.truth[0]
         out.append(Case(f"sim:{name}", sp.views[0], sp.views[1], t.range_m, np.isfinite(t.range_m),
-                        object_id=t.object_id, objects=dict(sp.objects)))
+                        object_id=t.object_id, objects=dict(sp.objects),
+                        measurable=measurable_in_b(*sp.views, t.range_m, sp.truth[1].range_m)))
     return out
 
 
@@ -64,13 +67,22 @@ def kitti_cases(data_dir):
             Case("kitti:motion 0->2", views[0], views[2], ref, mask, label, scale_check=True)]
 
 
-def score(range_m, truth_m, mask):
+def score(range_m, truth_m, mask, measurable=None):
+    """Median relative error over the estimated scored pixels, share of the scored pixels within 5 %, coverage of
+    the scored pixels and (given ``measurable``) of the measurable ones."""
     est = mask & np.isfinite(range_m) & (range_m > 0) & np.isfinite(truth_m)
     rel = np.abs(range_m[est] - truth_m[est]) / truth_m[est]
     n = int(mask.sum())
-    return {"median_rel_error": float(np.median(rel)) if rel.size else float("nan"),
-            "within_5pct_of_scored": float((rel < 0.05).sum() / max(n, 1)),
-            "coverage": float(est.sum() / max(n, 1))}
+    out = {"median_rel_error": float(np.median(rel)) if rel.size else float("nan"),
+           "within_5pct_of_scored": float((rel < 0.05).sum() / max(n, 1)),
+           "coverage": float(est.sum() / max(n, 1))}
+    if measurable is not None:
+        out["coverage_of_measurable"] = float((est & measurable).sum() / max(int((mask & measurable).sum()), 1))
+    return out
+
+
+def fmt_pct(x) -> str:
+    return "-" if x is None else f"{100 * x:.1f}%"
 
 
 def common_pixel_line(case, per, names=("dense", "dis")):
@@ -132,17 +144,22 @@ def run_bench(methods, cases, repeat, json_out=None):
     results = []
     for case in cases:
         w, h = case.view_a.camera.width, case.view_a.camera.height
-        print(f"\n== {case.name}  ({w}x{h}, reference: {case.truth_label}, {int(case.mask.sum())} scored pixels)")
-        print(f"   {'method':<14}{'median err':>11}{'within 5%':>11}{'coverage':>10}{'ms/pair':>10}{'peak MB':>9}")
+        meas = "" if case.measurable is None else (
+            f"; {100 * (case.mask & case.measurable).sum() / max(int(case.mask.sum()), 1):.1f} % of them measurable"
+            " (in view of b, not occluded there)")
+        print(f"\n== {case.name}  ({w}x{h}, reference: {case.truth_label}, {int(case.mask.sum())} scored pixels{meas})")
+        print(f"   {'method':<14}{'median err':>11}{'within 5%':>11}{'coverage':>10}"
+              f"{'of meas.':>10}{'ms/pair':>10}{'peak MB':>9}")
         per = {}
         names = list(methods) + (["sgbm"] if case.stereo_rectified and "sgbm" not in methods else [])
         for name in names:
             fn = get_method(name)
             res, secs, peak = time_method(fn, case.view_a, case.view_b, repeat)
-            s = score(res.range_m, case.truth_m, case.mask)
+            s = score(res.range_m, case.truth_m, case.mask, case.measurable)
             per[name] = res
             print(f"   {name:<14}{100 * s['median_rel_error']:>10.2f}%{100 * s['within_5pct_of_scored']:>10.1f}%"
-                  f"{100 * s['coverage']:>9.1f}%{1000 * secs:>10.1f}{peak / 2**20:>9.1f}")
+                  f"{100 * s['coverage']:>9.1f}%{fmt_pct(s.get('coverage_of_measurable')):>10}"
+                  f"{1000 * secs:>10.1f}{peak / 2**20:>9.1f}")
             results.append({"case": case.name, "method": name, "seconds_per_pair": secs, "peak_bytes": peak, **s})
         line = common_pixel_line(case, per)
         if line:

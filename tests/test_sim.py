@@ -288,3 +288,30 @@ def test_bad_inputs_raise_clear_errors():
         make_pair("paper", size=3)
     assert set(PRESETS) == {"paper", "fast", "turning", "climbing", "stereo", "hover"}
     assert Runway().half_width_m > 0
+
+
+@pytest.mark.parametrize("name", ["fast", "stereo"])
+def test_measurable_in_b_agrees_with_the_renderers_projection(pairs, name):
+    """The measurable mask (eqs. 25-26 mapping + b's truth for occlusion) equals an independent computation:
+    frame-1 points back-projected to NED (eq. 33 path of the renderer), projected into frame 2 by the renderer's
+    own project_ned, kept when inside the image and not behind a nearer surface of frame 2's truth."""
+    from eonav.sim.render import camera_rays_ned
+    from eonav.sim.visibility import measurable_in_b
+    pair = pairs(name)
+    (va, vb), (ta, tb) = pair.views, pair.truth
+    c = va.camera
+    v, u = np.mgrid[0:c.height, 0:c.width].astype(np.float64)
+    m = np.stack([np.ones_like(u), (u - c.cx) / c.fx, (v - c.cy) / c.fy], -1)
+    R, o = camera_rays_ned(c, va.state)
+    with np.errstate(invalid="ignore"):
+        p_ned = o + (m * ta.range_m[..., None]) @ R.T
+        ub, vb_, xb = project_ned(vb.camera, vb.state, p_ned)
+    W, H = vb.camera.width, vb.camera.height
+    inside = np.isfinite(ta.range_m) & (xb > 0) & (ub >= 0) & (ub <= W - 1) & (vb_ >= 0) & (vb_ <= H - 1)
+    ui = np.clip(np.rint(np.nan_to_num(ub)), 0, W - 1).astype(int)
+    vi = np.clip(np.rint(np.nan_to_num(vb_)), 0, H - 1).astype(int)
+    expected = inside & (tb.range_m[vi, ui] >= 0.97 * np.nan_to_num(xb))
+    got = measurable_in_b(va, vb, ta.range_m, tb.range_m)
+    assert 0.3 < expected.mean() < 0.95                   # a real share leaves b's view or is hidden
+    assert np.mean(got != expected) < 1e-3               # float32 mapping vs float64: rare boundary pixels
+    assert np.all(measurable_in_b(va, vb, ta.range_m) >= got)   # occlusion only removes pixels
