@@ -52,7 +52,7 @@ def middlebury_cases(data_dir):
     for scene in MIDDLEBURY_SCENES:
         a, b, truth, nonocc = middlebury_pair(data_dir, scene)
         out.append(Case(f"middlebury:{scene}", a, b, truth, nonocc, "GT disparity, non-occluded",
-                        stereo_rectified=True))
+                        stereo_rectified=True, measurable=nonocc))
     return out
 
 
@@ -79,6 +79,19 @@ def score(range_m, truth_m, mask, measurable=None):
     if measurable is not None:
         out["coverage_of_measurable"] = float((est & measurable).sum() / max(int((mask & measurable).sum()), 1))
     return out
+
+
+def calibration(res, truth_m, mask) -> dict:
+    """Honesty of the reported sigma on the VALID finite pixels: z = (rho - 1/truth) / sigma_rho; its robust
+    spread (1.4826 MAD, 1 when sigma is right) and the share with |z| < 2 (0.95 for a Gaussian)."""
+    ok = mask & np.isfinite(res.range_m) & (res.range_m > 0) & np.isfinite(truth_m) & (truth_m > 0)
+    std = res.inv_range_std_per_m[ok]
+    good = np.isfinite(std) & (std > 0)
+    if not good.any():
+        return {}
+    z = (res.inv_range_per_m[ok][good] - 1.0 / truth_m[ok][good]) / std[good]
+    return {"z_spread": float(1.4826 * np.median(np.abs(z - np.median(z)))),
+            "within_2_sigma": float(np.mean(np.abs(z) < 2.0))}
 
 
 def fmt_pct(x) -> str:
@@ -149,17 +162,20 @@ def run_bench(methods, cases, repeat, json_out=None):
             " (in view of b, not occluded there)")
         print(f"\n== {case.name}  ({w}x{h}, reference: {case.truth_label}, {int(case.mask.sum())} scored pixels{meas})")
         print(f"   {'method':<14}{'median err':>11}{'within 5%':>11}{'coverage':>10}"
-              f"{'of meas.':>10}{'ms/pair':>10}{'peak MB':>9}")
+              f"{'of meas.':>10}{'ms/pair':>10}{'peak MB':>9}{'z spread':>10}{'|z|<2':>7}")
         per = {}
         names = list(methods) + (["sgbm"] if case.stereo_rectified and "sgbm" not in methods else [])
         for name in names:
             fn = get_method(name)
             res, secs, peak = time_method(fn, case.view_a, case.view_b, repeat)
             s = score(res.range_m, case.truth_m, case.mask, case.measurable)
+            if not case.scale_check:          # a reference of another pair says nothing of this pair's sigma
+                s.update(calibration(res, case.truth_m, case.mask))
             per[name] = res
             print(f"   {name:<14}{100 * s['median_rel_error']:>10.2f}%{100 * s['within_5pct_of_scored']:>10.1f}%"
                   f"{100 * s['coverage']:>9.1f}%{fmt_pct(s.get('coverage_of_measurable')):>10}"
-                  f"{1000 * secs:>10.1f}{peak / 2**20:>9.1f}")
+                  f"{1000 * secs:>10.1f}{peak / 2**20:>9.1f}"
+                  f"{s['z_spread'] if 'z_spread' in s else float('nan'):>10.2f}{fmt_pct(s.get('within_2_sigma')):>7}")
             results.append({"case": case.name, "method": name, "seconds_per_pair": secs, "peak_bytes": peak, **s})
         line = common_pixel_line(case, per)
         if line:
