@@ -307,7 +307,8 @@ class _Level:
     (see _common.EpipolarMap). They are stored as a row part (c0 + c1 m1, per column) and a column part
     (c2 m2, per row) and built block by block (one broadcast add each), never as full-size arrays."""
 
-    def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05, cache: bool = False):
+    def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05, cache: bool = False,
+                 strip_rows: int | None = None, n_strips: int = 1):
         sc = 0.5 ** lev      # level intrinsics (as level_camera, without building Camera objects)
         ca, cb = geo.cam_a, geo.cam_b
         fxa, fya, cxa, cya = ca.fx * sc, ca.fy * sc, ca.cx * sc, ca.cy * sc
@@ -344,17 +345,36 @@ class _Level:
         gy = cv2.Scharr(ib, cv2.CV_32F, 0, 1, dst=_ws("gyb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
         self.b4 = cv2.merge([ib, gx, gy, _ws("one", ib.shape, fill=1.0)], dst=_ws("b4", ib.shape + (4,)))
         # strips' geometric maps and gradients of a, kept for the next iteration (levels iterated more than
-        # once); read-only
+        # once); read-only. Stored in planes of a work buffer (8 per strip), like every temporary of a strip
+        # (``work``): fresh strip-sized arrays page-faulted, the allocator trimming the heap they were freed to
+        # (~6500 minor faults, ~11 ms of system time per 512 x 512 locate, before the work planes)
+        self.strip_rows = min(self.h, strip_rows or self.h)
         self._cache = {} if cache else None
+        self._cplanes = (_ws(("gn_cache", lev), (8 * n_strips, self.strip_rows + 2, self.w)) if cache else None)
+        self._ncp = 0
 
-    def rows(self, c, s: slice) -> np.ndarray:
-        """Rows s of an affine map (read-only when cached)."""
+    _N_WORK = 16
+
+    def work(self) -> np.ndarray:
+        """The strips' work planes (_N_WORK, strip_rows + 2, w): a strip of n rows uses [:, :n] (each plane
+        contiguous); the 2 spare rows take the Scharr halo of grad_a."""
+        return _ws(("gn_work", self.w), (self._N_WORK, self.strip_rows + 2, self.w))
+
+    def _cache_plane(self, rows: int) -> np.ndarray:
+        """Next free plane of the level's cache buffer (rows x w); a fresh array if it is full."""
+        if self._ncp < len(self._cplanes):
+            self._ncp += 1
+            return self._cplanes[self._ncp - 1, :rows]
+        return np.empty((rows, self.w), F32)
+
+    def rows(self, c, s: slice, out: np.ndarray | None = None) -> np.ndarray:
+        """Rows s of an affine map, into ``out`` (read-only and not in ``out`` when cached)."""
         if self._cache is None:
-            return np.matmul(c[2][s], c[3])
+            return np.matmul(c[2][s], c[3], out=out)
         k = (id(c), s.start, s.stop)
         v = self._cache.get(k)
         if v is None:
-            v = self._cache[k] = np.matmul(c[2][s], c[3])
+            v = self._cache[k] = np.matmul(c[2][s], c[3], out=self._cache_plane(s.stop - s.start))
         return v
 
     def c2(self, s: slice) -> np.ndarray:
@@ -364,36 +384,43 @@ class _Level:
         if v is None:
             C1, C2 = self.rows(self.C1, s), self.rows(self.C2, s)
             if self._cache is not None:
-                v = self._cache[k] = cv2.add(cv2.multiply(C1, C1), cv2.multiply(C2, C2))
+                v = self._cache[k] = cv2.multiply(C1, C1, dst=self._cache_plane(s.stop - s.start))
+                cv2.add(v, cv2.multiply(C2, C2, dst=_ws("c2_tmp", v.shape)), dst=v)
             else:
                 v = cv2.multiply(C1, C1, dst=C1)
                 cv2.add(v, cv2.multiply(C2, C2, dst=C2), dst=v)
         return v
 
-    def grad_a(self, ya: int, yb: int):
+    def grad_a(self, ya: int, yb: int, work=None):
         """Gradient of a on rows [ya, yb) (one extra row each side when available, so the Scharr kernel sees
-        the image's own rows and reflects only at the image border). Read-only."""
+        the image's own rows and reflects only at the image border), in two planes of ``work`` (w wide, at
+        least yb - ya + 2 rows) unless cached. Read-only."""
         k = ("ga", ya, yb)
         v = self._cache.get(k) if self._cache is not None else None
         if v is None:
             y0, y1 = max(0, ya - 1), min(self.h, yb + 1)
-            gx, gy = _grad(self.ia[y0:y1])
+            n = y1 - y0
+            if self._cache is not None:
+                dx, dy = self._cache_plane(n), self._cache_plane(n)
+            elif work is not None:
+                dx, dy = work[0][:n], work[1][:n]
+            else:
+                dx = dy = None
+            src = self.ia[y0:y1]
+            gx = cv2.Scharr(src, cv2.CV_32F, 1, 0, dst=dx, scale=1.0 / 32.0, borderType=_BR)
+            gy = cv2.Scharr(src, cv2.CV_32F, 0, 1, dst=dy, scale=1.0 / 32.0, borderType=_BR)
             v = gx[ya - y0:yb - y0], gy[ya - y0:yb - y0]
             if self._cache is not None:
                 self._cache[k] = v
         return v
 
-    def warp(self, rho, s: slice):
-        """Warped [I_b, gx_b, gy_b, in-view] at rho (rows s of a), and 1/den."""
-        own = self._cache is None       # the rows are fresh arrays: work in place
-        a = self.rows(self.A0, s)
-        inv = cv2.scaleAdd(rho, float(self.B0), a, dst=a if own else None)
+    def warp(self, rho, s: slice, T):
+        """Warped [I_b, gx_b, gy_b, in-view] at rho (rows s of a), and 1/den (in T[0]; T[1], T[2]: the map)."""
+        inv = cv2.scaleAdd(rho, float(self.B0), self.rows(self.A0, s, out=T[0]), dst=T[0])
         np.divide(F32(1.0), inv, out=inv)
-        a = self.rows(self.P1, s)
-        ub = cv2.scaleAdd(rho, float(self.Q1), a, dst=a if own else None)
+        ub = cv2.scaleAdd(rho, float(self.Q1), self.rows(self.P1, s, out=T[1]), dst=T[1])
         cv2.multiply(ub, inv, dst=ub)
-        a = self.rows(self.P2, s)
-        vb = cv2.scaleAdd(rho, float(self.Q2), a, dst=a if own else None)
+        vb = cv2.scaleAdd(rho, float(self.Q2), self.rows(self.P2, s, out=T[2]), dst=T[2])
         cv2.multiply(vb, inv, dst=vb)
         wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, dst=_ws("wv", ub.shape + (4,)),
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -527,14 +554,14 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     g0, gG = _noise_gains(float(presmooth_sigma))
     for lev in range(L, -1, -1):
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
-        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1)
-        if rho.shape != pa[lev].shape:
-            rho = pyr_up_to(rho, pa[lev].shape)
         h, w = pa[lev].shape
-        # strip arrays incl. the halo within strip_px: at 32768 px (128 KiB of float32, the allocator's mmap
-        # threshold) the temporaries are recycled by malloc instead of page-faulting as fresh mappings
+        # strip arrays incl. the halo within strip_px (32768 px: a strip's planes stay in L2)
         step = max(8, strip_px // w - 2 * (window // 2)) if strip_px > 0 else h
         step = -(-h // -(-h // step))      # balanced: no thin last strip (each strip costs ~50 calls)
+        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1, strip_rows=step + 2 * (window // 2),
+                    n_strips=-(-h // step))
+        if rho.shape != pa[lev].shape:
+            rho = pyr_up_to(rho, pa[lev].shape)
         for it in range(n_it):
             last = lev == 0 and it == n_it - 1
             if it == 0 or last:
@@ -589,56 +616,61 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     also the uncertainty, flags and classification of those rows.
 
     Elementwise work is done with OpenCV's array-array arithmetic (cv2.multiply/add/subtract/scaleAdd into
-    existing buffers): ~1.5x faster than numpy's ufuncs on these strip-sized float32 arrays."""
+    existing buffers): ~1.5x faster than numpy's ufuncs on these strip-sized float32 arrays. Every float
+    temporary is one of the strip's work planes T[i] (lv.work; reused from strip to strip and call to call:
+    fresh ones page-faulted, see _Level); the comments name what each plane holds."""
     mul, add, sub = cv2.multiply, cv2.add, cv2.subtract
     win = prm["window"]
     p = win // 2
     ya, yb = max(0, y0 - p), min(lv.h, y1 + p)
     s = slice(ya, yb)
     o = slice(y0 - ya, y1 - ya)
+    W = lv.work()
+    T = W[:, :yb - ya]
     R = rho[s]
-    wv, inv = lv.warp(R, s)
-    r = sub(np.ascontiguousarray(wv[..., 0]), lv.ia[s])
-    gxa, gya = lv.grad_a(ya, yb)
-    C1, C2 = lv.rows(lv.C1, s), lv.rows(lv.C2, s)
+    wv, inv = lv.warp(R, s, T)                                   # T0 inv (T1, T2: the map, free again)
+    # the warp's channels (cv2.split into the planes: one pass, ~6x faster than 4 strided numpy copies)
+    Ib, gxb, gyb, mask = cv2.split(wv, [T[3], T[4], T[5], T[6]])
+    r = sub(Ib, lv.ia[s], dst=Ib)                                # T3 r
+    gxa, gya = lv.grad_a(ya, yb, (W[7], W[8]))                   # T7, T8 (unless cached)
+    C1, C2 = lv.rows(lv.C1, s, out=T[1]), lv.rows(lv.C2, s, out=T[2])
     # J = grad I . d(u_b, v_b)/d rho with the gradient averaged over both images (eq. 27's symmetric form:
     # second-order accurate in the step, and the interpolation bias of a one-sided gradient halves)
-    gx = add(np.ascontiguousarray(wv[..., 1]), gxa)
-    gy = add(np.ascontiguousarray(wv[..., 2]), gya)
-    J = mul(gx, C1, dst=gx)
+    gx = add(gxb, gxa, dst=gxb)
+    gy = add(gyb, gya, dst=gyb)
+    J = mul(gx, C1, dst=gx)                                      # T4 J
     cv2.accumulateProduct(gy, C2, J)
-    inv2 = mul(inv, inv)
+    inv2 = mul(inv, inv, dst=T[9])                               # T9 inv2
     mul(J, inv2, dst=J)
     # a quarter of the squared sensitivity |d(u_b, v_b)/d rho|^2 = |C|^2 / den^4 (C1, C2 are halved)
-    c2 = lv.c2(s) if lv._cache is not None else cv2.accumulateSquare(C2, mul(C1, C1, dst=C1))
+    c2 = lv.c2(s) if lv._cache is not None else cv2.accumulateSquare(C2, mul(C1, C1, dst=C1))   # T1 c2
     # Huber weights min(1, k sigma / |r|) times the in-view mask: ks mask / max(|r|, ks)
     ks = F32(max(prm["huber_k"] * sigma, 1e-6))
-    wgt = np.abs(r)
+    wgt = np.abs(r, out=T[5])                                    # T5 wgt
     np.maximum(wgt, ks, out=wgt)
-    mask = np.ascontiguousarray(wv[..., 3])
     cv2.divide(mask, wgt, dst=wgt, scale=float(ks))
-    wJ = mul(wgt, J)
-    q = mul(J, R)
+    wJ = mul(wgt, J, dst=T[2])                                   # T2 wJ
+    q = mul(J, R, dst=T[10])                                     # T10 q
     sub(q, r, dst=q)
     # window sums; everything after them only on the block's own rows o (the halo only feeds the sums)
-    H = _box_to(mul(wJ, J), win)[o]
-    g = _box_to(mul(wJ, q), win)[o]
+    H = _box_to(mul(wJ, J, dst=T[11]), win, dst=T[11])[o]       # T11 H
+    g = _box_to(mul(wJ, q, dst=T[12]), win, dst=T[12])[o]       # T12 g
     if prm["bias"]:   # unknown brightness offset per window, eliminated (Schur complement)
-        S0 = _box_to(wgt, win)[o]
+        S0 = _box_to(wgt, win, dst=T[13])[o]
         S0 += F32(1e-6)
         S1 = _box_to(wJ, win, dst=wJ)[o]
-        Sq = _box_to(mul(wgt, q, dst=q), win)[o]
+        Sq = _box_to(mul(wgt, q, dst=q), win, dst=q)[o]
         S1n = cv2.divide(S1, S0, dst=S0)
         sub(g, mul(Sq, S1n, dst=Sq), dst=g)
         sub(H, mul(S1, S1n, dst=S1), dst=H)
     Ro = R[o]
     i2 = inv2[o]
-    E2 = mul(c2[o], mul(i2, i2, dst=i2))
+    E2 = mul(c2[o], mul(i2, i2, dst=i2), dst=i2)                 # T9 E2
     # Levenberg: (H + lam) rho' = g + lam rho, lam = lam_c E2 (den = 0 only where C = 0 and H = 0: OpenCV's
     # division gives 0 there)
     lam_c = float(4.0 * sigma * sigma * prm["lam_k"])
-    num = cv2.scaleAdd(mul(E2, Ro), lam_c, g, dst=g)
-    den = cv2.scaleAdd(E2, lam_c, H)
+    num = cv2.scaleAdd(mul(E2, Ro, dst=T[14][o]), lam_c, g, dst=g)
+    den = cv2.scaleAdd(E2, lam_c, H, dst=T[15][o])
     out = new[y0:y1]
     cv2.divide(num, den, dst=out)
     np.maximum(out, F32(0), out=out)
@@ -650,20 +682,20 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     if fin is None:
         return
     # --- uncertainty and flags of rows [y0, y1), from this (the last) linearisation
-    d = sub(out, Ro)
+    d = sub(out, Ro, dst=T[14][o])                               # T14 d
     mul(d, d, dst=d)
     mul(d, E2, dst=d)
     trunc = d > fin.trunc2
-    inview = mask > F32(0.999)
-    inview &= inv > 0
-    mf = inview.view(np.uint8).astype(F32)
-    G = mul(gxa, gxa)
+    # in view: 1.0 where mask > 0.999 and inv > 0 (thresholds straight to 0/1 floats)
+    mf = cv2.threshold(mask, 0.999, 1.0, cv2.THRESH_BINARY, dst=T[4])[1]             # T4 mf
+    mul(mf, cv2.threshold(inv, 0.0, 1.0, cv2.THRESH_BINARY, dst=T[13])[1], dst=mf)
+    G = mul(gxa, gxa, dst=T[10])                                 # T10 G
     cv2.accumulateSquare(gya, G)
     mul(G, mf, dst=G)
-    G = _box_to(G, win)[o]
+    G = _box_to(G, win, dst=G)[o]
     mul(r, r, dst=r)
     mul(r, mf, dst=r)
-    R2 = _box_to(r, prm["occ_window"])[o]
+    R2 = _box_to(r, prm["occ_window"], dst=r)[o]
     std = fin.std[y0:y1]
     with np.errstate(divide="ignore", invalid="ignore"):
         # normal-equation information (Huber-weighted, brightness offset eliminated) of the last linearisation
@@ -675,7 +707,7 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
         E2 = mul(E2, G, dst=E2)
         orient = np.divide(H, E2, out=E2)     # share of the gradient energy along the epipolar direction
     low = G < fin.low_thr
-    oov = ~inview[o]
+    oov = mf[o] == F32(0)
     oov |= R2 > fin.occ_thr
     ill = orient >= fin.orient_min
     np.logical_not(ill, out=ill)
@@ -686,7 +718,7 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     flags |= ill.view(np.uint8) * np.uint8(ILL_CONDITIONED)
     flags |= trunc.view(np.uint8) * np.uint8(TRUNCATION)
     nv, ni = classify_into(new[y0:y1], std, flags, fin.rng[y0:y1], fin.conf[y0:y1], rho_far=fin.rho_far,
-                           max_rel_std=fin.max_rel_std)
+                           max_rel_std=fin.max_rel_std, work=(T[0][o], T[2][o], T[5][o]))
     fin.n_val += nv
     fin.n_inf += ni
 
