@@ -434,9 +434,9 @@ class _Level:
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return wv, inv
 
-    def noise(self, rho, step: int = 3):
+    def noise(self, rho, step: int = 3, final: bool = True):
         """Robust residual noise on the subsampled grid (every ``step``-th pixel) at rho: over all pixels
-        (Huber scale) and over the fully in-view ones (the final noise)."""
+        (Huber scale) and over the fully in-view ones (the final noise; None unless ``final``)."""
         sr, sc = slice(0, self.h, step), slice(0, self.w, step)
         rs = np.ascontiguousarray(rho[sr, sc])
         B0, Q1, Q2 = self.B0, self.Q1, self.Q2
@@ -452,6 +452,8 @@ class _Level:
         vb *= inv
         wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         r = wv[..., 0] - self.ia[sr, sc]
+        if not final:
+            return _robust_sigma(r, step=1), None
         inview = (wv[..., 3] > F32(0.999)) & (inv > 0)
         return _robust_sigma(r, step=1), _robust_sigma(r, inview, step=1)
 
@@ -576,7 +578,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         for it in range(n_it):
             last = lev == 0 and it == n_it - 1
             if it == 0 or last:
-                sig_all, sig_in = lv.noise(rho)
+                sig_all, sig_in = lv.noise(rho, final=last)
             if it == 0:
                 sigma = sig_all
             # the final estimate is a result (fresh array); intermediate ones are work buffers
