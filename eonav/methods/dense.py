@@ -327,27 +327,31 @@ class _Level:
         R = np.asarray(geo.R_ba, float)
         t = np.asarray(geo.t_ba_m, float)
         a0, a1, a2 = R[0], R[1], R[2]
-        ones_w = np.ones((1, self.w), F32)
-        ones_h = np.ones((self.h, 1), F32)
-
-        def aff(c):
-            # (row part (1, w), column part (h, 1), [1, column] (h, 2), [row; 1] (2, w)): a block of rows s of
-            # the map is X[s] @ W (one small matmul: exact, and ~3x faster than numpy's broadcast add)
-            r, k = (c[0] + c[1] * m1).astype(F32)[None, :], (c[2] * m2).astype(F32)[:, None]
-            return r, k, np.hstack([ones_h, k]), np.vstack([r, ones_w])
-
+        # the maps' coefficients (c0, c1, c2): A0, P1, P2, C1, C2 and (b moving towards the scene) cap:
+        # half of (C1, C2): the 1/2 of the averaged gradient folded in (so E2 below is a quarter of |C|^2/den^4);
+        # cap: largest rho keeping den >= den_min (only bounded when b moves towards the scene), and at most rho_hi
+        cs = [a0, fxb * a1 + cxb * a0, fyb * a2 + cyb * a0, 0.5 * fxb * (t[1] * a0 - t[0] * a1),
+              0.5 * fyb * (t[2] * a0 - t[0] * a2)]
+        if t[0] < 0:
+            cs.append(np.array([a0[0] - den_min, a0[1], a0[2]]) / -t[0])
+        K = np.array(cs)
+        # per map: (row part (1, w), column part (h, 1), [1, column] (h, 2), [row; 1] (2, w)): a block of rows s
+        # of the map is X[s] @ W (one small matmul: exact, and ~3x faster than numpy's broadcast add); all maps
+        # in one go (the same float64 arithmetic as one map at a time, ~0.2 ms less Python per level)
+        n = len(cs)
+        rw = (K[:, :1] + K[:, 1:2] * m1[None, :]).astype(F32)
+        kc = (K[:, 2:3] * m2[None, :]).astype(F32)
+        X = np.ones((n, self.h, 2), F32)
+        X[:, :, 1] = kc
+        Wm = np.ones((n, 2, self.w), F32)
+        Wm[:, 0] = rw
+        aff = [(rw[i][None, :], kc[i][:, None], X[i], Wm[i]) for i in range(n)]
         self.ia = ia
-        self.A0 = aff(a0)
+        self.A0, self.P1, self.P2, self.C1, self.C2 = aff[:5]
         self.B0 = F32(t[0])
-        self.P1 = aff(fxb * a1 + cxb * a0)
         self.Q1 = F32(fxb * t[1] + cxb * t[0])
-        self.P2 = aff(fyb * a2 + cyb * a0)
         self.Q2 = F32(fyb * t[2] + cyb * t[0])
-        # half of (C1, C2): the 1/2 of the averaged gradient folded in (so E2 below is a quarter of |C|^2/den^4)
-        self.C1 = aff(0.5 * fxb * (t[1] * a0 - t[0] * a1))
-        self.C2 = aff(0.5 * fyb * (t[2] * a0 - t[0] * a2))
-        # largest rho keeping den >= den_min (only bounded when b moves towards the scene), and at most rho_hi
-        self.cap = aff(np.array([a0[0] - den_min, a0[1], a0[2]]) / -t[0]) if t[0] < 0 else None
+        self.cap = aff[5] if t[0] < 0 else None
         self.rho_hi = F32(rho_hi)
         gx = cv2.Scharr(ib, cv2.CV_32F, 1, 0, dst=_ws("gxb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
         gy = cv2.Scharr(ib, cv2.CV_32F, 0, 1, dst=_ws("gyb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
