@@ -706,7 +706,8 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     trunc = d > fin.trunc2
     # in view: 1.0 where mask > 0.999 and inv > 0 (thresholds straight to 0/1 floats)
     mf = cv2.threshold(mask, 0.999, 1.0, cv2.THRESH_BINARY, dst=T[4])[1]             # T4 mf
-    mul(mf, cv2.threshold(inv, 0.0, 1.0, cv2.THRESH_BINARY, dst=T[13])[1], dst=mf)
+    if not float(inv.min()) > 0:     # (inv > 0 nearly everywhere: one read-only pass instead of two; NaN: False)
+        mul(mf, cv2.threshold(inv, 0.0, 1.0, cv2.THRESH_BINARY, dst=T[13])[1], dst=mf)
     G = mul(gxa, gxa, dst=T[10])                                 # T10 G
     cv2.accumulateSquare(gya, G)
     mul(G, mf, dst=G)
