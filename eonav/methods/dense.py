@@ -61,7 +61,8 @@ def _ws(key, shape, dtype=F32, fill=None) -> np.ndarray:
     a page fault per 4 KiB page on every call (the allocator returns them to the OS): ~1000 faults for the
     4-channel warp source of a 512 x 512 image alone. ``fill``: constant contents, written once."""
     d = getattr(_TLS, "bufs", None)
-    if d is None or len(d) > 64:       # bounded: a stream of ever-new image sizes cannot grow it without end
+    if d is None or len(d) > 128:      # bounded: a stream of ever-new image sizes cannot grow it without end
+        # (one 512 x 512 locate holds ~50 buffers: the strips' work planes, caches and warps per level)
         d = _TLS.bufs = {}
     k = (key, tuple(shape), np.dtype(dtype).str, fill)
     a = d.get(k)
