@@ -105,13 +105,16 @@ def no_motion_result(shape, method: str, reason: str) -> RangeResult:
                        flags=np.full((h, w), ILL_CONDITIONED, np.uint8), info={"no_parallax": reason})
 
 
-def classify_into(rho, std, flags, rng, conf, *, rho_far: float, max_rel_std: float):
+def classify_into(rho, std, flags, rng, conf, *, rho_far: float, max_rel_std: float, work=None):
     """The per-pixel rules of ``classify`` in place, on any block of pixels (whole image or a strip):
     ``flags`` (uint8, with the method's bad bits already set) gains ILL_CONDITIONED / AT_INFINITY / VALID,
     ``rng`` and ``conf`` (float32, same shape) are written. Returns (n_valid, n_at_infinity).
-    Full-array arithmetic only (no boolean indexing, masked ufuncs or masked copies: ~5x faster)."""
+    Full-array arithmetic only (no boolean indexing, masked ufuncs or masked copies: ~5x faster).
+    ``work``: optional three float32 scratch arrays of the block's shape (e.g. a caller's reused work
+    buffers; same result): fresh float temporaries page-fault when the allocator has trimmed them."""
+    w0, w1, w2 = work if work is not None else (np.empty(rho.shape, F32) for _ in range(3))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        two = std * F32(2.0)
+        two = np.multiply(std, F32(2.0), out=w0)
         inf_ok = two < F32(rho_far)
         near0 = rho < two
         inf_ok &= near0                                   # rho within 2 sigma of 0, and sigma tight
@@ -132,11 +135,12 @@ def classify_into(rho, std, flags, rng, conf, *, rho_far: float, max_rel_std: fl
         # branch-free outputs (masked copies cost ~20x an arithmetic pass on fragmented masks):
         # range = ok / |rho * val|: 1/rho where VALID, +inf at infinity (1/0), NaN elsewhere (0/0);
         # confidence = max((rho * val + rho_far * at_inf) / std, 0): 0 elsewhere (0/std, or NaN -> 0)
-        valf = val.astype(F32)
-        inff = at_inf.astype(F32)
-        den = np.multiply(rho, valf)
+        valf, inff = w1, w2
+        np.copyto(valf, val)
+        np.copyto(inff, at_inf)
+        den = np.multiply(rho, valf, out=w0)
         np.abs(den, out=den)
-        np.divide(np.add(valf, inff), den, out=rng)
+        np.divide(np.add(valf, inff, out=rng), den, out=rng)
         num = np.multiply(rho, valf, out=valf)
         num += np.multiply(inff, F32(rho_far), out=inff)
         np.divide(num, std, out=conf)

@@ -25,9 +25,9 @@ of 0 with a tight sigma: range +inf).
 
 All per-pixel work is float32 numpy / OpenCV: no per-pixel Python. The Gauss-Newton steps, the flags and
 the classification run on strips of rows (``strip_px`` pixels each including a half-window halo, so the
-box sums are exactly those of the whole image): the ~30 temporaries of a strip stay in the CPU cache and are
-reused by the allocator instead of being fresh (page-faulting) full-size arrays; the large per-level
-buffers (warp source, gradients, cost volume) are per-thread work buffers reused from call to call (_ws).
+box sums are exactly those of the whole image): the temporaries of a strip are 16 work planes that stay in
+the CPU cache; they and the large per-level buffers (warp source, gradients, cost volume) are per-thread work
+buffers reused from strip to strip and call to call (_ws), never fresh (page-faulting) arrays.
 """
 from __future__ import annotations
 
@@ -61,7 +61,8 @@ def _ws(key, shape, dtype=F32, fill=None) -> np.ndarray:
     a page fault per 4 KiB page on every call (the allocator returns them to the OS): ~1000 faults for the
     4-channel warp source of a 512 x 512 image alone. ``fill``: constant contents, written once."""
     d = getattr(_TLS, "bufs", None)
-    if d is None or len(d) > 64:       # bounded: a stream of ever-new image sizes cannot grow it without end
+    if d is None or len(d) > 128:      # bounded: a stream of ever-new image sizes cannot grow it without end
+        # (one 512 x 512 locate holds ~50 buffers: the strips' work planes, caches and warps per level)
         d = _TLS.bufs = {}
     k = (key, tuple(shape), np.dtype(dtype).str, fill)
     a = d.get(k)
@@ -276,6 +277,9 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
     ap_t, ma_t, va_t = (np.tile(x, (step, 1)) for x in (ap, ma, va_pos))
     noise4 = F32(noise ** 4)
     mul, sub = cv2.multiply, cv2.subtract
+    # a chunk's temporaries in reused work planes (fresh ones page-fault: ~320 faults per locate)
+    Wk = _ws("search", (7, step * hp, w))
+    Wg = _ws("search_good", (2, step * hp, w), np.uint8)
     for k0 in range(0, n, step):
         k1 = min(n, k0 + step)
         m = k1 - k0
@@ -284,17 +288,25 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
             R = _rho_at_disp(disp[k0:k1].astype(F32)[:, None, None], A0, cn_p, F32(B[0]), cap_p)
         else:
             R = rhos[k0:k1].astype(F32)[:, None, None]
-        inv = F32(1.0) / (A0 + B[0] * R)
-        ub = (P1 + Q1 * R) * inv
-        vb = (P2 + Q2 * R) * inv
+        inv, ub, vb = (Wk[i, :mh].reshape(m, hp, w) for i in (4, 5, 6))
+        # (per-pixel rho is +inf for a displacement the pixel can never reach: its map is NaN, the hypothesis
+        # out of view below)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            np.add(A0, B[0] * R, out=inv)
+            np.divide(F32(1.0), inv, out=inv)
+            np.multiply(np.add(P1, Q1 * R, out=ub), inv, out=ub)
+            np.multiply(np.add(P2, Q2 * R, out=vb), inv, out=vb)
         ub2, vb2 = ub.reshape(mh, w), vb.reshape(mh, w)
-        good = cv2.bitwise_and(cv2.inRange(ub2, 0.0, float(wb - 1)), cv2.inRange(vb2, 0.0, float(hb - 1)))
+        good = cv2.bitwise_and(cv2.inRange(ub2, 0.0, float(wb - 1), dst=Wg[0, :mh]),
+                               cv2.inRange(vb2, 0.0, float(hb - 1), dst=Wg[1, :mh]), dst=Wg[0, :mh])
         if not float(inv.min()) > 0:
             good &= (inv.reshape(mh, w) > 0).view(np.uint8)
-        bw = cv2.remap(b, ub2, vb2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        mb = _box(bw, win)
-        vbb = sub(_box(mul(bw, bw), win), mul(mb, mb))
-        cab = sub(_box(mul(bw, ap_t[:mh]), win), mul(ma_t[:mh], mb))
+        bw = cv2.remap(b, ub2, vb2, cv2.INTER_LINEAR, dst=Wk[0, :mh], borderMode=cv2.BORDER_REPLICATE)
+        mb = _box_to(bw, win, dst=Wk[1, :mh])
+        vbb = _box_to(mul(bw, bw, dst=Wk[2, :mh]), win, dst=Wk[2, :mh])
+        sub(vbb, mul(mb, mb, dst=Wk[3, :mh]), dst=vbb)
+        cab = _box_to(mul(bw, ap_t[:mh], dst=Wk[3, :mh]), win, dst=Wk[3, :mh])
+        sub(cab, mul(ma_t[:mh], mb, dst=mb), dst=cab)
         np.maximum(vbb, 0, out=vbb)
         mul(vbb, va_t[:mh], dst=vbb)
         vbb += noise4
@@ -344,7 +356,8 @@ class _Level:
     (see _common.EpipolarMap). They are stored as a row part (c0 + c1 m1, per column) and a column part
     (c2 m2, per row) and built block by block (one broadcast add each), never as full-size arrays."""
 
-    def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05, cache: bool = False):
+    def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05, cache: bool = False,
+                 strip_rows: int | None = None, n_strips: int = 1):
         sc = 0.5 ** lev      # level intrinsics (as level_camera, without building Camera objects)
         ca, cb = geo.cam_a, geo.cam_b
         fxa, fya, cxa, cya = ca.fx * sc, ca.fy * sc, ca.cx * sc, ca.cy * sc
@@ -355,43 +368,66 @@ class _Level:
         R = np.asarray(geo.R_ba, float)
         t = np.asarray(geo.t_ba_m, float)
         a0, a1, a2 = R[0], R[1], R[2]
-        ones_w = np.ones((1, self.w), F32)
-        ones_h = np.ones((self.h, 1), F32)
-
-        def aff(c):
-            # (row part (1, w), column part (h, 1), [1, column] (h, 2), [row; 1] (2, w)): a block of rows s of
-            # the map is X[s] @ W (one small matmul: exact, and ~3x faster than numpy's broadcast add)
-            r, k = (c[0] + c[1] * m1).astype(F32)[None, :], (c[2] * m2).astype(F32)[:, None]
-            return r, k, np.hstack([ones_h, k]), np.vstack([r, ones_w])
-
+        # the maps' coefficients (c0, c1, c2): A0, P1, P2, C1, C2 and (b moving towards the scene) cap:
+        # half of (C1, C2): the 1/2 of the averaged gradient folded in (so E2 below is a quarter of |C|^2/den^4);
+        # cap: largest rho keeping den >= den_min (only bounded when b moves towards the scene), and at most rho_hi
+        cs = [a0, fxb * a1 + cxb * a0, fyb * a2 + cyb * a0, 0.5 * fxb * (t[1] * a0 - t[0] * a1),
+              0.5 * fyb * (t[2] * a0 - t[0] * a2)]
+        if t[0] < 0:
+            cs.append(np.array([a0[0] - den_min, a0[1], a0[2]]) / -t[0])
+        K = np.array(cs)
+        # per map: (row part (1, w), column part (h, 1), [1, column] (h, 2), [row; 1] (2, w)): a block of rows s
+        # of the map is X[s] @ W (one small matmul: exact, and ~3x faster than numpy's broadcast add); all maps
+        # in one go (the same float64 arithmetic as one map at a time, ~0.2 ms less Python per level)
+        n = len(cs)
+        rw = (K[:, :1] + K[:, 1:2] * m1[None, :]).astype(F32)
+        kc = (K[:, 2:3] * m2[None, :]).astype(F32)
+        X = np.ones((n, self.h, 2), F32)
+        X[:, :, 1] = kc
+        Wm = np.ones((n, 2, self.w), F32)
+        Wm[:, 0] = rw
+        aff = [(rw[i][None, :], kc[i][:, None], X[i], Wm[i]) for i in range(n)]
         self.ia = ia
-        self.A0 = aff(a0)
+        self.A0, self.P1, self.P2, self.C1, self.C2 = aff[:5]
         self.B0 = F32(t[0])
-        self.P1 = aff(fxb * a1 + cxb * a0)
         self.Q1 = F32(fxb * t[1] + cxb * t[0])
-        self.P2 = aff(fyb * a2 + cyb * a0)
         self.Q2 = F32(fyb * t[2] + cyb * t[0])
-        # half of (C1, C2): the 1/2 of the averaged gradient folded in (so E2 below is a quarter of |C|^2/den^4)
-        self.C1 = aff(0.5 * fxb * (t[1] * a0 - t[0] * a1))
-        self.C2 = aff(0.5 * fyb * (t[2] * a0 - t[0] * a2))
-        # largest rho keeping den >= den_min (only bounded when b moves towards the scene), and at most rho_hi
-        self.cap = aff(np.array([a0[0] - den_min, a0[1], a0[2]]) / -t[0]) if t[0] < 0 else None
+        self.cap = aff[5] if t[0] < 0 else None
         self.rho_hi = F32(rho_hi)
         gx = cv2.Scharr(ib, cv2.CV_32F, 1, 0, dst=_ws("gxb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
         gy = cv2.Scharr(ib, cv2.CV_32F, 0, 1, dst=_ws("gyb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
         self.b4 = cv2.merge([ib, gx, gy, _ws("one", ib.shape, fill=1.0)], dst=_ws("b4", ib.shape + (4,)))
         # strips' geometric maps and gradients of a, kept for the next iteration (levels iterated more than
-        # once); read-only
+        # once); read-only. Stored in planes of a work buffer (8 per strip), like every temporary of a strip
+        # (``work``): fresh strip-sized arrays page-faulted, the allocator trimming the heap they were freed to
+        # (~6500 minor faults, ~11 ms of system time per 512 x 512 locate, before the work planes)
+        self.strip_rows = min(self.h, strip_rows or self.h)
         self._cache = {} if cache else None
+        self._cplanes = (_ws(("gn_cache", lev), (8 * n_strips, self.strip_rows + 2, self.w)) if cache else None)
+        self._ncp = 0
 
-    def rows(self, c, s: slice) -> np.ndarray:
-        """Rows s of an affine map (read-only when cached)."""
+    _N_WORK = 16
+
+    def work(self) -> np.ndarray:
+        """The strips' work planes (_N_WORK, strip_rows + 2, w): a strip of n rows uses [:, :n] (each plane
+        contiguous); the 2 spare rows take the Scharr halo of grad_a."""
+        return _ws(("gn_work", self.w), (self._N_WORK, self.strip_rows + 2, self.w))
+
+    def _cache_plane(self, rows: int) -> np.ndarray:
+        """Next free plane of the level's cache buffer (rows x w); a fresh array if it is full."""
+        if self._ncp < len(self._cplanes):
+            self._ncp += 1
+            return self._cplanes[self._ncp - 1, :rows]
+        return np.empty((rows, self.w), F32)
+
+    def rows(self, c, s: slice, out: np.ndarray | None = None) -> np.ndarray:
+        """Rows s of an affine map, into ``out`` (read-only and not in ``out`` when cached)."""
         if self._cache is None:
-            return np.matmul(c[2][s], c[3])
+            return np.matmul(c[2][s], c[3], out=out)
         k = (id(c), s.start, s.stop)
         v = self._cache.get(k)
         if v is None:
-            v = self._cache[k] = np.matmul(c[2][s], c[3])
+            v = self._cache[k] = np.matmul(c[2][s], c[3], out=self._cache_plane(s.stop - s.start))
         return v
 
     def c2(self, s: slice) -> np.ndarray:
@@ -401,44 +437,51 @@ class _Level:
         if v is None:
             C1, C2 = self.rows(self.C1, s), self.rows(self.C2, s)
             if self._cache is not None:
-                v = self._cache[k] = cv2.add(cv2.multiply(C1, C1), cv2.multiply(C2, C2))
+                v = self._cache[k] = cv2.multiply(C1, C1, dst=self._cache_plane(s.stop - s.start))
+                cv2.add(v, cv2.multiply(C2, C2, dst=_ws("c2_tmp", v.shape)), dst=v)
             else:
                 v = cv2.multiply(C1, C1, dst=C1)
                 cv2.add(v, cv2.multiply(C2, C2, dst=C2), dst=v)
         return v
 
-    def grad_a(self, ya: int, yb: int):
+    def grad_a(self, ya: int, yb: int, work=None):
         """Gradient of a on rows [ya, yb) (one extra row each side when available, so the Scharr kernel sees
-        the image's own rows and reflects only at the image border). Read-only."""
+        the image's own rows and reflects only at the image border), in two planes of ``work`` (w wide, at
+        least yb - ya + 2 rows) unless cached. Read-only."""
         k = ("ga", ya, yb)
         v = self._cache.get(k) if self._cache is not None else None
         if v is None:
             y0, y1 = max(0, ya - 1), min(self.h, yb + 1)
-            gx, gy = _grad(self.ia[y0:y1])
+            n = y1 - y0
+            if self._cache is not None:
+                dx, dy = self._cache_plane(n), self._cache_plane(n)
+            elif work is not None:
+                dx, dy = work[0][:n], work[1][:n]
+            else:
+                dx = dy = None
+            src = self.ia[y0:y1]
+            gx = cv2.Scharr(src, cv2.CV_32F, 1, 0, dst=dx, scale=1.0 / 32.0, borderType=_BR)
+            gy = cv2.Scharr(src, cv2.CV_32F, 0, 1, dst=dy, scale=1.0 / 32.0, borderType=_BR)
             v = gx[ya - y0:yb - y0], gy[ya - y0:yb - y0]
             if self._cache is not None:
                 self._cache[k] = v
         return v
 
-    def warp(self, rho, s: slice):
-        """Warped [I_b, gx_b, gy_b, in-view] at rho (rows s of a), and 1/den."""
-        own = self._cache is None       # the rows are fresh arrays: work in place
-        a = self.rows(self.A0, s)
-        inv = cv2.scaleAdd(rho, float(self.B0), a, dst=a if own else None)
+    def warp(self, rho, s: slice, T):
+        """Warped [I_b, gx_b, gy_b, in-view] at rho (rows s of a), and 1/den (in T[0]; T[1], T[2]: the map)."""
+        inv = cv2.scaleAdd(rho, float(self.B0), self.rows(self.A0, s, out=T[0]), dst=T[0])
         np.divide(F32(1.0), inv, out=inv)
-        a = self.rows(self.P1, s)
-        ub = cv2.scaleAdd(rho, float(self.Q1), a, dst=a if own else None)
+        ub = cv2.scaleAdd(rho, float(self.Q1), self.rows(self.P1, s, out=T[1]), dst=T[1])
         cv2.multiply(ub, inv, dst=ub)
-        a = self.rows(self.P2, s)
-        vb = cv2.scaleAdd(rho, float(self.Q2), a, dst=a if own else None)
+        vb = cv2.scaleAdd(rho, float(self.Q2), self.rows(self.P2, s, out=T[2]), dst=T[2])
         cv2.multiply(vb, inv, dst=vb)
         wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, dst=_ws("wv", ub.shape + (4,)),
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return wv, inv
 
-    def noise(self, rho, step: int = 3):
+    def noise(self, rho, step: int = 3, final: bool = True):
         """Robust residual noise on the subsampled grid (every ``step``-th pixel) at rho: over all pixels
-        (Huber scale) and over the fully in-view ones (the final noise)."""
+        (Huber scale) and over the fully in-view ones (the final noise; None unless ``final``)."""
         sr, sc = slice(0, self.h, step), slice(0, self.w, step)
         rs = np.ascontiguousarray(rho[sr, sc])
         B0, Q1, Q2 = self.B0, self.Q1, self.Q2
@@ -454,6 +497,8 @@ class _Level:
         vb *= inv
         wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         r = wv[..., 0] - self.ia[sr, sc]
+        if not final:
+            return _robust_sigma(r, step=1), None
         inview = (wv[..., 3] > F32(0.999)) & (inv > 0)
         return _robust_sigma(r, step=1), _robust_sigma(r, inview, step=1)
 
@@ -463,11 +508,13 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  median: bool = True, iters=(3, 2, 2, 1), window: int = 7, huber_k: float = 2.0,
                  trust_px: float = 1.0, presmooth_sigma: float = 0.6, max_rel_std: float = 0.34,
                  far_parallax_px: float = 0.5, tex_k: float = 1.0, orient_min: float = 0.02,
-                 occ_k: float = 3.0, occ_window: int = 3, occ_px: float = 0.25, trunc_px: float = 1.0, std_scale: float = 1.35,
+                 occ_k: float = 3.0, occ_window: int = 3, occ_px: float = 0.25, trunc_px: float = 1.0,
+                 std_scale: float = 1.35,
                  fill_sigma: float = 4.0, fill_c: float = 0.3, highpass_sigma: float = 0.0,
                  highpass_levels: int = 9, bias: bool = True,
-                 match_floor_px: float = 0.05, strip_px: int = 32768, sgm: bool = False,
-                 tex_noise: str = "image", noise_info: bool = True, per_pixel_search: bool = True, sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0) -> RangeResult:
+                 match_floor_px: float = 0.05, strip_px: int = 49152, sgm: bool = False,
+                 tex_noise: str = "image", noise_info: bool = True, per_pixel_search: bool = True,
+                 sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -479,7 +526,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     11 m (51 px of motion near the focus of expansion, where 77 px were allowed) could not be found (raw error
     of its pixels 50 % -> 2.9 %, within 5 %: 34 -> 55 %). Sim presets and Middlebury: medians unchanged,
     coverage within 0.6 points, gross errors on the paper preset 1283 -> 1129 pixels.
-    search_level: pyramid level of the epipolar search (default: coarsest level of geometric-mean size >= 64 px, at most 3).
+    search_level: pyramid level of the epipolar search (default: coarsest level of geometric-mean size >= 64 px,
+    at most 3).
     search_step_px: hypothesis spacing, pixels of displacement at the search level.
     iters: Gauss-Newton iterations per level, finest level last (padded with its first entry if short).
     (3, 3, 1, 1) is ~8 % faster and as accurate on the sim presets, but leaves a 0.03 px disparity bias on
@@ -494,10 +542,10 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     tex_k: LOW_TEXTURE where the texture the model can use -- the windowed variance of the gradient (a brightness
     ramp is absorbed by the per-window offset) -- is below (1 + tex_k^2) x the gradient energy of the noise alone,
     i.e. below the noise's own at tex_k = 1 (with the total gradient energy, the faint sky gradient of the fast
-    preset passed and 3.4 % of its sky got a finite range; with the variance 0.75 %). tex_noise: which noise: "image" (the sensor noise measured on image a,
-    ``image_noise_sigma``) or "residual" (the final residual's, which on real images also holds interpolation and
-    non-Lambertian misfit, 2.6-3.4 x the sensor noise on Middlebury teddy / cones: there it flagged 22-25 % of the
-    pixels, whose estimates were within 0.6-1.6 %). "image" with tex_k 1 (was "residual" with 0.5): Middlebury
+    preset passed and 3.4 % of its sky got a finite range; with the variance 0.75 %). tex_noise: which noise:
+    "image" (the sensor noise measured on image a, ``image_noise_sigma``) or "residual" (the final residual's,
+    which on real images also holds interpolation and non-Lambertian misfit, 2.6-3.4 x the sensor noise on
+    Middlebury teddy / cones: there it flagged 22-25 % of the pixels, whose estimates were within 0.6-1.6 %). "image" with tex_k 1 (was "residual" with 0.5): Middlebury
     coverage cones 66 -> 80 %, teddy 60 -> 71 %, venus 64 -> 68 %, tsukuba 62 -> 65 %, median error within
     -0.07 .. +0.08 pp; sim presets coverage +0 .. +3 points, medians within 0.02 pp.
     noise_info: subtract the information the noise's own gradients put into the normal equations (E2 noise_G per
@@ -520,8 +568,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     (rho - rho_true) / sigma on the sim presets (1.1-1.5; the window's samples are correlated by the
     pre-smoothing and the interpolation). max_rel_std is 0.25 x 1.35 so that VALID is unchanged by it.
     strip_px: pixels per strip of rows of the Gauss-Newton steps, halo included; strips balanced in height
-    (<= 0: whole image at once; same result). 32768 keeps a strip's float32 temporaries under the allocator's
-    128 KiB mmap threshold and in L2.
+    (<= 0: whole image at once; same result). 49152 (6 strips of 86 rows at 512 x 512): the 16 work planes,
+    ~3 MiB, stay in a 4 MiB L2, with fewer halo rows and calls than 32768 (9 strips): 2-5 % faster per
+    locate (interleaved in one process, 25 rounds x 5 presets, twice); 65536 as fast, 98304 slower.
     sgm: semi-global aggregation (4 scanline paths) of the coarse ZNCC cost volume before winner-take-all;
     sgm_p1 / sgm_p2: penalties (cost units, 1 - ZNCC) of a one-hypothesis / larger jump between neighbours,
     sgm_tau: grey levels over which the jump penalty halves across an intensity edge. Off by default:
@@ -598,25 +647,29 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     g0, gG = _noise_gains(float(presmooth_sigma))
     for lev in range(L, -1, -1):
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
-        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1)
-        if rho.shape != pa[lev].shape:
-            rho = pyr_up_to(rho, pa[lev].shape)
         h, w = pa[lev].shape
-        # strip arrays incl. the halo within strip_px: at 32768 px (128 KiB of float32, the allocator's mmap
-        # threshold) the temporaries are recycled by malloc instead of page-faulting as fresh mappings
+        # strip arrays incl. the halo within strip_px (a strip's work planes stay in L2)
         step = max(8, strip_px // w - 2 * (window // 2)) if strip_px > 0 else h
         step = -(-h // -(-h // step))      # balanced: no thin last strip (each strip costs ~50 calls)
+        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1, strip_rows=step + 2 * (window // 2),
+                    n_strips=-(-h // step))
+        if rho.shape != pa[lev].shape:
+            if rho.shape[0] * 2 == h and rho.shape[1] * 2 == w:     # into a work buffer: same values
+                rho = cv2.pyrUp(rho, dst=_ws("rho_up", (h, w)), dstsize=(w, h))
+            else:
+                rho = pyr_up_to(rho, pa[lev].shape)
         for it in range(n_it):
             last = lev == 0 and it == n_it - 1
             if it == 0 or last:
-                sig_all, sig_in = lv.noise(rho)
+                sig_all, sig_in = lv.noise(rho, final=last)
             if it == 0:
                 sigma = sig_all
             # the final estimate is a result (fresh array); intermediate ones are work buffers
             new = np.empty_like(rho) if last else _ws(("rho", it % 2), rho.shape)
             if last:
                 fin = _Final(rho.shape, sig_in, img_sigma if tex_noise == "image" else None, g0, gG, window,
-                             presmooth_sigma, tex_k, occ_k, occ_px, trunc_px, match_floor_px, noise_info, std_scale, orient_min, far_inverse_range(geo, far_parallax_px),
+                             presmooth_sigma, tex_k, occ_k, occ_px, trunc_px, match_floor_px, noise_info,
+                             std_scale, orient_min, far_inverse_range(geo, far_parallax_px),
                              max_rel_std)
             for y0 in range(0, h, step):
                 _gn_block(lv, rho, new, y0, min(h, y0 + step), sigma, prm, fin if last else None)
@@ -666,58 +719,63 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     also the uncertainty, flags and classification of those rows.
 
     Elementwise work is done with OpenCV's array-array arithmetic (cv2.multiply/add/subtract/scaleAdd into
-    existing buffers): ~1.5x faster than numpy's ufuncs on these strip-sized float32 arrays."""
+    existing buffers): ~1.5x faster than numpy's ufuncs on these strip-sized float32 arrays. Every float
+    temporary is one of the strip's work planes T[i] (lv.work; reused from strip to strip and call to call:
+    fresh ones page-faulted, see _Level); the comments name what each plane holds."""
     mul, add, sub = cv2.multiply, cv2.add, cv2.subtract
     win = prm["window"]
     p = win // 2
     ya, yb = max(0, y0 - p), min(lv.h, y1 + p)
     s = slice(ya, yb)
     o = slice(y0 - ya, y1 - ya)
+    W = lv.work()
+    T = W[:, :yb - ya]
     R = rho[s]
-    wv, inv = lv.warp(R, s)
-    r = sub(np.ascontiguousarray(wv[..., 0]), lv.ia[s])
-    gxa, gya = lv.grad_a(ya, yb)
-    C1, C2 = lv.rows(lv.C1, s), lv.rows(lv.C2, s)
+    wv, inv = lv.warp(R, s, T)                                   # T0 inv (T1, T2: the map, free again)
+    # the warp's channels (cv2.split into the planes: one pass, ~6x faster than 4 strided numpy copies)
+    Ib, gxb, gyb, mask = cv2.split(wv, [T[3], T[4], T[5], T[6]])
+    r = sub(Ib, lv.ia[s], dst=Ib)                                # T3 r
+    gxa, gya = lv.grad_a(ya, yb, (W[7], W[8]))                   # T7, T8 (unless cached)
+    C1, C2 = lv.rows(lv.C1, s, out=T[1]), lv.rows(lv.C2, s, out=T[2])
     # J = grad I . d(u_b, v_b)/d rho with the gradient averaged over both images (eq. 27's symmetric form:
     # second-order accurate in the step, and the interpolation bias of a one-sided gradient halves)
-    gx = add(np.ascontiguousarray(wv[..., 1]), gxa)
-    gy = add(np.ascontiguousarray(wv[..., 2]), gya)
-    J = mul(gx, C1, dst=gx)
+    gx = add(gxb, gxa, dst=gxb)
+    gy = add(gyb, gya, dst=gyb)
+    J = mul(gx, C1, dst=gx)                                      # T4 J
     cv2.accumulateProduct(gy, C2, J)
-    inv2 = mul(inv, inv)
+    inv2 = mul(inv, inv, dst=T[9])                               # T9 inv2
     mul(J, inv2, dst=J)
     # a quarter of the squared sensitivity |d(u_b, v_b)/d rho|^2 = |C|^2 / den^4 (C1, C2 are halved)
-    c2 = lv.c2(s) if lv._cache is not None else cv2.accumulateSquare(C2, mul(C1, C1, dst=C1))
+    c2 = lv.c2(s) if lv._cache is not None else cv2.accumulateSquare(C2, mul(C1, C1, dst=C1))   # T1 c2
     # Huber weights min(1, k sigma / |r|) times the in-view mask: ks mask / max(|r|, ks)
     ks = F32(max(prm["huber_k"] * sigma, 1e-6))
-    wgt = np.abs(r)
+    wgt = np.abs(r, out=T[5])                                    # T5 wgt
     np.maximum(wgt, ks, out=wgt)
-    mask = np.ascontiguousarray(wv[..., 3])
     cv2.divide(mask, wgt, dst=wgt, scale=float(ks))
-    wJ = mul(wgt, J)
-    q = mul(J, R)
+    wJ = mul(wgt, J, dst=T[2])                                   # T2 wJ
+    q = mul(J, R, dst=T[10])                                     # T10 q
     sub(q, r, dst=q)
     # window sums; everything after them only on the block's own rows o (the halo only feeds the sums)
-    H = _box_to(mul(wJ, J), win)[o]
-    g = _box_to(mul(wJ, q), win)[o]
+    H = _box_to(mul(wJ, J, dst=T[11]), win, dst=T[11])[o]       # T11 H
+    g = _box_to(mul(wJ, q, dst=T[12]), win, dst=T[12])[o]       # T12 g
     wsum = None
     if prm["bias"]:   # unknown brightness offset per window, eliminated (Schur complement)
-        S0 = _box_to(wgt, win)[o]
+        S0 = _box_to(wgt, win, dst=T[13])[o]
         S0 += F32(1e-6)
         S1 = _box_to(wJ, win, dst=wJ)[o]
-        Sq = _box_to(mul(wgt, q, dst=q), win)[o]
+        Sq = _box_to(mul(wgt, q, dst=q), win, dst=q)[o]
         wsum = S0.copy() if fin is not None else None
         S1n = cv2.divide(S1, S0, dst=S0)
         sub(g, mul(Sq, S1n, dst=Sq), dst=g)
         sub(H, mul(S1, S1n, dst=S1), dst=H)
     Ro = R[o]
     i2 = inv2[o]
-    E2 = mul(c2[o], mul(i2, i2, dst=i2))
+    E2 = mul(c2[o], mul(i2, i2, dst=i2), dst=i2)                 # T9 E2
     # Levenberg: (H + lam) rho' = g + lam rho, lam = lam_c E2 (den = 0 only where C = 0 and H = 0: OpenCV's
     # division gives 0 there)
     lam_c = float(4.0 * sigma * sigma * prm["lam_k"])
-    num = cv2.scaleAdd(mul(E2, Ro), lam_c, g, dst=g)
-    den = cv2.scaleAdd(E2, lam_c, H)
+    num = cv2.scaleAdd(mul(E2, Ro, dst=T[14][o]), lam_c, g, dst=g)
+    den = cv2.scaleAdd(E2, lam_c, H, dst=T[15][o])
     out = new[y0:y1]
     cv2.divide(num, den, dst=out)
     np.maximum(out, F32(0), out=out)
@@ -729,21 +787,22 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     if fin is None:
         return
     # --- uncertainty and flags of rows [y0, y1), from this (the last) linearisation
-    d = sub(out, Ro)
+    d = sub(out, Ro, dst=T[14][o])                               # T14 d
     mul(d, d, dst=d)
     mul(d, E2, dst=d)
     trunc = d > fin.trunc2
-    inview = mask > F32(0.999)
-    inview &= inv > 0
-    mf = inview.view(np.uint8).astype(F32)
-    G = mul(gxa, gxa)
+    # in view: 1.0 where mask > 0.999 and inv > 0 (thresholds straight to 0/1 floats)
+    mf = cv2.threshold(mask, 0.999, 1.0, cv2.THRESH_BINARY, dst=T[4])[1]             # T4 mf
+    if not float(inv.min()) > 0:     # (inv > 0 nearly everywhere: one read-only pass instead of two; NaN: False)
+        mul(mf, cv2.threshold(inv, 0.0, 1.0, cv2.THRESH_BINARY, dst=T[13])[1], dst=mf)
+    G = mul(gxa, gxa, dst=T[10])                                 # T10 G
     cv2.accumulateSquare(gya, G)
     mul(G, mf, dst=G)
     G3 = _box_to(G, prm["occ_window"])[o]
-    G = _box_to(G, win)[o]
+    G = _box_to(G, win, dst=G)[o]
     mul(r, r, dst=r)
     mul(r, mf, dst=r)
-    R2 = _box_to(r, prm["occ_window"])[o]
+    R2 = _box_to(r, prm["occ_window"], dst=r)[o]
     std = fin.std[y0:y1]
     with np.errstate(divide="ignore", invalid="ignore"):
         # normal-equation information (Huber-weighted, brightness offset eliminated) of the last linearisation
@@ -767,7 +826,7 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     Gc = sub(G, mul(Mx, Mx, dst=Mx))
     sub(Gc, mul(My, My, dst=My), dst=Gc)
     low = Gc < fin.low_thr
-    oov = ~inview[o]
+    oov = mf[o] == F32(0)
     # occluded: a residual that neither the noise nor a misregistration of occ_px pixels explains
     G3 *= fin.occ_px2
     G3 += fin.occ_thr
@@ -781,7 +840,7 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     flags |= ill.view(np.uint8) * np.uint8(ILL_CONDITIONED)
     flags |= trunc.view(np.uint8) * np.uint8(TRUNCATION)
     nv, ni = classify_into(new[y0:y1], std, flags, fin.rng[y0:y1], fin.conf[y0:y1], rho_far=fin.rho_far,
-                           max_rel_std=fin.max_rel_std)
+                           max_rel_std=fin.max_rel_std, work=(T[0][o], T[2][o], T[5][o]))
     fin.n_val += nv
     fin.n_inf += ni
 
