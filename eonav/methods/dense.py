@@ -545,9 +545,10 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     preset passed and 3.4 % of its sky got a finite range; with the variance 0.75 %). tex_noise: which noise:
     "image" (the sensor noise measured on image a, ``image_noise_sigma``) or "residual" (the final residual's,
     which on real images also holds interpolation and non-Lambertian misfit, 2.6-3.4 x the sensor noise on
-    Middlebury teddy / cones: there it flagged 22-25 % of the pixels, whose estimates were within 0.6-1.6 %). "image" with tex_k 1 (was "residual" with 0.5): Middlebury
-    coverage cones 66 -> 80 %, teddy 60 -> 71 %, venus 64 -> 68 %, tsukuba 62 -> 65 %, median error within
-    -0.07 .. +0.08 pp; sim presets coverage +0 .. +3 points, medians within 0.02 pp.
+    Middlebury teddy / cones: there it flagged 22-25 % of the pixels, whose estimates were within 0.6-1.6 %).
+    "image" with tex_k 1 (was "residual" with 0.5): Middlebury coverage cones 66 -> 80 %, teddy 60 -> 71 %,
+    venus 64 -> 68 %, tsukuba 62 -> 65 %, median error within -0.07 .. +0.08 pp; sim presets coverage
+    +0 .. +3 points, medians within 0.02 pp.
     noise_info: subtract the information the noise's own gradients put into the normal equations (E2 noise_G per
     unit weight) before the sigma: where texture is faint, sigma then grows instead of staying tight around the
     neighbours' value (sky pixels of the fast preset with a finite range: 0.75 -> 0.53 %).
