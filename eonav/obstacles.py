@@ -196,6 +196,22 @@ def _check_maps(range_m, confidence, flags, inv_range_std_per_m, camera: Camera)
             raise InputError(f"{name} has shape {np.shape(a)}, expected {r.shape} like range_m")
 
 
+def frame_grid(camera: Camera, frame_size=None) -> tuple:
+    """(frame width, frame height, frame pixels per map pixel) of a map on ``camera``'s grid ranged from a frame of
+    ``frame_size`` = (width, height) (None or zeros: the map is on the frame's grid). Raises InputError when the frame
+    is smaller than the map."""
+    if frame_size is None or not any(frame_size):
+        return camera.width, camera.height, 1.0
+    try:
+        fw, fh = (int(x) for x in frame_size)
+    except (TypeError, ValueError):
+        raise InputError(f"frame size {frame_size!r}: expected (width, height)") from None
+    if fw < camera.width or fh < camera.height:
+        raise InputError(f"frame size {fw}x{fh} is smaller than the map's camera {camera.name!r} "
+                         f"{camera.width}x{camera.height}")
+    return fw, fh, (fw / camera.width) * (fh / camera.height)
+
+
 def confident_mask(range_m, confidence=None, flags=None, inv_range_std_per_m=None, cfg: ObstacleConfig = ObstacleConfig()):
     """Pixels with a finite positive range the estimator stands behind."""
     r = np.asarray(range_m, np.float32)
@@ -307,7 +323,8 @@ class ObstacleResult:
 
 
 def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags=None, inv_range_std_per_m=None,
-            cfg: ObstacleConfig = ObstacleConfig(), now_state: VehicleState | None = None) -> ObstacleResult:
+            cfg: ObstacleConfig = ObstacleConfig(), now_state: VehicleState | None = None,
+            frame_size=None) -> ObstacleResult:
     """Sectors and obstacle list of one range map (see the module docstring).
 
     ``state`` is the vehicle pose at capture (it places the points, eq. 33). ``now_state``, when given, is
@@ -315,14 +332,25 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     OBSTACLE_DISTANCE on arrival, relative to where the vehicle is then (20 m/s x 100 ms = 2 m).
 
     Maps wider than ``cfg.max_width_px`` are analysed on k x k pooling blocks (``pool_confident``): one robust-minimum
-    pixel per block. Pixel counts (sector and component thresholds, ``pixel_count``) stay in full-resolution pixels."""
+    pixel per block. Pixel counts (sector and component thresholds, ``pixel_count``) stay in full-resolution pixels.
+
+    ``camera`` is the camera of the map's own grid. A map computed at a locate scale (``camera`` =
+    ``eonav.camera.scaled_camera`` of the frame's) is analysed on that grid with ``frame_size`` = the frame's (width,
+    height): each map pixel then counts as the frame pixels it stands for, so the thresholds, ``pixel_count``,
+    ``n_confident`` and ``bbox_px`` stay in frame pixels and the result matches that of the same map upsampled to the
+    frame (tests/test_obstacles.py), for a quarter of the pixels at scale 0.5."""
     _check_maps(range_m, confidence, flags, inv_range_std_per_m, camera)
+    fw, fh, area = frame_grid(camera, frame_size)
     conf_m = confident_mask(range_m, confidence, flags, inv_range_std_per_m, cfg)
     k = pool_factor(camera.width, cfg)
     idx, weight, cell, grid = pool_confident(np.asarray(range_m, np.float32), conf_m, k, cfg.pool_percentile)
+    if area != 1.0:
+        weight = weight * area
     pts = pixel_points(range_m, camera, state, None, confidence, inv_range_std_per_m, idx=idx)
     pts.weight, pts.cell = weight, cell
     inf_cols = np.count_nonzero(infinity_mask(range_m, flags), axis=0)     # pixels at infinity per image column
+    if area != 1.0:
+        inf_cols = inf_cols * area
     ground = estimate_ground_down_m(pts, state, cfg)
     z = pts.ned_m[:, 2]
     clearance = np.full(z.shape, cfg.ground_clearance_m)
@@ -337,7 +365,7 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     in_band = above_ground & (z > state.position_ned_m[2] - cfg.max_height_above_m)
     obstacle = in_band & (pts.hdist_m <= cfg.max_distance_m)
     # speckle (small or flat blobs: mismatched ground patches) is neither an obstacle nor in the sectors
-    comps, kept = _components(pts, obstacle, camera, grid, k, state, cfg)
+    comps, kept = _components(pts, obstacle, camera, grid, k, state, cfg, (fw, fh))
     sectors = _sectors(pts, kept, ~obstacle, camera, inf_cols, cfg)
     obstacles = [o for o in comps if o.distance_m <= cfg.max_obstacle_distance_m][:cfg.max_obstacles]
     for i, o in enumerate(obstacles):
@@ -347,8 +375,8 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
         moved = relative_to(pts, now_state)
         sectors_now = _sectors(moved, kept & (moved.hdist_m <= cfg.max_distance_m),
                                in_band & (moved.hdist_m > cfg.max_distance_m) | ~in_band, camera, inf_cols, cfg)
-    return ObstacleResult(sectors, obstacles, ground, int(np.count_nonzero(conf_m)), int(round(weight[kept].sum())),
-                          sectors_now)
+    return ObstacleResult(sectors, obstacles, ground, int(round(np.count_nonzero(conf_m) * area)),
+                          int(round(weight[kept].sum())), sectors_now)
 
 
 def relative_to(pts: Points, state: VehicleState) -> Points:
@@ -414,9 +442,11 @@ def _sectors(pts: Points, obstacle, evidence, camera, inf_cols, cfg: ObstacleCon
     return Sectors(out, inc, off, min_cm, max_cm, np.round(counts).astype(np.int64))
 
 
-def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: VehicleState, cfg: ObstacleConfig):
+def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: VehicleState, cfg: ObstacleConfig,
+                frame_size: tuple | None = None):
     """Obstacles (nearest first) and the mask over ``pts`` of the points of the components kept. Works on the analysis
-    grid (``grid`` = (rows, cols) of cells; a cell is a k x k block of pixels)."""
+    grid (``grid`` = (rows, cols) of cells; a cell is a k x k block of pixels); ``bbox_px`` is in the pixels of the
+    frame of ``frame_size`` (default: the map's own grid)."""
     from scipy import ndimage
     gh, gw = grid
     n_cells = gh * gw
@@ -473,6 +503,7 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
     down_sorted = pts.ned_m[pi, 2][np.lexsort((pts.ned_m[pi, 2], lab))]
     height = (_sorted_percentile(down_sorted, starts, n_in, 95.0) - _sorted_percentile(down_sorted, starts, n_in, 5.0))
     W, H = camera.width, camera.height
+    FW, FH = frame_size or (W, H)
     q = cfg.percentile
     out = []
     for j in np.flatnonzero(height >= cfg.min_obstacle_height_m):
@@ -509,10 +540,19 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
             extent_ned_m=[float(x) for x in (p95 - p5)], width_m=width, height_m=float(p95[2] - p5[2]),
             pixel_count=int(round(pts.weight[grp_p].sum())),
             confidence=float(_pct_sorted(np.sort(pts.confidence[grp_p]), 50.0)),
-            bbox_px=[int(gx.min() * k), int(gy.min() * k), int(min(W - 1, gx.max() * k + k - 1)),
-                     int(min(H - 1, gy.max() * k + k - 1))]))
+            bbox_px=_frame_bbox(gx.min() * k, gy.min() * k, min(W - 1, gx.max() * k + k - 1),
+                                min(H - 1, gy.max() * k + k - 1), W, H, FW, FH)))
     out.sort(key=lambda o: o.distance_m)
     return out, kept
+
+
+def _frame_bbox(u0, v0, u1, v1, W, H, FW, FH) -> list:
+    """Map pixels [u0, u1] x [v0, v1] of a W x H grid as the frame pixels they cover on the FW x FH frame (the same
+    box on the frame's grid)."""
+    if (FW, FH) == (W, H):
+        return [int(u0), int(v0), int(u1), int(v1)]
+    return [int(u0 * FW // W), int(v0 * FH // H), int(min(FW - 1, -(-(u1 + 1) * FW // W) - 1)),
+            int(min(FH - 1, -(-(v1 + 1) * FH // H) - 1))]
 
 
 class ObstacleTracker:
