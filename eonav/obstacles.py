@@ -259,6 +259,8 @@ def pool_confident(range_m, conf_mask, k: int, pool_percentile: float = 10.0):
     gh, gw = -(-H // k), -(-W // k)
     rr = np.full((gh * k, gw * k), np.inf, np.float32)
     rr[:H, :W] = np.where(conf_mask, range_m, np.inf)
+    if math.floor(pool_percentile / 100.0 * (k * k - 1)) == 0:
+        return _pool_nearest(rr, k, W, (gh, gw))
     blocks = rr.reshape(gh, k, gw, k).transpose(0, 2, 1, 3).reshape(gh * gw, k * k)
     n = np.count_nonzero(np.isfinite(blocks), axis=1)
     cell = np.flatnonzero(n)
@@ -269,6 +271,30 @@ def pool_confident(range_m, conf_mask, k: int, pool_percentile: float = 10.0):
     by, bx = np.divmod(pick, k)
     gy, gx = np.divmod(cell, gw)
     return (gy * k + by) * W + (gx * k + bx), n.astype(np.float64), cell, (gh, gw)
+
+
+def _pool_nearest(rr, k: int, W: int, grid: tuple):
+    """``pool_confident`` when every block's rank is 0 (k <= 3 at the default 10 %: the nearest confident pixel): the
+    same picks from the k * k strided sub-grids with element-wise minimum and compare, instead of an argsort of every
+    k * k block (measured on a 320 x 240 locate-grid map, k = 2, bench machine: argsort of the 19200 x 4 blocks 2.7 ms,
+    argmin 1.0 ms, this ~0.3 ms). Ties (equal ranges in one block) go to the first pixel of the block in row-major order,
+    which a stable sort would pick (numpy's default argsort breaks ties by platform: SIMD sorts are not stable)."""
+    gh, gw = grid
+    subs = [rr[i::k, j::k] for i in range(k) for j in range(k)]       # each gh x gw: offset (i, j) of every block
+    m = subs[0].copy()
+    n = np.isfinite(subs[0]).astype(np.int64)
+    for sub in subs[1:]:
+        np.minimum(m, sub, out=m)
+        n += np.isfinite(sub)
+    pick = np.zeros((gh, gw), np.int64)
+    for o in range(len(subs) - 1, 0, -1):                             # backwards: the first offset at the minimum wins
+        pick[subs[o] == m] = o
+    pick[subs[0] == m] = 0
+    n = n.ravel()
+    cell = np.flatnonzero(n)
+    by, bx = np.divmod(pick.ravel()[cell], k)
+    gy, gx = np.divmod(cell, gw)
+    return (gy * k + by) * W + (gx * k + bx), n[cell].astype(np.float64), cell, (gh, gw)
 
 
 def pixel_points(range_m, camera: Camera, state: VehicleState, mask: np.ndarray | None, confidence=None,
@@ -444,7 +470,9 @@ def _sectors(pts: Points, obstacle, evidence, camera, inf_cols, cfg: ObstacleCon
 
 def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: VehicleState, cfg: ObstacleConfig,
                 frame_size: tuple | None = None):
-    """Obstacles (nearest first) and the mask over ``pts`` of the points of the components kept. Works on the analysis
+    """Obstacles within ``cfg.max_obstacle_distance_m`` (nearest first; the details of farther components are not
+    computed: 4 of the 14 components of a 640 x 480 approach-flight map) and the mask over ``pts`` of the points of all
+    the components kept (the sectors use them at any distance). Works on the analysis
     grid (``grid`` = (rows, cols) of cells; a cell is a k x k block of pixels); ``bbox_px`` is in the pixels of the
     frame of ``frame_size`` (default: the map's own grid)."""
     from scipy import ndimage
@@ -508,12 +536,14 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
     out = []
     for j in np.flatnonzero(height >= cfg.min_obstacle_height_m):
         grp_p, grp_px = pi[starts[j]:starts[j] + n_in[j]], px[starts[j]:starts[j] + n_in[j]]
-        kept[grp_p] = True
+        kept[grp_p] = True                            # in the sectors whatever its distance
+        dist_s = np.sort(pts.dist_m[grp_p])
+        if _pct_sorted(dist_s, q) > cfg.max_obstacle_distance_m:
+            continue                                  # not listed (analyse keeps <= max_obstacle_distance_m): no details
         ned = pts.ned_m[grp_p]
         ned_s = np.sort(ned, axis=0)
         p5, p95 = _pct_sorted(ned_s, 5.0), _pct_sorted(ned_s, 95.0)
         med = _pct_sorted(ned_s, 50.0)
-        dist_s = np.sort(pts.dist_m[grp_p])
         body_med = _pct_sorted(np.sort(pts.body_m[grp_p], axis=0), 50.0)
         los = med - state.position_ned_m
         across = np.array([-los[1], los[0], 0.0])

@@ -473,3 +473,36 @@ def test_warm_up_map_goes_through_the_analysis():
     broken = SimpleNamespace(analyse=lambda *a, **k: 1 / 0)
     node.log.warning = lambda *a: None
     assert warm_up(node, ob.ObstacleConfig(), broken) is None and counted == {"warmup_errors": 1}
+
+
+def _pool_reference(r, conf, k, q):
+    """pool_confident by its definition, block by block: the floor(q/100 (n-1))-th confident pixel by range, ties to the
+    first in row-major order (a stable sort)."""
+    H, W = conf.shape
+    idx, weight = [], []
+    for by in range(0, H, k):
+        for bx in range(0, W, k):
+            pix = [(r[y, x], y * W + x) for y in range(by, min(by + k, H)) for x in range(bx, min(bx + k, W))
+                   if conf[y, x]]
+            if pix:
+                pix.sort(key=lambda t: t[0])                        # stable
+                idx.append(pix[int(math.floor(q / 100.0 * (len(pix) - 1)))][1])
+                weight.append(len(pix))
+    return np.array(idx), np.array(weight, float)
+
+
+@pytest.mark.parametrize("k,q", [(2, 10.0), (3, 10.0), (2, 0.0), (3, 50.0), (4, 10.0)])
+def test_pool_confident_matches_its_definition(k, q):
+    """The element-wise path (every rank 0: k <= 3 at 10 %) and the argsort path pick the pixel the definition picks,
+    on odd sizes, with holes; with ties (quantised ranges) the element-wise path takes the first pixel of the block
+    (the argsort path's tie order is numpy's, so it is checked on distinct ranges only)."""
+    rng = np.random.default_rng(k)
+    H, W = 23, 31
+    fast = math.floor(q / 100.0 * (k * k - 1)) == 0
+    r = (np.round(rng.random((H, W)) * 4) + 1 if fast else rng.random((H, W)) * 100 + 1).astype(np.float32)
+    conf = rng.random((H, W)) > 0.3
+    idx, weight, cell, grid = ob.pool_confident(r, conf, k, q)
+    want_idx, want_w = _pool_reference(r, conf, k, q)
+    assert grid == (-(-H // k), -(-W // k)) and cell.size == want_idx.size
+    np.testing.assert_array_equal(idx, want_idx)
+    np.testing.assert_array_equal(weight, want_w)
