@@ -13,7 +13,8 @@ the locator's own compute time, and whether payloads arrived through zenoh share
 ``eonav bench pipeline`` delegates to. ``--scale`` passes the locator's ``--scale`` (default ``auto``: the adaptive
 scale; a number fixes it, e.g. 0.5 = half-resolution locate); each line reports the scales the range maps came at;
 ``--publish-grid`` passes the locator's ``--publish-grid`` (default ``locate``: maps on the grid they were computed
-on; ``frame``: upsampled to the frame's grid); ``--accuracy`` instead measures, in process, what a scale costs against the simulator's truth (``accuracy``).
+on; ``frame``: upsampled to the frame's grid); ``--accuracy`` instead measures, in process, what a scale costs
+against the simulator's truth (``accuracy``).
 """
 from __future__ import annotations
 

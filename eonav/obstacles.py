@@ -276,9 +276,10 @@ def pool_confident(range_m, conf_mask, k: int, pool_percentile: float = 10.0):
 def _pool_nearest(rr, k: int, W: int, grid: tuple):
     """``pool_confident`` when every block's rank is 0 (k <= 3 at the default 10 %: the nearest confident pixel): the
     same picks from the k * k strided sub-grids with element-wise minimum and compare, instead of an argsort of every
-    k * k block (measured on a 320 x 240 locate-grid map, k = 2, bench machine: argsort of the 19200 x 4 blocks 2.7 ms,
-    argmin 1.0 ms, this ~0.3 ms). Ties (equal ranges in one block) go to the first pixel of the block in row-major order,
-    which a stable sort would pick (numpy's default argsort breaks ties by platform: SIMD sorts are not stable)."""
+    k * k block (measured on a 320 x 240 locate-grid map of the approach flight, k = 2, on the loaded 2-core bench
+    machine, best of 5 x 20 calls: the argsort path 3.0-5.2 ms, this 1.4-2.5 ms). Ties (equal ranges in one block) go to the first pixel of the block in
+    row-major order, which a stable sort would pick (numpy's default argsort breaks ties by platform: SIMD sorts
+    are not stable)."""
     gh, gw = grid
     subs = [rr[i::k, j::k] for i in range(k) for j in range(k)]       # each gh x gw: offset (i, j) of every block
     m = subs[0].copy()
@@ -539,7 +540,7 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
         kept[grp_p] = True                            # in the sectors whatever its distance
         dist_s = np.sort(pts.dist_m[grp_p])
         if _pct_sorted(dist_s, q) > cfg.max_obstacle_distance_m:
-            continue                                  # not listed (analyse keeps <= max_obstacle_distance_m): no details
+            continue                                  # not listed (analyse keeps <= max_obstacle_distance_m)
         ned = pts.ned_m[grp_p]
         ned_s = np.sort(ned, axis=0)
         p5, p95 = _pct_sorted(ned_s, 5.0), _pct_sorted(ned_s, 95.0)

@@ -41,8 +41,9 @@ stay in frame pixels). ``frame`` upsamples the maps to the frame's grid by neare
 pixel floor((u + 0.5) S): ``to_full_grid``) and sends the frame's camera, as before. Why ``locate``: measured at
 640x480 and scale 0.5 the upsampling cost the locator 2.3 ms per pair, the message was 2.77 MB instead of 0.69 MB
 (encode 1.3 ms, decode 0.4 ms, the copies on the bus) and the obstacle analysis 15.1 ms instead of 10.4 ms, for the same
-obstacles (the upsampled pixels carry no information the scaled ones do not). 0.5 costs roughly a quarter of the locate time; what it costs in
-accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range error and coverage vs truth).
+obstacles (the upsampled pixels carry no information the scaled ones do not). 0.5 costs roughly a quarter of the
+locate time; what it costs in accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range
+error and coverage vs truth).
 
 Health: counters ``pairs_computed``, ``scale_changes``, ``scale_pct.<camera>`` (above), ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
 ``locate_errors``, ``warmup_errors``, ``frames_skipped``, ``frames_superseded``; latencies ``warmup`` (per camera), ``capture_to_published`` (frame capture stamp

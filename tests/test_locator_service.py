@@ -353,7 +353,8 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
                 assert o["stamp_us"] == m["stamp_us"]
                 pos = view.state.position_ned_m
                 cb = np.asarray(boxes["truck"].center_ned_m) - pos
-                match = [x for x in o["obstacles"] if abs(x["bearing_deg"] - math.degrees(math.atan2(cb[1], cb[0]))) < 3]
+                bearing = math.degrees(math.atan2(cb[1], cb[0]))
+                match = [x for x in o["obstacles"] if abs(x["bearing_deg"] - bearing) < 3]
                 assert match and match[0]["distance_m"] == pytest.approx(box_distance(boxes["truck"], pos), rel=0.08)
                 assert all(0 <= x["bbox_px"][2] <= 255 and 0 <= x["bbox_px"][3] <= 255 for x in o["obstacles"])
 
