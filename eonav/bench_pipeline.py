@@ -12,7 +12,9 @@ the locator's own compute time, and whether payloads arrived through zenoh share
 ``run_bench(cases, seconds=...)`` is the pipeline function; ``add_arguments``/``run`` are the CLI hooks that
 ``eonav bench pipeline`` delegates to. ``--scale`` passes the locator's ``--scale`` (default ``auto``: the adaptive
 scale; a number fixes it, e.g. 0.5 = half-resolution locate); each line reports the scales the range maps came at;
-``--accuracy`` instead measures, in process, what a scale costs against the simulator's truth (``accuracy``).
+``--publish-grid`` passes the locator's ``--publish-grid`` (default ``locate``: maps on the grid they were computed
+on; ``frame``: upsampled to the frame's grid); ``--accuracy`` instead measures, in process, what a scale costs
+against the simulator's truth (``accuracy``).
 """
 from __future__ import annotations
 
@@ -50,16 +52,17 @@ def _pct(v, q):
 
 
 def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, frames: list, *, method: str = "dense",
-               cv_threads: int = 1, vehicle: str = "bench", scale="auto") -> dict:
+               cv_threads: int = 1, vehicle: str = "bench", scale="auto", publish_grid: str = "locate") -> dict:
     import zenoh
     from . import keys as K
     from . import schema
     from .bus.testing import client_session, start_service, stop_service, wait_until
     common = ["--vehicle", vehicle, "--connect", ep, "--health-period", "1", "--log-level", "warning"]
     procs = [start_service(["-m", "services.locator", *common, "--method", method, "--cv-threads", str(cv_threads),
-                            "--scale", str(scale)]),
+                            "--scale", str(scale), "--publish-grid", publish_grid]),
              start_service(["-m", "services.obstacles", *common, "--ground-down", "0"])]
-    res = {"fps": fps, "width": width, "height": height, "method": method, "scale": scale}
+    res = {"fps": fps, "width": width, "height": height, "method": method, "scale": scale,
+           "publish_grid": publish_grid}
     try:
         with client_session(ep) as s:
             rx_map, rx_obs, shm = {}, {}, {"maps": 0, "maps_shm": 0}
@@ -154,7 +157,7 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
 
 
 def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense", cv_threads: int = 1,
-              stream=None, scale="auto") -> list:
+              stream=None, scale="auto", publish_grid: str = "locate") -> list:
     """Run each (fps, width, height) case; print one line each and return the result dicts."""
     from .bus.testing import router_process
     stream = stream or sys.stdout
@@ -168,10 +171,10 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
                 rendered[(w, h)] = _frames(w, h)
             # a vehicle name per case: no health or subscriber of the previous case's services can be mistaken
             r = bench_case(ep, fps, w, h, seconds, rendered[(w, h)], method=method, cv_threads=cv_threads,
-                           vehicle=f"bench{k}", scale=scale)
+                           vehicle=f"bench{k}", scale=scale, publish_grid=publish_grid)
             out.append(r)
             scales = ", ".join(f"{k}: {n}" for k, n in sorted(r["maps_per_scale"].items(), reverse=True))
-            print(f"{fps:4.0f} fps {w}x{h} {method} scale {scale} (maps at {scales or '-'}; "
+            print(f"{fps:4.0f} fps {w}x{h} {method} scale {scale} grid {publish_grid} (maps at {scales or '-'}; "
                   f"{r['locator_scale_changes']} changes): capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
                   f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
                   f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
@@ -184,14 +187,18 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
 
 
 def accuracy(size=(640, 480), scales=(1.0, 0.5), n_frames: int = 5, rate_hz: float = 10.0, method: str = "dense",
-             stream=None) -> list:
+             stream=None, publish_grid: str = "locate") -> list:
     """What the locator's ``--scale`` costs, in process, against the simulator's truth: consecutive frames of the
     approach flight (the bench's frames) ranged through the locator's own code path (``frame_info`` at the scale,
-    locate, ``to_full_grid``), scored on the full-resolution grid: median |relative range error| and coverage of
-    confident pixels, and the obstacle list's nearest distance against the one from the true range map."""
+    locate, ``map_fields`` for ``publish_grid``), scored on the grid of the map that would be published (its own
+    camera's: the truth sampled at its pixel centres, ``eonav.camera.on_grid``): median |relative range error| and
+    coverage of confident pixels, and the obstacle list's nearest distance (the obstacle service's ``analyse_msg``)
+    against the one from the true full-resolution range map."""
     import cv2
-    from services.locator import CameraCache, frame_info, to_full_grid
+    from services.locator import CameraCache, frame_info, map_fields
+    from services.obstacles import analyse_msg
     from . import obstacles as ob
+    from .camera import on_grid
     from . import schema
     from .camera import View
     from .geometry import quat_wxyz_from_rotation
@@ -221,16 +228,14 @@ def accuracy(size=(640, 480), scales=(1.0, 0.5), n_frames: int = 5, rate_hz: flo
             res = locate(View(a.payload["camera"], a.state, a.payload["image"]),
                          View(b.payload["camera"], b.state, b.payload["image"]), method=method)
             t_loc.append(time.perf_counter() - t0)
-            r = to_full_grid(np.asarray(res.range_m, np.float32), a.camera)
-            fl = to_full_grid(np.asarray(res.flags, np.uint8), a.camera)
-            std = to_full_grid(res.inv_range_std_per_m, a.camera)
-            conf = to_full_grid(res.confidence, a.camera)
-            truth = rendered[i][2].range_m
+            m = map_fields(res, a, a.payload["camera"], "f16", publish_grid)
+            r, fl = m["range_m"], m["flags"]
+            truth = on_grid(rendered[i][2].range_m, r.shape[1], r.shape[0])
             ok = ((fl & VALID) != 0) & np.isfinite(r) & np.isfinite(truth)
             errs.append(float(np.median(np.abs(r[ok] - truth[ok]) / truth[ok])))
             cover.append(float(ok.mean()))
-            est = ob.analyse(r, a.camera, a.state, confidence=conf, flags=fl, inv_range_std_per_m=std, cfg=cfg)
-            tru = ob.analyse(truth.astype(np.float32), a.camera, a.state, cfg=cfg)
+            est = analyse_msg(ob, m, schema.camera_from_msg(m["camera"]), a.state, cfg)
+            tru = ob.analyse(rendered[i][2].range_m.astype(np.float32), a.camera, a.state, cfg=cfg)
             if est.obstacles and tru.obstacles:
                 near_err.append(est.obstacles[0].distance_m / tru.obstacles[0].distance_m - 1.0)
         row = {"width": w, "height": h, "scale": scale, "median_rel_error": float(np.median(errs)),
@@ -255,6 +260,8 @@ def add_arguments(p) -> None:
     p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
     p.add_argument("--scale", default="auto",
                    help="locator --scale: auto (default, adaptive) or a number (1: full, 0.5: half-resolution locate)")
+    p.add_argument("--publish-grid", default="locate", choices=("locate", "frame"),
+                   help="locator --publish-grid: range maps on the locate grid (default) or upsampled to the frame's")
     p.add_argument("--accuracy", action="store_true",
                    help="instead of the pipeline: range error, coverage and nearest obstacle vs simulator truth at "
                         "scales 1 and 0.5 (in process, the locator's code path) for each case's image size")
@@ -280,11 +287,13 @@ def run(args) -> int:
     if args.accuracy:
         sizes = list(dict.fromkeys((w, h) for _, w, h in cases))
         res = [r for m in methods for size in sizes
-               for r in accuracy(size, scales=sorted({1.0, fixed or 1.0, 0.5}, reverse=True), method=m)]
+               for r in accuracy(size, scales=sorted({1.0, fixed or 1.0, 0.5}, reverse=True), method=m,
+                                 publish_grid=args.publish_grid)]
     else:
         # every method in the same run: the OpenCV DIS baseline ("dis") beside the default ("dense")
         res = [r for m in methods for r in run_bench(cases, seconds=args.seconds, method=m,
-                                                      cv_threads=args.cv_threads, scale=scale)]
+                                                      cv_threads=args.cv_threads, scale=scale,
+                                                      publish_grid=args.publish_grid)]
     if args.json:
         print(json.dumps(res))
     return 0

@@ -156,3 +156,32 @@ def pair_geometry(view_a: View, view_b: View) -> PairGeometry:
     R, t = relative_pose(ca.T_cam_body, view_a.state.T_body_ned, view_a.state.position_ned_m, ca.l_body_m,
                          cb.T_cam_body, view_b.state.T_body_ned, view_b.state.position_ned_m, cb.l_body_m)
     return PairGeometry(ca, cb, R, t)
+
+
+def scaled_camera(cam: Camera, scale: float) -> Camera:
+    """``cam`` for images resized by ``scale`` (cv2.INTER_AREA): ``round(scale * size)`` pixels a side (at least 8),
+    pixel centres kept: fx' = sx fx and cx' = sx (cx + 0.5) - 0.5 with sx = width' / width (likewise y), so pixel u'
+    of the resized image is centred on u = (u' + 0.5) / sx - 0.5 of the original. A range map located at a scale is
+    on this camera's grid (what the locator publishes by default: services/locator.py)."""
+    from dataclasses import replace
+    w, h = max(8, int(round(cam.width * scale))), max(8, int(round(cam.height * scale)))
+    sx, sy = w / cam.width, h / cam.height
+    return replace(cam, width=w, height=h, fx=cam.fx * sx, fy=cam.fy * sy,
+                   cx=(cam.cx + 0.5) * sx - 0.5, cy=(cam.cy + 0.5) * sy - 0.5)
+
+
+def frame_pixel_index(small: int, full: int) -> np.ndarray:
+    """For each of ``small`` pixels of a grid resized from ``full`` (``scaled_camera``), the full-grid pixel that
+    contains its centre: floor((u' + 0.5) full / small), clipped. At scale 0.5 the centre lies on the border of two
+    full pixels and the right/lower one is taken; the locator's nearest-neighbour upsampling (``upsample_index``)
+    gives both of them this small pixel, so a map scored here or on the upsampled grid sees the same values."""
+    return np.minimum(((np.arange(small) + 0.5) * (full / small)).astype(np.int64), full - 1)
+
+
+def on_grid(full_map, width: int, height: int):
+    """``full_map`` (H x W, e.g. a simulator's true range) sampled at the pixel centres of a ``width`` x ``height``
+    grid resized from it (``frame_pixel_index``); the map itself when the sizes already agree."""
+    a = np.asarray(full_map)
+    if a.shape[:2] == (height, width):
+        return a
+    return a.take(frame_pixel_index(height, a.shape[0]), axis=0).take(frame_pixel_index(width, a.shape[1]), axis=1)

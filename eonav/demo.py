@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera import on_grid
+
 log = logging.getLogger("eonav.demo")
 
 DEFAULT_FLIGHT = "approach"
@@ -196,8 +198,9 @@ class Monitor:
         score = {"stamp_us": st, "seq": m["seq"], "frame": i, "compute_s": m["compute_s"],
                  "baseline_m": m["baseline_m"]}
         if i is not None:
-            gt = self.truth.range_m[i].astype(np.float32)
             r = m["range_m"]
+            # the map is on its camera's grid (the locate scale by default): the truth at its pixel centres
+            gt = on_grid(self.truth.range_m[i], r.shape[1], r.shape[0]).astype(np.float32)
             valid = np.isfinite(r) & (r > 0)
             if m["flags"] is not None:
                 valid &= (m["flags"] & VALID) != 0
@@ -423,7 +426,8 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         import cv2
         m, i = last
         path = Path(png) if png else rec / "last_range.png"
-        pic = range_picture(m, truth.range_m[i].astype(np.float32) if i is not None else None)
+        pic = range_picture(m, on_grid(truth.range_m[i], m["range_m"].shape[1], m["range_m"].shape[0])
+                            .astype(np.float32) if i is not None else None)
         cv2.imwrite(str(path), pic)
         summary["png"] = str(path)
     ok = (result["code"] == 0 and summary["range_maps"] > 0 and reason != "interrupted"

@@ -73,8 +73,13 @@ FIELDS = {
         "position_ned_m": ("vec3", REQUIRED), "q_wxyz": ("vec4", REQUIRED),
         "baseline_m": ("float", math.nan), "compute_s": ("float", math.nan),
         # appended (v1 readers default them): the locator's working scale (0.5: ranges computed on half-resolution
-        # images and upsampled, nearest neighbour, to the frame's grid) and its own per-message overhead
+        # images) and its own per-message overhead
         "scale": ("float", 1.0), "overhead_s": ("float", math.nan),
+        # appended: the size of the frame the map was ranged from. The arrays are always on the grid of ``camera``
+        # (H x W = camera height x width); 0 (the default, and what older locators send) means that grid IS the
+        # frame's; a map published at the locate scale (services/locator.py --publish-grid locate) carries the
+        # scaled camera (eonav.camera.scaled_camera) and the frame's size here, so readers can count in frame pixels
+        "frame_width": ("int", 0), "frame_height": ("int", 0),
     },
     "obstacle_list": {
         "stamp_us": ("int", REQUIRED), "camera_id": ("str", ""), "obstacles": ("list", REQUIRED),

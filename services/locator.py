@@ -30,10 +30,20 @@ resizes on use (kept in the frame's payload, so a partner is resized once per sc
 reason and counted (``scale_changes``, ``scale_changes.up|down``); the counter ``scale_pct.<camera>`` is the camera's
 current scale in percent (a gauge kept by deltas) and ``pairs_computed.scale_<pct>`` counts the pairs per scale.
 ``--scale S`` (a number) always locates at S: on the grey images resized by S (cv2.INTER_AREA; the camera's intrinsics scaled
-with pixel centres kept: fx' = S fx, cx' = S (cx + 0.5) - 0.5) and bring the maps back to the frame's grid by
-nearest neighbour (pixel u takes the scaled pixel floor((u + 0.5) S)); the message says ``scale``. The pair policy
-still judges parallax on the full-resolution camera. 0.5 costs roughly a quarter of the locate time; what it costs in
-accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range error and coverage vs truth).
+with pixel centres kept: fx' = S fx, cx' = S (cx + 0.5) - 0.5: ``eonav.camera.scaled_camera``); the message says
+``scale``. The pair policy still judges parallax on the full-resolution camera.
+
+Grid of the published map (``--publish-grid``, env EONAV_LOCATOR_PUBLISH_GRID): ``locate`` (the default) publishes the
+maps on the grid they were computed on, with the camera model OF THAT GRID (the scaled camera) in the message's
+``camera`` and the frame's size in ``frame_width`` / ``frame_height``; every reader takes the geometry from the
+message's own camera (the obstacle service passes the frame size to ``eonav.obstacles.analyse`` so its pixel counts
+stay in frame pixels). ``frame`` upsamples the maps to the frame's grid by nearest neighbour (pixel u takes the scaled
+pixel floor((u + 0.5) S): ``to_full_grid``) and sends the frame's camera, as before. Why ``locate``: measured at
+640x480 and scale 0.5 the upsampling cost the locator 2.3 ms per pair, the message was 2.77 MB instead of 0.69 MB
+(encode 1.3 ms, decode 0.4 ms, the copies on the bus) and the obstacle analysis 15.1 ms instead of 10.4 ms, for the same
+obstacles (the upsampled pixels carry no information the scaled ones do not). 0.5 costs roughly a quarter of the
+locate time; what it costs in accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range
+error and coverage vs truth).
 
 Health: counters ``pairs_computed``, ``scale_changes``, ``scale_pct.<camera>`` (above), ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
 ``locate_errors``, ``warmup_errors``, ``frames_skipped``, ``frames_superseded``; latencies ``warmup`` (per camera), ``capture_to_published`` (frame capture stamp
@@ -70,8 +80,7 @@ def add_arguments(p):
     add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|S",
              help="auto: per camera and pair, the largest scale of the ladder (1, 0.5, ... --min-scale) whose "
                   "compute time fits --budget-ms (eonav.scale_control); a number S in (0, 1]: always locate on images "
-                  "resized by S (0.5 = half resolution, ~4x less work). The range map is upsampled to the frame's "
-                  "grid (nearest)")
+                  "resized by S (0.5 = half resolution, ~4x less work). See --publish-grid")
     add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="S",
              help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (S itself is the last rung)")
     add_flag(p, "--budget-ms", env="EONAV_LOCATOR_BUDGET_MS", default=None, type=float, metavar="MS",
@@ -82,6 +91,9 @@ def add_arguments(p):
                    help="at a camera's first frame, time one locate call per scale rung on a synthetic pair made of "
                         "that frame (its first pair then runs warm, at a rung that fits the budget: "
                         "calibrate_camera) (env EONAV_LOCATOR_WARMUP; default on)")
+    add_flag(p, "--publish-grid", env="EONAV_LOCATOR_PUBLISH_GRID", default="locate", choices=("locate", "frame"),
+             help="locate (default): publish the range map on the grid it was computed on, with that grid's (scaled) "
+                  "camera and the frame size in the message; frame: upsample it to the frame's grid (nearest)")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.pair_policy)")
@@ -147,12 +159,9 @@ def grey_image(msg: dict) -> np.ndarray:
 
 
 def scaled_camera(cam, scale: float):
-    """``cam`` for images resized by ``scale`` (pixel centres kept: cx' = scale (cx + 0.5) - 0.5)."""
-    from dataclasses import replace
-    w, h = max(8, int(round(cam.width * scale))), max(8, int(round(cam.height * scale)))
-    sx, sy = w / cam.width, h / cam.height
-    return replace(cam, width=w, height=h, fx=cam.fx * sx, fy=cam.fy * sy,
-                   cx=(cam.cx + 0.5) * sx - 0.5, cy=(cam.cy + 0.5) * sy - 0.5)
+    """``cam`` for images resized by ``scale`` (pixel centres kept): ``eonav.camera.scaled_camera``."""
+    from eonav.camera import scaled_camera as scaled
+    return scaled(cam, scale)
 
 
 def upsample_index(full: int, small: int) -> np.ndarray:
@@ -255,6 +264,25 @@ def to_full_grid(a, cam):
     return a.take(upsample_index(cam.height, a.shape[0]), axis=0).take(upsample_index(cam.width, a.shape[1]), axis=1)
 
 
+def map_fields(res, f, loc_cam, range_std: str = "f16", publish_grid: str = "locate") -> dict:
+    """The range_map fields that depend on the grid: the maps (range_m float32, confidence float16, flags uint8,
+    inv_range_std_per_m per ``range_std``), ``camera`` and ``frame_width`` / ``frame_height``. ``res`` was located on
+    ``loc_cam`` (the frame ``f``'s camera scaled for locate, or ``f.camera`` itself). ``locate``: the maps as computed,
+    with ``loc_cam`` as the camera and the frame's size (none when ``loc_cam`` is the frame's camera); ``frame``: the
+    maps upsampled to the frame's grid (``to_full_grid``) with the frame's camera."""
+    from eonav.schema import camera_to_msg
+    std = None
+    if res.inv_range_std_per_m is not None and range_std != "off":
+        std = np.asarray(res.inv_range_std_per_m, np.float16 if range_std == "f16" else np.float32)
+    out = {"range_m": np.asarray(res.range_m, np.float32), "confidence": np.asarray(res.confidence, np.float16),
+           "inv_range_std_per_m": std, "flags": None if res.flags is None else np.asarray(res.flags, np.uint8)}
+    cam = f.camera
+    if loc_cam is cam or publish_grid == "frame":
+        out = {k: to_full_grid(v, cam) for k, v in out.items()}
+        return dict(out, camera=f.payload["camera_msg"])
+    return dict(out, camera=camera_to_msg(loc_cam), frame_width=cam.width, frame_height=cam.height)
+
+
 def body(node: Node, args) -> None:
     from eonav.locate import get_method
     from eonav.pair_policy import PairPolicy
@@ -271,10 +299,10 @@ def body(node: Node, args) -> None:
     key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
     sub = node.subscribe(key, ring=args.ring)
     node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, args.warmup,
-                name="locate")
-    node.log.info("locator: method %s, scale %s (ladder %s, budget %s), %s, policy %s", args.method, args.scale,
-                  new_controller().ladder, "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms", key,
-                  policy.config)
+                args.publish_grid, name="locate")
+    node.log.info("locator: method %s, scale %s (ladder %s, budget %s), publish grid %s, %s, policy %s", args.method,
+                  args.scale, new_controller().ladder, "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms",
+                  args.publish_grid, key, policy.config)
 
 
 def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
@@ -362,9 +390,12 @@ def show_scale(node: Node, camera_id: str, controller, shown: dict) -> None:
 
 
 def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controller=None,
-                range_std: str = "f16", warmup: bool = False) -> None:
+                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate") -> None:
     """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1);
-    ``warmup``: ``warm_up_camera`` at each camera's first frame."""
+    ``warmup``: ``warm_up_camera`` at each camera's first frame; ``publish_grid``: ``locate`` or ``frame`` (module
+    docstring)."""
+    if publish_grid not in ("locate", "frame"):
+        raise InputError(f"publish grid must be 'locate' or 'frame', got {publish_grid!r}")
     from eonav.locate import locate
     new_controller = new_controller or scale_controllers(1.0)
     pubs: dict = {}
@@ -418,7 +449,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             sc = scalers[ref]                   # be the rig frame that arrived before f)
             scale = sc.scale                    # one scale for both frames of the pair
             errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
-                                                  t_rx0, cameras, locate)
+                                                  t_rx0, cameras, locate, publish_grid)
             if compute_s is not None:
                 change = sc.observe_compute(scale, compute_s)
                 if change is not None:
@@ -429,9 +460,9 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
 
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
-               errors_in_row: int, t_rx0: float, cameras: CameraCache, locate) -> tuple:
-    """Locate one pair at ``scale`` (both frames) and publish its range map; returns (the count of locate errors in a
-    row, the locate call's seconds or None when it failed)."""
+               errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate") -> tuple:
+    """Locate one pair at ``scale`` (both frames) and publish its range map on the ``publish_grid`` (``map_fields``);
+    returns (the count of locate errors in a row, the locate call's seconds or None when it failed)."""
     a, b = d.a, d.b
     va, vb = scaled_view(a, scale, cameras), scaled_view(b, scale, cameras)
     t0 = time.perf_counter()
@@ -450,20 +481,13 @@ def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: floa
     if node.state != "ok":
         node.set_state("ok")
     pub = pubs[a.camera_id]
-    cam = a.camera
-    range_m = to_full_grid(np.asarray(res.range_m, np.float32), cam)
-    std = None
-    if res.inv_range_std_per_m is not None and range_std != "off":
-        std = to_full_grid(np.asarray(res.inv_range_std_per_m, np.float16 if range_std == "f16" else np.float32), cam)
+    fields = map_fields(res, a, va.camera, range_std, publish_grid)
+    range_m = fields["range_m"]
     overhead_s = (t0 - t_rx0) + (time.perf_counter() - t1)     # so far; the encode and put follow
     node.put(pub, "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
              other_camera_id=b.camera_id, other_seq=b.seq, other_stamp_us=b.stamp_us, method=res.method,
-             range_m=range_m, confidence=to_full_grid(np.asarray(res.confidence, np.float16), cam),
-             inv_range_std_per_m=std,
-             flags=None if res.flags is None else to_full_grid(np.asarray(res.flags, np.uint8), cam),
-             camera=a.payload["camera_msg"], position_ned_m=a.state.position_ned_m,
-             q_wxyz=a.payload["q_wxyz"], baseline_m=d.baseline_m, compute_s=compute_s, scale=float(scale),
-             overhead_s=overhead_s)
+             position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"], baseline_m=d.baseline_m,
+             compute_s=compute_s, scale=float(scale), overhead_s=overhead_s, **fields)
     node.count("pairs_computed")
     node.count(f"pairs_computed.{d.reason}")
     node.tick("pairs_computed")

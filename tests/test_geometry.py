@@ -119,3 +119,21 @@ def test_map_to_b_is_exact_projection_for_two_different_cameras():
     Xb = camera_from_ned(world, cb.T_cam_body, sb.T_body_ned, sb.position_ned_m, cb.l_body_m)
     assert np.allclose(ub, cb.cx + cb.fx * Xb[..., 1] / Xb[..., 0], atol=2e-3)
     assert np.allclose(vb_, cb.cy + cb.fy * Xb[..., 2] / Xb[..., 0], atol=2e-3)
+
+
+def test_on_grid_samples_the_pixel_centres_the_locator_upsampled_from():
+    """A map resized to a locate grid and upsampled back (the locator's nearest rule) is recovered exactly by sampling
+    the frame grid at the small pixels' centres, for scale 0.5 and odd sizes; scaled_camera keeps the pixel centres."""
+    from eonav.camera import Camera, frame_pixel_index, on_grid, scaled_camera
+    from services.locator import to_full_grid, upsample_index
+    for (W, H), s in (((640, 480), 0.5), ((15, 11), 0.4), ((512, 512), 0.25)):
+        cam = Camera("c", W, H, 300.0, 310.0, W / 2 - 0.3, H / 2 + 0.2)
+        sc = scaled_camera(cam, s)
+        small = np.random.default_rng(1).random((sc.height, sc.width)).astype(np.float32)
+        assert np.array_equal(on_grid(to_full_grid(small, cam), sc.width, sc.height), small)
+        assert np.array_equal(upsample_index(W, sc.width)[frame_pixel_index(sc.width, W)], np.arange(sc.width))
+        # a small pixel's centre seen through the scaled camera is the same ray as its full-grid position
+        u = np.arange(sc.width)
+        full_u = (u + 0.5) * W / sc.width - 0.5
+        np.testing.assert_allclose((u - sc.cx) / sc.fx, (full_u - cam.cx) / cam.fx, atol=1e-12)
+        assert on_grid(small, sc.width, sc.height) is small

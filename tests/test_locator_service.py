@@ -14,6 +14,7 @@ import pytest
 
 from eonav import keys as K
 from eonav import schema
+from eonav.camera import on_grid
 from eonav.bus.testing import (client_session, drain, free_port, router_process, start_service, stop_service,
                                wait_until)
 from eonav.geometry import quat_wxyz_from_rotation
@@ -109,12 +110,17 @@ def test_locator_and_obstacles_services(flight_frames):
                 stamp, view, truth = sent[m["seq"]]
                 assert m["stamp_us"] == stamp and m["other_seq"] == m["seq"] - 1 and m["method"] == "dense"
                 # --scale auto (default): 256 x 256 at <= 5 Hz fits the budget at full scale on any machine we know;
-                # the figures below hold at 0.5 too, so the scale is only checked to be a rung of the ladder
-                assert m["scale"] in (1.0, 0.5) and m["range_m"].shape == truth.range_m.shape
+                # the figures below hold at 0.5 too, so the scale is only checked to be a rung of the ladder. The map
+                # is on its own camera's grid (--publish-grid locate): the truth is sampled at its pixel centres
+                assert m["scale"] in (1.0, 0.5)
+                assert m["range_m"].shape == (m["camera"]["height"], m["camera"]["width"])
+                assert m["range_m"].shape == (round(256 * m["scale"]),) * 2
+                assert (m["frame_width"], m["frame_height"]) == ((0, 0) if m["scale"] == 1.0 else (256, 256))
+                gt = on_grid(truth.range_m, m["range_m"].shape[1], m["range_m"].shape[0])
                 assert m["baseline_m"] == pytest.approx(np.linalg.norm(
                     view.state.position_ned_m - sent[m["other_seq"]][1].state.position_ned_m), rel=0.05)
-                ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(truth.range_m)
-                rel = np.abs(m["range_m"][ok] - truth.range_m[ok]) / truth.range_m[ok]
+                ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
+                rel = np.abs(m["range_m"][ok] - gt[ok]) / gt[ok]
                 errs.append(float(np.median(rel)))
                 cover.append(float(ok.mean()))
             assert max(errs) < 0.05, errs
@@ -174,6 +180,7 @@ def test_locator_and_obstacles_services(flight_frames):
             assert obs["counters"]["maps_processed"] == N_FRAMES - 1
             assert obs["counters"]["mavlink.od_sent_fresh"] >= 1
             assert obs["latency_ms"]["capture_to_obstacles"]["p99"] < 2000
+            assert "warmup_errors" not in obs["counters"]
 
             for name in ("locator", "obstacles"):
                 code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
@@ -293,3 +300,116 @@ def test_warm_up_times_every_rung_on_a_synthetic_partner_and_calibrates(flight_f
     c2 = ScaleController()
     warm_up_camera(node, f, c2, "dense", {}, cams, failing)
     assert counted == {"warmup_errors": 1} and c2.scale == 1.0 and len(calls) == 1
+
+
+def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_frames):
+    """--scale 0.5 (default --publish-grid locate): the range map is 128 x 128 with the scaled camera in the message
+    and the frame size beside it, accurate against the truth sampled at its pixel centres; the obstacle service
+    ranges the truck from it (its own camera), counts a map whose arrays do not match its camera (bad_maps) and still
+    takes an older locator's full-grid map without frame size."""
+    import zenoh
+    from eonav.camera import scaled_camera
+    frames, fl = flight_frames
+    procs = {}
+    try:
+        with router_process() as ep, client_session(ep) as s:
+            maps_sub = s.declare_subscriber(K.range_maps_all(VEHICLE), zenoh.handlers.FifoChannel(64))
+            obs_sub = s.declare_subscriber(K.obstacles(VEHICLE), zenoh.handlers.FifoChannel(64))
+            health_sub = s.declare_subscriber(K.health_all(VEHICLE), zenoh.handlers.FifoChannel(1024))
+            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.2"]
+            procs["locator"] = start_service(["-m", "services.locator", *common, "--cv-threads", "1", "--scale", "0.5"])
+            procs["obstacles"] = start_service(["-m", "services.obstacles", *common, "--ground-down", "0"])
+            pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
+            map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"))
+            health = []
+            wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
+                       timeout=30, what="both services' first health message")
+            wait_until(lambda: pub.matching_status.matching and map_pub.matching_status.matching, timeout=10,
+                       what="both services subscribed")
+            time.sleep(0.3)
+            maps, obstacles = [], []
+            for i in range(3):
+                t_s, view, truth = frames[i]
+                pub.put(posed_frame_payload(i, time.time_ns() // 1000, view))
+                if i:
+                    wait_until(lambda: len(drain(maps_sub, maps)) >= i, timeout=20, what=f"range map {i}")
+                    wait_until(lambda: len(drain(obs_sub, obstacles)) >= i, timeout=20, what=f"obstacle list {i}")
+            boxes = {b.name: b for b in fl.scene.boxes}
+            for smp, osmp in zip(maps, obstacles):
+                m = schema.decode(smp.payload.to_bytes(), expect="range_map")
+                _, view, truth = frames[m["seq"]]
+                sc = scaled_camera(view.camera, 0.5)
+                assert m["scale"] == 0.5 and m["range_m"].shape == (128, 128)
+                assert m["confidence"].shape == m["flags"].shape == m["inv_range_std_per_m"].shape == (128, 128)
+                assert (m["frame_width"], m["frame_height"]) == (256, 256)
+                c = schema.camera_from_msg(m["camera"])
+                assert (c.width, c.height) == (128, 128)
+                assert (c.fx, c.fy, c.cx, c.cy) == pytest.approx((sc.fx, sc.fy, sc.cx, sc.cy))
+                gt = on_grid(truth.range_m, 128, 128)
+                ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
+                assert ok.mean() > 0.2
+                assert np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok]) < 0.05
+                o = schema.decode(osmp.payload.to_bytes(), expect="obstacle_list")
+                assert o["stamp_us"] == m["stamp_us"]
+                pos = view.state.position_ned_m
+                cb = np.asarray(boxes["truck"].center_ned_m) - pos
+                bearing = math.degrees(math.atan2(cb[1], cb[0]))
+                match = [x for x in o["obstacles"] if abs(x["bearing_deg"] - bearing) < 3]
+                assert match and match[0]["distance_m"] == pytest.approx(box_distance(boxes["truck"], pos), rel=0.08)
+                assert all(0 <= x["bbox_px"][2] <= 255 and 0 <= x["bbox_px"][3] <= 255 for x in o["obstacles"])
+
+            # a map whose arrays do not match its camera: rejected by name and counted; then an older locator's map
+            # (frame grid, no frame size) is still analysed
+            _, view, truth = frames[2]
+            old = dict(camera_id="test", seq=1, stamp_us=time.time_ns() // 1000, method="truth",
+                       camera=schema.camera_to_msg(view.camera), position_ned_m=view.state.position_ned_m,
+                       q_wxyz=quat_wxyz_from_rotation(view.state.T_body_ned.T))
+            small = on_grid(truth.range_m, 128, 128).astype(np.float32)
+            map_pub.put(schema.encode("range_map", **old, range_m=small, confidence=np.ones_like(small)))
+            def obstacle_counters():
+                return latest_health(drain(health_sub, health)).get("obstacles", {}).get("counters", {})
+            wait_until(lambda: obstacle_counters().get("bad_maps") == 1, timeout=10, what="bad_maps 1")
+            full = truth.range_m.astype(np.float32)
+            map_pub.put(schema.encode("range_map", **dict(old, seq=2, stamp_us=time.time_ns() // 1000), range_m=full,
+                                      confidence=np.ones_like(full)))
+            wait_until(lambda: obstacle_counters().get("maps_processed") == 3, timeout=10, what="maps_processed 3")
+            assert obstacle_counters()["bad_maps"] == 1
+            for name in ("locator", "obstacles"):
+                code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
+                assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
+    finally:
+        for name, p in procs.items():
+            if p.poll() is None:
+                p.kill()
+            print(f"---- {name} (exit {p.returncode}) stderr:\n{p.communicate()[1][-4000:]}")
+
+
+def test_map_fields_on_either_grid(flight_frames):
+    """map_fields: ``locate`` keeps the computed maps with the scaled camera and the frame size; ``frame`` upsamples
+    them (to_full_grid) with the frame's camera; at scale 1 both are the frame's grid without a frame size."""
+    from types import SimpleNamespace
+
+    from services.locator import CameraCache, frame_info, map_fields, scaled_view, to_full_grid
+    frames, _ = flight_frames
+    cams = CameraCache(1.0)
+    f = frame_info(schema.decode(posed_frame_payload(0, 1_000_000, frames[0][1]), expect="posed_frame"), cams)
+    rng = np.random.default_rng(0)
+    res = SimpleNamespace(range_m=rng.random((128, 128)) * 50, confidence=rng.random((128, 128)),
+                          inv_range_std_per_m=rng.random((128, 128)) * 1e-3, flags=rng.integers(0, 64, (128, 128)))
+    loc = scaled_view(f, 0.5, cams).camera
+    a = map_fields(res, f, loc, "f16", "locate")
+    assert a["range_m"].dtype == np.float32 and a["range_m"].shape == (128, 128)
+    assert a["confidence"].dtype == a["inv_range_std_per_m"].dtype == np.float16 and a["flags"].dtype == np.uint8
+    assert a["camera"] == schema.camera_to_msg(loc) and (a["frame_width"], a["frame_height"]) == (256, 256)
+    b = map_fields(res, f, loc, "off", "frame")
+    assert b["camera"] is f.payload["camera_msg"] and "frame_width" not in b and b["inv_range_std_per_m"] is None
+    assert np.array_equal(b["range_m"], to_full_grid(a["range_m"], f.camera))
+    assert np.array_equal(b["flags"], to_full_grid(a["flags"], f.camera))
+    res1 = SimpleNamespace(range_m=np.ones((256, 256)), confidence=np.ones((256, 256)), inv_range_std_per_m=None,
+                           flags=None)
+    for grid in ("locate", "frame"):
+        c = map_fields(res1, f, f.camera, "f32", grid)
+        assert c["camera"] is f.payload["camera_msg"] and "frame_width" not in c and c["flags"] is None
+    encoded = schema.decode(schema.encode("range_map", camera_id="nose", seq=1, stamp_us=1, method="x",
+                                          position_ned_m=[0, 0, 0], q_wxyz=[1, 0, 0, 0], **a), expect="range_map")
+    assert encoded["frame_width"] == 256 and schema.camera_from_msg(encoded["camera"]).width == 128

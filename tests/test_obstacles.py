@@ -395,3 +395,114 @@ def test_pooled_analysis_keeps_nearest_distances(fast_scene, max_width_px):
     assert ((f < 15001) == (p < 15001)).mean() >= 0.9          # same bins report an obstacle
     total = sum(o.pixel_count for o in full.obstacles[:3])
     assert sum(o.pixel_count for o in res.obstacles[:3]) == pytest.approx(total, rel=0.25)   # full-res pixel units
+
+
+@pytest.fixture(scope="module")
+def fast_scene_512():
+    from eonav.sim.presets import make_pair
+    return make_pair("fast", size=512)
+
+
+def test_map_on_the_locate_grid_gives_the_obstacles_of_the_upsampled_map(fast_scene_512):
+    """A map at scale 0.5 analysed on its own grid (scaled camera, frame size given) against the same map upsampled to
+    the frame's grid as the locator did before: the same boxes at the same distance, pixel counts and boxes in frame
+    pixels, the same sectors. (The scaled pixels sit between two frame pixels, so distances agree to a fraction of a
+    per cent, not bit for bit.)"""
+    from eonav.camera import on_grid, scaled_camera
+    from services.locator import to_full_grid
+    sp = fast_scene_512
+    v, gt = sp.views[0], sp.truth[0]
+    sc = scaled_camera(v.camera, 0.5)
+    small = on_grid(gt.range_m, sc.width, sc.height).astype(np.float32)
+    up = to_full_grid(small, v.camera)
+    cfg = ob.ObstacleConfig(ground_down_m=0.0)
+    a = ob.analyse(up, v.camera, v.state, cfg=cfg)
+    b = ob.analyse(small, sc, v.state, cfg=cfg, frame_size=(v.camera.width, v.camera.height))
+    assert b.n_confident == a.n_confident                          # frame pixels
+    assert b.n_obstacle_px == pytest.approx(a.n_obstacle_px, rel=0.05)
+    pos = v.state.position_ned_m
+    for box in sp.scene.boxes:
+        want = box_distance(box, pos)
+        if want > 100:
+            continue
+        oa = min(a.obstacles, key=lambda o: abs(o.distance_m - want))
+        ob_ = min(b.obstacles, key=lambda o: abs(o.distance_m - want))
+        assert ob_.distance_m == pytest.approx(oa.distance_m, rel=0.005), box.name
+        assert ob_.bearing_deg == pytest.approx(oa.bearing_deg, abs=0.2), box.name
+        assert ob_.pixel_count == pytest.approx(oa.pixel_count, rel=0.1), box.name
+        assert np.abs(np.subtract(ob_.bbox_px, oa.bbox_px)).max() <= 4, (box.name, ob_.bbox_px, oa.bbox_px)
+    fa, fb = a.sectors.distances_cm.astype(float), b.sectors.distances_cm.astype(float)
+    assert ((fa < 15001) == (fb < 15001)).all() and ((fa == 15001) == (fb == 15001)).all()   # same bins set, clear
+    both = fa < 15001
+    np.testing.assert_allclose(fb[both], fa[both], rtol=0.02)
+    assert (b.sectors.increment_deg, b.sectors.angle_offset_deg) == pytest.approx(
+        (a.sectors.increment_deg, a.sectors.angle_offset_deg))
+
+
+def test_frame_size_is_checked_against_the_map():
+    r = ground_and_sky()
+    for bad in ((128, 256), (256, 10), ("x", 3), (1,)):
+        with pytest.raises(InputError, match="frame size"):
+            ob.analyse(r, CAM, LEVEL, cfg=CFG, frame_size=bad)
+    same = ob.analyse(r, CAM, LEVEL, cfg=CFG)
+    for fs in (None, (0, 0), (256, 256)):
+        assert ob.analyse(r, CAM, LEVEL, cfg=CFG, frame_size=fs).n_confident == same.n_confident
+
+
+def test_frame_bbox_covers_the_map_pixels():
+    assert ob._frame_bbox(0, 0, 127, 127, 128, 128, 256, 256) == [0, 0, 255, 255]
+    assert ob._frame_bbox(3, 5, 3, 6, 128, 128, 256, 256) == [6, 10, 7, 13]
+    assert ob._frame_bbox(3, 5, 3, 6, 8, 8, 8, 8) == [3, 5, 3, 6]
+    assert ob._frame_bbox(0, 0, 4, 2, 5, 3, 11, 7) == [0, 0, 10, 6]          # odd sizes: the last pixels reach the edge
+
+
+def test_warm_up_map_goes_through_the_analysis():
+    """The obstacle service's warm-up map: the wall 30 m ahead is found, sky and ground make the other sectors clear."""
+    from types import SimpleNamespace
+
+    from services.obstacles import warm_up
+    counted, lat = {}, {}
+    node = SimpleNamespace(count=lambda k, n=1: counted.__setitem__(k, counted.get(k, 0) + n),
+                           latency=lambda k, s: lat.__setitem__(k, s), log=SimpleNamespace(info=lambda *a: None))
+    res = warm_up(node, ob.ObstacleConfig(ground_down_m=0.0), ob)
+    assert counted == {} and "warmup" in lat
+    assert len(res.obstacles) == 1 and res.obstacles[0].distance_m == pytest.approx(30.0, rel=0.01)
+    d = res.sectors.distances_cm
+    assert set(d[:20]) == {15001} and set(d[-20:]) == {15001} and 3000 <= d[36] <= 3010
+    assert res.sectors_now is not None
+    broken = SimpleNamespace(analyse=lambda *a, **k: 1 / 0)
+    node.log.warning = lambda *a: None
+    assert warm_up(node, ob.ObstacleConfig(), broken) is None and counted == {"warmup_errors": 1}
+
+
+def _pool_reference(r, conf, k, q):
+    """pool_confident by its definition, block by block: the floor(q/100 (n-1))-th confident pixel by range, ties to the
+    first in row-major order (a stable sort)."""
+    H, W = conf.shape
+    idx, weight = [], []
+    for by in range(0, H, k):
+        for bx in range(0, W, k):
+            pix = [(r[y, x], y * W + x) for y in range(by, min(by + k, H)) for x in range(bx, min(bx + k, W))
+                   if conf[y, x]]
+            if pix:
+                pix.sort(key=lambda t: t[0])                        # stable
+                idx.append(pix[int(math.floor(q / 100.0 * (len(pix) - 1)))][1])
+                weight.append(len(pix))
+    return np.array(idx), np.array(weight, float)
+
+
+@pytest.mark.parametrize("k,q", [(2, 10.0), (3, 10.0), (2, 0.0), (3, 50.0), (4, 10.0)])
+def test_pool_confident_matches_its_definition(k, q):
+    """The element-wise path (every rank 0: k <= 3 at 10 %) and the argsort path pick the pixel the definition picks,
+    on odd sizes, with holes; with ties (quantised ranges) the element-wise path takes the first pixel of the block
+    (the argsort path's tie order is numpy's, so it is checked on distinct ranges only)."""
+    rng = np.random.default_rng(k)
+    H, W = 23, 31
+    fast = math.floor(q / 100.0 * (k * k - 1)) == 0
+    r = (np.round(rng.random((H, W)) * 4) + 1 if fast else rng.random((H, W)) * 100 + 1).astype(np.float32)
+    conf = rng.random((H, W)) > 0.3
+    idx, weight, cell, grid = ob.pool_confident(r, conf, k, q)
+    want_idx, want_w = _pool_reference(r, conf, k, q)
+    assert grid == (-(-H // k), -(-W // k)) and cell.size == want_idx.size
+    np.testing.assert_array_equal(idx, want_idx)
+    np.testing.assert_array_equal(weight, want_w)

@@ -88,3 +88,17 @@ def test_camera_message_round_trip():
     cam = Camera("nose", 64, 48, 50.0, 51.0, 31.5, 23.5, [7.6, 0, 0.6], np.deg2rad([0, -2, 0]))
     back = schema.camera_from_msg(schema.camera_to_msg(cam))
     assert back.name == "nose" and back.fy == 51.0 and np.allclose(back.eps_rad, cam.eps_rad)
+
+
+def test_range_map_frame_size_is_optional():
+    """frame_width / frame_height were appended with defaults: a message without them (an older locator's) decodes
+    with 0 x 0 (= the map is on the frame's grid), one with them carries them."""
+    r = np.zeros((2, 3), np.float32)
+    base = dict(camera_id="c", seq=1, stamp_us=1, method="dense", range_m=r, confidence=r, camera={"width": 3},
+                position_ned_m=[0, 0, 0], q_wxyz=[1, 0, 0, 0])
+    old = schema.decode(schema.encode("range_map", **base))
+    assert (old["frame_width"], old["frame_height"], old["scale"]) == (0, 0, 1.0)
+    new = schema.decode(schema.encode("range_map", **base, frame_width=6, frame_height=4, scale=0.5))
+    assert (new["frame_width"], new["frame_height"], new["scale"]) == (6, 4, 0.5)
+    with pytest.raises(schema.SchemaError, match="frame_width"):
+        schema.encode("range_map", **base, frame_width=6.5)
