@@ -423,6 +423,11 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             if prev is not None and f.seq > prev + 1:
                 node.count("frames_skipped", f.seq - prev - 1)        # ring channel dropped them while we computed
             last_seq[f.camera_id] = f.seq
+            if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map, and before
+                # the warm-up: a put right after the declaration can miss subscribers the route to which is not set
+                # up yet (ECOSYSTEM 1.5); with the declaration after the warm-up, a second frame already waiting was
+                # ranged and put ~10 ms after it, and its map was lost now and then
+                pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
             sc = scalers.get(f.camera_id)
             if sc is None:
                 sc = scalers[f.camera_id] = new_controller()
@@ -430,9 +435,6 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
                     warm_up_camera(node, f, sc, method, params, cameras, locate)
             sc.observe_frame(f.seq, f.stamp_us)          # (a calibrated start may move with the budget: gauge it)
             show_scale(node, f.camera_id, sc, shown)
-            if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map: a put right
-                # after the declaration can miss subscribers the route to which is not set up yet (ECOSYSTEM 1.5)
-                pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
             if not newest:                   # a newer frame of this camera is already waiting: partner only
                 policy.remember(f)
                 node.count("frames_superseded")
