@@ -309,3 +309,20 @@ def test_pole_closer_than_the_fastest_pixels_search_range_is_found():
         out[per_pixel] = (float(np.median(raw)), float(np.mean(raw < 0.05)))
     assert out[True][0] < 0.05 and out[True][1] > 0.45, out
     assert out[False][0] > 0.2, out                       # the contrast: the old search misses it
+
+
+def test_sky_that_infinity_explains_gets_no_near_range():
+    """Demo approach flight at 512 px (no supersampling), 10 Hz pairs: faint clouds reached by a wrong start were
+    ranged at 9-44 m with a tight sigma (the nearest "obstacles" of the flight). The infinity test flags a pixel
+    whose 7 x 7 window a point at infinity explains as well as its estimate. Measured, sky pixels VALID nearer than
+    50 m over four pairs: 589 without the test, 73 with it."""
+    from eonav.sim.flight import render_flight
+    fr = list(render_flight("approach", n_frames=5, rate_hz=10.0, size=512, t0_s=2.5, supersample=1, seed=0))
+    out = {}
+    for inf_test in (True, False):
+        n = 0
+        for (_, a, ra), (_, b, _) in zip(fr[1:], fr[:-1]):
+            r = locate_dense(a, b, inf_test=inf_test).range_m
+            n += int(((ra.object_id == 0) & np.isfinite(r) & (r < 50.0)).sum())
+        out[inf_test] = n
+    assert out[True] < 150 and out[False] > 300, out
