@@ -272,13 +272,10 @@ def map_fields(res, f, loc_cam, range_std: str = "f16", publish_grid: str = "loc
     maps upsampled to the frame's grid (``to_full_grid``) with the frame's camera."""
     from eonav.schema import camera_to_msg
     std = None
-    if res.inv_range_std_per_m is not None and range_std != "off":
-        with np.errstate(over="ignore"):      # a sigma beyond float16's 65504 /m is +inf: no information
+    with np.errstate(over="ignore"):          # beyond float16's 65504: +inf (a sigma then says: no information)
+        if res.inv_range_std_per_m is not None and range_std != "off":
             std = np.asarray(res.inv_range_std_per_m, np.float16 if range_std == "f16" else np.float32)
-            conf = np.asarray(res.confidence, np.float16)
-    else:
-        with np.errstate(over="ignore"):
-            conf = np.asarray(res.confidence, np.float16)
+        conf = np.asarray(res.confidence, np.float16)
     out = {"range_m": np.asarray(res.range_m, np.float32), "confidence": conf,
            "inv_range_std_per_m": std, "flags": None if res.flags is None else np.asarray(res.flags, np.uint8)}
     cam = f.camera
