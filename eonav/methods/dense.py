@@ -388,6 +388,7 @@ class _Level:
         Wm[:, 0] = rw
         aff = [(rw[i][None, :], kc[i][:, None], X[i], Wm[i]) for i in range(n)]
         self.ia = ia
+        self.ib = ib
         self.A0, self.P1, self.P2, self.C1, self.C2 = aff[:5]
         self.B0 = F32(t[0])
         self.Q1 = F32(fxb * t[1] + cxb * t[0])
@@ -467,17 +468,17 @@ class _Level:
                 self._cache[k] = v
         return v
 
-    def residual_at_infinity(self, s: slice):
-        """Rows s of I_b warped at rho = 0 (the rotation alone) minus I_a, and the in-view mask (float 0/1)."""
-        if getattr(self, "_b2", None) is None:
-            self._b2 = cv2.merge([self.b4[..., 0], self.b4[..., 3]])
-        inv = np.divide(F32(1.0), self.rows(self.A0, s))
-        ub = cv2.multiply(self.rows(self.P1, s), inv)
-        vb = cv2.multiply(self.rows(self.P2, s), inv)
-        w2 = cv2.remap(self._b2, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        r0 = cv2.subtract(np.ascontiguousarray(w2[..., 0]), self.ia[s])
-        m0 = (w2[..., 1] > F32(0.999)) & (inv > 0)
-        return r0, m0.astype(F32)
+    def residual_at_infinity(self, s: slice, out, u, v):
+        """Rows s of I_b warped at rho = 0 (the rotation alone) minus I_a, NaN where that leaves b (or lies behind
+        it), in ``out`` (``u``, ``v``: work planes for the map; all three rows-of-s x w)."""
+        den = self.rows(self.A0, s, out=out)
+        ub = cv2.divide(self.rows(self.P1, s, out=u), den, dst=u)
+        vb = cv2.divide(self.rows(self.P2, s, out=v), den, dst=v)
+        if not float(den.min()) > 0:
+            ub[den <= 0] = -1e6
+        r0 = cv2.remap(self.ib, ub, vb, cv2.INTER_LINEAR, dst=out, borderMode=cv2.BORDER_CONSTANT,
+                       borderValue=float("nan"))
+        return cv2.subtract(r0, self.ia[s], dst=r0)
 
     def warp(self, rho, s: slice, T):
         """Warped [I_b, gx_b, gy_b, in-view] at rho (rows s of a), and 1/den (in T[0]; T[1], T[2]: the map)."""
@@ -827,11 +828,9 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
         # does a point at infinity explain the window at least as well as the estimate? (then the estimate is
         # not supported by the data: e.g. faint clouds ranged at whatever their neighbours had after a wrong start)
         Se = _box_to(r, win)[o]
-        r0, m0 = lv.residual_at_infinity(s)
+        r0 = lv.residual_at_infinity(s, T[1], T[2], T[6])         # T1 r0 (T2, T6: free since the weights)
         mul(r0, r0, dst=r0)
-        mul(r0, m0, dst=r0)
-        amb = _box_to(r0, win)[o] <= Se
-        amb &= m0[o] > 0
+        amb = _box_to(r0, win, dst=r0)[o] <= Se       # (NaN, a window reaching out of b: no ambiguity)
     R2 = _box_to(r, prm["occ_window"], dst=r)[o]
     std = fin.std[y0:y1]
     with np.errstate(divide="ignore", invalid="ignore"):
