@@ -2,6 +2,7 @@
 posed frames of a simulated flight go in, range maps are checked against the renderer's ground-truth range,
 the obstacle list and the MAVLink OBSTACLE_DISTANCE bytes against the boxes' true distances, health against
 what was sent (including malformed input), and both processes must exit 0 on SIGINT."""
+import contextlib
 import math
 import os
 import signal
@@ -53,23 +54,51 @@ def latest_health(samples):
     return out
 
 
-def test_locator_and_obstacles_services(flight_frames):
+@contextlib.contextmanager
+def locator_and_obstacles(locator_args=(), obstacles_args=()):
+    """A router; a client session subscribed to range maps, obstacle lists and health; the locator and the obstacle
+    service started against it (one OpenCV thread, no ground plane). Yields (session, procs, maps_sub, obs_sub,
+    health_sub). On an exception the services are asked to stop and their stderr is printed (pytest shows it with
+    the failure); on exit every service still running is killed."""
     import zenoh
+    procs = {}
+    try:
+        with router_process() as ep, client_session(ep) as s:
+            subs = [s.declare_subscriber(key, zenoh.handlers.FifoChannel(n)) for key, n in
+                    ((K.range_maps_all(VEHICLE), 64), (K.obstacles(VEHICLE), 64), (K.health_all(VEHICLE), 1024))]
+            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.2"]
+            procs["locator"] = start_service(["-m", "services.locator", *common, "--cv-threads", "1",
+                                              *locator_args])
+            procs["obstacles"] = start_service(["-m", "services.obstacles", *common, "--ground-down", "0",
+                                                *obstacles_args])
+            yield (s, procs, *subs)
+    except BaseException:
+        for name, p in procs.items():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+            try:
+                err = p.communicate(timeout=10)[1]
+            except Exception:
+                p.kill()
+                err = p.communicate()[1]
+            print(f"---- {name} (exit {p.returncode}) stderr:\n{err[-4000:]}")
+        raise
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+
+
+def test_locator_and_obstacles_services(flight_frames):
     from eonav.mavlink_out import mavutil
     frames, fl = flight_frames
     mu = mavutil()
     udp = free_port()
     rx = mu.mavlink_connection(f"udpin:127.0.0.1:{udp}")
-    procs = {}
     try:
-        with router_process() as ep, client_session(ep) as s:
-            maps_sub = s.declare_subscriber(K.range_maps_all(VEHICLE), zenoh.handlers.FifoChannel(64))
-            obs_sub = s.declare_subscriber(K.obstacles(VEHICLE), zenoh.handlers.FifoChannel(64))
-            health_sub = s.declare_subscriber(K.health_all(VEHICLE), zenoh.handlers.FifoChannel(1024))
-            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.2"]
-            procs["locator"] = start_service(["-m", "services.locator", *common, "--cv-threads", "1"])
-            procs["obstacles"] = start_service(["-m", "services.obstacles", *common, "--ground-down", "0",
-                                                "--mavlink-out", f"udpout:127.0.0.1:{udp}"])
+        with locator_and_obstacles((), ("--mavlink-out", f"udpout:127.0.0.1:{udp}")) as (
+                s, procs, maps_sub, obs_sub, health_sub):
             pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
             health = []
             wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
@@ -185,22 +214,7 @@ def test_locator_and_obstacles_services(flight_frames):
             for name in ("locator", "obstacles"):
                 code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
                 assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
-    except BaseException:
-        for name, p in procs.items():
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-            try:
-                err = p.communicate(timeout=10)[1]
-            except Exception:
-                p.kill()
-                err = p.communicate()[1]
-            print(f"---- {name} (exit {p.returncode}) stderr:\n{err[-4000:]}")
-        raise
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
         rx.close()
 
 
@@ -307,81 +321,67 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
     and the frame size beside it, accurate against the truth sampled at its pixel centres; the obstacle service
     ranges the truck from it (its own camera), counts a map whose arrays do not match its camera (bad_maps) and still
     takes an older locator's full-grid map without frame size."""
-    import zenoh
     from eonav.camera import scaled_camera
     frames, fl = flight_frames
-    procs = {}
-    try:
-        with router_process() as ep, client_session(ep) as s:
-            maps_sub = s.declare_subscriber(K.range_maps_all(VEHICLE), zenoh.handlers.FifoChannel(64))
-            obs_sub = s.declare_subscriber(K.obstacles(VEHICLE), zenoh.handlers.FifoChannel(64))
-            health_sub = s.declare_subscriber(K.health_all(VEHICLE), zenoh.handlers.FifoChannel(1024))
-            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.2"]
-            procs["locator"] = start_service(["-m", "services.locator", *common, "--cv-threads", "1", "--scale", "0.5"])
-            procs["obstacles"] = start_service(["-m", "services.obstacles", *common, "--ground-down", "0"])
-            pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
-            map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"))
-            health = []
-            wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
-                       timeout=30, what="both services' first health message")
-            wait_until(lambda: pub.matching_status.matching and map_pub.matching_status.matching, timeout=10,
-                       what="both services subscribed")
-            time.sleep(0.3)
-            maps, obstacles = [], []
-            for i in range(3):
-                t_s, view, truth = frames[i]
-                pub.put(posed_frame_payload(i, time.time_ns() // 1000, view))
-                if i:
-                    wait_until(lambda: len(drain(maps_sub, maps)) >= i, timeout=20, what=f"range map {i}")
-                    wait_until(lambda: len(drain(obs_sub, obstacles)) >= i, timeout=20, what=f"obstacle list {i}")
-            boxes = {b.name: b for b in fl.scene.boxes}
-            for smp, osmp in zip(maps, obstacles):
-                m = schema.decode(smp.payload.to_bytes(), expect="range_map")
-                _, view, truth = frames[m["seq"]]
-                sc = scaled_camera(view.camera, 0.5)
-                assert m["scale"] == 0.5 and m["range_m"].shape == (128, 128)
-                assert m["confidence"].shape == m["flags"].shape == m["inv_range_std_per_m"].shape == (128, 128)
-                assert (m["frame_width"], m["frame_height"]) == (256, 256)
-                c = schema.camera_from_msg(m["camera"])
-                assert (c.width, c.height) == (128, 128)
-                assert (c.fx, c.fy, c.cx, c.cy) == pytest.approx((sc.fx, sc.fy, sc.cx, sc.cy))
-                gt = on_grid(truth.range_m, 128, 128)
-                ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
-                assert ok.mean() > 0.2
-                assert np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok]) < 0.05
-                o = schema.decode(osmp.payload.to_bytes(), expect="obstacle_list")
-                assert o["stamp_us"] == m["stamp_us"]
-                pos = view.state.position_ned_m
-                cb = np.asarray(boxes["truck"].center_ned_m) - pos
-                bearing = math.degrees(math.atan2(cb[1], cb[0]))
-                match = [x for x in o["obstacles"] if abs(x["bearing_deg"] - bearing) < 3]
-                assert match and match[0]["distance_m"] == pytest.approx(box_distance(boxes["truck"], pos), rel=0.08)
-                assert all(0 <= x["bbox_px"][2] <= 255 and 0 <= x["bbox_px"][3] <= 255 for x in o["obstacles"])
+    with locator_and_obstacles(("--scale", "0.5")) as (s, procs, maps_sub, obs_sub, health_sub):
+        pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
+        map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"))
+        health = []
+        wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
+                   timeout=30, what="both services' first health message")
+        wait_until(lambda: pub.matching_status.matching and map_pub.matching_status.matching, timeout=10,
+                   what="both services subscribed")
+        time.sleep(0.3)
+        maps, obstacles = [], []
+        for i in range(3):
+            t_s, view, truth = frames[i]
+            pub.put(posed_frame_payload(i, time.time_ns() // 1000, view))
+            if i:
+                wait_until(lambda: len(drain(maps_sub, maps)) >= i, timeout=20, what=f"range map {i}")
+                wait_until(lambda: len(drain(obs_sub, obstacles)) >= i, timeout=20, what=f"obstacle list {i}")
+        boxes = {b.name: b for b in fl.scene.boxes}
+        for smp, osmp in zip(maps, obstacles):
+            m = schema.decode(smp.payload.to_bytes(), expect="range_map")
+            _, view, truth = frames[m["seq"]]
+            sc = scaled_camera(view.camera, 0.5)
+            assert m["scale"] == 0.5 and m["range_m"].shape == (128, 128)
+            assert m["confidence"].shape == m["flags"].shape == m["inv_range_std_per_m"].shape == (128, 128)
+            assert (m["frame_width"], m["frame_height"]) == (256, 256)
+            c = schema.camera_from_msg(m["camera"])
+            assert (c.width, c.height) == (128, 128)
+            assert (c.fx, c.fy, c.cx, c.cy) == pytest.approx((sc.fx, sc.fy, sc.cx, sc.cy))
+            gt = on_grid(truth.range_m, 128, 128)
+            ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
+            assert ok.mean() > 0.2
+            assert np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok]) < 0.05
+            o = schema.decode(osmp.payload.to_bytes(), expect="obstacle_list")
+            assert o["stamp_us"] == m["stamp_us"]
+            pos = view.state.position_ned_m
+            cb = np.asarray(boxes["truck"].center_ned_m) - pos
+            bearing = math.degrees(math.atan2(cb[1], cb[0]))
+            match = [x for x in o["obstacles"] if abs(x["bearing_deg"] - bearing) < 3]
+            assert match and match[0]["distance_m"] == pytest.approx(box_distance(boxes["truck"], pos), rel=0.08)
+            assert all(0 <= x["bbox_px"][2] <= 255 and 0 <= x["bbox_px"][3] <= 255 for x in o["obstacles"])
 
-            # a map whose arrays do not match its camera: rejected by name and counted; then an older locator's map
-            # (frame grid, no frame size) is still analysed
-            _, view, truth = frames[2]
-            old = dict(camera_id="test", seq=1, stamp_us=time.time_ns() // 1000, method="truth",
-                       camera=schema.camera_to_msg(view.camera), position_ned_m=view.state.position_ned_m,
-                       q_wxyz=quat_wxyz_from_rotation(view.state.T_body_ned.T))
-            small = on_grid(truth.range_m, 128, 128).astype(np.float32)
-            map_pub.put(schema.encode("range_map", **old, range_m=small, confidence=np.ones_like(small)))
-            def obstacle_counters():
-                return latest_health(drain(health_sub, health)).get("obstacles", {}).get("counters", {})
-            wait_until(lambda: obstacle_counters().get("bad_maps") == 1, timeout=10, what="bad_maps 1")
-            full = truth.range_m.astype(np.float32)
-            map_pub.put(schema.encode("range_map", **dict(old, seq=2, stamp_us=time.time_ns() // 1000), range_m=full,
-                                      confidence=np.ones_like(full)))
-            wait_until(lambda: obstacle_counters().get("maps_processed") == 3, timeout=10, what="maps_processed 3")
-            assert obstacle_counters()["bad_maps"] == 1
-            for name in ("locator", "obstacles"):
-                code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
-                assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
-    finally:
-        for name, p in procs.items():
-            if p.poll() is None:
-                p.kill()
-            print(f"---- {name} (exit {p.returncode}) stderr:\n{p.communicate()[1][-4000:]}")
+        # a map whose arrays do not match its camera: rejected by name and counted; then an older locator's map
+        # (frame grid, no frame size) is still analysed
+        _, view, truth = frames[2]
+        old = dict(camera_id="test", seq=1, stamp_us=time.time_ns() // 1000, method="truth",
+                   camera=schema.camera_to_msg(view.camera), position_ned_m=view.state.position_ned_m,
+                   q_wxyz=quat_wxyz_from_rotation(view.state.T_body_ned.T))
+        small = on_grid(truth.range_m, 128, 128).astype(np.float32)
+        map_pub.put(schema.encode("range_map", **old, range_m=small, confidence=np.ones_like(small)))
+        def obstacle_counters():
+            return latest_health(drain(health_sub, health)).get("obstacles", {}).get("counters", {})
+        wait_until(lambda: obstacle_counters().get("bad_maps") == 1, timeout=10, what="bad_maps 1")
+        full = truth.range_m.astype(np.float32)
+        map_pub.put(schema.encode("range_map", **dict(old, seq=2, stamp_us=time.time_ns() // 1000), range_m=full,
+                                  confidence=np.ones_like(full)))
+        wait_until(lambda: obstacle_counters().get("maps_processed") == 3, timeout=10, what="maps_processed 3")
+        assert obstacle_counters()["bad_maps"] == 1
+        for name in ("locator", "obstacles"):
+            code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
+            assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
 
 
 def test_map_fields_on_either_grid(flight_frames):
