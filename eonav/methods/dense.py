@@ -39,6 +39,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from .. import InputError
 from ..camera import View, pair_geometry
 from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OUT_OF_VIEW, TRUNCATION, RangeResult
 from ._common import (F32, EpipolarMap, classify_into, far_inverse_range, make_result,
@@ -614,7 +615,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         search_level = int(max(0, min(3, math.floor(math.log2(m / 64.0)))))
     L = search_level
     nlev = L + 1
-    img_sigma = image_noise_sigma(Ia)
+    if tex_noise not in ("image", "residual"):
+        raise InputError(f"tex_noise must be 'image' or 'residual', got {tex_noise!r}")
+    img_sigma = image_noise_sigma(Ia) if tex_noise == "image" else None
     if presmooth_sigma > 0:
         Ia = _blur(Ia, presmooth_sigma, dst=_ws("pre_a", Ia.shape))
         Ib = _blur(Ib, presmooth_sigma, dst=_ws("pre_b", Ib.shape))
@@ -688,7 +691,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
             # the final estimate is a result (fresh array); intermediate ones are work buffers
             new = np.empty_like(rho) if last else _ws(("rho", it % 2), rho.shape)
             if last:
-                fin = _Final(rho.shape, sig_in, img_sigma if tex_noise == "image" else None, g0, gG, window,
+                fin = _Final(rho.shape, sig_in, img_sigma, g0, gG, window,
                              presmooth_sigma, tex_k, occ_k, occ_px, trunc_px, match_floor_px, noise_info,
                              inf_test, std_scale, orient_min, far_inverse_range(geo, far_parallax_px),
                              max_rel_std)
