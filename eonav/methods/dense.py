@@ -469,6 +469,15 @@ class _Level:
                 self._cache[k] = v
         return v
 
+    def cap_rows(self, y0: int, y1: int) -> np.ndarray:
+        """Rows [y0, y1) of the level's rho cap (den >= den_min, clipped to [0, rho_hi]), computed once per level
+        (the per-pixel search sets rho_hi from the pixels nearest the focus of expansion, so the cap binds in most
+        strips of every iteration)."""
+        if getattr(self, "_capmap", None) is None:
+            cap = np.matmul(self.cap[2], self.cap[3])
+            self._capmap = np.clip(cap, F32(0), self.rho_hi, out=cap)
+        return self._capmap[y0:y1]
+
     def residual_at_infinity(self, s: slice, out, u, v):
         """Rows s of I_b warped at rho = 0 (the rotation alone) minus I_a, NaN where that leaves b (or lies behind
         it), in ``out`` (``u``, ``v``: work planes for the map; all three rows-of-s x w)."""
@@ -805,8 +814,7 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     cv2.divide(num, den, dst=out)
     np.maximum(out, F32(0), out=out)
     if lv.cap is not None and float(lv.cap[0].min()) + float(lv.cap[1][s].min()) < lv.rho_hi:
-        cap = np.clip(lv.rows(lv.cap, s)[o], F32(0), lv.rho_hi)     # the den >= den_min cap binds here
-        np.minimum(out, cap, out=out)
+        np.minimum(out, lv.cap_rows(y0, y1), out=out)               # the den >= den_min cap binds here
     else:
         np.minimum(out, lv.rho_hi, out=out)
     if fin is None:
