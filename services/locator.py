@@ -264,6 +264,9 @@ def to_full_grid(a, cam):
     return a.take(upsample_index(cam.height, a.shape[0]), axis=0).take(upsample_index(cam.width, a.shape[1]), axis=1)
 
 
+F16_MAX = np.float32(np.finfo(np.float16).max)
+
+
 def map_fields(res, f, loc_cam, range_std: str = "f16", publish_grid: str = "locate") -> dict:
     """The range_map fields that depend on the grid: the maps (range_m float32, confidence float16, flags uint8,
     inv_range_std_per_m per ``range_std``), ``camera`` and ``frame_width`` / ``frame_height``. ``res`` was located on
@@ -272,10 +275,14 @@ def map_fields(res, f, loc_cam, range_std: str = "f16", publish_grid: str = "loc
     maps upsampled to the frame's grid (``to_full_grid``) with the frame's camera."""
     from eonav.schema import camera_to_msg
     std = None
-    with np.errstate(over="ignore"):          # beyond float16's 65504: +inf (a sigma then says: no information)
-        if res.inv_range_std_per_m is not None and range_std != "off":
-            std = np.asarray(res.inv_range_std_per_m, np.float16 if range_std == "f16" else np.float32)
-        conf = np.asarray(res.confidence, np.float16)
+    if res.inv_range_std_per_m is not None and range_std != "off":
+        std = np.asarray(res.inv_range_std_per_m, np.float32)
+        if range_std == "f16":
+            # beyond float16's 65504 /m: +inf (such a sigma says: no information). Set explicitly: numpy's cast
+            # takes a slow path on overflow (4.2 ms instead of 0.6 ms for a 320 x 320 dense map)
+            std = np.where(std > F16_MAX, np.float32(np.inf), std).astype(np.float16)
+    conf = np.asarray(res.confidence, np.float32)
+    conf = np.where(conf > F16_MAX, np.float32(np.inf), conf).astype(np.float16)
     out = {"range_m": np.asarray(res.range_m, np.float32), "confidence": conf,
            "inv_range_std_per_m": std, "flags": None if res.flags is None else np.asarray(res.flags, np.uint8)}
     cam = f.camera

@@ -413,3 +413,11 @@ def test_map_fields_on_either_grid(flight_frames):
     encoded = schema.decode(schema.encode("range_map", camera_id="nose", seq=1, stamp_us=1, method="x",
                                           position_ned_m=[0, 0, 0], q_wxyz=[1, 0, 0, 0], **a), expect="range_map")
     assert encoded["frame_width"] == 256 and schema.camera_from_msg(encoded["camera"]).width == 128
+    # float16 maps: a sigma or confidence beyond float16's range is +inf (no information), NaN stays NaN
+    res2 = SimpleNamespace(range_m=np.ones((128, 128), np.float32), confidence=np.full((128, 128), 1e6, np.float32),
+                           inv_range_std_per_m=np.full((128, 128), 3.0, np.float32), flags=None)
+    res2.inv_range_std_per_m[0, :3] = [1e6, 65504.0, np.nan]
+    d = map_fields(res2, f, loc, "f16", "locate")
+    assert d["inv_range_std_per_m"][0, :4].tolist()[:2] == [np.inf, 65504.0]
+    assert np.isnan(d["inv_range_std_per_m"][0, 2]) and d["inv_range_std_per_m"][0, 3] == 3.0
+    assert np.all(d["confidence"] == np.inf)
