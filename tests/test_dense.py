@@ -326,3 +326,18 @@ def test_sky_that_infinity_explains_gets_no_near_range():
             n += int(((ra.object_id == 0) & np.isfinite(r) & (r < 50.0)).sum())
         out[inf_test] = n
     assert out[True] < 150 and out[False] > 300, out
+
+
+def test_camera_moving_away_from_the_scene():
+    """The fast preset's pair the other way round (reference = later frame, b = the earlier one: from a to b the
+    camera moves away). Displacements are bounded then, near the focus of contraction reached only at absurd rho:
+    the search never goes nearer than 5 % of the baseline. Measured at 256 px: 51 % of the pixels VALID at 1.4 %
+    median error; the largest rho searched 8 /m (1 / (0.05 x 2.5 m))."""
+    sp = sim("fast")
+    a, b = sp.views[1], sp.views[0]
+    gt = sp.truth[1].range_m
+    res = locate_dense(a, b)
+    fin = np.isfinite(res.range_m) & np.isfinite(gt)
+    assert fin.mean() > 0.4
+    assert np.median(np.abs(res.range_m[fin] / gt[fin] - 1)) < 0.025
+    assert res.info["rho_max_per_m"] <= 1.0 / (0.05 * res.info["baseline_m"]) + 1e-6

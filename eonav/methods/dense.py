@@ -544,7 +544,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
     each pixel's epipolar curve, and (when given) no range below min_range_m.
     per_pixel_search: the hypotheses are uniform in each pixel's OWN displacement (rho per pixel, closed form
-    ``_rho_at_disp``), capped only where the point would reach camera b's plane. With one set of rho for all
+    ``_rho_at_disp``), capped where the point would reach camera b's plane and, without min_range_m, at 5 % of the
+    baseline (a camera moving away reaches a large displacement near the focus of contraction only at absurd rho). With one set of rho for all
     pixels (False: the old search), the range where the image's fastest-moving pixel reaches max_disp_px was
     the least range searched ANYWHERE: 14 m on the demo approach flight at 5 Hz, so a pole straight ahead at
     11 m (51 px of motion near the focus of expansion, where 77 px were allowed) could not be found (raw error
@@ -644,11 +645,21 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if per_pixel_search:
         if not math.isfinite(_find_rho_max(sub, md)):
             return no_motion_result((ha, wa), METHOD, "no parallax at any range")
-        cap = em_s.rho_cap if min_range_m is None else np.minimum(em_s.rho_cap, F32(1.0 / float(min_range_m)))
+        # nothing nearer than min_range_m, or than 5 % of the baseline (near the focus of contraction of a camera
+        # moving away, a pixel's displacement is reached only at absurd rho; the den cap only binds moving towards)
+        near_m = float(min_range_m) if min_range_m is not None else 0.05 * geo.baseline_m
+        cap = np.minimum(em_s.rho_cap, F32(1.0 / near_m))
         disp = np.arange(0.0, md + 0.5 * search_step_px, search_step_px)
-        rmax = _rho_at_disp(F32(disp[-1]), em_s.A0, np.hypot(em_s.C1, em_s.C2), F32(em_s.B[0]), cap)
-        fin_r = rmax[np.isfinite(rmax)]
-        rho_max = float(fin_r.max()) if fin_r.size else 0.0
+        # largest finite rho searched anywhere (the Gauss-Newton steps are clipped at 1.25 x it): at the largest
+        # displacement some pixel can reach (moving away from the scene, displacements are bounded)
+        cn = np.hypot(em_s.C1, em_s.C2)
+        rho_max = 0.0
+        for dv in disp[::-1]:
+            rm = _rho_at_disp(F32(dv), em_s.A0, cn, F32(em_s.B[0]), cap)
+            rm = rm[np.isfinite(rm)]
+            if rm.size:
+                rho_max = float(rm.max())
+                break
         rhos = disp
         rho, conf = _search(pa[L], pb[L], em_s, disp, search_window, noise=2.0, sgm_p1=sgm_p1,
                             sgm_p2=sgm_p2 if sgm else 0.0, sgm_tau=sgm_tau, disp=disp, cap=cap)
