@@ -180,6 +180,9 @@ def run_bench(methods, cases, repeat, json_out=None):
         line = common_pixel_line(case, per)
         if line:
             print(line)
+        secs = {r["method"]: r["seconds_per_pair"] for r in results if r["case"] == case.name}
+        if "dense" in secs and "dis" in secs and secs["dis"] > 0:
+            print(f"   time dense / dis: {secs['dense'] / secs['dis']:.2f}")
         if case.scale_check and per:
             print(scale_line(case, per))
         if case.objects and per:
