@@ -159,15 +159,8 @@ class Monitor:
         return self
 
     def __exit__(self, *exc):
-        for sub in self._subs:
-            try:
-                sub.undeclare()
-            except Exception:
-                pass
-        for t in self._threads:
-            t.join(10.0)
-        if self._session is not None:
-            self._session.close()
+        from .bus.session import close_subscribers
+        close_subscribers(self._subs, self._threads, self._session, 10.0)
 
     def _consume(self, sub, fn):
         try:

@@ -407,15 +407,8 @@ class HealthMonitor:
             return p
 
     def __exit__(self, *exc):
-        for s in self._subs:
-            try:
-                s.undeclare()
-            except Exception:
-                pass
-        for t in self._threads:
-            t.join(5.0)
-        if self.session is not None:
-            self.session.close()
+        from .bus.session import close_subscribers
+        close_subscribers(self._subs, self._threads, self.session, 5.0)
 
 
 def _fmt_service(p: Proc, now: float) -> str:

@@ -61,6 +61,21 @@ def add_flag(p, *names, env: str, default=None, help: str = "", **kw):
     return p.add_argument(*names, default=dflt, help=(help + suffix).strip(), **kw)
 
 
+def close_subscribers(subs, threads, session, join_timeout_s: float) -> None:
+    """Shut down a session's consumer threads: undeclare every subscriber (which ends each thread's ``for sample
+    in sub`` loop; an already-closed one is ignored), join the threads (at most ``join_timeout_s`` each), then close
+    the session (None: nothing to close)."""
+    for sub in subs:
+        try:
+            sub.undeclare()
+        except Exception:
+            pass
+    for t in threads:
+        t.join(join_timeout_s)
+    if session is not None:
+        session.close()
+
+
 def split_endpoints(value) -> list[str]:
     """``"tcp/a:1,tcp/b:2"`` or a list of such strings -> ``["tcp/a:1", "tcp/b:2"]``."""
     if value is None:
