@@ -259,8 +259,7 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
     # maps on the rows of a padded by p symmetric rows; hypotheses in chunks of ~chunk_px pixels (one tall
     # remap and box filtering per chunk: the temporaries stay in cache, the peak memory stays small)
     A0, A1, A2 = (np.pad(x, ((p, p), (0, 0)), mode="symmetric")[None] for x in (emap.A0, emap.A1, emap.A2))
-    if disp is not None:      # hypotheses uniform in each pixel's own displacement: rho per pixel
-        rhos = disp
+    if disp is not None:      # hypotheses uniform in each pixel's own displacement (rhos = disp): rho per pixel
         cn = np.hypot(emap.C1, emap.C2)
         cn_p, cap_p = (np.pad(x, ((p, p), (0, 0)), mode="symmetric")[None] for x in (cn, cap))
     P1 = A1 * F32(cb.fx) + A0 * F32(cb.cx)
