@@ -5,16 +5,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# Per-pixel flag bits (uint8). VALID means range_m holds an estimate the method stands behind.
+# Per-pixel flag bits (uint8). VALID means range_m holds an estimate the method stands behind (measured); FILLED
+# means range_m holds an inferred one (with its own sigma); neither: range_m is NaN.
 VALID = 1
 TRUNCATION = 2        # eq. (7) truncation-error test failed: first-order Taylor model not trusted here
 ILL_CONDITIONED = 4   # near the focus of expansion or gradient perpendicular to the epipolar direction
 OUT_OF_VIEW = 8       # the point leaves image b, or is occluded there
 LOW_TEXTURE = 16      # too little gradient / irradiance change to measure anything
 AT_INFINITY = 32      # inverse range indistinguishable from 0 (sky): range_m = +inf
+FILLED = 64           # not measured: range inferred from the measured pixels around (plane fit); not VALID
+OCCLUDED = 128        # with OUT_OF_VIEW: in view of image b but hidden there (the residual says so)
 
 FLAG_NAMES = {VALID: "valid", TRUNCATION: "truncation", ILL_CONDITIONED: "ill_conditioned",
-              OUT_OF_VIEW: "out_of_view", LOW_TEXTURE: "low_texture", AT_INFINITY: "at_infinity"}
+              OUT_OF_VIEW: "out_of_view", LOW_TEXTURE: "low_texture", AT_INFINITY: "at_infinity",
+              FILLED: "filled", OCCLUDED: "occluded"}
 
 
 @dataclass

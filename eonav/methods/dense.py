@@ -41,9 +41,10 @@ import numpy as np
 
 from .. import InputError
 from ..camera import View, pair_geometry
-from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OUT_OF_VIEW, TRUNCATION, RangeResult
+from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, RangeResult
 from ._common import (F32, EpipolarMap, classify_into, far_inverse_range, make_result,
                       no_motion_result, pyr_up_to, pyramid)
+from .fill import fill_unmeasured
 
 METHOD = "dense"
 _BR = cv2.BORDER_REFLECT
@@ -536,7 +537,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  highpass_levels: int = 9, bias: bool = True,
                  match_floor_px: float = 0.05, strip_px: int = 49152, sgm: bool = False,
                  tex_noise: str = "image", noise_info: bool = True, per_pixel_search: bool = True,
-                 inf_test: bool = True,
+                 inf_test: bool = True, fill: bool = True,
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
@@ -604,6 +605,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     (<= 0: whole image at once; same result). 49152 (6 strips of 86 rows at 512 x 512): the 16 work planes,
     ~3 MiB, stay in a 4 MiB L2, with fewer halo rows and calls than 32768 (9 strips): 2-5 % faster per
     locate (interleaved in one process, 25 rounds x 5 presets, twice); 65536 as fast, 98304 slower.
+    fill: pixels without a measurement (low texture, ill-conditioned, out of view of b; not occluded or truncated)
+    get an inverse range inferred from the measured ones around them (``eonav.methods.fill``: plane fits in
+    windows growing by octaves, sigma from the fit and its disagreement across scales), flagged FILLED (not VALID),
+    where that sigma is within max_rel_std like any VALID pixel's. Sim presets: coverage of the non-sky pixels
+    63-79 % -> 93-97 %, median error 0.34-0.80 % -> 0.50-1.08 %; the filled pixels' z spread 0.8-1.3.
     sgm: semi-global aggregation (4 scanline paths) of the coarse ZNCC cost volume before winner-take-all;
     sgm_p1 / sgm_p2: penalties (cost units, 1 - ZNCC) of a one-hypothesis / larger jump between neighbours,
     sgm_tau: grey levels over which the jump penalty halves across an intensity edge. Off by default:
@@ -728,8 +734,10 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                 h0, w0 = pa[0].shape
                 prm["inf_mask"] = cv2.resize(prm["inf_out"], (w0, h0), interpolation=cv2.INTER_NEAREST)
             rho = new
+    n_filled = fill_unmeasured(rho, fin.std, fin.flags, fin.rng, fin.conf, max_rel_std, exclude=fin.amb) if fill else 0
     info = {"seconds": time.perf_counter() - t_start, "noise_sigma": fin.sigma, "rho_max_per_m": rho_max,
-            "n_hypotheses": int(len(rhos)), "search_level": L, "baseline_m": geo.baseline_m}
+            "n_hypotheses": int(len(rhos)), "search_level": L, "baseline_m": geo.baseline_m,
+            "filled_fraction": n_filled / max(rho.size, 1)}
     return make_result(rho, fin.std, fin.flags, fin.rng, fin.conf, METHOD, fin.n_val, fin.n_inf, info)
 
 
@@ -761,6 +769,7 @@ class _Final:
         self.flags = np.empty(shape, np.uint8)
         self.rng = np.empty(shape, F32)
         self.conf = np.empty(shape, F32)
+        self.amb = np.zeros(shape, bool)      # the infinity test's: not filled either
         self.n_val = self.n_inf = 0
 
 
@@ -904,7 +913,8 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     # occluded: a residual that neither the noise nor a misregistration of occ_px pixels explains
     G3 *= fin.occ_px2
     G3 += fin.occ_thr
-    oov |= R2 > G3
+    occ = R2 > G3
+    oov |= occ
     ill = orient >= fin.orient_min
     np.logical_not(ill, out=ill)
     ill &= ~low
@@ -912,11 +922,13 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
         # (a rho within 2 sigma of 0 is AT_INFINITY's business, not an ambiguity)
         amb &= new[y0:y1] > F32(2.0) * std
         ill |= amb
+        fin.amb[y0:y1] = amb
     flags = fin.flags[y0:y1]
     np.multiply(oov.view(np.uint8), np.uint8(OUT_OF_VIEW), out=flags)
     flags |= low.view(np.uint8) * np.uint8(LOW_TEXTURE)
     flags |= ill.view(np.uint8) * np.uint8(ILL_CONDITIONED)
     flags |= trunc.view(np.uint8) * np.uint8(TRUNCATION)
+    flags |= occ.view(np.uint8) * np.uint8(OCCLUDED)
     nv, ni = classify_into(new[y0:y1], std, flags, fin.rng[y0:y1], fin.conf[y0:y1], rho_far=fin.rho_far,
                            max_rel_std=fin.max_rel_std, work=(T[0][o], T[2][o], T[5][o]))
     fin.n_val += nv

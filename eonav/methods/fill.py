@@ -1,0 +1,193 @@
+"""Inverse range for the pixels a pair cannot measure, inferred from the measured ones around them.
+
+A plane's inverse range is an affine function of the image coordinates (a point X = x_c (1, x_n, y_n) on the plane
+n . X = d has rho = 1 / x_c = (n_1 + n_2 x_n + n_3 y_n) / d), so a weighted least-squares plane through the measured
+rho of a window predicts rho at a hole, including just outside the measured region (the ground band that has left
+image b by the second frame). Windows grow by octaves (7 x 7 cells of 2^g pixels, g = 2..7: 28 .. 896 px wide);
+each cell takes the finest window with enough measured support, a coarser window's plane carried to the cell's
+centre. Every window's sums come from box filters of per-cell moments, one pyramid (no per-pixel loop).
+
+The 1-sigma of a filled rho is the plane fit's prediction error -- residual variance of the window (which holds
+the measurement noise and any departure from a plane: a depth edge inside the window inflates it), scaled by
+(1 + (1 + leverage) / n) for the distance from the support's centroid -- plus the squared disagreement with the next
+coarser window's prediction (a plane that holds at two scales is trusted; one that does not is not). Measured on the
+simulator presets (filled pixels' z = (rho - rho_true) / sigma): robust spread 0.8-1.1 (the plane fit alone:
+1.6-3.6), 93-99 % within 2 sigma.
+
+Cells of 4 px (first octave 2), not 2: the fill's CPU time on a 512 x 512 locate 22 -> 7.6 ms (against 54 ms for
+the rest, same loaded machine), medians within +0.05 pp and coverage within 0.7 points on the sim presets and
+Middlebury.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..rangemap import FILLED, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
+
+F32 = np.float32
+# not filled: a pixel hidden in image b, or whose last step was past the first-order model's trust, sits at a depth
+# edge, where a plane through its neighbours mixes two surfaces (Middlebury: filled with a median error of 15-20 %
+# against 2-7 % for the low-texture and ill-conditioned ones)
+NO_FILL = OCCLUDED | TRUNCATION
+# largest leverage of an interpolation (d^T C^-1 d; a pixel at the rim of a half-plane of support has 3, one inside a
+# hole ringed by support ~0): at 3 the fast preset's sky took a 2-4 px band beside a pole's measured pixels
+LEV_MAX = 1.0
+FIRST_OCTAVE = 2
+
+# least share of a window's pixels that must be measured, per octave g = 1..6 (finer windows need more: a
+# window 3/4 empty is mostly a hole's own rim, where depth edges are)
+MIN_SUPPORT = (0.3, 0.25, 0.2, 0.15, 0.15, 0.15)
+_WIN = 7        # window, cells of the octave's grid
+
+
+def _box(m: np.ndarray) -> np.ndarray:
+    return cv2.boxFilter(m, -1, (_WIN, _WIN), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+
+def _down(m: np.ndarray, shape) -> np.ndarray:
+    """Sums over 2 x 2 cells (OpenCV's area average x 4; an odd edge row / column counts as half a cell)."""
+    return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_AREA) * F32(4.0)
+
+
+def _cell_shape(shape, g: int):
+    return -(-shape[0] // 2 ** g), -(-shape[1] // 2 ** g)
+
+
+def _up(m: np.ndarray, shape) -> np.ndarray:
+    return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+
+
+def _centres(n_cells: int, g: int, n_px: int, scale: float) -> np.ndarray:
+    """Scaled coordinate of the centres of n_cells cells of 2^g pixels along an axis of n_px pixels."""
+    return ((np.arange(n_cells) * 2.0 ** g + 0.5 * (2 ** g - 1) - 0.5 * (n_px - 1)) * scale).astype(F32)
+
+
+def _plane(S, xc, yc, min_n: float, min_det: float):
+    """Weighted least-squares plane r = mr + b (x - mx) + c (y - my) of the window sums S (10 planes): prediction and
+    its variance (residual variance x (1 + (1 + leverage) / n)) at the cell centres (xc row, yc column), and the
+    slopes b, c; NaN where the window has fewer than min_n measured pixels or too little spread in x and y."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        n = S[0]
+        inv_n = 1.0 / n
+        mx, my, mr = S[1] * inv_n, S[2] * inv_n, S[3] * inv_n
+        cxx = S[4] * inv_n - mx * mx
+        cxy = S[5] * inv_n - mx * my
+        cyy = S[6] * inv_n - my * my
+        cxr = S[7] * inv_n - mx * mr
+        cyr = S[8] * inv_n - my * mr
+        crr = S[9] * inv_n - mr * mr
+        det = cxx * cyy - cxy * cxy
+        inv_det = 1.0 / det
+        b = (cyy * cxr - cxy * cyr) * inv_det
+        c = (cxx * cyr - cxy * cxr) * inv_det
+        res = np.maximum(crr - b * cxr - c * cyr, 0) * n / np.maximum(n - 3, 1)
+        dx, dy = xc - mx, yc - my
+        p = mr + b * dx + c * dy
+        lev = (cyy * dx * dx - F32(2) * cxy * dx * dy + cxx * dy * dy) * inv_det
+        v = res * (F32(1) + (F32(1) + lev) / n)
+    bad = ~((n >= F32(min_n)) & (det > F32(min_det)) & np.isfinite(p) & np.isfinite(v))
+    p[bad] = np.nan
+    return p, v, b, c, lev
+
+
+def fill_inverse_range(rho: np.ndarray, support: np.ndarray, first_octave: int = 1):
+    """Inverse range and 1-sigma of every pixel from the plane fits of the measured ``support`` pixels (rho finite
+    there) around it (the caller keeps them where it has no measurement). Returns (rho_fill, std_fill) float32,
+    NaN where no window had support. The
+    fill is computed per cell of 2^first_octave pixels (its centre stands for its pixels), in float32 with the
+    coordinates scaled to [-1, 1] and rho to the measured median (the window sums subtract large means: relative
+    error of a variance ~1e-7 / its share of the mean square, far below any sigma that matters)."""
+    h, w = rho.shape
+    support = support & np.isfinite(rho)
+    sup_f = support.astype(F32)
+    n_sup = float(cv2.sumElems(sup_f)[0])
+    if n_sup == 0:
+        nan = np.full((h, w), np.nan, F32)
+        return nan, nan.copy(), nan.copy()
+    r = np.zeros((h, w), F32)
+    np.copyto(r, rho, where=support)
+    rho_ref = float(cv2.sumElems(r)[0]) / n_sup or 1.0     # the measured mean: rho in units of it
+    r *= F32(1.0 / rho_ref)
+    scale = 2.0 / max(h, w)
+    g1 = int(first_octave)
+    sh1 = _cell_shape((h, w), g1)
+    cells = F32(4 ** g1)
+    n, sr, srr = (cv2.resize(a, (sh1[1], sh1[0]), interpolation=cv2.INTER_AREA) * cells
+                  for a in (sup_f, r, cv2.multiply(r, r)))
+    # every octave's plane at its own cell centres, finest first (the first octave's moments: its cells' measured
+    # pixels placed at the cell's centre)
+    xc, yc = _centres(sh1[1], g1, w, scale)[None, :], _centres(sh1[0], g1, h, scale)[:, None]
+    M = [n, n * xc, n * yc, sr, n * xc * xc, n * xc * yc, n * yc * yc, sr * xc, sr * yc, srr]
+    fits = []
+    for k, min_share in enumerate(MIN_SUPPORT):
+        g = g1 + k
+        if k and _WIN * 2 ** (g - 1) >= 2 * max(h, w):
+            break            # the previous window already spans the image from any cell
+        shg = _cell_shape((h, w), g)
+        if k:
+            M = [_down(m, shg) for m in M]
+        xc, yc = _centres(shg[1], g, w, scale), _centres(shg[0], g, h, scale)
+        win_px = _WIN * 2 ** g
+        fits.append((xc, yc) + _plane([_box(m) for m in M], xc[None, :], yc[:, None], min_share * win_px * win_px,
+                                      (0.05 * (win_px * scale) ** 2 / 12) ** 2))
+    # coarse to fine: a cell keeps its own plane where it has one, else takes its parent's, carried along the
+    # parent's plane to the cell's centre; a cell's own pick gains its squared disagreement with the parent's
+    p = v = b = c = None
+    for i in range(len(fits) - 1, -1, -1):
+        xc, yc, pk, vk, bk, ck, lk = fits[i]
+        if p is None:
+            p, v, b, c, lev = pk, vk, bk, ck, lk
+        else:
+            shk = pk.shape
+            p, v, lev = _up(p, shk), _up(v, shk), _up(lev, shk)
+            ix = np.minimum(np.arange(shk[1]) >> 1, xp.size - 1)
+            iy = np.minimum(np.arange(shk[0]) >> 1, yp.size - 1)
+            p += _up(b, shk) * (xc - xp[ix])[None, :] + _up(c, shk) * (yc - yp[iy])[:, None]
+            own = np.isfinite(pk)
+            d = pk - p
+            d *= d
+            np.copyto(vk, vk + d, where=own & np.isfinite(d))
+            np.copyto(p, pk, where=own)
+            np.copyto(v, vk, where=own)
+            np.copyto(lev, lk, where=own)
+            if i:
+                b, c = _up(b, shk), _up(c, shk)
+                np.copyto(b, bk, where=own)
+                np.copyto(c, ck, where=own)
+        xp, yp = xc, yc
+    p *= F32(rho_ref)
+    s = np.sqrt(v)
+    s *= F32(abs(rho_ref))
+    return _up(p, (h, w)), _up(s, (h, w)), _up(lev, (h, w))
+
+
+def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, exclude=None) -> int:
+    """In place on a method's outputs: every pixel without a measurement (not VALID, not OCCLUDED or TRUNCATION)
+    whose fill has a relative sigma within max_rel_std (the rule VALID pixels meet) gets the filled rho, its sigma,
+    range 1/rho, confidence rho/sigma and the FILLED flag (its other flags say why it was not measured). Only a
+    pixel out of view of image b is extrapolated (the ground band that has left the image: a plane carries on);
+    any other is filled only inside its window's support (leverage <= LEV_MAX): a textureless pixel beyond the measured
+    ones may be sky (the fast preset's faint sky took the terrain's plane: 2.3 % of it finite). ``exclude``: more
+    pixels not to fill (the dense method's infinity test: a point at infinity explains them as well). Returns the
+    number of pixels filled."""
+    support = (flags & np.uint8(VALID)) != 0
+    rho_f, std_f, lev = fill_inverse_range(rho, support, first_octave=FIRST_OCTAVE)
+    with np.errstate(invalid="ignore"):
+        keep = std_f <= F32(max_rel_std) * rho_f          # (NaN: False; implies rho_f > 0)
+        inside = lev <= F32(LEV_MAX)
+    keep &= (flags & np.uint8(VALID | NO_FILL)) == 0
+    inside |= (flags & np.uint8(OUT_OF_VIEW | OCCLUDED)) == np.uint8(OUT_OF_VIEW)
+    keep &= inside
+    if exclude is not None:
+        keep &= ~exclude
+    np.copyto(rho, rho_f, where=keep)
+    np.copyto(std, std_f, where=keep)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.copyto(rng, 1.0 / rho_f, where=keep)
+        np.copyto(conf, rho_f / std_f, where=keep)
+    flags |= keep.view(np.uint8) * np.uint8(FILLED)
+    return int(np.count_nonzero(keep))
+
+
+__all__ = ["fill_inverse_range", "fill_unmeasured", "MIN_SUPPORT", "NO_FILL"]
