@@ -94,6 +94,24 @@ def calibration(res, truth_m, mask) -> dict:
             "within_2_sigma": float(np.mean(np.abs(z) < 2.0))}
 
 
+def filled_line(name, res, case) -> str:
+    """What the FILLED pixels (inferred, not measured) add: their share of the scored pixels, their median error and
+    sigma calibration, and the coverage / median error of the measured (VALID) pixels alone."""
+    from .rangemap import FILLED, VALID
+    if res.flags is None or not (res.flags & FILLED).any():
+        return ""
+    ok = case.mask & np.isfinite(case.truth_m)
+    filled = ok & ((res.flags & FILLED) != 0)
+    measured = (res.flags & VALID) != 0
+    sm = score(np.where(measured, res.range_m, np.nan), case.truth_m, case.mask)
+    rel = np.abs(res.range_m[filled] - case.truth_m[filled]) / case.truth_m[filled]
+    cal = calibration(res, case.truth_m, filled)
+    return (f"   {'':<14}measured only: {100 * sm['median_rel_error']:.2f}% over {100 * sm['coverage']:.1f}%; "
+            f"FILLED: {100 * filled.sum() / max(int(case.mask.sum()), 1):.1f}% of the scored pixels at "
+            f"{100 * float(np.median(rel)) if rel.size else float('nan'):.2f}%, z spread "
+            f"{cal.get('z_spread', float('nan')):.2f}, |z|<2 {fmt_pct(cal.get('within_2_sigma'))}")
+
+
 def fmt_pct(x) -> str:
     return "-" if x is None else f"{100 * x:.1f}%"
 
@@ -162,7 +180,8 @@ def run_bench(methods, cases, repeat, json_out=None):
             " (in view of b, not occluded there)")
         print(f"\n== {case.name}  ({w}x{h}, reference: {case.truth_label}, {int(case.mask.sum())} scored pixels{meas})")
         print(f"   {'method':<14}{'median err':>11}{'within 5%':>11}{'coverage':>10}"
-              f"{'of meas.':>10}{'ms/pair':>10}{'peak MB':>9}{'z spread':>10}{'|z|<2':>7}")
+              f"{'of meas.':>10}{'ms/pair':>10}{'peak MB':>9}{'z spread':>10}{'|z|<2':>7}  (coverage: finite ranges, "
+              "FILLED included)")
         per = {}
         names = list(methods) + (["sgbm"] if case.stereo_rectified and "sgbm" not in methods else [])
         for name in names:
@@ -177,6 +196,9 @@ def run_bench(methods, cases, repeat, json_out=None):
                   f"{1000 * secs:>10.1f}{peak / 2**20:>9.1f}"
                   f"{s['z_spread'] if 'z_spread' in s else float('nan'):>10.2f}{fmt_pct(s.get('within_2_sigma')):>7}")
             results.append({"case": case.name, "method": name, "seconds_per_pair": secs, "peak_bytes": peak, **s})
+            filled = filled_line(name, res, case)
+            if filled:
+                print(filled)
         line = common_pixel_line(case, per)
         if line:
             print(line)
