@@ -92,16 +92,42 @@ def gn_terms(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq,
 
 
 @njit(**_JIT)
-def final_terms(wv, ia, gxa, gya, inv, G_o, rr_o, mx_o, my_o, mf_o):
-    """The final linearisation's extra per-pixel terms: the in-view mask mf (mask > 0.999 and inv > 0), the masked
-    gradient energy of a (G), the masked squared residual (rr) and the masked gradient of a (mx, my)."""
-    n, w = inv.shape
+def gn_terms_final(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o,
+                   G_o, rr_o, mx_o, my_o, mf_o):
+    """gn_terms of the final linearisation, with its extra per-pixel terms in the same pass: the in-view mask mf
+    (mask > 0.999 and inv > 0), the masked gradient energy of a (G), the masked squared residual (rr) and the
+    masked gradient of a (mx, my)."""
+    n, w = R.shape
     for y in range(n):
+        k1, k2 = c1c[y], c2c[y]
         for x in range(w):
+            mask = wv[y, x, 3]
             r = wv[y, x, 0] - ia[y, x]
-            mf = _ONE if (wv[y, x, 3] > _MASK_IN) & (inv[y, x] > _ZERO) else _ZERO
-            mf_o[y, x] = mf
             ga, gb = gxa[y, x], gya[y, x]
+            gx = wv[y, x, 1] + ga
+            gy = wv[y, x, 2] + gb
+            C1 = c1r[x] + k1
+            C2 = c2r[x] + k2
+            J = gx * C1
+            J = _fma(gy, C2, J)
+            d = inv[y, x]
+            i2 = d * d
+            J = J * i2
+            c2 = C1 * C1
+            c2 = _fma(C2, C2, c2) if c2_fma else c2 + C2 * C2
+            E2_o[y, x] = c2 * (i2 * i2)
+            a = max(abs(r), ks)
+            wgt = (mask * ks) / a
+            wJ = wgt * J
+            q = J * R[y, x]
+            q = q - r
+            wJJ[y, x] = wJ * J
+            wJq[y, x] = wJ * q
+            wgt_o[y, x] = wgt
+            wJ_o[y, x] = wJ
+            wq_o[y, x] = wgt * q
+            mf = _ONE if (mask > _MASK_IN) & (d > _ZERO) else _ZERO
+            mf_o[y, x] = mf
             G = ga * ga
             G = _fma(gb, gb, G)
             G_o[y, x] = G * mf
@@ -121,13 +147,15 @@ def inview_residual(wv, ia, rr_o):
 
 
 @njit(**_JIT)
-def gn_update(H, g, S0, S1, Sq, E2, R, lam_c, cap, cap_hi, out):
+def gn_update(H, g, S0, S1, Sq, E2, R, lam_c, capr, capc, cap_hi, out):
     """The Levenberg-damped update of the strip's own rows from the window sums (brightness offset eliminated):
-    (H - S1^2 / S0 + lam) rho' = g - Sq S1 / S0 + lam rho, lam = lam_c E2, clipped to [0, cap] (cap: the rows'
-    cap map, or the scalar cap_hi when cap has no rows). Leaves S0 + 1e-6 in S0 and H - S1^2/S0 in H."""
+    (H - S1^2 / S0 + lam) rho' = g - Sq S1 / S0 + lam rho, lam = lam_c E2, clipped to [0, cap]: cap the affine
+    cap map (row part capr, column part capc: den >= den_min) clipped to [0, cap_hi], or cap_hi where capr is
+    empty. Leaves S0 + 1e-6 in S0 and H - S1^2/S0 in H."""
     n, w = out.shape
-    use_cap = cap.shape[0] > 0
+    use_cap = capr.shape[0] > 0
     for y in range(n):
+        cc = capc[y] if use_cap else _ZERO
         for x in range(w):
             s0 = S0[y, x] + _EPS_S0
             S0[y, x] = s0
@@ -142,7 +170,12 @@ def gn_update(H, g, S0, S1, Sq, E2, R, lam_c, cap, cap_hi, out):
             v = num / den if den != _ZERO else _ZERO
             if v < _ZERO:
                 v = _ZERO
-            hi = cap[y, x] if use_cap else cap_hi
+            hi = cap_hi
+            if use_cap:
+                c = capr[x] + cc
+                hi = c if c < cap_hi else cap_hi      # np.clip(c, 0, cap_hi) (NaN-free), as _Level.cap_rows
+                if hi < _ZERO:
+                    hi = _ZERO
             if v > hi:
                 v = hi
             out[y, x] = v

@@ -937,7 +937,7 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
 
 
 
-_NO_ROWS = np.empty((0, 0), F32)
+_NO_CAP = np.empty(0, F32)
 _NO_AMB = np.empty((0, 0), np.uint8)
 
 
@@ -964,11 +964,13 @@ def _gn_block_fused(K, lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm
     io = prm.get("inf_out") if fin is None else None
     ks = F32(max(prm["huber_k"] * sigma, 1e-6))
     # (c2_fma: the OpenCV path's C1^2 + C2^2 is an accumulateSquare (fused) unless the level caches it)
-    K.gn_terms(wv, lv.ia[s], gxa, gya, rw[3], kc[3, s], rw[4], kc[4, s], T[0], R, ks, lv._cache is None,
-               T[1], T[2], T[3], T[4], T[5], T[6])
+    args = (wv, lv.ia[s], gxa, gya, rw[3], kc[3, s], rw[4], kc[4, s], T[0], R, ks, lv._cache is None,
+            T[1], T[2], T[3], T[4], T[5], T[6])
     if fin is not None:
-        K.final_terms(wv, lv.ia[s], gxa, gya, T[0], T[10], T[12], T[13], T[14], T[15])
-    elif io is not None:
+        K.gn_terms_final(*args, T[10], T[12], T[13], T[14], T[15])
+    else:
+        K.gn_terms(*args)
+    if io is not None:
         K.inview_residual(wv, lv.ia[s], T[12])
     amb = _NO_AMB
     if fin is not None:
@@ -986,9 +988,10 @@ def _gn_block_fused(K, lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm
     for i in (1, 2, 3, 4, 5):
         _box_to(T[i], win, dst=T[i])
     lam_c = F32(4.0 * sigma * sigma * prm["lam_k"])
-    cap = lv.cap_rows(y0, y1) if lv.cap is not None else _NO_ROWS   # (clipped to rho_hi: the same as min(., rho_hi))
+    # the den >= den_min cap (row and column parts), clipped to [0, rho_hi] in the kernel as in _Level.cap_rows
+    capr, capc = (rw[5], kc[5, y0:y1]) if lv.cap is not None else (_NO_CAP, _NO_CAP)
     out = new[y0:y1]
-    K.gn_update(T[1][o], T[2][o], T[3][o], T[4][o], T[5][o], T[6][o], R[o], lam_c, cap, lv.rho_hi, out)
+    K.gn_update(T[1][o], T[2][o], T[3][o], T[4][o], T[5][o], T[6][o], R[o], lam_c, capr, capc, lv.rho_hi, out)
     if fin is None:
         if io is not None:      # the infinity test, at this level (see _infinity_ambiguous)
             io[y0:y1] = _infinity_ambiguous(lv, s, o, T[12], T, win)
