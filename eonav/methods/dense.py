@@ -23,7 +23,8 @@ gradient perpendicular to the epipolar direction, relative std above ``max_rel_s
 (eq. 7-style: the last update still moved by more than ``trunc_px``), AT_INFINITY (rho within 2 sigma
 of 0 with a tight sigma: range +inf).
 
-All per-pixel work is float32 numpy / OpenCV: no per-pixel Python. The Gauss-Newton steps, the flags and
+All per-pixel work is float32 numpy / OpenCV, or (when numba is installed) the Gauss-Newton strips' elementwise
+work in fused numba kernels (``_dense_kernels``, ``fused``) that give the same result: no per-pixel Python. The Gauss-Newton steps, the flags and
 the classification run on strips of rows (``strip_px`` pixels each including a half-window halo, so the
 box sums are exactly those of the whole image): the temporaries of a strip are 16 work planes that stay in
 the CPU cache; they and the large per-level buffers (warp source, gradients, cost volume) are per-thread work
@@ -1014,4 +1015,28 @@ def _fused_kernels():
     return _dense_kernels
 
 
-__all__ = ["locate_dense"]
+
+def prepare_kernels() -> bool:
+    """Compile (or load from numba's cache) the fused kernels now, for the argument types locate_dense passes them,
+    instead of in the first locate: ~5-7 s cold, ~0.5-1 s from the cache on the bench machine, which a service
+    should spend before its first frame (a first pair delayed by it went stale). False without numba."""
+    K = _fused_kernels()
+    if K is None:
+        return False
+    n, w = 2, 4
+    p2 = [np.zeros((n, w), F32) for _ in range(16)]
+    row, col, f = np.zeros(w, F32), np.zeros(n, F32), F32(1.0)
+    wv = np.zeros((n, w, 4), F32)
+    K.epipolar_map(p2[0], row, col, row, col, row, col, f, f, f, p2[1], p2[2], p2[3])
+    args = (wv, p2[0], p2[1], p2[2], row, col, row, col, p2[3], p2[4], f, True, *p2[5:11])
+    K.gn_terms(*args)
+    K.gn_terms_final(*args, *p2[11:16])
+    K.inview_residual(wv, p2[0], p2[1])
+    for capr, capc in ((row, col), (_NO_CAP, _NO_CAP)):
+        K.gn_update(*p2[:7], f, capr, capc, f, p2[7])
+    for amb in (np.zeros((n, w), np.uint8), _NO_AMB):
+        K.gn_final(*p2[:11], amb, amb.size > 0, True, *([f] * 10), p2[11], np.zeros((n, w), np.uint8), p2[12], p2[13])
+    return True
+
+
+__all__ = ["locate_dense", "prepare_kernels"]
