@@ -299,6 +299,9 @@ def body(node: Node, args) -> None:
         import cv2
         cv2.setNumThreads(args.cv_threads)
     get_method(args.method)                     # unknown method: configuration error (exit 2)
+    if args.method == "dense":                  # its numba kernels compiled / loaded now, not in the first pair
+        from eonav.methods.dense import prepare_kernels
+        prepare_kernels()
     params = parse_params(args.method_param)
     policy = PairPolicy(policy_config(args))
     if args.ring < 1:

@@ -250,6 +250,23 @@ def test_strips_equal_whole_image():
     assert (r1.flags != r0.flags).mean() < 1e-3
 
 
+@pytest.mark.parametrize("preset,size", [("turning", 256), ("paper", 256), ("stereo", 96)])
+def test_fused_kernels_match_opencv_path(preset, size):
+    """The numba kernels (fused=True) compute what the OpenCV path (fused=False, the reference) does, to float
+    rounding (bit-identical where OpenCV's multiply-adds are fused, as on x86-64 with FMA); size 96 has no level 1,
+    so the infinity test runs at level 0."""
+    pytest.importorskip("numba")
+    sp = sim(preset, size=size)
+    r1 = locate_dense(*sp.views, fused=True)
+    r0 = locate_dense(*sp.views, fused=False)
+    np.testing.assert_allclose(r1.inv_range_per_m, r0.inv_range_per_m, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(r1.inv_range_std_per_m, r0.inv_range_std_per_m, rtol=1e-5, atol=1e-9)
+    assert (r1.flags != r0.flags).mean() < 1e-3
+    ok = (r1.flags == r0.flags) & np.isfinite(r0.range_m)
+    np.testing.assert_allclose(r1.range_m[ok], r0.range_m[ok], rtol=1e-5)
+    np.testing.assert_allclose(r1.confidence[ok], r0.confidence[ok], rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.realdata
 @pytest.mark.skipif(not MIDDLEBURY.is_dir(), reason=f"real data not found at {MIDDLEBURY} (../shared/data)")
 def test_sgm_reduces_gross_errors_teddy():

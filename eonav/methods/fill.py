@@ -64,7 +64,7 @@ def _centres(n_cells: int, g: int, n_px: int, scale: float) -> np.ndarray:
 
 
 def _plane(S, xc, yc, min_n: float, min_det: float):
-    """Weighted least-squares plane r = mr + b (x - mx) + c (y - my) of the window sums S (10 planes): prediction,
+    """Weighted least-squares plane r = mr + b (x - mx) + c (y - my) of the window sums S (11 planes): prediction,
     its error variance, slopes b, c and leverage at the cell centres (xc row, yc column); NaN where the window has
     fewer than min_n measured pixels or too little spread in x and y. Error variance: residual variance x
     (1 + (1 + leverage) / n), as for a new measurement -- the residual holds the support's noise besides the
@@ -88,6 +88,9 @@ def _plane(S, xc, yc, min_n: float, min_det: float):
         dx, dy = xc - mx, yc - my
         p = mr + b * dx + c * dy
         lev = (cyy * dx * dx - F32(2) * cxy * dx * dy + cxx * dy * dy) * inv_det
+        # (the scatter of the cell means is at least what their own noise gives: support that agrees only because
+        # it was clipped, e.g. rho >= 0 at infinity, is no tighter than its measurements)
+        res = np.maximum(res, S[10] * inv_n)
         v = res * (F32(1) + (F32(1) + lev) * inv_n)
     bad = ~((n >= F32(min_n)) & (det > F32(min_det)) & np.isfinite(p) & np.isfinite(v))
     p[bad] = np.nan
@@ -102,9 +105,9 @@ def _along(b, c, x, y, xp, yp, k: int) -> np.ndarray:
     return b * (x - xp[ix])[None, :] + c * (y - yp[iy])[:, None]
 
 
-def fill_inverse_range(rho: np.ndarray, support: np.ndarray, first_octave: int = 1):
+def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | None = None, first_octave: int = 1):
     """Inverse range, its 1-sigma and the leverage of every pixel from the plane fits of the measured ``support``
-    pixels (rho finite there) around it; the caller keeps them where
+    pixels (rho finite there; ``std`` their 1-sigma, None: noiseless) around it; the caller keeps them where
     it has no measurement. float32 H x W each, NaN where no window had support. Leverage (d^T C^-1 d of the
     pixel's offset d from the support's centroid, C their spatial covariance): 0 at the centroid, 3 at the rim of a
     half-plane of support; beyond, an extrapolation. Computed per cell of 2^first_octave pixels and carried to each
@@ -128,8 +131,13 @@ def fill_inverse_range(rho: np.ndarray, support: np.ndarray, first_octave: int =
     cells = F32(4 ** g1)
     xs = ((np.arange(w) - 0.5 * (w - 1)) * scale).astype(F32)
     ys = ((np.arange(h) - 0.5 * (h - 1)) * scale).astype(F32)
-    n, sr, sx, sy = (cv2.resize(a, (sh1[1], sh1[0]), interpolation=cv2.INTER_AREA) * cells
-                     for a in (sup_f, r, sup_f * xs[None, :], sup_f * ys[:, None]))
+    var = np.zeros((h, w), F32)      # the measurements' own variance (rho_ref units)
+    if std is not None:
+        np.copyto(var, std, where=support & np.isfinite(std))
+        var *= F32(1.0 / rho_ref)
+        cv2.multiply(var, var, dst=var)
+    n, sr, sx, sy, sv = (cv2.resize(a, (sh1[1], sh1[0]), interpolation=cv2.INTER_AREA) * cells
+                         for a in (sup_f, r, sup_f * xs[None, :], sup_f * ys[:, None], var))
     # the samples are the cells' means, at the centroid of their measured pixels (a half-measured cell's mean lies
     # half a cell off its centre: on steep ground 1 % of rho per pixel); the sums of squares and products are
     # those of the means (n * mean^2 ...), so the window's residual is the scatter of the cell means about the
@@ -137,7 +145,8 @@ def fill_inverse_range(rho: np.ndarray, support: np.ndarray, first_octave: int =
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(n > 0, 1.0 / n, F32(0)).astype(F32)
     xc, yc = sx * inv, sy * inv
-    M = [n, sx, sy, sr, sx * xc, sx * yc, sy * yc, sr * xc, sr * yc, sr * sr * inv]
+    # (the last: each cell mean's noise variance, sum sigma^2 / n, weighted by n)
+    M = [n, sx, sy, sr, sx * xc, sx * yc, sy * yc, sr * xc, sr * yc, sr * sr * inv, sv * inv]
     fits = []
     for k, min_share in enumerate(MIN_SUPPORT):
         g = g1 + k
@@ -183,7 +192,7 @@ def fill_inverse_range(rho: np.ndarray, support: np.ndarray, first_octave: int =
     return p, s, lev
 
 
-def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, exclude=None) -> int:
+def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: float = 0.0, exclude=None) -> int:
     """In place on a method's outputs: every pixel without a measurement (not VALID, not OCCLUDED or TRUNCATION)
     whose fill has a relative sigma within max_rel_std (the rule VALID pixels meet) gets the filled rho, its sigma,
     range 1/rho, confidence rho/sigma and the FILLED flag (its other flags say why it was not measured). Only a
@@ -191,11 +200,13 @@ def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, exclude=None
     any other is filled only inside its window's support (leverage <= LEV_MAX): a textureless pixel beyond the measured
     ones may be sky (the fast preset's faint sky took the terrain's plane: 2.3 % of it finite). ``exclude``: more
     pixels not to fill (the dense method's infinity test: a point at infinity explains them as well). Returns the
-    number of pixels filled."""
+    number of pixels filled. rho_far: nothing is filled farther than this (the pair's far limit: beyond it a
+    finite range means nothing; a fill among sky pixels at infinity took a tiny rho)."""
     support = (flags & np.uint8(VALID)) != 0
-    rho_f, std_f, lev = fill_inverse_range(rho, support, first_octave=FIRST_OCTAVE)
+    rho_f, std_f, lev = fill_inverse_range(rho, support, std, first_octave=FIRST_OCTAVE)
     with np.errstate(invalid="ignore"):
         keep = std_f <= F32(max_rel_std) * rho_f          # (NaN: False; implies rho_f > 0)
+        keep &= rho_f >= F32(rho_far)
         inside = lev <= F32(LEV_MAX)
     keep &= (flags & np.uint8(VALID | NO_FILL)) == 0
     inside |= (flags & np.uint8(OUT_OF_VIEW | OCCLUDED)) == np.uint8(OUT_OF_VIEW)

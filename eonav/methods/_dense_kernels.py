@@ -1,0 +1,264 @@
+"""Fused per-pixel kernels (numba) of the dense method's Gauss-Newton strips (``dense._gn_block``).
+
+The OpenCV path of ``_gn_block`` makes ~100 passes over each strip (one array operation each, plus a fixed cost
+per call); these kernels do the same float32 arithmetic in three passes per strip: the epipolar map before the
+warp (cv2.remap), the weighted terms whose window sums the normal equations need (box-filtered by OpenCV, as in
+the OpenCV path), and the update (with ``final``: the uncertainty, the flags and the classification of
+``_common.classify_into``). Each elementwise operation is the one of the OpenCV path, in the same order and in
+float32 (no fast-math: no reassociation, no fused multiply-add), so the two paths agree to float rounding
+(tests/test_dense.py::test_fused_kernels_match_opencv_path).
+
+Imported only when numba is installed (``dense._FUSED``); without it the OpenCV path runs.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ..rangemap import AT_INFINITY, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
+
+F32 = np.float32
+_ZERO = F32(0.0)
+_ONE = F32(1.0)
+_TWO = F32(2.0)
+_EPS_S0 = F32(1e-6)
+_H_MIN = F32(1e-12)
+_MASK_IN = F32(0.999)
+_OOV, _LOW, _ILL, _TRUNC = np.uint8(OUT_OF_VIEW), np.uint8(LOW_TEXTURE), np.uint8(ILL_CONDITIONED), np.uint8(TRUNCATION)
+_OCC = np.uint8(OCCLUDED)
+_BAD = np.uint8(OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION)
+_VAL = np.uint8(VALID)
+_INF_VAL = np.uint8(AT_INFINITY | VALID)
+_NAN = F32(np.nan)
+_INF = F32(np.inf)
+
+_JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
+
+
+@njit(inline="always", **_JIT)
+def _fma(a, b, c):
+    """a * b + c rounded once to float32, as OpenCV's scaleAdd / accumulateProduct / accumulateSquare compute it
+    here (fused multiply-add): the float64 product is exact, and its float64 sum rounded to float32 is the fused
+    result but for ties that double rounding breaks differently (measured: none on the sim presets)."""
+    return np.float32(np.float64(a) * np.float64(b) + np.float64(c))
+
+
+@njit(**_JIT)
+def epipolar_map(R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, inv, ub, vb):
+    """Map of the strip's pixels into b at rho = R: inv = 1 / (A0 + B0 rho), u_b = (P1 + Q1 rho) inv,
+    v_b = (P2 + Q2 rho) inv; each affine map is its row part (w) plus its column part (rows of the strip)."""
+    n, w = R.shape
+    for y in range(n):
+        ca, c1, c2 = a0c[y], p1c[y], p2c[y]
+        for x in range(w):
+            r = R[y, x]
+            d = _ONE / _fma(r, B0, a0r[x] + ca)
+            inv[y, x] = d
+            ub[y, x] = _fma(r, Q1, p1r[x] + c1) * d
+            vb[y, x] = _fma(r, Q2, p2r[x] + c2) * d
+
+
+@njit(**_JIT)
+def gn_terms(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o):
+    """Per pixel of the strip (wv: warped [I_b, gx_b, gy_b, in-view]): the Huber-weighted terms of the normal
+    equations whose window sums are needed (wJ J, wJ q, w, wJ, w q) and E2 (a quarter of |d map / d rho|^2)."""
+    n, w = R.shape
+    for y in range(n):
+        k1, k2 = c1c[y], c2c[y]
+        for x in range(w):
+            mask = wv[y, x, 3]
+            r = wv[y, x, 0] - ia[y, x]
+            gx = wv[y, x, 1] + gxa[y, x]
+            gy = wv[y, x, 2] + gya[y, x]
+            C1 = c1r[x] + k1
+            C2 = c2r[x] + k2
+            J = gx * C1
+            J = _fma(gy, C2, J)
+            d = inv[y, x]
+            i2 = d * d
+            J = J * i2
+            c2 = C1 * C1
+            c2 = _fma(C2, C2, c2) if c2_fma else c2 + C2 * C2
+            E2_o[y, x] = c2 * (i2 * i2)
+            a = max(abs(r), ks)
+            wgt = (mask * ks) / a
+            wJ = wgt * J
+            q = J * R[y, x]
+            q = q - r
+            wJJ[y, x] = wJ * J
+            wJq[y, x] = wJ * q
+            wgt_o[y, x] = wgt
+            wJ_o[y, x] = wJ
+            wq_o[y, x] = wgt * q
+
+
+@njit(**_JIT)
+def gn_terms_final(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o,
+                   G_o, rr_o, mx_o, my_o, mf_o):
+    """gn_terms of the final linearisation, with its extra per-pixel terms in the same pass: the in-view mask mf
+    (mask > 0.999 and inv > 0), the masked gradient energy of a (G), the masked squared residual (rr) and the
+    masked gradient of a (mx, my)."""
+    n, w = R.shape
+    for y in range(n):
+        k1, k2 = c1c[y], c2c[y]
+        for x in range(w):
+            mask = wv[y, x, 3]
+            r = wv[y, x, 0] - ia[y, x]
+            ga, gb = gxa[y, x], gya[y, x]
+            gx = wv[y, x, 1] + ga
+            gy = wv[y, x, 2] + gb
+            C1 = c1r[x] + k1
+            C2 = c2r[x] + k2
+            J = gx * C1
+            J = _fma(gy, C2, J)
+            d = inv[y, x]
+            i2 = d * d
+            J = J * i2
+            c2 = C1 * C1
+            c2 = _fma(C2, C2, c2) if c2_fma else c2 + C2 * C2
+            E2_o[y, x] = c2 * (i2 * i2)
+            a = max(abs(r), ks)
+            wgt = (mask * ks) / a
+            wJ = wgt * J
+            q = J * R[y, x]
+            q = q - r
+            wJJ[y, x] = wJ * J
+            wJq[y, x] = wJ * q
+            wgt_o[y, x] = wgt
+            wJ_o[y, x] = wJ
+            wq_o[y, x] = wgt * q
+            mf = _ONE if (mask > _MASK_IN) & (d > _ZERO) else _ZERO
+            mf_o[y, x] = mf
+            G = ga * ga
+            G = _fma(gb, gb, G)
+            G_o[y, x] = G * mf
+            rr = r * r
+            rr_o[y, x] = rr * mf
+            mx_o[y, x] = ga * mf
+            my_o[y, x] = gb * mf
+
+
+@njit(**_JIT)
+def inview_residual(wv, ia, rr_o):
+    """The residual masked by the warp's in-view mask > 0.999 (the infinity test's input)."""
+    n, w = ia.shape
+    for y in range(n):
+        for x in range(w):
+            rr_o[y, x] = (wv[y, x, 0] - ia[y, x]) * (_ONE if wv[y, x, 3] > _MASK_IN else _ZERO)
+
+
+@njit(**_JIT)
+def gn_update(H, g, S0, S1, Sq, E2, R, lam_c, capr, capc, cap_hi, out):
+    """The Levenberg-damped update of the strip's own rows from the window sums (brightness offset eliminated):
+    (H - S1^2 / S0 + lam) rho' = g - Sq S1 / S0 + lam rho, lam = lam_c E2, clipped to [0, cap]: cap the affine
+    cap map (row part capr, column part capc: den >= den_min) clipped to [0, cap_hi], or cap_hi where capr is
+    empty. Leaves S0 + 1e-6 in S0 and H - S1^2/S0 in H."""
+    n, w = out.shape
+    use_cap = capr.shape[0] > 0
+    for y in range(n):
+        cc = capc[y] if use_cap else _ZERO
+        for x in range(w):
+            s0 = S0[y, x] + _EPS_S0
+            S0[y, x] = s0
+            s1 = S1[y, x]
+            s1n = s1 / s0
+            gg = g[y, x] - Sq[y, x] * s1n
+            hh = H[y, x] - s1 * s1n
+            H[y, x] = hh
+            e2 = E2[y, x]
+            num = _fma(e2 * R[y, x], lam_c, gg)
+            den = _fma(e2, lam_c, hh)
+            v = num / den if den != _ZERO else _ZERO
+            if v < _ZERO:
+                v = _ZERO
+            hi = cap_hi
+            if use_cap:
+                c = capr[x] + cc
+                hi = c if c < cap_hi else cap_hi      # np.clip(c, 0, cap_hi) (NaN-free), as _Level.cap_rows
+                if hi < _ZERO:
+                    hi = _ZERO
+            if v > hi:
+                v = hi
+            out[y, x] = v
+
+
+@njit(**_JIT)
+def gn_final(H, S0, E2, R, out, G, G3, R2, Mx, My, mf, amb, use_amb, noise_info, noise_G, var_k, floor2, trunc2,
+             low_thr, occ_px2, occ_thr, orient_min, rho_far, max_rel_std, std_o, flags_o, rng_o, conf_o, amb_o):
+    """Uncertainty, flags and classification of the strip's own rows after ``gn_update`` (H, S0 as it leaves
+    them): the arithmetic of the OpenCV path of dense._gn_block and of _common.classify_into, per pixel; amb_o
+    gets the infinity test's verdict (1: a point at infinity explains the window as well). Returns
+    (n_valid, n_at_infinity)."""
+    n, w = out.shape
+    nv = 0
+    ni = 0
+    for y in range(n):
+        for x in range(w):
+            rho = out[y, x]
+            e2 = E2[y, x]
+            dd = rho - R[y, x]
+            dd = dd * dd
+            dd = dd * e2
+            trunc = dd > trunc2
+            hh = H[y, x]
+            if noise_info:
+                hh = _fma(e2 * S0[y, x], -noise_G, hh)
+                if not hh >= _H_MIN and not np.isnan(hh):
+                    hh = _H_MIN
+            std = var_k / hh
+            std = std + floor2 / e2
+            std = np.sqrt(std)
+            std_o[y, x] = std
+            Gw = G[y, x]
+            orient = hh / (e2 * Gw)
+            mx, my = Mx[y, x], My[y, x]
+            gc = Gw - mx * mx
+            gc = gc - my * my
+            low = gc < low_thr
+            g3 = G3[y, x] * occ_px2
+            g3 = g3 + occ_thr
+            occ = R2[y, x] > g3
+            oov = mf[y, x] == _ZERO or occ
+            ill = (not orient >= orient_min) and not low
+            amb_o[y, x] = 0
+            if use_amb and amb[y, x] != 0 and rho > _TWO * std:
+                ill = True
+                amb_o[y, x] = 1
+            fl = np.uint8(0)
+            if oov:
+                fl |= _OOV
+            if occ:
+                fl |= _OCC
+            if low:
+                fl |= _LOW
+            if ill:
+                fl |= _ILL
+            if trunc:
+                fl |= _TRUNC
+            # classify_into
+            two = std * _TWO
+            inf_ok = two < rho_far
+            near0 = rho < two
+            inf_ok = inf_ok and near0
+            rel = std / rho
+            good = rel <= max_rel_std and not near0
+            good = (good or inf_ok) and np.isfinite(rho) and np.isfinite(std)
+            if not good:
+                fl |= _ILL
+            ok = (fl & _BAD) == 0
+            if ok and inf_ok:
+                fl |= _INF_VAL
+                ni += 1
+                rng_o[y, x] = _INF
+                c = rho_far / std
+            elif ok:
+                fl |= _VAL
+                nv += 1
+                rng_o[y, x] = _ONE / abs(rho)
+                c = rho / std
+            else:
+                rng_o[y, x] = _NAN
+                c = _ZERO
+            conf_o[y, x] = c if c > _ZERO else _ZERO
+            flags_o[y, x] = fl
+    return nv, ni
