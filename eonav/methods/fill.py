@@ -20,6 +20,8 @@ Middlebury.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
 
@@ -105,39 +107,30 @@ def _along(b, c, x, y, xp, yp, k: int) -> np.ndarray:
     return b * (x - xp[ix])[None, :] + c * (y - yp[iy])[:, None]
 
 
-def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | None = None, first_octave: int = 1):
-    """Inverse range, its 1-sigma and the leverage of every pixel from the plane fits of the measured ``support``
-    pixels (rho finite there; ``std`` their 1-sigma, None: noiseless) around it; the caller keeps them where
-    it has no measurement. float32 H x W each, NaN where no window had support. Leverage (d^T C^-1 d of the
-    pixel's offset d from the support's centroid, C their spatial covariance): 0 at the centroid, 3 at the rim of a
-    half-plane of support; beyond, an extrapolation. Computed per cell of 2^first_octave pixels and carried to each
-    pixel along the cell's plane, in float32 with the coordinates scaled to [-1, 1] and rho to the measured mean
-    (the window sums subtract large means: relative error of a variance ~1e-7 / its share of the mean square, far
-    below any sigma that matters)."""
+def _cell_sums_numpy(rho, support, std, xs, ys, g1: int, sh1):
+    """Per cell of 2^g1 pixels, over its measured pixels: count, sums of rho, x, y and std^2 (numpy path of
+    _fill_kernels.cell_sums; exact sums, partial edge cells included). Returns them and (count, sum of rho)."""
     h, w = rho.shape
-    support = support & np.isfinite(rho)
-    sup_f = support.astype(F32)
-    n_sup = float(cv2.sumElems(sup_f)[0])
-    if n_sup == 0:
-        nan = np.full((h, w), np.nan, F32)
-        return nan, nan.copy(), nan.copy()
-    r = np.zeros((h, w), F32)
-    np.copyto(r, rho, where=support)
-    rho_ref = float(cv2.sumElems(r)[0]) / n_sup or 1.0     # the measured mean: rho in units of it
-    r *= F32(1.0 / rho_ref)
-    scale = 2.0 / max(h, w)
-    g1 = int(first_octave)
-    sh1 = _cell_shape((h, w), g1)
-    cells = F32(4 ** g1)
-    xs = ((np.arange(w) - 0.5 * (w - 1)) * scale).astype(F32)
-    ys = ((np.arange(h) - 0.5 * (h - 1)) * scale).astype(F32)
-    var = np.zeros((h, w), F32)      # the measurements' own variance (rho_ref units)
+    k = 2 ** g1
+    sup = support & np.isfinite(rho)
+    var = np.zeros((h, w), F32)
     if std is not None:
-        np.copyto(var, std, where=support & np.isfinite(std))
-        var *= F32(1.0 / rho_ref)
-        cv2.multiply(var, var, dst=var)
-    n, sr, sx, sy, sv = (cv2.resize(a, (sh1[1], sh1[0]), interpolation=cv2.INTER_AREA) * cells
-                         for a in (sup_f, r, sup_f * xs[None, :], sup_f * ys[:, None], var))
+        np.copyto(var, std, where=sup & np.isfinite(std))
+        var *= var
+    r = np.zeros((h, w), F32)
+    np.copyto(r, rho, where=sup)
+    sup_f = sup.astype(F32)
+    out = []
+    for a in (sup_f, r, sup_f * xs[None, :], sup_f * ys[:, None], var):
+        a = np.pad(a, ((0, sh1[0] * k - h), (0, sh1[1] * k - w)))
+        out.append(a.reshape(sh1[0], k, sh1[1], k).sum(axis=(1, 3), dtype=np.float64).astype(F32))
+    return out, int(np.count_nonzero(sup)), float(r.sum(dtype=np.float64))
+
+
+def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float):
+    """The plane of every first-octave cell (p, v, lev, b, c; rho in the units of the sums) and the cells' centres
+    (xp row, yp column vectors): each octave's planes at its own cell centres, then coarse to fine."""
+    h, w = shape
     # the samples are the cells' means, at the centroid of their measured pixels (a half-measured cell's mean lies
     # half a cell off its centre: on steep ground 1 % of rho per pixel); the sums of squares and products are
     # those of the means (n * mean^2 ...), so the window's residual is the scatter of the cell means about the
@@ -163,7 +156,7 @@ def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | N
     # parent's plane to the cell's centre -- except that an interpolation (leverage <= LEV_MAX) is not replaced by
     # a finer extrapolation (a hole wider than the fine window); a cell's own pick gains its squared disagreement
     # with the parent's
-    p = v = b = c = None
+    p = v = b = c = xp = yp = None
     for i in range(len(fits) - 1, -1, -1):
         xc, yc, pk, vk, bk, ck, lk = fits[i]
         if p is None:
@@ -182,26 +175,87 @@ def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | N
             np.copyto(b, bk, where=own)
             np.copyto(c, ck, where=own)
         xp, yp = xc, yc
+    return p, v, lev, b, c, xp, yp
+
+
+def _axes(shape):
+    h, w = shape
+    scale = 2.0 / max(h, w)
+    return (scale, ((np.arange(w) - 0.5 * (w - 1)) * scale).astype(F32),
+            ((np.arange(h) - 0.5 * (h - 1)) * scale).astype(F32))
+
+
+def _cells(rho, support_or_flags, std, g1: int, K):
+    """Cell sums (kernel or numpy path) scaled to rho in units of the measured mean; None without support."""
+    h, w = rho.shape
+    scale, xs, ys = _axes((h, w))
+    sh1 = _cell_shape((h, w), g1)
+    if K is not None:
+        sums = [np.zeros(sh1, F32) for _ in range(5)]
+        std_in = std if std is not None else np.full((h, w), np.nan, F32)
+        cnt, tot = K.cell_sums(rho, std_in, support_or_flags, xs, ys, g1, *sums)
+    else:
+        sup = support_or_flags if support_or_flags.dtype == bool else (support_or_flags & np.uint8(VALID)) != 0
+        sums, cnt, tot = _cell_sums_numpy(rho, sup, std, xs, ys, g1, sh1)
+    if cnt == 0:
+        return None
+    ref = tot / cnt or 1.0       # the measured mean: rho in units of it (float32 sums of O(1) values)
+    n, sr, sx, sy, sv = sums
+    sr *= F32(1.0 / ref)
+    sv *= F32(1.0 / (ref * ref))
+    return _fit_cells(n, sr, sx, sy, sv, (h, w), g1, scale), ref, xs, ys
+
+
+def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | None = None, first_octave: int = 1):
+    """Inverse range, its 1-sigma and the leverage of every pixel from the plane fits of the measured ``support``
+    pixels (rho finite there; ``std`` their 1-sigma, None: noiseless) around it; the caller keeps them where
+    it has no measurement. float32 H x W each, NaN where no window had support. Leverage (d^T C^-1 d of the
+    pixel's offset d from the support's centroid, C their spatial covariance): 0 at the centroid, 3 at the rim of a
+    half-plane of support; beyond, an extrapolation. Computed per cell of 2^first_octave pixels and carried to each
+    pixel along the cell's plane, in float32 with the coordinates scaled to [-1, 1] and rho to the measured mean
+    (the window sums subtract large means: relative error of a variance ~1e-7 / its share of the mean square, far
+    below any sigma that matters). The numpy path throughout (fill_unmeasured runs the kernels when it can)."""
+    h, w = rho.shape
+    g1 = int(first_octave)
+    cells = _cells(rho, support, std, g1, None)
+    if cells is None:
+        nan = np.full((h, w), np.nan, F32)
+        return nan, nan.copy(), nan.copy()
+    (p, v, lev, b, c, xp, yp), ref, xs, ys = cells
     # to every pixel: along its cell's plane from the cell's centre (a cell of 4 px spans 1.5 px of offset: on the
     # ground near the horizon 0.75 % of rho)
     p, v, lev, b, c = (_up(a, (h, w)) for a in (p, v, lev, b, c))
     p += _along(b, c, xs, ys, xp, yp, g1)
-    p *= F32(rho_ref)
+    p *= F32(ref)
     s = np.sqrt(v)
-    s *= F32(abs(rho_ref))
+    s *= F32(abs(ref))
     return p, s, lev
 
 
-def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: float = 0.0, exclude=None) -> int:
+def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: float = 0.0, exclude=None,
+                    kernels: bool | None = None) -> int:
     """In place on a method's outputs: every pixel without a measurement (not VALID, not OCCLUDED or TRUNCATION)
     whose fill has a relative sigma within max_rel_std (the rule VALID pixels meet) gets the filled rho, its sigma,
     range 1/rho, confidence rho/sigma and the FILLED flag (its other flags say why it was not measured). Only a
     pixel out of view of image b is extrapolated (the ground band that has left the image: a plane carries on);
     any other is filled only inside its window's support (leverage <= LEV_MAX): a textureless pixel beyond the measured
     ones may be sky (the fast preset's faint sky took the terrain's plane: 2.3 % of it finite). ``exclude``: more
-    pixels not to fill (the dense method's infinity test: a point at infinity explains them as well). Returns the
-    number of pixels filled. rho_far: nothing is filled farther than this (the pair's far limit: beyond it a
-    finite range means nothing; a fill among sky pixels at infinity took a tiny rho)."""
+    pixels not to fill (the dense method's infinity test: a point at infinity explains them as well). rho_far:
+    nothing is filled farther than this (the pair's far limit: beyond it a finite range means nothing; a fill
+    among sky pixels at infinity took a tiny rho). kernels: the numba passes (None: when installed; False: the
+    numpy path). Returns the number of pixels filled."""
+    K = _kernels() if kernels is None or kernels else None
+    if kernels and K is None:
+        raise ImportError("fill_unmeasured(kernels=True) needs numba")
+    if K is not None:
+        cells = _cells(rho, flags, std, FIRST_OCTAVE, K)
+        if cells is None:
+            return 0
+        (p, v, lev, b, c, xp, yp), ref, xs, ys = cells
+        ex = exclude if exclude is not None else np.zeros((1, 1), bool)
+        return int(K.to_pixels(p, v, lev, b, c, xs, ys, xp, yp, FIRST_OCTAVE, F32(ref), flags, np.uint8(NO_FILL),
+                               ex, exclude is not None, F32(max_rel_std), F32(rho_far), F32(LEV_MAX),
+                               rho, std, rng, conf))
     support = (flags & np.uint8(VALID)) != 0
     rho_f, std_f, lev = fill_inverse_range(rho, support, std, first_octave=FIRST_OCTAVE)
     with np.errstate(invalid="ignore"):
@@ -220,6 +274,16 @@ def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: flo
         np.copyto(conf, rho_f / std_f, where=keep)
     flags |= keep.view(np.uint8) * np.uint8(FILLED)
     return int(np.count_nonzero(keep))
+
+
+@lru_cache(maxsize=1)
+def _kernels():
+    """The numba passes (``_fill_kernels``), or None without numba."""
+    try:
+        from . import _fill_kernels
+    except ImportError:
+        return None
+    return _fill_kernels
 
 
 __all__ = ["fill_inverse_range", "fill_unmeasured", "MIN_SUPPORT", "NO_FILL"]
