@@ -86,3 +86,63 @@ def to_pixels(p, v, lev, b, c, xs, ys, xp, yp, g1, ref, flags, no_fill, exclude,
             flags[y, x] = f | _FILLED
             nf += 1
     return nf
+
+
+@njit(**_JIT)
+def plane(S0, S1, S2, S3, S4, S5, S6, S7, S8, S9, S10, xc, yc, min_n, min_det, p, v, b, c, lev):
+    """fill._plane per cell in one pass (same formulas, float64 inside): the window sums' weighted plane, its
+    prediction and error variance, slopes and leverage at the cell centres; p NaN where the window lacks support."""
+    hg, wg = p.shape
+    for y in range(hg):
+        for x in range(wg):
+            n = float(S0[y, x])
+            inv_n = 1.0 / n if n != 0.0 else math.inf
+            mx, my, mr = S1[y, x] * inv_n, S2[y, x] * inv_n, S3[y, x] * inv_n
+            cxx = S4[y, x] * inv_n - mx * mx
+            cxy = S5[y, x] * inv_n - mx * my
+            cyy = S6[y, x] * inv_n - my * my
+            cxr = S7[y, x] * inv_n - mx * mr
+            cyr = S8[y, x] * inv_n - my * mr
+            crr = S9[y, x] * inv_n - mr * mr
+            det = cxx * cyy - cxy * cxy
+            inv_det = 1.0 / det if det != 0.0 else math.inf
+            bb = (cyy * cxr - cxy * cyr) * inv_det
+            cc = (cxx * cyr - cxy * cxr) * inv_det
+            res = max(crr - bb * cxr - cc * cyr, 0.0) * n / max(n - 3.0, 1.0)
+            res = max(res, S10[y, x] * inv_n)
+            dx, dy = xc[x] - mx, yc[y] - my
+            pp = mr + bb * dx + cc * dy
+            lv = (cyy * dx * dx - 2.0 * cxy * dx * dy + cxx * dy * dy) * inv_det
+            vv = res * (1.0 + (1.0 + lv) * inv_n)
+            ok = n >= min_n and det > min_det and math.isfinite(pp) and math.isfinite(vv)
+            p[y, x] = pp if ok else np.nan
+            v[y, x] = vv
+            b[y, x] = bb
+            c[y, x] = cc
+            lev[y, x] = lv
+
+
+@njit(**_JIT)
+def merge(p, v, lev, b, c, xp, yp, pk, vk, lk, bk, ck, xc, yc, lev_max):
+    """fill._fit_cells' coarse-to-fine step in one pass, in place on the finer octave's arrays (pk, vk, lk, bk, ck):
+    a cell keeps its own plane where it has one (unless it is an extrapolation and its parent's an interpolation),
+    its variance plus the squared disagreement with the parent's plane carried to it; else takes the parent's."""
+    hf, wf = pk.shape
+    hc, wc = p.shape
+    for y in range(hf):
+        cy = min(y >> 1, hc - 1)
+        dy = yc[y] - yp[cy]
+        for x in range(wf):
+            cx = min(x >> 1, wc - 1)
+            carried = p[cy, cx] + b[cy, cx] * (xc[x] - xp[cx]) + c[cy, cx] * dy
+            own = math.isfinite(pk[y, x]) and (lk[y, x] <= lev_max or not lev[cy, cx] <= lev_max)
+            if own:
+                d = pk[y, x] - carried
+                if math.isfinite(d):
+                    vk[y, x] += d * d
+            else:
+                pk[y, x] = carried
+                vk[y, x] = v[cy, cx]
+                lk[y, x] = lev[cy, cx]
+                bk[y, x] = b[cy, cx]
+                ck[y, x] = c[cy, cx]

@@ -42,7 +42,7 @@ import numpy as np
 
 from .. import InputError
 from ..camera import View, pair_geometry
-from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, RangeResult
+from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID, RangeResult
 from ._common import (F32, EpipolarMap, classify_into, far_inverse_range, make_result,
                       no_motion_result, pyr_up_to, pyramid)
 from .fill import fill_unmeasured
@@ -1051,6 +1051,13 @@ def prepare_kernels() -> bool:
     for amb in (np.zeros((n, w), np.uint8), _NO_AMB):
         K.gn_final(*p2[:11], amb, amb.size > 0, True, *([f] * 10), p2[11], np.zeros((n, w), np.uint8), p2[12], p2[13],
                    np.zeros((n, w), np.uint8))
+    # the fill's passes: a 64 x 64 plane with a hole, with and without an exclusion mask
+    rho = np.full((64, 64), 0.05, F32)
+    for ex in (None, np.zeros((64, 64), bool)):
+        flags = np.full((64, 64), VALID, np.uint8)
+        flags[20:30, 20:30] = LOW_TEXTURE
+        fill_unmeasured(rho.copy(), np.full((64, 64), 1e-3, F32), flags, np.zeros_like(rho), np.zeros_like(rho), 0.34,
+                        exclude=ex)
     return True
 
 

@@ -127,7 +127,7 @@ def _cell_sums_numpy(rho, support, std, xs, ys, g1: int, sh1):
     return out, int(np.count_nonzero(sup)), float(r.sum(dtype=np.float64))
 
 
-def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float):
+def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float, K=None):
     """The plane of every first-octave cell (p, v, lev, b, c; rho in the units of the sums) and the cells' centres
     (xp row, yp column vectors): each octave's planes at its own cell centres, then coarse to fine."""
     h, w = shape
@@ -150,8 +150,13 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float):
             M = [_down(m, shg) for m in M]
         xc, yc = _centres(shg[1], g, w, scale), _centres(shg[0], g, h, scale)
         win_px = _WIN * 2 ** g
-        fits.append((xc, yc) + _plane([_box(m) for m in M], xc[None, :], yc[:, None], min_share * win_px * win_px,
-                                      (0.05 * (win_px * scale) ** 2 / 12) ** 2))
+        min_n, min_det = min_share * win_px * win_px, (0.05 * (win_px * scale) ** 2 / 12) ** 2
+        if K is not None:
+            out = [np.empty(shg, F32) for _ in range(5)]
+            K.plane(*[_box(m) for m in M], xc, yc, min_n, min_det, *out)
+            fits.append((xc, yc) + tuple(out))
+        else:
+            fits.append((xc, yc) + _plane([_box(m) for m in M], xc[None, :], yc[:, None], min_n, min_det))
     # coarse to fine: a cell keeps its own plane where it has one, else takes its parent's, carried along the
     # parent's plane to the cell's centre -- except that an interpolation (leverage <= LEV_MAX) is not replaced by
     # a finer extrapolation (a hole wider than the fine window); a cell's own pick gains its squared disagreement
@@ -160,6 +165,9 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float):
     for i in range(len(fits) - 1, -1, -1):
         xc, yc, pk, vk, bk, ck, lk = fits[i]
         if p is None:
+            p, v, b, c, lev = pk, vk, bk, ck, lk
+        elif K is not None:
+            K.merge(p, v, lev, b, c, xp, yp, pk, vk, lk, bk, ck, xc, yc, F32(LEV_MAX))
             p, v, b, c, lev = pk, vk, bk, ck, lk
         else:
             shk = pk.shape
@@ -203,7 +211,7 @@ def _cells(rho, support_or_flags, std, g1: int, K):
     n, sr, sx, sy, sv = sums
     sr *= F32(1.0 / ref)
     sv *= F32(1.0 / (ref * ref))
-    return _fit_cells(n, sr, sx, sy, sv, (h, w), g1, scale), ref, xs, ys
+    return _fit_cells(n, sr, sx, sy, sv, (h, w), g1, scale, K), ref, xs, ys
 
 
 def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | None = None, first_octave: int = 1):
