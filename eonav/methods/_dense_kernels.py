@@ -58,6 +58,28 @@ def epipolar_map(R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, inv, ub, vb):
             vb[y, x] = _fma(r, Q2, p2r[x] + c2) * d
 
 
+@njit(inline="always", **_JIT)
+def _terms(y, x, mask, r, gx, gy, C1, C2, d, Ryx, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o):
+    """One pixel's Huber-weighted normal-equation terms and E2 (shared by gn_terms and gn_terms_final)."""
+    J = gx * C1
+    J = _fma(gy, C2, J)
+    i2 = d * d
+    J = J * i2
+    c2 = C1 * C1
+    c2 = _fma(C2, C2, c2) if c2_fma else c2 + C2 * C2
+    E2_o[y, x] = c2 * (i2 * i2)
+    a = max(abs(r), ks)
+    wgt = (mask * ks) / a
+    wJ = wgt * J
+    q = J * Ryx
+    q = q - r
+    wJJ[y, x] = wJ * J
+    wJq[y, x] = wJ * q
+    wgt_o[y, x] = wgt
+    wJ_o[y, x] = wJ
+    wq_o[y, x] = wgt * q
+
+
 @njit(**_JIT)
 def gn_terms(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o):
     """Per pixel of the strip (wv: warped [I_b, gx_b, gy_b, in-view]): the Huber-weighted terms of the normal
@@ -70,26 +92,9 @@ def gn_terms(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq,
             r = wv[y, x, 0] - ia[y, x]
             gx = wv[y, x, 1] + gxa[y, x]
             gy = wv[y, x, 2] + gya[y, x]
-            C1 = c1r[x] + k1
-            C2 = c2r[x] + k2
-            J = gx * C1
-            J = _fma(gy, C2, J)
             d = inv[y, x]
-            i2 = d * d
-            J = J * i2
-            c2 = C1 * C1
-            c2 = _fma(C2, C2, c2) if c2_fma else c2 + C2 * C2
-            E2_o[y, x] = c2 * (i2 * i2)
-            a = max(abs(r), ks)
-            wgt = (mask * ks) / a
-            wJ = wgt * J
-            q = J * R[y, x]
-            q = q - r
-            wJJ[y, x] = wJ * J
-            wJq[y, x] = wJ * q
-            wgt_o[y, x] = wgt
-            wJ_o[y, x] = wJ
-            wq_o[y, x] = wgt * q
+            _terms(y, x, mask, r, gx, gy, c1r[x] + k1, c2r[x] + k2, d, R[y, x], ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o,
+                   E2_o)
 
 
 @njit(**_JIT)
@@ -107,26 +112,9 @@ def gn_terms_final(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ
             ga, gb = gxa[y, x], gya[y, x]
             gx = wv[y, x, 1] + ga
             gy = wv[y, x, 2] + gb
-            C1 = c1r[x] + k1
-            C2 = c2r[x] + k2
-            J = gx * C1
-            J = _fma(gy, C2, J)
             d = inv[y, x]
-            i2 = d * d
-            J = J * i2
-            c2 = C1 * C1
-            c2 = _fma(C2, C2, c2) if c2_fma else c2 + C2 * C2
-            E2_o[y, x] = c2 * (i2 * i2)
-            a = max(abs(r), ks)
-            wgt = (mask * ks) / a
-            wJ = wgt * J
-            q = J * R[y, x]
-            q = q - r
-            wJJ[y, x] = wJ * J
-            wJq[y, x] = wJ * q
-            wgt_o[y, x] = wgt
-            wJ_o[y, x] = wJ
-            wq_o[y, x] = wgt * q
+            _terms(y, x, mask, r, gx, gy, c1r[x] + k1, c2r[x] + k2, d, R[y, x], ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o,
+                   E2_o)
             mf = _ONE if (mask > _MASK_IN) & (d > _ZERO) else _ZERO
             mf_o[y, x] = mf
             G = ga * ga

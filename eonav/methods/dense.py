@@ -804,6 +804,14 @@ def _infinity_ambiguous(lv: _Level, s: slice, o: slice, r, T, win: int, squared:
     return _box_to(r0, win, dst=r0)[o] <= Se       # (NaN, a window reaching out of b: no ambiguity)
 
 
+def _strip(lv: _Level, rho, y0: int, y1: int, win: int):
+    """A strip's rows with its halo of half a window (s), its own rows within them (o), the work planes (W, and T
+    cut to the strip) and rho on the strip."""
+    ya, yb = max(0, y0 - win // 2), min(lv.h, y1 + win // 2)
+    W = lv.work()
+    return slice(ya, yb), slice(y0 - ya, y1 - ya), W, W[:, :yb - ya], rho[ya:yb]
+
+
 def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, fin: _Final | None):
     """One re-linearised Gauss-Newton step for rows [y0, y1) of ``rho``, written into ``new``; with ``fin``,
     also the uncertainty, flags and classification of those rows.
@@ -816,18 +824,12 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
         return _gn_block_fused(prm["fused"], lv, rho, new, y0, y1, sigma, prm, fin)
     mul, add, sub = cv2.multiply, cv2.add, cv2.subtract
     win = prm["window"]
-    p = win // 2
-    ya, yb = max(0, y0 - p), min(lv.h, y1 + p)
-    s = slice(ya, yb)
-    o = slice(y0 - ya, y1 - ya)
-    W = lv.work()
-    T = W[:, :yb - ya]
-    R = rho[s]
+    s, o, W, T, R = _strip(lv, rho, y0, y1, win)
     wv, inv = lv.warp(R, s, T)                                   # T0 inv (T1, T2: the map, free again)
     # the warp's channels (cv2.split into the planes: one pass, ~6x faster than 4 strided numpy copies)
     Ib, gxb, gyb, mask = cv2.split(wv, [T[3], T[4], T[5], T[6]])
     r = sub(Ib, lv.ia[s], dst=Ib)                                # T3 r
-    gxa, gya = lv.grad_a(ya, yb, (W[7], W[8]))                   # T7, T8 (unless cached)
+    gxa, gya = lv.grad_a(s.start, s.stop, (W[7], W[8]))                   # T7, T8 (unless cached)
     C1, C2 = lv.rows(lv.C1, s, out=T[1]), lv.rows(lv.C2, s, out=T[2])
     # J = grad I . d(u_b, v_b)/d rho with the gradient averaged over both images (eq. 27's symmetric form:
     # second-order accurate in the step, and the interpolation bias of a one-sided gradient halves)
@@ -963,18 +965,12 @@ def _gn_block_fused(K, lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm
     equations (then their window sums), T6 E2, T9 r, T10-T11 the masked gradient energy (window, occlusion window),
     T12 the masked squared residual, T13-T14 the masked gradient, T15 the in-view mask; T7, T8: gradient of a."""
     win = prm["window"]
-    p = win // 2
-    ya, yb = max(0, y0 - p), min(lv.h, y1 + p)
-    s = slice(ya, yb)
-    o = slice(y0 - ya, y1 - ya)
-    W = lv.work()
-    T = W[:, :yb - ya]
-    R = rho[s]
+    s, o, W, T, R = _strip(lv, rho, y0, y1, win)
     rw, kc = lv.rw, lv.kc
     K.epipolar_map(R, rw[0], kc[0, s], rw[1], kc[1, s], rw[2], kc[2, s], lv.B0, lv.Q1, lv.Q2, T[0], T[1], T[2])
     wv = cv2.remap(lv.b4, T[1], T[2], cv2.INTER_LINEAR, dst=_ws("wv", T[1].shape + (4,)),
                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    gxa, gya = lv.grad_a(ya, yb, (W[7], W[8]))
+    gxa, gya = lv.grad_a(s.start, s.stop, (W[7], W[8]))
     io = prm.get("inf_out") if fin is None else None
     ks = F32(max(prm["huber_k"] * sigma, 1e-6))
     # (c2_fma: the OpenCV path's C1^2 + C2^2 is an accumulateSquare (fused) unless the level caches it)
