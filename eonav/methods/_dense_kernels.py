@@ -262,3 +262,184 @@ def gn_final(H, S0, E2, R, out, G, G3, R2, Mx, My, mf, amb, use_amb, noise_info,
             conf_o[y, x] = c if c > _ZERO else _ZERO
             flags_o[y, x] = fl
     return nv, ni
+
+
+# --- the coarse epipolar search (dense._search): per chunk of hypotheses, one pass before and one after the box
+# sums (OpenCV's), and one pass for the winner-take-all
+
+
+@njit(inline="always", **_JIT)
+def _rho_disp(d, a0, cn, B0, cap):
+    """dense._rho_at_disp of one pixel: rho = D A0^2 / (|C| - D A0 B0) where den > 0 and A0 > 0, else cap;
+    np.minimum(rho, cap) (NaN propagates)."""
+    t = d * a0
+    den = cn - t * B0
+    r = (t * a0) / den
+    if not ((den > _ZERO) & (a0 > _ZERO)):
+        r = cap
+    if r > cap or np.isnan(cap):
+        r = cap
+    return r
+
+
+@njit(inline="always", **_JIT)
+def _floor_i(s):
+    """cvFloor of a float32 as the x86 conversion does it: out of the int32 range (and NaN) -> INT32_MIN."""
+    f = np.floor(s)
+    if f >= -2147483648.0 and f < 2147483648.0:
+        return np.int64(f)
+    return np.int64(-2147483648)
+
+
+@njit(**_JIT)
+def search_warp(disp, per_pixel, rows, A0, A1, A2, cn, cap, fx, cx, fy, cy, B0, Q1, Q2, a, b, bw, bw2, bwa, good):
+    """One chunk of hypotheses of dense._search (m = len(disp)), on the rows of a padded by symmetric rows (``rows``:
+    the padded rows' source rows, hp of them): per pixel the hypothesis' rho (per_pixel: ``_rho_at_disp`` of the
+    displacement disp[k], else rho = disp[k]), the map into b, its in-view test (good: 0 <= u_b <= wb - 1,
+    0 <= v_b <= hb - 1, 1 / den > 0), and b sampled there as cv2.remap INTER_LINEAR, BORDER_REPLICATE (OpenCV 5's
+    float interpolation: two fused multiply-adds along x, one along y); writes the warped b (bw), its square (bw2)
+    and its product with a (bwa) as (m * hp, w) planes for the box sums. Per row two loops: the map (vectorised)
+    and the sampling (gathers)."""
+    m = disp.shape[0]
+    hp = rows.shape[0]
+    w = A0.shape[1]
+    hb, wb = b.shape
+    ub_hi = F32(wb - 1)
+    vb_hi = F32(hb - 1)
+    ubr = np.empty(w, F32)
+    vbr = np.empty(w, F32)
+    for k in range(m):
+        dk = F32(disp[k])
+        for i in range(hp):
+            y = rows[i]
+            o = k * hp + i
+            for x in range(w):
+                a0 = A0[y, x]
+                if per_pixel:
+                    r = _rho_disp(dk, a0, cn[y, x], B0, cap[y, x])
+                else:
+                    r = dk
+                inv = a0 + B0 * r
+                inv = _ONE / inv
+                p1 = A1[y, x] * fx
+                p1 = p1 + a0 * cx
+                p2 = A2[y, x] * fy
+                p2 = p2 + a0 * cy
+                ub = (p1 + Q1 * r) * inv
+                vb = (p2 + Q2 * r) * inv
+                ubr[x] = ub
+                vbr[x] = vb
+                good[o, x] = np.uint8((ub >= _ZERO) & (ub <= ub_hi) & (vb >= _ZERO) & (vb <= vb_hi) & (inv > _ZERO))
+            for x in range(w):
+                ub = ubr[x]
+                vb = vbr[x]
+                ix = _floor_i(ub)
+                iy = _floor_i(vb)
+                sx = ub - F32(ix)
+                sy = vb - F32(iy)
+                x0 = min(max(ix, 0), wb - 1)
+                x1 = min(max(ix + 1, 0), wb - 1)
+                y0 = min(max(iy, 0), hb - 1)
+                y1 = min(max(iy + 1, 0), hb - 1)
+                p00 = b[y0, x0]
+                p10 = b[y1, x0]
+                v0 = _fma(sx, b[y0, x1] - p00, p00)
+                v1 = _fma(sx, b[y1, x1] - p10, p10)
+                v = _fma(sy, v1 - v0, v0)
+                bw[o, x] = v
+                bw2[o, x] = v * v
+                bwa[o, x] = v * a[y, x]
+
+
+@njit(**_JIT)
+def search_cost(mb, vbb, cab, good, ma, va, noise4, p, cost):
+    """Cost 1 - ZNCC of one chunk (m, h, w) from the window sums of the warped b (mb: mean, vbb: mean square,
+    cab: mean product with a; (m * hp, w) planes) and a's (ma, va: mean and variance (>= 0), rows of the padded
+    a); 2 where the hypothesis is out of view. The arithmetic of dense._search's OpenCV path."""
+    m, h, w = cost.shape
+    hp = h + 2 * p
+    for k in range(m):
+        for y in range(h):
+            i = y + p
+            o = k * hp + i
+            for x in range(w):
+                if good[o, x] == 0:
+                    cost[k, y, x] = _TWO
+                    continue
+                mbv = mb[o, x]
+                v = vbb[o, x] - mbv * mbv
+                c = cab[o, x] - ma[i, x] * mbv
+                if v < _ZERO:
+                    v = _ZERO
+                v = v * va[i, x]
+                v = v + noise4
+                v = np.sqrt(v)
+                cost[k, y, x] = _ONE - c / v
+
+
+@njit(**_JIT)
+def search_wta(agg, cost, hyp, per_pixel, A0, cn, B0, cap, va, noise2, rho_o, conf_o):
+    """dense._wta (first minimum over the hypotheses of agg, parabola fit of the sub-sample offset), np.interp of
+    the fractional index into the hypotheses (hyp: displacements with per_pixel, else inverse ranges), the rho of
+    that displacement (per_pixel: ``_rho_at_disp``), and the confidence clip(1 - cost, 0, 1)^2 x texture
+    (va / (va + noise2)): dense._search's arithmetic, per pixel."""
+    n, h, w = agg.shape
+    for y in range(h):
+        for x in range(w):
+            best = agg[0, y, x]
+            kb = 0
+            if not np.isnan(best):
+                for k in range(1, n):
+                    c = agg[k, y, x]
+                    if np.isnan(c):
+                        best = c
+                        break
+                    if c < best:
+                        best = c
+                        kb = k
+            if np.isnan(best):          # np.min propagates NaN; argmax of an all-False mask is 0
+                kb = 0
+            cb = cost[kb, y, x]
+            cm = agg[max(kb - 1, 0), y, x]
+            cp = agg[min(kb + 1, n - 1), y, x]
+            curv = cm - F32(2.0) * best
+            curv = curv + cp
+            off = _ZERO
+            if (curv > F32(1e-6)) & (kb > 0) & (kb < n - 1):
+                off = (F32(0.5) * (cm - cp)) / curv
+            if off < F32(-0.5):
+                off = F32(-0.5)
+            elif off > F32(0.5):
+                off = F32(0.5)
+            kf = np.float64(kb) + np.float64(off)
+            # np.interp(kf, arange(n), hyp)
+            if np.isnan(kf):
+                d = kf
+            elif kf < 0.0:
+                d = hyp[0]
+            elif kf >= np.float64(n - 1):
+                d = hyp[n - 1]
+            else:
+                j = np.int64(np.floor(kf))
+                if np.float64(j) == kf:
+                    d = hyp[j]
+                else:
+                    slope = (hyp[j + 1] - hyp[j]) / (np.float64(j + 1) - np.float64(j))
+                    d = slope * (kf - np.float64(j)) + hyp[j]
+                    if np.isnan(d):
+                        d = slope * (kf - np.float64(j + 1)) + hyp[j + 1]
+                        if np.isnan(d) and hyp[j] == hyp[j + 1]:
+                            d = hyp[j]
+            d32 = F32(d)
+            if per_pixel:
+                rho_o[y, x] = _rho_disp(d32, A0[y, x], cn[y, x], B0, cap[y, x])
+            else:
+                rho_o[y, x] = d32
+            v = va[y, x]
+            tex = v / (v + noise2)
+            q = _ONE - cb
+            if q < _ZERO:
+                q = _ZERO
+            elif q > _ONE:
+                q = _ONE
+            conf_o[y, x] = (q * q) * tex
