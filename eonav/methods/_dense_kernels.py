@@ -13,7 +13,10 @@ Imported only when numba is installed (``dense._FUSED``); without it the OpenCV 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from ..rangemap import AT_INFINITY, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 
@@ -282,13 +285,21 @@ def _rho_disp(d, a0, cn, B0, cap):
     return r
 
 
-@njit(inline="always", **_JIT)
-def _floor_i(s):
-    """cvFloor of a float32 as the x86 conversion does it: out of the int32 range (and NaN) -> INT32_MIN."""
-    f = np.floor(s)
-    if f >= -2147483648.0 and f < 2147483648.0:
-        return np.int64(f)
-    return np.int64(-2147483648)
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """a * b + c rounded once (llvm.fma.f32: the hardware's fused multiply-add, as OpenCV's v_fma)."""
+    sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):
+        t = args[0].type
+        f = cgutils.get_or_insert_function(builder.module, ir.FunctionType(t, [t, t, t]), "llvm.fma.f32")
+        return builder.call(f, args)
+    return sig, codegen
+
+
+_I32_LO = F32(-2147483648.0)
+_I32_HI = F32(2147483648.0)
+_I32_MIN = np.int32(-2147483648)
 
 
 @njit(**_JIT)
@@ -296,18 +307,23 @@ def search_warp(disp, per_pixel, rows, A0, A1, A2, cn, cap, fx, cx, fy, cy, B0, 
     """One chunk of hypotheses of dense._search (m = len(disp)), on the rows of a padded by symmetric rows (``rows``:
     the padded rows' source rows, hp of them): per pixel the hypothesis' rho (per_pixel: ``_rho_at_disp`` of the
     displacement disp[k], else rho = disp[k]), the map into b, its in-view test (good: 0 <= u_b <= wb - 1,
-    0 <= v_b <= hb - 1, 1 / den > 0), and b sampled there as cv2.remap INTER_LINEAR, BORDER_REPLICATE (OpenCV 5's
-    float interpolation: two fused multiply-adds along x, one along y); writes the warped b (bw), its square (bw2)
-    and its product with a (bwa) as (m * hp, w) planes for the box sums. Per row two loops: the map (vectorised)
-    and the sampling (gathers)."""
+    0 <= v_b <= hb - 1, 1 / den > 0), and b sampled there as cv2.remap INTER_LINEAR, BORDER_REPLICATE does it
+    (OpenCV 5's float interpolation: cvFloor -- INT32_MIN out of range and for NaN, as x86's conversion --, the
+    four neighbours clamped into b, two fused multiply-adds along x, one along y); writes the warped b (bw), its
+    square (bw2) and its product with a (bwa) as (m * hp, w) planes for the box sums. Per row two loops: the map,
+    the clamped neighbours and the weights (vectorised), then the sampling (gathers)."""
     m = disp.shape[0]
     hp = rows.shape[0]
     w = A0.shape[1]
     hb, wb = b.shape
+    bf = b.ravel()
     ub_hi = F32(wb - 1)
     vb_hi = F32(hb - 1)
-    ubr = np.empty(w, F32)
-    vbr = np.empty(w, F32)
+    i00 = np.empty(w, np.int32)
+    dxr = np.empty(w, np.int32)
+    dyr = np.empty(w, np.int32)
+    sxr = np.empty(w, F32)
+    syr = np.empty(w, F32)
     for k in range(m):
         dk = F32(disp[k])
         for i in range(hp):
@@ -327,25 +343,30 @@ def search_warp(disp, per_pixel, rows, A0, A1, A2, cn, cap, fx, cx, fy, cy, B0, 
                 p2 = p2 + a0 * cy
                 ub = (p1 + Q1 * r) * inv
                 vb = (p2 + Q2 * r) * inv
-                ubr[x] = ub
-                vbr[x] = vb
                 good[o, x] = np.uint8((ub >= _ZERO) & (ub <= ub_hi) & (vb >= _ZERO) & (vb <= vb_hi) & (inv > _ZERO))
-            for x in range(w):
-                ub = ubr[x]
-                vb = vbr[x]
-                ix = _floor_i(ub)
-                iy = _floor_i(vb)
-                sx = ub - F32(ix)
-                sy = vb - F32(iy)
+                fu = np.floor(ub)
+                fv = np.floor(vb)
+                ix = np.int32(fu) if (fu >= _I32_LO) & (fu < _I32_HI) else _I32_MIN
+                iy = np.int32(fv) if (fv >= _I32_LO) & (fv < _I32_HI) else _I32_MIN
+                sxr[x] = ub - F32(ix)
+                syr[x] = vb - F32(iy)
                 x0 = min(max(ix, 0), wb - 1)
                 x1 = min(max(ix + 1, 0), wb - 1)
                 y0 = min(max(iy, 0), hb - 1)
                 y1 = min(max(iy + 1, 0), hb - 1)
-                p00 = b[y0, x0]
-                p10 = b[y1, x0]
-                v0 = _fma(sx, b[y0, x1] - p00, p00)
-                v1 = _fma(sx, b[y1, x1] - p10, p10)
-                v = _fma(sy, v1 - v0, v0)
+                i00[x] = y0 * wb + x0
+                dxr[x] = x1 - x0
+                dyr[x] = (y1 - y0) * wb
+            for x in range(w):
+                j = np.uint32(i00[x])
+                dx = np.uint32(dxr[x])
+                dy = np.uint32(dyr[x])
+                p00 = bf[j]
+                p10 = bf[j + dy]
+                sx = sxr[x]
+                v0 = _fma32(sx, bf[j + dx] - p00, p00)
+                v1 = _fma32(sx, bf[j + dy + dx] - p10, p10)
+                v = _fma32(syr[x], v1 - v0, v0)
                 bw[o, x] = v
                 bw2[o, x] = v * v
                 bwa[o, x] = v * a[y, x]
@@ -384,20 +405,28 @@ def search_wta(agg, cost, hyp, per_pixel, A0, cn, B0, cap, va, noise2, rho_o, co
     that displacement (per_pixel: ``_rho_at_disp``), and the confidence clip(1 - cost, 0, 1)^2 x texture
     (va / (va + noise2)): dense._search's arithmetic, per pixel."""
     n, h, w = agg.shape
+    bestr = np.empty(w, F32)
+    kbr = np.empty(w, np.int64)
+    nanr = np.empty(w, np.bool_)
     for y in range(h):
+        # the first minimum over the hypotheses, row by row (vectorised over x)
         for x in range(w):
-            best = agg[0, y, x]
-            kb = 0
-            if not np.isnan(best):
-                for k in range(1, n):
-                    c = agg[k, y, x]
-                    if np.isnan(c):
-                        best = c
-                        break
-                    if c < best:
-                        best = c
-                        kb = k
-            if np.isnan(best):          # np.min propagates NaN; argmax of an all-False mask is 0
+            c = agg[0, y, x]
+            bestr[x] = c
+            kbr[x] = 0
+            nanr[x] = np.isnan(c)
+        for k in range(1, n):
+            for x in range(w):
+                c = agg[k, y, x]
+                nanr[x] |= np.isnan(c)
+                lt = c < bestr[x]
+                bestr[x] = c if lt else bestr[x]
+                kbr[x] = k if lt else kbr[x]
+        for x in range(w):
+            best = bestr[x]
+            kb = kbr[x]
+            if nanr[x]:                 # np.min propagates NaN; argmax of an all-False mask is 0
+                best = _NAN
                 kb = 0
             cb = cost[kb, y, x]
             cm = agg[max(kb - 1, 0), y, x]
