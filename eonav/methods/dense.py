@@ -333,6 +333,12 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
     return rho, conf.astype(F32)
 
 
+@lru_cache(maxsize=8)
+def _pad_rows(h: int, p: int) -> np.ndarray:
+    """Source row of each of the h + 2p rows of an image padded by p rows as np.pad "symmetric" (np.pad: 0.1 ms)."""
+    return np.pad(np.arange(h), (p, p), mode="symmetric")     # (shared: never written)
+
+
 def _search_fused(K, a, b, emap: EpipolarMap, rhos, win: int, noise: float, sgm_p1: float, sgm_p2: float,
                   sgm_tau: float, chunk_px: int, disp, cap):
     """_search with its per-pixel work in numba kernels (``_dense_kernels.search_*``): per chunk of hypotheses one
@@ -348,7 +354,7 @@ def _search_fused(K, a, b, emap: EpipolarMap, rhos, win: int, noise: float, sgm_
     cb = emap.cam_b
     per_pixel = disp is not None
     # the padded rows' source rows (np.pad "symmetric"): the maps and a are read through it, never padded
-    rows = np.pad(np.arange(h), (p, p), mode="symmetric")
+    rows = _pad_rows(h, p)
     if per_pixel:
         cn = np.hypot(emap.C1, emap.C2)
         capf = np.asarray(cap, F32)
