@@ -8,6 +8,9 @@ the OpenCV path), and the update (with ``final``: the uncertainty, the flags and
 float32 (no fast-math: no reassociation, no fused multiply-add), so the two paths agree to float rounding
 (tests/test_dense.py::test_fused_kernels_match_opencv_path).
 
+The coarse epipolar search (``dense._search_fused``) has its kernels here too (``search_*``), bit-identical to
+``dense._search``'s OpenCV path (tests/test_dense.py::test_fused_search_matches_opencv_search).
+
 Imported only when numba is installed (``dense._FUSED``); without it the OpenCV path runs.
 """
 from __future__ import annotations

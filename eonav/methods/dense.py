@@ -683,7 +683,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     five passes per strip instead of ~100 OpenCV calls; the warp, gradients and window sums stay OpenCV's); None:
     when numba is installed, else the OpenCV path; False: the OpenCV path (the reference); True: numba required.
     Same result (bit-identical on the sim presets here: the kernels reproduce OpenCV's fused multiply-adds);
-    locate 0.78 x the OpenCV path's time (512 x 512 sim presets, interleaved in one process).
+    locate 0.78 x the OpenCV path's time (512 x 512 sim presets, interleaved in one process). The coarse search too
+    (``_search_fused``: the map, cv2.remap's bilinear sample, the ZNCC cost and the winner-take-all in three kernels,
+    the box sums OpenCV's): 4.5-5.3 -> 1.3-1.7 ms, locate dense / DIS 0.47 -> 0.43 (bit-identical).
     """
     t_start = time.perf_counter()
     geo = pair_geometry(view_a, view_b)
