@@ -8,12 +8,18 @@ the OpenCV path), and the update (with ``final``: the uncertainty, the flags and
 float32 (no fast-math: no reassociation, no fused multiply-add), so the two paths agree to float rounding
 (tests/test_dense.py::test_fused_kernels_match_opencv_path).
 
+The coarse epipolar search (``dense._search_fused``) has its kernels here too (``search_*``), bit-identical to
+``dense._search``'s OpenCV path (tests/test_dense.py::test_fused_search_matches_opencv_search).
+
 Imported only when numba is installed (``dense._FUSED``); without it the OpenCV path runs.
 """
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from ..rangemap import AT_INFINITY, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 
@@ -250,3 +256,210 @@ def gn_final(H, S0, E2, R, out, G, G3, R2, Mx, My, mf, amb, use_amb, noise_info,
             conf_o[y, x] = c if c > _ZERO else _ZERO
             flags_o[y, x] = fl
     return nv, ni
+
+
+# --- the coarse epipolar search (dense._search): per chunk of hypotheses, one pass before and one after the box
+# sums (OpenCV's), and one pass for the winner-take-all
+
+
+@njit(inline="always", **_JIT)
+def _rho_disp(d, a0, cn, B0, cap):
+    """dense._rho_at_disp of one pixel: rho = D A0^2 / (|C| - D A0 B0) where den > 0 and A0 > 0, else cap;
+    np.minimum(rho, cap) (NaN propagates)."""
+    t = d * a0
+    den = cn - t * B0
+    r = (t * a0) / den
+    if not ((den > _ZERO) & (a0 > _ZERO)):
+        r = cap
+    if r > cap or np.isnan(cap):
+        r = cap
+    return r
+
+
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """a * b + c rounded once (llvm.fma.f32: the hardware's fused multiply-add, as OpenCV's v_fma)."""
+    sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):
+        t = args[0].type
+        f = cgutils.get_or_insert_function(builder.module, ir.FunctionType(t, [t, t, t]), "llvm.fma.f32")
+        return builder.call(f, args)
+    return sig, codegen
+
+
+_I32_LO = F32(-2147483648.0)
+_I32_HI = F32(2147483648.0)
+_I32_MIN = np.int32(-2147483648)
+
+
+@njit(**_JIT)
+def search_warp(disp, per_pixel, rows, A0, A1, A2, cn, cap, fx, cx, fy, cy, B0, Q1, Q2, a, b, bw, bw2, bwa, good):
+    """One chunk of hypotheses of dense._search (m = len(disp)), on the rows of a padded by symmetric rows (``rows``:
+    the padded rows' source rows, hp of them): per pixel the hypothesis' rho (per_pixel: ``_rho_at_disp`` of the
+    displacement disp[k], else rho = disp[k]), the map into b, its in-view test (good: 0 <= u_b <= wb - 1,
+    0 <= v_b <= hb - 1, 1 / den > 0), and b sampled there as cv2.remap INTER_LINEAR, BORDER_REPLICATE does it
+    (OpenCV 5's float interpolation: cvFloor -- INT32_MIN out of range and for NaN, as x86's conversion --, the
+    four neighbours clamped into b, two fused multiply-adds along x, one along y); writes the warped b (bw), its
+    square (bw2) and its product with a (bwa) as (m * hp, w) planes for the box sums. Per row two loops: the map,
+    the clamped neighbours and the weights (vectorised), then the sampling (gathers)."""
+    m = disp.shape[0]
+    hp = rows.shape[0]
+    w = A0.shape[1]
+    hb, wb = b.shape
+    bf = b.ravel()
+    ub_hi = F32(wb - 1)
+    vb_hi = F32(hb - 1)
+    i00 = np.empty(w, np.int32)
+    dxr = np.empty(w, np.int32)
+    dyr = np.empty(w, np.int32)
+    sxr = np.empty(w, F32)
+    syr = np.empty(w, F32)
+    for k in range(m):
+        dk = F32(disp[k])
+        for i in range(hp):
+            y = rows[i]
+            o = k * hp + i
+            for x in range(w):
+                a0 = A0[y, x]
+                if per_pixel:
+                    r = _rho_disp(dk, a0, cn[y, x], B0, cap[y, x])
+                else:
+                    r = dk
+                inv = a0 + B0 * r
+                inv = _ONE / inv
+                p1 = A1[y, x] * fx
+                p1 = p1 + a0 * cx
+                p2 = A2[y, x] * fy
+                p2 = p2 + a0 * cy
+                ub = (p1 + Q1 * r) * inv
+                vb = (p2 + Q2 * r) * inv
+                good[o, x] = np.uint8((ub >= _ZERO) & (ub <= ub_hi) & (vb >= _ZERO) & (vb <= vb_hi) & (inv > _ZERO))
+                fu = np.floor(ub)
+                fv = np.floor(vb)
+                ix = np.int32(fu) if (fu >= _I32_LO) & (fu < _I32_HI) else _I32_MIN
+                iy = np.int32(fv) if (fv >= _I32_LO) & (fv < _I32_HI) else _I32_MIN
+                sxr[x] = ub - F32(ix)
+                syr[x] = vb - F32(iy)
+                x0 = min(max(ix, 0), wb - 1)
+                x1 = min(max(ix + 1, 0), wb - 1)
+                y0 = min(max(iy, 0), hb - 1)
+                y1 = min(max(iy + 1, 0), hb - 1)
+                i00[x] = y0 * wb + x0
+                dxr[x] = x1 - x0
+                dyr[x] = (y1 - y0) * wb
+            for x in range(w):
+                j = np.uint32(i00[x])
+                dx = np.uint32(dxr[x])
+                dy = np.uint32(dyr[x])
+                p00 = bf[j]
+                p10 = bf[j + dy]
+                sx = sxr[x]
+                v0 = _fma32(sx, bf[j + dx] - p00, p00)
+                v1 = _fma32(sx, bf[j + dy + dx] - p10, p10)
+                v = _fma32(syr[x], v1 - v0, v0)
+                bw[o, x] = v
+                bw2[o, x] = v * v
+                bwa[o, x] = v * a[y, x]
+
+
+@njit(**_JIT)
+def search_cost(mb, vbb, cab, good, ma, va, noise4, p, cost):
+    """Cost 1 - ZNCC of one chunk (m, h, w) from the window sums of the warped b (mb: mean, vbb: mean square,
+    cab: mean product with a; (m * hp, w) planes) and a's (ma, va: mean and variance (>= 0), rows of the padded
+    a); 2 where the hypothesis is out of view. The arithmetic of dense._search's OpenCV path."""
+    m, h, w = cost.shape
+    hp = h + 2 * p
+    for k in range(m):
+        for y in range(h):
+            i = y + p
+            o = k * hp + i
+            for x in range(w):
+                if good[o, x] == 0:
+                    cost[k, y, x] = _TWO
+                    continue
+                mbv = mb[o, x]
+                v = vbb[o, x] - mbv * mbv
+                c = cab[o, x] - ma[i, x] * mbv
+                if v < _ZERO:
+                    v = _ZERO
+                v = v * va[i, x]
+                v = v + noise4
+                v = np.sqrt(v)
+                cost[k, y, x] = _ONE - c / v
+
+
+@njit(**_JIT)
+def search_wta(agg, cost, hyp, per_pixel, A0, cn, B0, cap, va, noise2, rho_o, conf_o):
+    """dense._wta (first minimum over the hypotheses of agg, parabola fit of the sub-sample offset), np.interp of
+    the fractional index into the hypotheses (hyp: displacements with per_pixel, else inverse ranges), the rho of
+    that displacement (per_pixel: ``_rho_at_disp``), and the confidence clip(1 - cost, 0, 1)^2 x texture
+    (va / (va + noise2)): dense._search's arithmetic, per pixel."""
+    n, h, w = agg.shape
+    bestr = np.empty(w, F32)
+    kbr = np.empty(w, np.int64)
+    nanr = np.empty(w, np.bool_)
+    for y in range(h):
+        # the first minimum over the hypotheses, row by row (vectorised over x)
+        for x in range(w):
+            c = agg[0, y, x]
+            bestr[x] = c
+            kbr[x] = 0
+            nanr[x] = np.isnan(c)
+        for k in range(1, n):
+            for x in range(w):
+                c = agg[k, y, x]
+                nanr[x] |= np.isnan(c)
+                lt = c < bestr[x]
+                bestr[x] = c if lt else bestr[x]
+                kbr[x] = k if lt else kbr[x]
+        for x in range(w):
+            best = bestr[x]
+            kb = kbr[x]
+            if nanr[x]:                 # np.min propagates NaN; argmax of an all-False mask is 0
+                best = _NAN
+                kb = 0
+            cb = cost[kb, y, x]
+            cm = agg[max(kb - 1, 0), y, x]
+            cp = agg[min(kb + 1, n - 1), y, x]
+            curv = cm - F32(2.0) * best
+            curv = curv + cp
+            off = _ZERO
+            if (curv > F32(1e-6)) & (kb > 0) & (kb < n - 1):
+                off = (F32(0.5) * (cm - cp)) / curv
+            if off < F32(-0.5):
+                off = F32(-0.5)
+            elif off > F32(0.5):
+                off = F32(0.5)
+            kf = np.float64(kb) + np.float64(off)
+            # np.interp(kf, arange(n), hyp)
+            if np.isnan(kf):
+                d = kf
+            elif kf < 0.0:
+                d = hyp[0]
+            elif kf >= np.float64(n - 1):
+                d = hyp[n - 1]
+            else:
+                j = np.int64(np.floor(kf))
+                if np.float64(j) == kf:
+                    d = hyp[j]
+                else:
+                    slope = (hyp[j + 1] - hyp[j]) / (np.float64(j + 1) - np.float64(j))
+                    d = slope * (kf - np.float64(j)) + hyp[j]
+                    if np.isnan(d):
+                        d = slope * (kf - np.float64(j + 1)) + hyp[j + 1]
+                        if np.isnan(d) and hyp[j] == hyp[j + 1]:
+                            d = hyp[j]
+            d32 = F32(d)
+            if per_pixel:
+                rho_o[y, x] = _rho_disp(d32, A0[y, x], cn[y, x], B0, cap[y, x])
+            else:
+                rho_o[y, x] = d32
+            v = va[y, x]
+            tex = v / (v + noise2)
+            q = _ONE - cb
+            if q < _ZERO:
+                q = _ZERO
+            elif q > _ONE:
+                q = _ONE
+            conf_o[y, x] = (q * q) * tex
