@@ -143,18 +143,25 @@ def scale_line(case, per):
     return "   median range / reference: " + ", ".join(parts)
 
 
-def time_method(fn, a, b, repeat):
-    res = fn(a, b)                       # warm-up, and the result we score
-    times = []
+def time_methods(fns: dict, a, b, repeat):
+    """Each method's result (its warm-up run), median seconds per pair and peak traced memory. The timed runs
+    are interleaved round-robin (dense, dis, dense, dis, ...): this machine's speed drifts by up to 1.5x over
+    minutes, and timing one method's runs after the other's put the drift into their ratio (0.49-0.55 in a
+    block-wise run against 0.41-0.46 interleaved, same code)."""
+    res = {name: fn(a, b) for name, fn in fns.items()}          # warm-up, and the result we score
+    times = {name: [] for name in fns}
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn(a, b)
+            times[name].append(time.perf_counter() - t0)
+    peak = {}
+    for name, fn in fns.items():
+        tracemalloc.start()
         fn(a, b)
-        times.append(time.perf_counter() - t0)
-    tracemalloc.start()
-    fn(a, b)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    return res, statistics.median(times), peak
+        peak[name] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return {name: (res[name], statistics.median(times[name]), peak[name]) for name in fns}
 
 
 def object_rows(case, range_m):
@@ -184,9 +191,9 @@ def run_bench(methods, cases, repeat, json_out=None):
               "FILLED included)")
         per = {}
         names = list(methods) + (["sgbm"] if case.stereo_rectified and "sgbm" not in methods else [])
+        timed = time_methods({name: get_method(name) for name in names}, case.view_a, case.view_b, repeat)
         for name in names:
-            fn = get_method(name)
-            res, secs, peak = time_method(fn, case.view_a, case.view_b, repeat)
+            res, secs, peak = timed[name]
             s = score(res.range_m, case.truth_m, case.mask, case.measurable)
             if not case.scale_check:          # a reference of another pair says nothing of this pair's sigma
                 s.update(calibration(res, case.truth_m, case.mask))
