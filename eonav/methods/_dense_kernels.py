@@ -41,12 +41,24 @@ _INF = F32(np.inf)
 _JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
 
 
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """a * b + c rounded once (llvm.fma.f32: the hardware's fused multiply-add, as OpenCV's v_fma)."""
+    sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):
+        t = args[0].type
+        f = cgutils.get_or_insert_function(builder.module, ir.FunctionType(t, [t, t, t]), "llvm.fma.f32")
+        return builder.call(f, args)
+    return sig, codegen
+
+
 @njit(inline="always", **_JIT)
 def _fma(a, b, c):
     """a * b + c rounded once to float32, as OpenCV's scaleAdd / accumulateProduct / accumulateSquare compute it
-    here (fused multiply-add): the float64 product is exact, and its float64 sum rounded to float32 is the fused
-    result but for ties that double rounding breaks differently (measured: none on the sim presets)."""
-    return np.float32(np.float64(a) * np.float64(b) + np.float64(c))
+    here (fused multiply-add; llvm.fma.f32). It was a float64 product and sum rounded to float32: the same but for
+    ties that double rounding breaks differently, and ~1.5x the time of the final-level kernel."""
+    return _fma32(a, b, c)
 
 
 @njit(**_JIT)
@@ -276,16 +288,6 @@ def _rho_disp(d, a0, cn, B0, cap):
     return r
 
 
-@intrinsic
-def _fma32(typingctx, a, b, c):
-    """a * b + c rounded once (llvm.fma.f32: the hardware's fused multiply-add, as OpenCV's v_fma)."""
-    sig = types.float32(types.float32, types.float32, types.float32)
-
-    def codegen(context, builder, signature, args):
-        t = args[0].type
-        f = cgutils.get_or_insert_function(builder.module, ir.FunctionType(t, [t, t, t]), "llvm.fma.f32")
-        return builder.call(f, args)
-    return sig, codegen
 
 
 _I32_LO = F32(-2147483648.0)
