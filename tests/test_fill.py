@@ -168,3 +168,22 @@ def test_fill_kernels_match_numpy_path(turning):
     # sigma: the kernel fits in float64, the numpy path in float32, and the residual variance is a difference of
     # near-equal window sums (measured: within 1.5 %)
     np.testing.assert_allclose(a1[1][both], a0[1][both], rtol=0.03)
+
+
+@pytest.mark.parametrize("size", [97, 333])
+def test_fill_kernels_match_numpy_path_at_sizes_not_divisible(size):
+    """Partial cells at the right and bottom edges: both paths index cells as y >> k, x >> k and sum a partial
+    cell exactly (the numpy path's cv2.resize maps had followed the size ratio: 38 % apart at 97 x 97)."""
+    pytest.importorskip("numba")
+    sp = make_pair("turning", seed=0, size=size)
+    bare = locate_dense(*sp.views[:2], fill=False)
+    outs = []
+    for kernels in (True, False):
+        arrs = [a.copy() for a in (bare.inv_range_per_m, bare.inv_range_std_per_m, bare.flags, bare.range_m,
+                                   bare.confidence)]
+        outs.append((fill_unmeasured(*arrs, max_rel_std=0.34, rho_far=1e-4, kernels=kernels), arrs))
+    (n1, a1), (n0, a0) = outs
+    assert n1 == n0 > 100
+    np.testing.assert_array_equal(a1[2], a0[2])
+    filled = (a1[2] & FILLED) != 0
+    np.testing.assert_allclose(a1[0][filled], a0[0][filled], rtol=1e-4)

@@ -48,16 +48,27 @@ def _box(m: np.ndarray) -> np.ndarray:
 
 
 def _down(m: np.ndarray, shape) -> np.ndarray:
-    """Sums over 2 x 2 cells (OpenCV's area average x 4; an odd edge row / column counts as half a cell)."""
-    return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_AREA) * F32(4.0)
+    """Sums over 2 x 2 cells of the last two axes into ``shape`` (an odd last row / column of cells sums what it
+    has)."""
+    h, w = m.shape[-2:]
+    if (h, w) != (2 * shape[0], 2 * shape[1]):
+        m = np.pad(m, ((0, 0),) * (m.ndim - 2) + ((0, 2 * shape[0] - h), (0, 2 * shape[1] - w)))
+    out = m[..., 0::2, 0::2] + m[..., 1::2, 0::2]
+    out += m[..., 0::2, 1::2]
+    out += m[..., 1::2, 1::2]
+    return out
 
 
 def _cell_shape(shape, g: int):
     return -(-shape[0] // 2 ** g), -(-shape[1] // 2 ** g)
 
 
-def _up(m: np.ndarray, shape) -> np.ndarray:
-    return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+def _up(m: np.ndarray, shape, k: int) -> np.ndarray:
+    """Each cell's value on the 2^k x finer grid of ``shape`` (element (y, x) takes cell (y >> k, x >> k), as the
+    kernels index; cv2.resize's nearest neighbour maps by the size ratio, which differs at sizes not divisible)."""
+    rows = np.minimum(np.arange(shape[0]) >> k, m.shape[0] - 1)
+    cols = np.minimum(np.arange(shape[1]) >> k, m.shape[1] - 1)
+    return m[rows[:, None], cols[None, :]]
 
 
 def _centres(n_cells: int, g: int, n_px: int, scale: float) -> np.ndarray:
@@ -139,7 +150,7 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float, K=None):
         inv = np.where(n > 0, 1.0 / n, F32(0)).astype(F32)
     xc, yc = sx * inv, sy * inv
     # (the last: each cell mean's noise variance, sum sigma^2 / n, weighted by n)
-    M = [n, sx, sy, sr, sx * xc, sx * yc, sy * yc, sr * xc, sr * yc, sr * sr * inv, sv * inv]
+    M = np.stack([n, sx, sy, sr, sx * xc, sx * yc, sy * yc, sr * xc, sr * yc, sr * sr * inv, sv * inv])
     fits = []
     for k, min_share in enumerate(MIN_SUPPORT):
         g = g1 + k
@@ -147,7 +158,7 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float, K=None):
             break            # the previous window already spans the image from any cell
         shg = _cell_shape((h, w), g)
         if k:
-            M = [_down(m, shg) for m in M]
+            M = _down(M, shg)
         xc, yc = _centres(shg[1], g, w, scale), _centres(shg[0], g, h, scale)
         win_px = _WIN * 2 ** g
         min_n, min_det = min_share * win_px * win_px, (0.05 * (win_px * scale) ** 2 / 12) ** 2
@@ -171,7 +182,7 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float, K=None):
             p, v, b, c, lev = pk, vk, bk, ck, lk
         else:
             shk = pk.shape
-            p, v, lev, b, c = (_up(a, shk) for a in (p, v, lev, b, c))
+            p, v, lev, b, c = (_up(a, shk, 1) for a in (p, v, lev, b, c))
             p += _along(b, c, xc, yc, xp, yp, 1)
             own = np.isfinite(pk) & ((lk <= F32(LEV_MAX)) | ~(lev <= F32(LEV_MAX)))
             d = pk - p
@@ -232,7 +243,7 @@ def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | N
     (p, v, lev, b, c, xp, yp), ref, xs, ys = cells
     # to every pixel: along its cell's plane from the cell's centre (a cell of 4 px spans 1.5 px of offset: on the
     # ground near the horizon 0.75 % of rho)
-    p, v, lev, b, c = (_up(a, (h, w)) for a in (p, v, lev, b, c))
+    p, v, lev, b, c = (_up(a, (h, w), g1) for a in (p, v, lev, b, c))
     p += _along(b, c, xs, ys, xp, yp, g1)
     p *= F32(ref)
     s = np.sqrt(v)
