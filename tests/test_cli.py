@@ -48,6 +48,19 @@ def test_paper_method_is_selectable(fast_pair, tmp_path):
         assert z["range_m"].shape == (160, 160) and "flags" in z.files
 
 
+def test_measured_only_leaves_no_filled_pixel(fast_pair, tmp_path):
+    from eonav.rangemap import FILLED, VALID
+    eonav("locate", fast_pair / "pair.json", "--out", tmp_path / "all.npz")
+    eonav("locate", fast_pair / "pair.json", "--out", tmp_path / "meas.npz", "--measured-only")
+    full, meas = np.load(tmp_path / "all.npz"), np.load(tmp_path / "meas.npz")
+    assert ((full["flags"] & FILLED) != 0).any() and not ((meas["flags"] & FILLED) != 0).any()
+    assert (np.isfinite(meas["range_m"]) == ((meas["flags"] & VALID) != 0) & np.isfinite(meas["range_m"])).all()
+    assert np.isfinite(meas["range_m"]).sum() < np.isfinite(full["range_m"]).sum()
+    r = eonav("locate", fast_pair / "pair.json", "--out", tmp_path / "p.npz", "--method", "paper", "--measured-only",
+              check=False)
+    assert r.returncode == 2 and "--measured-only" in r.stderr
+
+
 def test_stereo_pair_through_the_cli(tmp_path):
     d = tmp_path / "stereo"
     eonav("sim", "stereo", "--size", 160, "--out", d)

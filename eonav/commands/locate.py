@@ -16,6 +16,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timing", action="store_true", help="time the estimator; last stdout line is JSON")
     p.add_argument("--repeat", type=int, default=5, help="runs for --timing (median after one warm-up)")
     p.add_argument("--threads", type=int, default=0, help="OpenCV threads (0 = OpenCV default)")
+    p.add_argument("--measured-only", action="store_true",
+                   help="dense: no FILLED pixels (ranges the pair could not measure, inferred from their neighbours); "
+                        "range_m is then finite on VALID pixels only")
 
 
 def accuracy_summary(range_m, truth_m, confidence=None) -> dict:
@@ -57,6 +60,11 @@ def run(args) -> int:
     views = pf.views()
     a, b = views[0], views[args.other]
     fn = get_method(args.method)
+    if args.measured_only:
+        if args.method != "dense":
+            raise InputError(f"--measured-only: method {args.method!r} fills nothing (only dense does)")
+        import functools
+        fn = functools.partial(fn, fill=False)
     res = fn(a, b)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
