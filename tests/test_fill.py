@@ -164,7 +164,7 @@ def test_fill_kernels_match_numpy_path(turning):
     assert n1 > 10000 and abs(n1 - n0) <= 1e-3 * n0
     both = ((a1[2] & FILLED) != 0) & ((a0[2] & FILLED) != 0)
     assert both.sum() >= 0.999 * n0
-    np.testing.assert_allclose(a1[0][both], a0[0][both], rtol=1e-4)
+    np.testing.assert_allclose(a1[0][both], a0[0][both], rtol=5e-4)      # float64 vs float32 fits
     # sigma: the kernel fits in float64, the numpy path in float32, and the residual variance is a difference of
     # near-equal window sums (measured: within 1.5 %)
     np.testing.assert_allclose(a1[1][both], a0[1][both], rtol=0.03)
@@ -186,4 +186,5 @@ def test_fill_kernels_match_numpy_path_at_sizes_not_divisible(size):
     assert n1 == n0 > 100
     np.testing.assert_array_equal(a1[2], a0[2])
     filled = (a1[2] & FILLED) != 0
-    np.testing.assert_allclose(a1[0][filled], a0[0][filled], rtol=1e-4)
+    # (the kernels fit in float64, the numpy path in float32: measured up to 2.4e-4 apart)
+    np.testing.assert_allclose(a1[0][filled], a0[0][filled], rtol=5e-4)

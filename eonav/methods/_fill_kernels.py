@@ -89,7 +89,7 @@ def to_pixels(p, v, lev, b, c, xs, ys, xp, yp, g1, ref, flags, no_fill, exclude,
 
 
 @njit(**_JIT)
-def plane(S0, S1, S2, S3, S4, S5, S6, S7, S8, S9, S10, xc, yc, min_n, min_det, p, v, b, c, lev):
+def plane(S0, S1, S2, S3, S4, S5, S6, S7, S8, S9, S10, S11, xc, yc, min_share, min_det, p, v, b, c, lev):
     """fill._plane per cell in one pass (same formulas, float64 inside): the window sums' weighted plane, its
     prediction and error variance, slopes and leverage at the cell centres; p NaN where the window lacks support."""
     hg, wg = p.shape
@@ -114,7 +114,7 @@ def plane(S0, S1, S2, S3, S4, S5, S6, S7, S8, S9, S10, xc, yc, min_n, min_det, p
             pp = mr + bb * dx + cc * dy
             lv = (cyy * dx * dx - 2.0 * cxy * dx * dy + cxx * dy * dy) * inv_det
             vv = res * (1.0 + (1.0 + lv) * inv_n)
-            ok = n >= min_n and det > min_det and math.isfinite(pp) and math.isfinite(vv)
+            ok = n >= min_share * S11[y, x] and det > min_det and math.isfinite(pp) and math.isfinite(vv)
             p[y, x] = pp if ok else np.nan
             v[y, x] = vv
             b[y, x] = bb
