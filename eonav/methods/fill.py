@@ -11,8 +11,8 @@ The 1-sigma of a filled rho is the plane fit's prediction error -- residual vari
 the measurement noise and any departure from a plane: a depth edge inside the window inflates it), scaled by
 (1 + (1 + leverage) / n) for the distance from the support's centroid -- plus the squared disagreement with the next
 coarser window's prediction (a plane that holds at two scales is trusted; one that does not is not). Measured on the
-simulator presets (filled pixels' z = (rho - rho_true) / sigma): robust spread 0.8-1.1 (the plane fit alone:
-1.6-3.6), 93-99 % within 2 sigma.
+simulator presets (filled pixels' z = (rho - rho_true) / sigma): robust spread 0.6-0.8 (the plane fit alone:
+1.6-3.6), 91-98 % within 2 sigma; Middlebury 0.6-1.2.
 
 Cells of 4 px (first octave 2), not 2: the fill's CPU time on a 512 x 512 locate 22 -> 7.6 ms (against 54 ms for
 the rest, same loaded machine), medians within +0.05 pp and coverage within 0.7 points on the sim presets and
@@ -81,10 +81,11 @@ def _centres(n_cells: int, g: int, n_px: int, scale: float) -> np.ndarray:
 def _plane(S, xc, yc, min_share: float, min_det: float):
     """Weighted least-squares plane r = mr + b (x - mx) + c (y - my) of the window sums S (12 planes): prediction,
     its error variance, slopes b, c and leverage at the cell centres (xc row, yc column); NaN where fewer than
-    min_share of the window's pixels inside the image (S[11]) are measured, or too little spread in x and y. Error variance: residual variance x
-    (1 + (1 + leverage) / n), as for a new measurement -- the residual holds the support's noise besides the
-    surface's departure from the plane, so this errs large where the noise dominates (filled z spread 0.4-0.8 on
-    the sim presets, 0.6-1.3 on Middlebury); without the noise's share it erred small (1.3-1.8 on Middlebury)."""
+    min_share of the window's pixels inside the image (S[11]) are measured, or too little spread in x and y.
+    Error variance: residual variance x (1 + (1 + leverage) / n), as for a new measurement -- the residual holds
+    the support's noise besides the surface's departure from the plane, so this errs large where the noise
+    dominates (filled z spread 0.6-0.8 on the sim presets, 0.6-1.2 on Middlebury); without the noise's share it
+    erred small (1.3-1.8 on Middlebury)."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         n = S[0]
         inv_n = 1.0 / n
