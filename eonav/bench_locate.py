@@ -144,24 +144,29 @@ def scale_line(case, per):
 
 
 def time_methods(fns: dict, a, b, repeat):
-    """Each method's result (its warm-up run), median seconds per pair and peak traced memory. The timed runs
-    are interleaved round-robin (dense, dis, dense, dis, ...): this machine's speed drifts by up to 1.5x over
-    minutes, and timing one method's runs after the other's put the drift into their ratio (0.49-0.55 in a
-    block-wise run against 0.41-0.46 interleaved, same code)."""
+    """Each method's result (its warm-up run), median CPU seconds per pair, median wall seconds and peak traced
+    memory. Every method runs on one core (one OpenCV thread, numba not parallel), so the process's CPU time is
+    its time on that core (wall time would also count what a virtual machine's host takes away; here the two
+    agree). The timed runs are interleaved round-robin (dense, dis, dense, dis, ...): the machine's speed drifts
+    by up to 1.5x over minutes, and one method's runs after the other's put that drift into their ratio. Even so
+    the ratio of one build spread 0.40-0.59 over runs of this 2-core machine."""
     res = {name: fn(a, b) for name, fn in fns.items()}          # warm-up, and the result we score
     times = {name: [] for name in fns}
+    walls = {name: [] for name in fns}
     for _ in range(repeat):
         for name, fn in fns.items():
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             fn(a, b)
-            times[name].append(time.perf_counter() - t0)
+            times[name].append(time.process_time() - c0)
+            walls[name].append(time.perf_counter() - t0)
     peak = {}
     for name, fn in fns.items():
         tracemalloc.start()
         fn(a, b)
         peak[name] = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-    return {name: (res[name], statistics.median(times[name]), peak[name]) for name in fns}
+    return {name: (res[name], statistics.median(times[name]), peak[name], statistics.median(walls[name]))
+            for name in fns}
 
 
 def object_rows(case, range_m):
@@ -187,13 +192,13 @@ def run_bench(methods, cases, repeat, json_out=None):
             " (in view of b, not occluded there)")
         print(f"\n== {case.name}  ({w}x{h}, reference: {case.truth_label}, {int(case.mask.sum())} scored pixels{meas})")
         print(f"   {'method':<14}{'median err':>11}{'within 5%':>11}{'coverage':>10}"
-              f"{'of meas.':>10}{'ms/pair':>10}{'peak MB':>9}{'z spread':>10}{'|z|<2':>7}  (coverage: finite ranges, "
+              f"{'of meas.':>10}{'CPU ms':>10}{'peak MB':>9}{'z spread':>10}{'|z|<2':>7}  (coverage: finite ranges, "
               "FILLED included)")
         per = {}
         names = list(methods) + (["sgbm"] if case.stereo_rectified and "sgbm" not in methods else [])
         timed = time_methods({name: get_method(name) for name in names}, case.view_a, case.view_b, repeat)
         for name in names:
-            res, secs, peak = timed[name]
+            res, secs, peak, wall = timed[name]
             s = score(res.range_m, case.truth_m, case.mask, case.measurable)
             if not case.scale_check:          # a reference of another pair says nothing of this pair's sigma
                 s.update(calibration(res, case.truth_m, case.mask))
@@ -202,16 +207,19 @@ def run_bench(methods, cases, repeat, json_out=None):
                   f"{100 * s['coverage']:>9.1f}%{fmt_pct(s.get('coverage_of_measurable')):>10}"
                   f"{1000 * secs:>10.1f}{peak / 2**20:>9.1f}"
                   f"{s['z_spread'] if 'z_spread' in s else float('nan'):>10.2f}{fmt_pct(s.get('within_2_sigma')):>7}")
-            results.append({"case": case.name, "method": name, "seconds_per_pair": secs, "peak_bytes": peak, **s})
+            results.append({"case": case.name, "method": name, "seconds_per_pair": secs, "wall_seconds_per_pair": wall,
+                            "peak_bytes": peak, **s})
             filled = filled_line(name, res, case)
             if filled:
                 print(filled)
         line = common_pixel_line(case, per)
         if line:
             print(line)
-        secs = {r["method"]: r["seconds_per_pair"] for r in results if r["case"] == case.name}
-        if "dense" in secs and "dis" in secs and secs["dis"] > 0:
-            print(f"   time dense / dis: {secs['dense'] / secs['dis']:.2f}")
+        secs = {r["method"]: (r["seconds_per_pair"], r["wall_seconds_per_pair"]) for r in results
+                if r["case"] == case.name}
+        if "dense" in secs and "dis" in secs and secs["dis"][0] > 0:
+            print(f"   time dense / dis: {secs['dense'][0] / secs['dis'][0]:.2f} (CPU on one core; wall clock "
+                  f"{secs['dense'][1] / secs['dis'][1]:.2f})")
         if case.scale_check and per:
             print(scale_line(case, per))
         if case.objects and per:
