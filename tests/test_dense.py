@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from eonav.camera import Camera, VehicleState, View
+from eonav.methods._common import optional_kernels
 from eonav.methods.dense import locate_dense
 from eonav.methods.flow_baseline import locate_dis
 from eonav.rangemap import AT_INFINITY, VALID
@@ -285,7 +286,7 @@ def test_fused_search_matches_opencv_search(preset, size, monkeypatch):
     sp = sim(preset, size=size)
     locate_dense(*sp.views, fused=False)
     locate_dense(*sp.views, fused=False, per_pixel_search=False)
-    K = dense._fused_kernels()
+    K = optional_kernels("_dense_kernels")
     for args, kw in seen:
         for extra in ({}, {"sgm_p1": 1.0, "sgm_p2": 8.0, "sgm_tau": 8.0}):
             r0, c0 = (x.copy() for x in orig(*args, **dict(kw, K=None, **extra)))

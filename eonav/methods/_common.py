@@ -7,7 +7,9 @@ at every level (it is a property of the scene point, not of the image resolution
 """
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -210,3 +212,13 @@ def rectified_stereo_baseline(geo: PairGeometry, tol: float = 1e-6):
 
 __all__ = ["EpipolarMap", "level_camera", "pyramid", "pyr_up_to", "classify", "classify_into", "make_result", "no_motion_result",
            "far_inverse_range", "to_u8", "rectified_stereo_baseline", "pair_geometry", "View"]
+
+
+@lru_cache(maxsize=None)
+def optional_kernels(name: str):
+    """The numba kernel module ``eonav.methods.<name>``, or None when numba is not installed (the caller's
+    OpenCV / numpy path runs instead)."""
+    try:
+        return importlib.import_module(f"{__package__}.{name}")
+    except ImportError:
+        return None

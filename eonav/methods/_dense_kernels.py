@@ -11,7 +11,7 @@ float32 (no fast-math: no reassociation, no fused multiply-add), so the two path
 The coarse epipolar search (``dense._search_fused``) has its kernels here too (``search_*``), bit-identical to
 ``dense._search``'s OpenCV path (tests/test_dense.py::test_fused_search_matches_opencv_search).
 
-Imported only when numba is installed (``dense._FUSED``); without it the OpenCV path runs.
+Imported only when numba is installed (``_common.optional_kernels``); without it the OpenCV path runs.
 """
 from __future__ import annotations
 

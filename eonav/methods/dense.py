@@ -44,7 +44,7 @@ from .. import InputError
 from ..camera import View, pair_geometry
 from ..rangemap import ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID, RangeResult
 from ._common import (F32, EpipolarMap, classify_into, far_inverse_range, make_result,
-                      no_motion_result, pyr_up_to, pyramid)
+                      no_motion_result, optional_kernels, pyr_up_to, pyramid)
 from .fill import fill_unmeasured
 
 METHOD = "dense"
@@ -713,7 +713,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         pa = [x - _blur(x, highpass_sigma) if i < highpass_levels else x for i, x in enumerate(pa)]
         pb = [x - _blur(x, highpass_sigma) if i < highpass_levels else x for i, x in enumerate(pb)]
 
-    K = _fused_kernels() if fused is None or fused else None
+    K = optional_kernels("_dense_kernels") if fused is None or fused else None
     if fused and K is None:
         raise InputError("fused=True needs numba (pip install numba)")
 
@@ -1078,22 +1078,11 @@ def _gn_block_fused(K, lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm
     fin.n_inf += ni
 
 
-@lru_cache(maxsize=1)
-def _fused_kernels():
-    """The numba kernels (``_dense_kernels``), or None without numba (the OpenCV path then runs)."""
-    try:
-        from . import _dense_kernels
-    except ImportError:
-        return None
-    return _dense_kernels
-
-
-
 def prepare_kernels() -> bool:
     """Compile (or load from numba's cache) the fused kernels now, for the argument types locate_dense passes them,
     instead of in the first locate: ~5-7 s cold, ~0.5-1 s from the cache on the bench machine, which a service
     should spend before its first frame (a first pair delayed by it went stale). False without numba."""
-    K = _fused_kernels()
+    K = optional_kernels("_dense_kernels")
     if K is None:
         return False
     n, w = 2, 4

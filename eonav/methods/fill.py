@@ -20,12 +20,11 @@ Middlebury.
 """
 from __future__ import annotations
 
-from functools import lru_cache
-
 import cv2
 import numpy as np
 
 from ..rangemap import FILLED, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
+from ._common import optional_kernels
 
 F32 = np.float32
 # not filled: a pixel hidden in image b, or whose last step was past the first-order model's trust, sits at a depth
@@ -152,9 +151,9 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float, K=None):
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(n > 0, 1.0 / n, F32(0)).astype(F32)
     xc, yc = sx * inv, sy * inv
-    # (the last: each cell mean's noise variance, sum sigma^2 / n, weighted by n)
-    # (the last: the cells' pixel counts in the image, so a window's support share is of its part inside the image:
-    # near a border or in an image smaller than the window a constant share could never be met)
+    # (sv * inv: each cell mean's noise variance, sum sigma^2 / n, weighted by n; the last: the cells' pixel counts
+    # in the image, so a window's support share is of its part inside the image: near a border or in an image
+    # smaller than the window a constant share could never be met)
     k1 = 2 ** g1
     rows = np.minimum(k1, h - k1 * np.arange(n.shape[0])).astype(F32)
     cols = np.minimum(k1, w - k1 * np.arange(n.shape[1])).astype(F32)
@@ -234,7 +233,8 @@ def _cells(rho, support_or_flags, std, g1: int, K):
     return _fit_cells(n, sr, sx, sy, sv, (h, w), g1, scale, K), ref, xs, ys
 
 
-def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | None = None, first_octave: int = 1):
+def fill_inverse_range(rho: np.ndarray, support: np.ndarray, std: np.ndarray | None = None,
+                       first_octave: int = FIRST_OCTAVE):
     """Inverse range, its 1-sigma and the leverage of every pixel from the plane fits of the measured ``support``
     pixels (rho finite there; ``std`` their 1-sigma, None: noiseless) around it; the caller keeps them where
     it has no measurement. float32 H x W each, NaN where no window had support. Leverage (d^T C^-1 d of the
@@ -272,7 +272,7 @@ def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: flo
     nothing is filled farther than this (the pair's far limit: beyond it a finite range means nothing; a fill
     among sky pixels at infinity took a tiny rho). kernels: the numba passes (None: when installed; False: the
     numpy path). Returns the number of pixels filled."""
-    K = _kernels() if kernels is None or kernels else None
+    K = optional_kernels("_fill_kernels") if kernels is None or kernels else None
     if kernels and K is None:
         raise ImportError("fill_unmeasured(kernels=True) needs numba")
     if K is not None:
@@ -302,16 +302,6 @@ def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: flo
         np.copyto(conf, rho_f / std_f, where=keep)
     flags |= keep.view(np.uint8) * np.uint8(FILLED)
     return int(np.count_nonzero(keep))
-
-
-@lru_cache(maxsize=1)
-def _kernels():
-    """The numba passes (``_fill_kernels``), or None without numba."""
-    try:
-        from . import _fill_kernels
-    except ImportError:
-        return None
-    return _fill_kernels
 
 
 __all__ = ["fill_inverse_range", "fill_unmeasured", "MIN_SUPPORT", "NO_FILL"]
