@@ -4,7 +4,8 @@
 
 Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian).
 ``range_map`` sends ``range_m`` as float32, ``confidence`` and ``inv_range_std_per_m`` as float16 (3 significant
-digits: plenty for a gate; half the bytes) and ``flags`` as uint8; readers must not assume float32 (numpy promotes
+digits: plenty for a gate; half the bytes) and ``flags`` as uint8 (``eonav.rangemap``: VALID = measured, FILLED =
+inferred from the measured pixels around, both with a finite ``range_m``); readers must not assume float32 (numpy promotes
 float16 in arithmetic; ``np.asarray(a, np.float32)`` where a float32 copy is wanted). float16 was added to the
 allowed dtypes without a version bump: an older build rejects such a message (counted decode error), it never
 misreads it.
