@@ -673,6 +673,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     where that sigma is within max_rel_std like any VALID pixel's. Sim presets: coverage of the non-sky pixels
     63-79 % -> 73-91 %, median error 0.34-0.80 % -> 0.37-0.83 %; the filled pixels' z spread 0.6-0.8 (their
     own median error 0.3-2 %); Middlebury coverage 65-80 % -> 81-87 %, medians within +0.1 pp.
+    (Not to be confused with fill_sigma / fill_c: the coarse search's normalised-convolution fill, which only
+    seeds the Gauss-Newton steps.)
     sgm: semi-global aggregation (4 scanline paths) of the coarse ZNCC cost volume before winner-take-all;
     sgm_p1 / sgm_p2: penalties (cost units, 1 - ZNCC) of a one-hypothesis / larger jump between neighbours,
     sgm_tau: grey levels over which the jump penalty halves across an intensity edge. Off by default:
