@@ -149,18 +149,23 @@ def test_sky_beside_a_pole_is_not_filled():
     assert filled_sky.sum() / deep.sum() < 0.005
 
 
+def fill_both_paths(bare):
+    """fill_unmeasured on copies of an unfilled result's arrays, by the numba kernels and by the numpy path:
+    [(n_filled, [rho, std, flags, range, confidence])] for each."""
+    outs = []
+    for kernels in (True, False):
+        arrs = [a.copy() for a in (bare.inv_range_per_m, bare.inv_range_std_per_m, bare.flags, bare.range_m,
+                                   bare.confidence)]
+        outs.append((fill_unmeasured(*arrs, max_rel_std=0.34, rho_far=1e-4, kernels=kernels), arrs))
+    return outs
+
+
 def test_fill_kernels_match_numpy_path(turning):
     """The numba passes and the numpy path fill the same pixels with the same values (float rounding apart)."""
     pytest.importorskip("numba")
     sp, _ = turning
     bare = locate_dense(*sp.views[:2], fill=False)
-    outs = []
-    for kernels in (True, False):
-        arrs = [a.copy() for a in (bare.inv_range_per_m, bare.inv_range_std_per_m, bare.flags, bare.range_m,
-                                   bare.confidence)]
-        n = fill_unmeasured(*arrs, max_rel_std=0.34, rho_far=1e-4, kernels=kernels)
-        outs.append((n, arrs))
-    (n1, a1), (n0, a0) = outs
+    (n1, a1), (n0, a0) = fill_both_paths(bare)
     assert n1 > 10000 and abs(n1 - n0) <= 1e-3 * n0
     both = ((a1[2] & FILLED) != 0) & ((a0[2] & FILLED) != 0)
     assert both.sum() >= 0.999 * n0
@@ -177,12 +182,7 @@ def test_fill_kernels_match_numpy_path_at_sizes_not_divisible(size):
     pytest.importorskip("numba")
     sp = make_pair("turning", seed=0, size=size)
     bare = locate_dense(*sp.views[:2], fill=False)
-    outs = []
-    for kernels in (True, False):
-        arrs = [a.copy() for a in (bare.inv_range_per_m, bare.inv_range_std_per_m, bare.flags, bare.range_m,
-                                   bare.confidence)]
-        outs.append((fill_unmeasured(*arrs, max_rel_std=0.34, rho_far=1e-4, kernels=kernels), arrs))
-    (n1, a1), (n0, a0) = outs
+    (n1, a1), (n0, a0) = fill_both_paths(bare)
     assert n1 == n0 > 100
     np.testing.assert_array_equal(a1[2], a0[2])
     filled = (a1[2] & FILLED) != 0

@@ -188,6 +188,19 @@ def box_distance(box, p_ned):
     return float(np.linalg.norm(d))
 
 
+def near_boxes(scene, p_ned, max_m=100.0):
+    """(box, its true distance) for the scene's boxes within max_m of p."""
+    for box in scene.boxes:
+        d = box_distance(box, p_ned)
+        if d <= max_m:
+            yield box, d
+
+
+def closest(obstacles, distance_m):
+    """The obstacle whose distance is nearest distance_m."""
+    return min(obstacles, key=lambda o: abs(o.distance_m - distance_m))
+
+
 @pytest.fixture(scope="module")
 def fast_scene():
     from eonav.sim.presets import make_pair
@@ -207,7 +220,7 @@ def test_sim_boxes_found_at_their_distance(fast_scene):
     assert near.bearing_deg == pytest.approx(math.degrees(math.atan2(c[1], c[0])), abs=2.0)
     for name in ("pole", "truck"):
         want = box_distance(boxes[name], pos)
-        got = min(res.obstacles, key=lambda o: abs(o.distance_m - want))
+        got = closest(res.obstacles, want)
         assert got.distance_m == pytest.approx(want, rel=0.03), name
     # sectors: the van's bearing bins report its horizontal distance
     s = res.sectors
@@ -380,12 +393,8 @@ def test_pooled_analysis_keeps_nearest_distances(fast_scene, max_width_px):
     full = ob.analyse(gt.range_m, v.camera, v.state, cfg=ob.ObstacleConfig(ground_down_m=0.0, max_width_px=0))
     res = ob.analyse(gt.range_m, v.camera, v.state,
                      cfg=ob.ObstacleConfig(ground_down_m=0.0, max_width_px=max_width_px))
-    pos = v.state.position_ned_m
-    for b in sp.scene.boxes:
-        want = box_distance(b, pos)
-        if want > 100:
-            continue
-        got = min(res.obstacles, key=lambda o: abs(o.distance_m - want))
+    for b, want in near_boxes(sp.scene, v.state.position_ned_m):
+        got = closest(res.obstacles, want)
         assert got.distance_m == pytest.approx(want, rel=0.03), b.name
         assert got.distance_m <= want * 1.01                  # a robust minimum never pushes an obstacle away
     f, p = full.sectors.distances_cm.astype(float), res.sectors.distances_cm.astype(float)
@@ -420,13 +429,8 @@ def test_map_on_the_locate_grid_gives_the_obstacles_of_the_upsampled_map(fast_sc
     b = ob.analyse(small, sc, v.state, cfg=cfg, frame_size=(v.camera.width, v.camera.height))
     assert b.n_confident == a.n_confident                          # frame pixels
     assert b.n_obstacle_px == pytest.approx(a.n_obstacle_px, rel=0.05)
-    pos = v.state.position_ned_m
-    for box in sp.scene.boxes:
-        want = box_distance(box, pos)
-        if want > 100:
-            continue
-        oa = min(a.obstacles, key=lambda o: abs(o.distance_m - want))
-        ob_ = min(b.obstacles, key=lambda o: abs(o.distance_m - want))
+    for box, want in near_boxes(sp.scene, v.state.position_ned_m):
+        oa, ob_ = closest(a.obstacles, want), closest(b.obstacles, want)
         assert ob_.distance_m == pytest.approx(oa.distance_m, rel=0.005), box.name
         assert ob_.bearing_deg == pytest.approx(oa.bearing_deg, abs=0.2), box.name
         assert ob_.pixel_count == pytest.approx(oa.pixel_count, rel=0.1), box.name

@@ -270,10 +270,7 @@ def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, w
     P1 = A1 * F32(cb.fx) + A0 * F32(cb.cx)
     P2 = A2 * F32(cb.fy) + A0 * F32(cb.cy)
     Q1, Q2 = F32(cb.fx * B[1] + cb.cx * B[0]), F32(cb.fy * B[2] + cb.cy * B[0])
-    ap = np.pad(a, ((p, p), (0, 0)), mode="symmetric")
-    ma = _box(ap, win)
-    va = _box(ap * ap, win) - ma * ma
-    va_pos = np.maximum(va, 0)
+    ap, ma, va, va_pos = _a_side(a, win)
     cost = _ws("cost", (n, h, w))
     c = (slice(None), slice(p, p + h))
     step = max(1, min(n, chunk_px // (hp * w)))
@@ -339,6 +336,15 @@ def _pad_rows(h: int, p: int) -> np.ndarray:
     return np.pad(np.arange(h), (p, p), mode="symmetric")     # (shared: never written)
 
 
+def _a_side(a: np.ndarray, win: int):
+    """Image a padded by half a window of symmetric rows (as np.pad "symmetric"), its windowed mean and variance,
+    and the variance clipped at 0: the search's a-side statistics (both paths)."""
+    ap = a[_pad_rows(a.shape[0], win // 2)]
+    ma = _box(ap, win)
+    va = _box(ap * ap, win) - ma * ma
+    return ap, ma, va, np.maximum(va, 0)
+
+
 def _search_fused(K, a, b, emap: EpipolarMap, rhos, win: int, noise: float, sgm_p1: float, sgm_p2: float,
                   sgm_tau: float, chunk_px: int, disp, cap):
     """_search with its per-pixel work in numba kernels (``_dense_kernels.search_*``): per chunk of hypotheses one
@@ -361,10 +367,7 @@ def _search_fused(K, a, b, emap: EpipolarMap, rhos, win: int, noise: float, sgm_
     else:
         cn = capf = emap.A0          # unused
     Q1, Q2 = F32(cb.fx * B[1] + cb.cx * B[0]), F32(cb.fy * B[2] + cb.cy * B[0])
-    ap = a[rows]
-    ma = _box(ap, win)
-    va = _box(ap * ap, win) - ma * ma
-    va_pos = np.maximum(va, 0)
+    _, ma, va, va_pos = _a_side(a, win)
     hyp = np.asarray(disp if per_pixel else rhos, np.float64)
     cost = _ws("cost", (n, h, w))
     step = max(1, min(n, chunk_px // (hp * w)))
