@@ -210,10 +210,6 @@ def rectified_stereo_baseline(geo: PairGeometry, tol: float = 1e-6):
     return float(ca.fx), float(-t[1])
 
 
-__all__ = ["EpipolarMap", "level_camera", "pyramid", "pyr_up_to", "classify", "classify_into", "make_result", "no_motion_result",
-           "far_inverse_range", "to_u8", "rectified_stereo_baseline", "pair_geometry", "View"]
-
-
 @lru_cache(maxsize=None)
 def optional_kernels(name: str):
     """The numba kernel module ``eonav.methods.<name>``, or None when numba is not installed (the caller's
@@ -222,3 +218,8 @@ def optional_kernels(name: str):
         return importlib.import_module(f"{__package__}.{name}")
     except ImportError:
         return None
+
+
+__all__ = ["EpipolarMap", "level_camera", "pyramid", "pyr_up_to", "classify", "classify_into", "make_result", "no_motion_result",
+           "far_inverse_range", "to_u8", "rectified_stereo_baseline", "pair_geometry", "View",
+           "optional_kernels"]
