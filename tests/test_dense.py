@@ -243,29 +243,54 @@ def test_middlebury_cones_beats_dis():
 
 
 def test_strips_equal_whole_image():
-    """The strip-by-strip Gauss-Newton (halo of half a window) gives the whole-image result."""
+    """The OpenCV path's strip-by-strip Gauss-Newton (halo of half a window) gives its whole-image result."""
     sp = sim("turning")
-    r1 = locate_dense(*sp.views)
-    r0 = locate_dense(*sp.views, strip_px=0)
+    r1 = locate_dense(*sp.views, fused=False)
+    r0 = locate_dense(*sp.views, strip_px=0, fused=False)
     np.testing.assert_allclose(r1.inv_range_per_m, r0.inv_range_per_m, rtol=1e-5, atol=1e-9)
     assert (r1.flags != r0.flags).mean() < 1e-3
 
 
 @pytest.mark.parametrize("preset,size", [("turning", 256), ("paper", 256), ("stereo", 96)])
 def test_fused_kernels_match_opencv_path(preset, size):
-    """The numba kernels (fused=True) compute what the OpenCV path (fused=False, the reference) does, to float
-    rounding (bit-identical where OpenCV's multiply-adds are fused, as on x86-64 with FMA); size 96 has no level 1,
-    so the infinity test runs at level 0."""
+    """The numba level pass (fused=True: map, warp, terms, window sums, update and classification streamed row by
+    row) computes what the OpenCV path (fused=False, the reference) does, to float rounding: its window sums add in
+    another order and its Scharr and border samples round differently, which the iterations carry on. Measured on
+    these cases: ranges valid in both within 1.5e-5 (99th percentile), sigmas within 1.5e-4, flags differ on <= 1e-4
+    of the pixels. Size 96 has no level 1, so the infinity test runs at level 0."""
     pytest.importorskip("numba")
     sp = sim(preset, size=size)
     r1 = locate_dense(*sp.views, fused=True)
     r0 = locate_dense(*sp.views, fused=False)
-    np.testing.assert_allclose(r1.inv_range_per_m, r0.inv_range_per_m, rtol=1e-5, atol=1e-9)
-    np.testing.assert_allclose(r1.inv_range_std_per_m, r0.inv_range_std_per_m, rtol=1e-5, atol=1e-9)
+    both = (r1.flags & VALID > 0) & (r0.flags & VALID > 0) & np.isfinite(r1.range_m) & np.isfinite(r0.range_m)
+    assert both.mean() > 0.3
+    rel = np.abs(r1.range_m[both] - r0.range_m[both]) / r0.range_m[both]
+    assert np.percentile(rel, 99) < 1e-4 and np.percentile(rel, 50) < 2e-6, np.percentile(rel, [50, 99])
+    srel = np.abs(r1.inv_range_std_per_m[both] - r0.inv_range_std_per_m[both]) / r0.inv_range_std_per_m[both]
+    assert np.percentile(srel, 99) < 1e-3, np.percentile(srel, 99)
     assert (r1.flags != r0.flags).mean() < 1e-3
-    ok = (r1.flags == r0.flags) & np.isfinite(r0.range_m)
-    np.testing.assert_allclose(r1.range_m[ok], r0.range_m[ok], rtol=1e-5)
-    np.testing.assert_allclose(r1.confidence[ok], r0.confidence[ok], rtol=1e-5, atol=1e-6)
+    assert abs(np.isfinite(r1.range_m).mean() - np.isfinite(r0.range_m).mean()) < 1e-3
+    crel = np.abs(r1.confidence[both] - r0.confidence[both]) / r0.confidence[both]
+    assert np.percentile(crel, 99) < 1e-3
+
+
+def test_fused_gradient_and_warp_source_match_opencv():
+    """The level pass's Scharr gradient (``scharr``) and its warp source (``pack_b4p``: [I, gx, gy, 1] with a zero
+    border) are cv2.Scharr's (scale 1/32, reflected border) and cv2.merge + copyMakeBorder's, to float rounding."""
+    pytest.importorskip("numba")
+    K = optional_kernels("_dense_kernels")
+    img = (np.random.default_rng(7).random((37, 53)) * 255).astype(np.float32)
+    gx, gy = np.empty_like(img), np.empty_like(img)
+    K.scharr(img, gx, gy)
+    rx = cv2.Scharr(img, cv2.CV_32F, 1, 0, scale=1 / 32, borderType=cv2.BORDER_REFLECT)
+    ry = cv2.Scharr(img, cv2.CV_32F, 0, 1, scale=1 / 32, borderType=cv2.BORDER_REFLECT)
+    np.testing.assert_allclose(gx, rx, atol=1e-4)
+    np.testing.assert_allclose(gy, ry, atol=1e-4)
+    b4p = np.full((39, 55, 4), np.nan, np.float32)
+    K.pack_b4p(img, b4p)
+    ref = cv2.copyMakeBorder(cv2.merge([img, rx, ry, np.ones_like(img)]), 1, 1, 1, 1, cv2.BORDER_CONSTANT,
+                             value=(0, 0, 0, 0))
+    np.testing.assert_allclose(b4p, ref, atol=1e-4)
 
 
 @pytest.mark.parametrize("preset,size", [("paper", 512), ("turning", 256), ("climbing", 256)])

@@ -1,12 +1,19 @@
-"""Fused per-pixel kernels (numba) of the dense method's Gauss-Newton strips (``dense._gn_block``).
+"""Fused per-pixel kernels (numba) of the dense method (``dense.locate_dense`` with ``fused``).
 
-The OpenCV path of ``_gn_block`` makes ~100 passes over each strip (one array operation each, plus a fixed cost
-per call); these kernels do the same float32 arithmetic in three passes per strip: the epipolar map before the
-warp (cv2.remap), the weighted terms whose window sums the normal equations need (box-filtered by OpenCV, as in
-the OpenCV path), and the update (with ``final``: the uncertainty, the flags and the classification of
-``_common.classify_into``). Each elementwise operation is the one of the OpenCV path, in the same order and in
-float32 (no fast-math: no reassociation, no fused multiply-add), so the two paths agree to float rounding
-(tests/test_dense.py::test_fused_kernels_match_opencv_path).
+``gn_level`` does one re-linearised Gauss-Newton step of a whole pyramid level in one pass: rows stream through a
+ring of window-height term planes (the map into b, b's bilinear samples, the Huber-weighted normal-equation terms),
+and as soon as a row's window is complete its window sums, its update and (final step) its uncertainty, flags and
+classification follow. Nothing per pixel is written but the outputs, where the OpenCV path (``dense._gn_block``,
+the reference and the fallback without numba) makes ~100 passes over each strip of rows. The arithmetic is the
+OpenCV path's, in float32 with its fused multiply-adds (``_fma``); the window sums add in another order and the
+borders of the warp round differently, so the two agree to float rounding, not bit for bit
+(tests/test_dense.py::test_fused_kernels_match_opencv_path). ``scharr`` and ``pack_b4p`` prepare a level (a's
+gradient; b with its gradient and a zero border as the warp source).
+
+Writing kernels numba vectorises: index row views with the loop variable itself, or with unsigned offsets (numba
+tests a signed index that varies along the loop for wraparound on every element, which stops the vectorisation);
+no views inside per-row loops (each costs ~20 ns of reference counting); keep branches out of the elementwise
+loops (selects vectorise).
 
 The coarse epipolar search (``dense._search_fused``) has its kernels here too (``search_*``), bit-identical to
 ``dense._search``'s OpenCV path (tests/test_dense.py::test_fused_search_matches_opencv_search).
@@ -59,215 +66,6 @@ def _fma(a, b, c):
     here (fused multiply-add; llvm.fma.f32). It was a float64 product and sum rounded to float32: the same but for
     ties that double rounding breaks differently, and ~1.5x the time of the final-level kernel."""
     return _fma32(a, b, c)
-
-
-@njit(**_JIT)
-def epipolar_map(R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, inv, ub, vb):
-    """Map of the strip's pixels into b at rho = R: inv = 1 / (A0 + B0 rho), u_b = (P1 + Q1 rho) inv,
-    v_b = (P2 + Q2 rho) inv; each affine map is its row part (w) plus its column part (rows of the strip)."""
-    n, w = R.shape
-    for y in range(n):
-        ca, c1, c2 = a0c[y], p1c[y], p2c[y]
-        for x in range(w):
-            r = R[y, x]
-            d = _ONE / _fma(r, B0, a0r[x] + ca)
-            inv[y, x] = d
-            ub[y, x] = _fma(r, Q1, p1r[x] + c1) * d
-            vb[y, x] = _fma(r, Q2, p2r[x] + c2) * d
-
-
-@njit(inline="always", **_JIT)
-def _terms(y, x, mask, r, gx, gy, C1, C2, d, Ryx, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o):
-    """One pixel's Huber-weighted normal-equation terms and E2 (shared by gn_terms and gn_terms_final)."""
-    J = gx * C1
-    J = _fma(gy, C2, J)
-    i2 = d * d
-    J = J * i2
-    c2 = C1 * C1
-    c2 = _fma(C2, C2, c2) if c2_fma else c2 + C2 * C2
-    E2_o[y, x] = c2 * (i2 * i2)
-    a = max(abs(r), ks)
-    wgt = (mask * ks) / a
-    wJ = wgt * J
-    q = J * Ryx
-    q = q - r
-    wJJ[y, x] = wJ * J
-    wJq[y, x] = wJ * q
-    wgt_o[y, x] = wgt
-    wJ_o[y, x] = wJ
-    wq_o[y, x] = wgt * q
-
-
-@njit(**_JIT)
-def gn_terms(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o):
-    """Per pixel of the strip (wv: warped [I_b, gx_b, gy_b, in-view]): the Huber-weighted terms of the normal
-    equations whose window sums are needed (wJ J, wJ q, w, wJ, w q) and E2 (a quarter of |d map / d rho|^2)."""
-    n, w = R.shape
-    for y in range(n):
-        k1, k2 = c1c[y], c2c[y]
-        for x in range(w):
-            mask = wv[y, x, 3]
-            r = wv[y, x, 0] - ia[y, x]
-            gx = wv[y, x, 1] + gxa[y, x]
-            gy = wv[y, x, 2] + gya[y, x]
-            d = inv[y, x]
-            _terms(y, x, mask, r, gx, gy, c1r[x] + k1, c2r[x] + k2, d, R[y, x], ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o,
-                   E2_o)
-
-
-@njit(**_JIT)
-def gn_terms_final(wv, ia, gxa, gya, c1r, c1c, c2r, c2c, inv, R, ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o, E2_o,
-                   G_o, rr_o, mx_o, my_o, mf_o):
-    """gn_terms of the final linearisation, with its extra per-pixel terms in the same pass: the in-view mask mf
-    (mask > 0.999 and inv > 0), the masked gradient energy of a (G), the masked squared residual (rr) and the
-    masked gradient of a (mx, my)."""
-    n, w = R.shape
-    for y in range(n):
-        k1, k2 = c1c[y], c2c[y]
-        for x in range(w):
-            mask = wv[y, x, 3]
-            r = wv[y, x, 0] - ia[y, x]
-            ga, gb = gxa[y, x], gya[y, x]
-            gx = wv[y, x, 1] + ga
-            gy = wv[y, x, 2] + gb
-            d = inv[y, x]
-            _terms(y, x, mask, r, gx, gy, c1r[x] + k1, c2r[x] + k2, d, R[y, x], ks, c2_fma, wJJ, wJq, wgt_o, wJ_o, wq_o,
-                   E2_o)
-            mf = _ONE if (mask > _MASK_IN) & (d > _ZERO) else _ZERO
-            mf_o[y, x] = mf
-            G = ga * ga
-            G = _fma(gb, gb, G)
-            G_o[y, x] = G * mf
-            rr = r * r
-            rr_o[y, x] = rr * mf
-            mx_o[y, x] = ga * mf
-            my_o[y, x] = gb * mf
-
-
-@njit(**_JIT)
-def inview_residual(wv, ia, rr_o):
-    """The residual masked by the warp's in-view mask > 0.999 (the infinity test's input)."""
-    n, w = ia.shape
-    for y in range(n):
-        for x in range(w):
-            rr_o[y, x] = (wv[y, x, 0] - ia[y, x]) * (_ONE if wv[y, x, 3] > _MASK_IN else _ZERO)
-
-
-@njit(**_JIT)
-def gn_update(H, g, S0, S1, Sq, E2, R, lam_c, capr, capc, cap_hi, out):
-    """The Levenberg-damped update of the strip's own rows from the window sums (brightness offset eliminated):
-    (H - S1^2 / S0 + lam) rho' = g - Sq S1 / S0 + lam rho, lam = lam_c E2, clipped to [0, cap]: cap the affine
-    cap map (row part capr, column part capc: den >= den_min) clipped to [0, cap_hi], or cap_hi where capr is
-    empty. Leaves S0 + 1e-6 in S0 and H - S1^2/S0 in H."""
-    n, w = out.shape
-    use_cap = capr.shape[0] > 0
-    for y in range(n):
-        cc = capc[y] if use_cap else _ZERO
-        for x in range(w):
-            s0 = S0[y, x] + _EPS_S0
-            S0[y, x] = s0
-            s1 = S1[y, x]
-            s1n = s1 / s0
-            gg = g[y, x] - Sq[y, x] * s1n
-            hh = H[y, x] - s1 * s1n
-            H[y, x] = hh
-            e2 = E2[y, x]
-            num = _fma(e2 * R[y, x], lam_c, gg)
-            den = _fma(e2, lam_c, hh)
-            v = num / den if den != _ZERO else _ZERO
-            if v < _ZERO:
-                v = _ZERO
-            hi = cap_hi
-            if use_cap:
-                c = capr[x] + cc
-                hi = c if c < cap_hi else cap_hi      # np.clip(c, 0, cap_hi) (NaN-free), as _Level.cap_rows
-                if hi < _ZERO:
-                    hi = _ZERO
-            if v > hi:
-                v = hi
-            out[y, x] = v
-
-
-@njit(**_JIT)
-def gn_final(H, S0, E2, R, out, G, G3, R2, Mx, My, mf, amb, use_amb, noise_info, noise_G, var_k, floor2, trunc2,
-             low_thr, occ_px2, occ_thr, orient_min, rho_far, max_rel_std, std_o, flags_o, rng_o, conf_o, amb_o):
-    """Uncertainty, flags and classification of the strip's own rows after ``gn_update`` (H, S0 as it leaves
-    them): the arithmetic of the OpenCV path of dense._gn_block and of _common.classify_into, per pixel; amb_o
-    gets the infinity test's verdict (1: a point at infinity explains the window as well). Returns
-    (n_valid, n_at_infinity)."""
-    n, w = out.shape
-    nv = 0
-    ni = 0
-    for y in range(n):
-        for x in range(w):
-            rho = out[y, x]
-            e2 = E2[y, x]
-            dd = rho - R[y, x]
-            dd = dd * dd
-            dd = dd * e2
-            trunc = dd > trunc2
-            hh = H[y, x]
-            if noise_info:
-                hh = _fma(e2 * S0[y, x], -noise_G, hh)
-                if not hh >= _H_MIN and not np.isnan(hh):
-                    hh = _H_MIN
-            std = var_k / hh
-            std = std + floor2 / e2
-            std = np.sqrt(std)
-            std_o[y, x] = std
-            Gw = G[y, x]
-            orient = hh / (e2 * Gw)
-            mx, my = Mx[y, x], My[y, x]
-            gc = Gw - mx * mx
-            gc = gc - my * my
-            low = gc < low_thr
-            g3 = G3[y, x] * occ_px2
-            g3 = g3 + occ_thr
-            occ = R2[y, x] > g3
-            oov = mf[y, x] == _ZERO or occ
-            ill = (not orient >= orient_min) and not low
-            amb_o[y, x] = 0
-            if use_amb and amb[y, x] != 0 and rho > _TWO * std:
-                ill = True
-                amb_o[y, x] = 1
-            fl = np.uint8(0)
-            if oov:
-                fl |= _OOV
-            if occ:
-                fl |= _OCC
-            if low:
-                fl |= _LOW
-            if ill:
-                fl |= _ILL
-            if trunc:
-                fl |= _TRUNC
-            # classify_into
-            two = std * _TWO
-            inf_ok = two < rho_far
-            near0 = rho < two
-            inf_ok = inf_ok and near0
-            rel = std / rho
-            good = rel <= max_rel_std and not near0
-            good = (good or inf_ok) and np.isfinite(rho) and np.isfinite(std)
-            if not good:
-                fl |= _ILL
-            ok = (fl & _BAD) == 0
-            if ok and inf_ok:
-                fl |= _INF_VAL
-                ni += 1
-                rng_o[y, x] = _INF
-                c = rho_far / std
-            elif ok:
-                fl |= _VAL
-                nv += 1
-                rng_o[y, x] = _ONE / abs(rho)
-                c = rho / std
-            else:
-                rng_o[y, x] = _NAN
-                c = _ZERO
-            conf_o[y, x] = c if c > _ZERO else _ZERO
-            flags_o[y, x] = fl
-    return nv, ni
 
 
 # --- the coarse epipolar search (dense._search): per chunk of hypotheses, one pass before and one after the box
@@ -465,3 +263,430 @@ def search_wta(agg, cost, hyp, per_pixel, A0, cn, B0, cap, va, noise2, rho_o, co
             elif q > _ONE:
                 q = _ONE
             conf_o[y, x] = (q * q) * tex
+
+
+# --- one Gauss-Newton step of a whole pyramid level in one pass (dense._gn_level_fused): rows stream through a ring
+# of window-height term planes; the window sums, the update and (final) the uncertainty, flags and classification
+# of a row follow as soon as its window is complete. Nothing but the ring (a few hundred KiB) is written per pixel.
+
+# ring planes: the five terms of the normal equations (window sums), then the final step's extras, then the
+# infinity test's, then the centre values (not summed)
+_P_WJJ, _P_WJQ, _P_W, _P_WJ, _P_WQ = 0, 1, 2, 3, 4
+_P_G, _P_MX, _P_MY, _P_RR = 5, 6, 7, 8
+_P_SE, _P_R0 = 9, 10
+_P_E2, _P_MF = 11, 12
+_N_PLANES = 13
+# window sums (ext rows): the five terms, G / Mx / My (window), G / rr (occlusion window), se / r0^2 (window)
+_S_G, _S_MX, _S_MY, _S_G3, _S_R2, _S_SE, _S_R0 = 5, 6, 7, 8, 9, 10, 11
+_N_SUMS = 12
+
+
+@njit(inline="always", **_JIT)
+def _reflect(v, n):
+    """cv2.BORDER_REFLECT's source index of row / column v (fedcba|abcdef|fedcba), for an overhang <= n."""
+    if v < 0:
+        return -v - 1
+    if v >= n:
+        return 2 * n - 1 - v
+    return v
+
+
+@njit(inline="always", **_JIT)
+def _lerp2(bf, j, dx, dy, sx, sy):
+    """Bilinear interpolation in a flat array between its elements j, j + dx (next column) and j + dy (next row):
+    two fused multiply-adds along x, one along y, as OpenCV 5's float remap. (Unsigned indices: numba tests a
+    signed index for wraparound on every read.)"""
+    p00 = bf[j]
+    p10 = bf[j + dy]
+    v0 = _fma32(sx, bf[j + dx] - p00, p00)
+    v1 = _fma32(sx, bf[j + dy + dx] - p10, p10)
+    return _fma32(sy, v1 - v0, v0)
+
+
+@njit(**_JIT)
+def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sxy, d_o, s4_o):
+    """One row of the map at rho = R (eqs. 25-26 via the affine parts: d = 1 / den, u_b, v_b) and of b's
+    [I, gx, gy, in-view] sampled there bilinearly (s4_o: w x 4), zero outside b (cv2.remap INTER_LINEAR,
+    BORDER_CONSTANT 0). bfp: b4 with a border of one zero pixel (hb + 2, wb + 2, 4), flat: a sample inside
+    (-1, wb) x (-1, hb) reads its four neighbours from it; one outside reads the zero corner (index 0) with zero
+    weights. Two passes: the map, the index and the weights (vectorised; into the row buffers jx and sxy), then the
+    gathers (the four channels of a pixel side by side: numba does them as one 4-wide vector)."""
+    w = R.shape[0]
+    wp = wb + 2
+    fw, fh = F32(wb), F32(hb)
+    for x in range(w):
+        r_ = R[x]
+        d = _ONE / _fma(r_, B0, a0r[x] + a0c)
+        u = _fma(r_, Q1, p1r[x] + p1c) * d
+        v = _fma(r_, Q2, p2r[x] + p2c) * d
+        d_o[x] = d
+        inside = (u > F32(-1.0)) & (u < fw) & (v > F32(-1.0)) & (v < fh)
+        fu = np.floor(u) if inside else _ZERO
+        fv = np.floor(v) if inside else _ZERO
+        sxy[0, x] = u - fu if inside else _ZERO
+        sxy[1, x] = v - fv if inside else _ZERO
+        jx[x] = ((np.int64(fv) + 1) * wp + np.int64(fu) + 1) * 4 if inside else 0
+    rs = np.uint64(4 * wp)
+    c4 = np.uint64(4)
+    for x in range(w):
+        j = np.uint64(jx[x])
+        sx, sy = sxy[0, x], sxy[1, x]
+        s4_o[x, 0] = _lerp2(bfp, j, c4, rs, sx, sy)
+        s4_o[x, 1] = _lerp2(bfp, j + np.uint64(1), c4, rs, sx, sy)
+        s4_o[x, 2] = _lerp2(bfp, j + np.uint64(2), c4, rs, sx, sy)
+        s4_o[x, 3] = _lerp2(bfp, j + np.uint64(3), c4, rs, sx, sy)
+
+
+@njit(**_JIT)
+def _residual_at_infinity_row(bfp, hb, wb, a0r, a0c, p1r, p1c, p2r, p2c, ia, r0_o):
+    """One row of the squared residual of a point at infinity (rho = 0: b warped by the rotation alone), NaN where
+    any of the four neighbours of the sample is outside b (cv2.remap with a NaN border)."""
+    w = ia.shape[0]
+    rs = np.uint64(4 * (wb + 2))
+    c4 = np.uint64(4)
+    for x in range(w):
+        a0 = a0r[x] + a0c
+        r0 = _NAN
+        if a0 > _ZERO:
+            u = (p1r[x] + p1c) / a0
+            v = (p2r[x] + p2c) / a0
+            if (u >= _ZERO) & (u < F32(wb - 1)) & (v >= _ZERO) & (v < F32(hb - 1)):
+                fu = np.floor(u)
+                fv = np.floor(v)
+                j = np.uint64((np.int64(fv) + 1) * (wb + 2) + np.int64(fu) + 1) * c4
+                r0 = _lerp2(bfp, j, c4, rs, u - fu, v - fv) - ia[x]
+        r0_o[x] = r0 * r0
+
+
+@njit(**_JIT)
+def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, final, inf_mode):
+    """Row y's per-pixel terms into the ring row rs (planes x w): the map and b's samples (``_sample_row``, into
+    the row buffers smp and s4), the Huber-weighted normal-equation terms (wJ J, wJ q, w, wJ, w q), E2 (a quarter of
+    |d map / d rho|^2); final: the in-view mask mf, the masked gradient energy, gradient and squared residual of a;
+    inf_mode: the in-view squared residual and the squared residual of a point at infinity. The passes after the
+    sampling read row buffers only (numba vectorises them)."""
+    w = R.shape[1]
+    Ry, iay, gxy, gyy = R[y], ia[y], gxa[y], gya[y]
+    c1r, c2r = rw[3], rw[4]
+    c1c, c2c = kc[3, y], kc[4, y]
+    d_ = smp[2]
+    _sample_row(bfp, hb, wb, Ry, rw[0], kc[0, y], rw[1], kc[1, y], rw[2], kc[2, y], B0, Q1, Q2, jrow, smp, d_, s4)
+    e2o, wJJo, wJqo, wo, wJo, wqo = rs[_P_E2], rs[_P_WJJ], rs[_P_WJQ], rs[_P_W], rs[_P_WJ], rs[_P_WQ]
+    for x in range(w):
+        d = d_[x]
+        mask = s4[x, 3]
+        r = s4[x, 0] - iay[x]
+        C1 = c1r[x] + c1c
+        C2 = c2r[x] + c2c
+        J = (s4[x, 1] + gxy[x]) * C1
+        J = _fma(s4[x, 2] + gyy[x], C2, J)
+        i2 = d * d
+        J = J * i2
+        c2 = C1 * C1
+        c2 = _fma(C2, C2, c2)
+        e2o[x] = c2 * (i2 * i2)
+        wgt = (mask * ks) / max(abs(r), ks)
+        wJ = wgt * J
+        q = J * Ry[x]
+        q = q - r
+        wJJo[x] = wJ * J
+        wJqo[x] = wJ * q
+        wo[x] = wgt
+        wJo[x] = wJ
+        wqo[x] = wgt * q
+    if final:
+        mfo, Go, rro, mxo, myo = rs[_P_MF], rs[_P_G], rs[_P_RR], rs[_P_MX], rs[_P_MY]
+        for x in range(w):
+            mf = _ONE if (s4[x, 3] > _MASK_IN) & (d_[x] > _ZERO) else _ZERO
+            mfo[x] = mf
+            ga, gb = gxy[x], gyy[x]
+            G = ga * ga
+            G = _fma(gb, gb, G)
+            Go[x] = G * mf
+            r = s4[x, 0] - iay[x]
+            rro[x] = (r * r) * mf
+            mxo[x] = ga * mf
+            myo[x] = gb * mf
+    if inf_mode != 0:
+        seo = rs[_P_SE]
+        for x in range(w):
+            rm = s4[x, 0] - iay[x] if s4[x, 3] > _MASK_IN else _ZERO
+            seo[x] = rm * rm
+        _residual_at_infinity_row(bfp, hb, wb, rw[0], kc[0, y], rw[1], kc[1, y], rw[2], kc[2, y], iay, rs[_P_R0])
+
+
+@njit(**_JIT)
+def _window_sum(ring, plane, slot0, n, ext, hs, k, inv_n):
+    """Mean over an n x n window (n <= the ring's height, odd) centred on the ring's centre row, into hs[k]: the
+    column sums of the n ring rows from slot0 on (cyclic) into ext[k] (w + 2p long, p = half the ring's height),
+    reflected at the left and right borders, then summed along the row, times inv_n. One pass each way for n = 3,
+    5 and 7 (the defaults), n passes otherwise. Indexed without views (a view per row and term cost ~20 ns each,
+    ~3 us a row) and with unsigned offsets (numba tests a signed index that varies along the loop for wraparound on
+    every element, which keeps it from vectorising)."""
+    win, w = ring.shape[0], ring.shape[2]
+    p = win // 2
+    up = np.uint64(p)
+    s0, s1, s2 = slot0 % win, (slot0 + 1) % win, (slot0 + 2) % win
+    if n == 7:
+        s3, s4, s5, s6 = (slot0 + 3) % win, (slot0 + 4) % win, (slot0 + 5) % win, (slot0 + 6) % win
+        for x in range(w):
+            ext[k, np.uint64(x) + up] = ((((((ring[s0, plane, x] + ring[s1, plane, x]) + ring[s2, plane, x])
+                                           + ring[s3, plane, x]) + ring[s4, plane, x]) + ring[s5, plane, x])
+                                         + ring[s6, plane, x])
+    elif n == 5:
+        s3, s4 = (slot0 + 3) % win, (slot0 + 4) % win
+        for x in range(w):
+            ext[k, np.uint64(x) + up] = ((((ring[s0, plane, x] + ring[s1, plane, x]) + ring[s2, plane, x])
+                                         + ring[s3, plane, x]) + ring[s4, plane, x])
+    elif n == 3:
+        for x in range(w):
+            ext[k, np.uint64(x) + up] = (ring[s0, plane, x] + ring[s1, plane, x]) + ring[s2, plane, x]
+    else:
+        for x in range(w):
+            ext[k, np.uint64(x) + up] = ring[s0, plane, x]
+        for i in range(1, n):
+            si = (slot0 + i) % win
+            for x in range(w):
+                ext[k, np.uint64(x) + up] += ring[si, plane, x]
+    for j in range(p):
+        ext[k, p - 1 - j] = ext[k, p + j]
+        ext[k, p + w + j] = ext[k, p + w - 1 - j]
+    o = np.uint64(p - n // 2)
+    o1, o2 = o + np.uint64(1), o + np.uint64(2)
+    if n == 7:
+        o3, o4, o5, o6 = o + np.uint64(3), o + np.uint64(4), o + np.uint64(5), o + np.uint64(6)
+        for x in range(w):
+            ux = np.uint64(x)
+            hs[k, x] = ((((((ext[k, ux + o] + ext[k, ux + o1]) + ext[k, ux + o2]) + ext[k, ux + o3])
+                           + ext[k, ux + o4]) + ext[k, ux + o5]) + ext[k, ux + o6]) * inv_n
+    elif n == 5:
+        o3, o4 = o + np.uint64(3), o + np.uint64(4)
+        for x in range(w):
+            ux = np.uint64(x)
+            hs[k, x] = ((((ext[k, ux + o] + ext[k, ux + o1]) + ext[k, ux + o2]) + ext[k, ux + o3])
+                        + ext[k, ux + o4]) * inv_n
+    elif n == 3:
+        for x in range(w):
+            ux = np.uint64(x)
+            hs[k, x] = ((ext[k, ux + o] + ext[k, ux + o1]) + ext[k, ux + o2]) * inv_n
+    else:
+        for x in range(w):
+            hs[k, x] = ext[k, np.uint64(x) + o]
+        for i in range(1, n):
+            oi = o + np.uint64(i)
+            for x in range(w):
+                hs[k, x] += ext[k, np.uint64(x) + oi]
+        for x in range(w):
+            hs[k, x] *= inv_n
+
+
+@njit(**_JIT)
+def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_hi, win, occ, final, inf_mode,
+             amb_in, fp, noise_info, out, inf_o, std_o, flags_o, rng_o, conf_o, amb_o):
+    """One re-linearised Gauss-Newton step of a whole level (b4p: b's [I, gx, gy, 1] with a border of one zero
+    pixel): the map, the warp, the terms, their window sums
+    (window win, and occ for the occlusion test; reflected borders) and the Levenberg-damped update of every pixel
+    into out (clipped to [0, cap]; cap: the affine cap map rw[5] + kc[5] clipped to [0, cap_hi] when use_cap, else
+    cap_hi). final: also the uncertainty, flags and classification (std_o .. amb_o; fp: the thresholds of
+    dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr, occ_px2, occ_thr, orient_min, rho_far,
+    max_rel_std). Infinity test (dense._infinity_ambiguous): inf_mode 1 writes its verdict into inf_o; inf_mode 2
+    (final) uses it for the flags; otherwise a non-empty amb_in (uint8, a coarser level's verdict) is used.
+    Returns (n_valid, n_at_infinity)."""
+    h, w = R.shape
+    p = win // 2
+    ring = np.empty((win, _N_PLANES, w), F32)
+    hb, wb = b4p.shape[0] - 2, b4p.shape[1] - 2
+    bfp = b4p.ravel()
+    smp = np.empty((3, w), F32)
+    s4 = np.empty((w, 4), F32)
+    jrow = np.empty(w, np.int64)
+    ext = np.empty((_N_SUMS, w + 2 * p), F32)
+    hs = np.empty((_N_SUMS, w), F32)
+    # the window sums (ext / hs rows): the five terms; final: G, Mx, My (window), G, rr (occlusion window);
+    # inf_mode: se, r0^2 (window). One call site (numba compiles a callee into each caller's site)
+    sum_plane = np.array([_P_WJJ, _P_WJQ, _P_W, _P_WJ, _P_WQ, _P_G, _P_MX, _P_MY, _P_G, _P_RR, _P_SE, _P_R0])
+    sum_n = np.array([win, win, win, win, win, win, win, win, occ, occ, win, win])
+    active = np.zeros(_N_SUMS, np.bool_)
+    active[:5] = True
+    active[5:10] = final
+    active[10:] = inf_mode != 0
+    use_amb = amb_in.shape[0] > 0
+    hrow = np.empty(w, F32)
+    s0row = np.empty(w, F32)
+    ambr = np.zeros(w, np.uint8)
+    nv = 0
+    ni = 0
+    for v in range(-p, h + p):
+        _row_terms(ring[(v + p) % win], smp, s4, jrow, _reflect(v, h), bfp, hb, wb, ia, gxa, gya, rw, kc, R, B0, Q1,
+                   Q2, ks, final, inf_mode)
+        y = v - p
+        if y < 0:
+            continue
+        c = (y + p) % win                  # the slot of row y itself
+        for k in range(_N_SUMS):
+            if not active[k]:
+                continue
+            n = sum_n[k]
+            _window_sum(ring, sum_plane[k], (c - n // 2 + win) % win, n, ext, hs, k, _ONE / F32(n * n))
+        rc = ring[c]
+        _update_row(hs[_P_WJJ], hs[_P_WJQ], hs[_P_W], hs[_P_WJ], hs[_P_WQ], rc[_P_E2], R[y], lam_c, use_cap,
+                    rw[5], kc[5, y] if use_cap else _ZERO, cap_hi, out[y], hrow, s0row)
+        if inf_mode != 0:
+            se, r0s = hs[_S_SE], hs[_S_R0]
+            for x in range(w):
+                ambr[x] = np.uint8(1) if r0s[x] <= se[x] else np.uint8(0)   # (NaN: a window reaching out of b)
+            if inf_mode == 1:
+                inf_o[y, :] = ambr
+        elif use_amb:
+            ambr[:] = amb_in[y]
+        if final:
+            nv_, ni_ = _classify_row(out[y], R[y], rc[_P_E2], hrow, s0row, hs[_S_G], hs[_S_G3], hs[_S_R2], hs[_S_MX],
+                                     hs[_S_MY], rc[_P_MF], ambr, fp, noise_info, std_o[y], flags_o[y], rng_o[y],
+                                     conf_o[y], amb_o[y])
+            nv += nv_
+            ni += ni_
+    return nv, ni
+
+
+@njit(**_JIT)
+def _update_row(sJJ, sJq, sW, sJ, sq, E2, R, lam_c, use_cap, capr, capc, cap_hi, out, H_o, S0_o):
+    """One row's Levenberg-damped update from its window means (brightness offset eliminated, Schur complement):
+    (H - S1^2 / S0 + lam) rho' = g - Sq S1 / S0 + lam rho, lam = lam_c E2, clipped to [0, cap] (cap: the affine
+    cap map's row capr + capc clipped to [0, cap_hi] with use_cap, else cap_hi). Leaves H - S1^2 / S0 in H_o and
+    S0 + 1e-6 in S0_o. Branch-free: numba vectorises it."""
+    w = out.shape[0]
+    for x in range(w):
+        s0 = sW[x] + _EPS_S0
+        s1 = sJ[x]
+        s1n = s1 / s0
+        gg = sJq[x] - sq[x] * s1n
+        hh = sJJ[x] - s1 * s1n
+        H_o[x] = hh
+        S0_o[x] = s0
+        e2 = E2[x]
+        num = _fma(e2 * R[x], lam_c, gg)
+        den = _fma(e2, lam_c, hh)
+        v = num / den
+        v = v if den != _ZERO else _ZERO
+        v = _ZERO if v < _ZERO else v
+        hi = cap_hi
+        if use_cap:
+            c = capr[x] + capc
+            hi = c if c < cap_hi else cap_hi        # np.clip(c, 0, cap_hi), as _Level.cap_rows
+            hi = _ZERO if hi < _ZERO else hi
+        out[x] = hi if v > hi else v
+
+
+@njit(**_JIT)
+def _classify_row(rho_r, R, E2, H, S0, G, G3, R2, Mx, My, mf, amb, fp, noise_info, std_o, flags_o, rng_o, conf_o,
+                  amb_o):
+    """One row's uncertainty, flags and classification from its final window means (dense._gn_block's arithmetic
+    and _common.classify_into's rules; fp: dense._Final's thresholds noise_G, var_k, floor2, trunc2, low_thr,
+    occ_px2, occ_thr, orient_min, rho_far, max_rel_std); amb: the infinity test's verdict (1: a point at infinity
+    explains the window as well), amb_o: where it made the pixel ILL_CONDITIONED. Returns (n_valid,
+    n_at_infinity). Branch-free (selects): numba vectorises it."""
+    noise_G, var_k, floor2, trunc2, low_thr = fp[0], fp[1], fp[2], fp[3], fp[4]
+    occ_px2, occ_thr, orient_min, rho_far, max_rel_std = fp[5], fp[6], fp[7], fp[8], fp[9]
+    nv = 0
+    ni = 0
+    for x in range(rho_r.shape[0]):
+        rho = rho_r[x]
+        e2 = E2[x]
+        dd = rho - R[x]
+        dd = dd * dd
+        trunc = dd * e2 > trunc2
+        hh = H[x]
+        if noise_info:
+            hh = _fma(e2 * S0[x], -noise_G, hh)
+            hh = _H_MIN if hh < _H_MIN else hh           # (NaN stays NaN)
+        std = var_k / hh
+        std = std + floor2 / e2
+        std = np.sqrt(std)
+        Gw = G[x]
+        orient = hh / (e2 * Gw)
+        gc = Gw - Mx[x] * Mx[x]
+        gc = gc - My[x] * My[x]
+        low = gc < low_thr
+        g3 = G3[x] * occ_px2
+        occ = R2[x] > g3 + occ_thr
+        oov = (mf[x] == _ZERO) | occ
+        two = std * _TWO
+        a = (amb[x] != 0) & (rho > two)
+        ill = ((not orient >= orient_min) & (not low)) | a
+        near0 = rho < two
+        inf_ok = (two < rho_far) & near0
+        good = ((std / rho <= max_rel_std) & (not near0)) | inf_ok
+        good = good & np.isfinite(rho) & np.isfinite(std)
+        ill = ill | (not good)
+        bad = oov | low | ill | trunc
+        at_inf = (not bad) & inf_ok
+        val = (not bad) & (not inf_ok)
+        fl = ((_OOV if oov else np.uint8(0)) | (_OCC if occ else np.uint8(0)) | (_LOW if low else np.uint8(0))
+              | (_ILL if ill else np.uint8(0)) | (_TRUNC if trunc else np.uint8(0))
+              | (_INF_VAL if at_inf else np.uint8(0)) | (_VAL if val else np.uint8(0)))
+        flags_o[x] = fl
+        amb_o[x] = np.uint8(1) if a else np.uint8(0)
+        std_o[x] = std
+        rng_o[x] = _INF if at_inf else (_ONE / abs(rho) if val else _NAN)
+        c = rho_far / std if at_inf else (rho / std if val else _ZERO)
+        conf_o[x] = c if c > _ZERO else _ZERO
+        nv += 1 if val else 0
+        ni += 1 if at_inf else 0
+    return nv, ni
+
+
+_SCHARR_SIDE = F32(3.0 / 32.0)
+_SCHARR_MID = F32(10.0 / 32.0)
+
+
+@njit(inline="always", **_JIT)
+def _scharr_row(r0, r1, r2, x0, x1, x2):
+    """Scharr derivatives / 32 (cv2.Scharr's kernels times 1/32) at the pixel whose columns left / centre / right
+    are x0, x1, x2 in the rows above / at / below (r0, r1, r2)."""
+    gx = _SCHARR_SIDE * (r0[x2] - r0[x0]) + _SCHARR_MID * (r1[x2] - r1[x0]) + _SCHARR_SIDE * (r2[x2] - r2[x0])
+    gy = _SCHARR_SIDE * (r2[x0] - r0[x0]) + _SCHARR_MID * (r2[x1] - r0[x1]) + _SCHARR_SIDE * (r2[x2] - r0[x2])
+    return gx, gy
+
+
+@njit(**_JIT)
+def scharr(img, gx_o, gy_o):
+    """The Scharr gradient of img / 32 into gx_o, gy_o (cv2.Scharr with scale 1/32 and BORDER_REFLECT, up to float
+    rounding)."""
+    h, w = img.shape
+    u1 = np.uint64(1)
+    for y in range(h):
+        r0, r1, r2 = img[_reflect(y - 1, h)], img[y], img[_reflect(y + 1, h)]
+        ox, oy = gx_o[y], gy_o[y]
+        for x in range(1, w - 1):
+            ux = np.uint64(x)
+            ox[ux], oy[ux] = _scharr_row(r0, r1, r2, ux - u1, ux, ux + u1)
+        for x in (0, w - 1):
+            ox[x], oy[x] = _scharr_row(r0, r1, r2, _reflect(x - 1, w), x, _reflect(x + 1, w))
+
+
+@njit(**_JIT)
+def pack_b4p(img, b4p_o):
+    """The warp source of ``gn_level``: [img, its Scharr gradient / 32 (as ``scharr``), 1] per pixel, with a border
+    of one zero pixel: b4p_o is (h + 2, w + 2, 4)."""
+    h, w = img.shape
+    b4p_o[0, :, :] = _ZERO
+    b4p_o[h + 1, :, :] = _ZERO
+    u1 = np.uint64(1)
+    for y in range(h):
+        r0, r1, r2 = img[_reflect(y - 1, h)], img[y], img[_reflect(y + 1, h)]
+        o = b4p_o[y + 1]
+        o[0, :] = _ZERO
+        o[w + 1, :] = _ZERO
+        for x in range(1, w - 1):
+            ux = np.uint64(x)
+            gx, gy = _scharr_row(r0, r1, r2, ux - u1, ux, ux + u1)
+            o[ux + u1, 0] = r1[ux]
+            o[ux + u1, 1] = gx
+            o[ux + u1, 2] = gy
+            o[ux + u1, 3] = _ONE
+        for x in (0, w - 1):
+            gx, gy = _scharr_row(r0, r1, r2, _reflect(x - 1, w), x, _reflect(x + 1, w))
+            o[x + 1, 0] = r1[x]
+            o[x + 1, 1] = gx
+            o[x + 1, 2] = gy
+            o[x + 1, 3] = _ONE

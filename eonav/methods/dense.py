@@ -23,9 +23,10 @@ gradient perpendicular to the epipolar direction, relative std above ``max_rel_s
 (eq. 7-style: the last update still moved by more than ``trunc_px``), AT_INFINITY (rho within 2 sigma
 of 0 with a tight sigma: range +inf).
 
-All per-pixel work is float32 numpy / OpenCV, or (when numba is installed) the Gauss-Newton strips' elementwise
-work in fused numba kernels (``_dense_kernels``, ``fused``) that give the same result: no per-pixel Python. The Gauss-Newton steps, the flags and
-the classification run on strips of rows (``strip_px`` pixels each including a half-window halo, so the
+All per-pixel work is float32 numpy / OpenCV or (when numba is installed) fused numba kernels (``_dense_kernels``,
+``fused``) that give the same result to float rounding: no per-pixel Python. With numba each Gauss-Newton step of a
+level is one pass (rows streamed through a ring of window-height term planes). The OpenCV path runs the steps, the
+flags and the classification on strips of rows (``strip_px`` pixels each including a half-window halo, so the
 box sums are exactly those of the whole image): the temporaries of a strip are 16 work planes that stay in
 the CPU cache; they and the large per-level buffers (warp source, gradients, cost volume) are per-thread work
 buffers reused from strip to strip and call to call (_ws), never fresh (page-faulting) arrays.
@@ -421,7 +422,7 @@ class _Level:
     (c2 m2, per row) and built block by block (one broadcast add each), never as full-size arrays."""
 
     def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05, cache: bool = False,
-                 strip_rows: int | None = None, n_strips: int = 1):
+                 strip_rows: int | None = None, n_strips: int = 1, kernels=None):
         sc = 0.5 ** lev      # level intrinsics (as level_camera, without building Camera objects)
         ca, cb = geo.cam_a, geo.cam_b
         fxa, fya, cxa, cya = ca.fx * sc, ca.fy * sc, ca.cx * sc, ca.cy * sc
@@ -460,9 +461,19 @@ class _Level:
         self.Q2 = F32(fyb * t[2] + cyb * t[0])
         self.cap = aff[5] if t[0] < 0 else None
         self.rho_hi = F32(rho_hi)
-        gx = cv2.Scharr(ib, cv2.CV_32F, 1, 0, dst=_ws("gxb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
-        gy = cv2.Scharr(ib, cv2.CV_32F, 0, 1, dst=_ws("gyb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
-        self.b4 = cv2.merge([ib, gx, gy, _ws("one", ib.shape, fill=1.0)], dst=_ws("b4", ib.shape + (4,)))
+        if kernels is not None:
+            # the fused kernels: the gradient of a for the whole level, and b4 with a border of one zero pixel
+            # (gn_level's samples then read no neighbour outside it); b4 is its interior
+            self.gxa, self.gya = _ws("gxa", ia.shape), _ws("gya", ia.shape)
+            kernels.scharr(ia, self.gxa, self.gya)
+            hb, wb = ib.shape
+            self.b4p = _ws("b4p", (hb + 2, wb + 2, 4))
+            kernels.pack_b4p(ib, self.b4p)
+            self.b4 = self.b4p[1:-1, 1:-1]
+        else:
+            gx = cv2.Scharr(ib, cv2.CV_32F, 1, 0, dst=_ws("gxb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
+            gy = cv2.Scharr(ib, cv2.CV_32F, 0, 1, dst=_ws("gyb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
+            self.b4 = cv2.merge([ib, gx, gy, _ws("one", ib.shape, fill=1.0)], dst=_ws("b4", ib.shape + (4,)))
         # strips' geometric maps and gradients of a, kept for the next iteration (levels iterated more than
         # once); read-only. Stored in planes of a work buffer (8 per strip), like every temporary of a strip
         # (``work``): fresh strip-sized arrays page-faulted, the allocator trimming the heap they were freed to
@@ -685,13 +696,15 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     1.41 %, share of pixels off by > 5 %: teddy 22.5 -> 17.2 %, venus 25.6 -> 19.8 %), but on the paper
     preset it pulls the small far vehicles into their background at the coarse level (vehicle2 +2.7 ->
     +8.8 %, vehicle1 -0.0 -> -1.3 %), whatever the penalties (0.2/2 .. 1/8, tau 1 .. 8).
-    fused: the elementwise work of the Gauss-Newton strips in fused numba kernels (``_dense_kernels``: three to
-    five passes per strip instead of ~100 OpenCV calls; the warp, gradients and window sums stay OpenCV's); None:
-    when numba is installed, else the OpenCV path; False: the OpenCV path (the reference); True: numba required.
-    Same result (bit-identical on the sim presets here: the kernels reproduce OpenCV's fused multiply-adds);
-    locate 0.78 x the OpenCV path's time (512 x 512 sim presets, interleaved in one process). The coarse search too
-    (``_search_fused``: the map, cv2.remap's bilinear sample, the ZNCC cost and the winner-take-all in three kernels,
-    the box sums OpenCV's): 4.5-5.3 -> 1.3-1.7 ms, locate dense / DIS 0.47 -> 0.43 (bit-identical).
+    fused: each Gauss-Newton step of a level in one numba pass (``_dense_kernels.gn_level``: the map, the warp, the
+    terms, their window sums streamed row by row, the update and the classification; ``_gn_level_fused``) instead
+    of the OpenCV path's ~100 calls per strip of rows; None: when numba is installed, else the OpenCV path; False:
+    the OpenCV path (the reference); True: numba required. The same result to float rounding (the window sums add in
+    another order): ranges valid in both within 1.5e-5 (99th percentile) on the sim presets, flags differ on
+    <= 1e-4 of the pixels. Level 0's final step 13.7 -> ~7 ms, locate dense / DIS 0.45-0.53 -> 0.32-0.36
+    (512 x 512 sim presets, interleaved in one process). The coarse search too (``_search_fused``: the map,
+    cv2.remap's bilinear sample, the ZNCC cost and the winner-take-all in three kernels, the box sums OpenCV's,
+    bit-identical): 4.5-5.3 -> 1.3-1.7 ms.
     """
     t_start = time.perf_counter()
     geo = pair_geometry(view_a, view_b)
@@ -779,15 +792,14 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     # of tens of pixels) and its mask is carried to level 0; at level 0 itself when there is no level 1
     inf_level = 1 if inf_test and L >= 1 and iters[L - 1] >= 1 else 0
     prm["inf_mask"] = None
-    prm["fused"] = K
     for lev in range(L, -1, -1):
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
         h, w = pa[lev].shape
         # strip arrays incl. the halo within strip_px (a strip's work planes stay in L2)
         step = max(8, strip_px // w - 2 * (window // 2)) if strip_px > 0 else h
         step = -(-h // -(-h // step))      # balanced: no thin last strip (each strip costs ~50 calls)
-        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1, strip_rows=step + 2 * (window // 2),
-                    n_strips=-(-h // step))
+        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1 and K is None, strip_rows=step + 2 * (window // 2),
+                    n_strips=-(-h // step), kernels=K)
         if rho.shape != pa[lev].shape:
             if rho.shape[0] * 2 == h and rho.shape[1] * 2 == w:     # into a work buffer: same values
                 rho = cv2.pyrUp(rho, dst=_ws("rho_up", (h, w)), dstsize=(w, h))
@@ -808,8 +820,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                              max_rel_std)
             prm["inf_out"] = (_ws("inf_l1", (h, w), np.uint8) if inf_test and inf_level == lev == 1
                               and it == n_it - 1 else None)
-            for y0 in range(0, h, step):
-                _gn_block(lv, rho, new, y0, min(h, y0 + step), sigma, prm, fin if last else None)
+            if K is not None:
+                _gn_level_fused(K, lv, rho, new, sigma, prm, fin if last else None)
+            else:
+                for y0 in range(0, h, step):
+                    _gn_block(lv, rho, new, y0, min(h, y0 + step), sigma, prm, fin if last else None)
             if prm["inf_out"] is not None:
                 h0, w0 = pa[0].shape
                 prm["inf_mask"] = cv2.resize(prm["inf_out"], (w0, h0), interpolation=cv2.INTER_NEAREST)
@@ -888,8 +903,6 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
     existing buffers): ~1.5x faster than numpy's ufuncs on these strip-sized float32 arrays. Every float
     temporary is one of the strip's work planes T[i] (lv.work; reused from strip to strip and call to call:
     fresh ones page-faulted, see _Level); the comments name what each plane holds."""
-    if prm.get("fused") is not None:
-        return _gn_block_fused(prm["fused"], lv, rho, new, y0, y1, sigma, prm, fin)
     mul, add, sub = cv2.multiply, cv2.add, cv2.subtract
     win = prm["window"]
     s, o, W, T, R = _strip(lv, rho, y0, y1, win)
@@ -1021,66 +1034,45 @@ def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, f
 
 
 
-_NO_CAP = np.empty(0, F32)
 _NO_AMB = np.empty((0, 0), np.uint8)
 
 
-def _gn_block_fused(K, lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, fin: _Final | None):
-    """_gn_block with the elementwise work in the fused numba kernels K (``_dense_kernels``): the epipolar map, the
-    terms of the normal equations, and the update with (``fin``) the uncertainty, flags and classification, each
-    one pass over the strip; the warp (cv2.remap), the gradients of a and the window sums stay OpenCV's, as in the
-    OpenCV path, which this matches to float rounding. Work planes: T0 inv, T1-T5 the five terms of the normal
-    equations (then their window sums), T6 E2, T9 r, T10-T11 the masked gradient energy (window, occlusion window),
-    T12 the masked squared residual, T13-T14 the masked gradient, T15 the in-view mask; T7, T8: gradient of a."""
-    win = prm["window"]
-    s, o, W, T, R = _strip(lv, rho, y0, y1, win)
-    rw, kc = lv.rw, lv.kc
-    K.epipolar_map(R, rw[0], kc[0, s], rw[1], kc[1, s], rw[2], kc[2, s], lv.B0, lv.Q1, lv.Q2, T[0], T[1], T[2])
-    wv = cv2.remap(lv.b4, T[1], T[2], cv2.INTER_LINEAR, dst=_ws("wv", T[1].shape + (4,)),
-                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    gxa, gya = lv.grad_a(s.start, s.stop, (W[7], W[8]))
+def _gn_level_fused(K, lv: _Level, rho, new, sigma: float, prm: dict, fin: _Final | None):
+    """One Gauss-Newton step of the whole level ``lv`` in one numba pass (``_dense_kernels.gn_level``): the
+    arithmetic of _gn_block (map, warp, terms, window sums, update; with ``fin`` the uncertainty, flags and
+    classification; the infinity test) with the window sums taken row by row from a ring of window-height term
+    planes, so no per-pixel plane is written but the outputs (the level's gradient of a and padded b: _Level)."""
     io = prm.get("inf_out") if fin is None else None
-    ks = F32(max(prm["huber_k"] * sigma, 1e-6))
-    # (c2_fma: the OpenCV path's C1^2 + C2^2 is an accumulateSquare (fused) unless the level caches it)
-    args = (wv, lv.ia[s], gxa, gya, rw[3], kc[3, s], rw[4], kc[4, s], T[0], R, ks, lv._cache is None,
-            T[1], T[2], T[3], T[4], T[5], T[6])
-    if fin is not None:
-        K.gn_terms_final(*args, T[10], T[12], T[13], T[14], T[15])
-    else:
-        K.gn_terms(*args)
+    inf_mode, amb_in = 0, _NO_AMB
     if io is not None:
-        K.inview_residual(wv, lv.ia[s], T[12])
-    amb = _NO_AMB
-    if fin is not None:
-        if fin.inf_test:
-            if prm.get("inf_mask") is not None:
-                amb = prm["inf_mask"][y0:y1]
-            else:   # no level 1: the test at level 0 (its own scratch planes: T1, T2, T6 are live here)
-                Tx = _ws("inf_scratch", (7,) + T[0].shape)
-                amb = _infinity_ambiguous(lv, s, o, T[12].copy(), Tx, win, squared=True).view(np.uint8)
-        occ = prm["occ_window"]
-        _box_to(T[10], occ, dst=T[11])
-        _box_to(T[12], occ, dst=T[12])
-        for i in (10, 13, 14):
-            _box_to(T[i], win, dst=T[i])
-    for i in (1, 2, 3, 4, 5):
-        _box_to(T[i], win, dst=T[i])
+        inf_mode = 1
+    elif fin is not None and fin.inf_test:
+        if prm.get("inf_mask") is not None:
+            amb_in = prm["inf_mask"]
+        else:
+            inf_mode = 2      # no level 1: the infinity test at level 0
+    ks = F32(max(prm["huber_k"] * sigma, 1e-6))
     lam_c = F32(4.0 * sigma * sigma * prm["lam_k"])
-    # the den >= den_min cap (row and column parts), clipped to [0, rho_hi] in the kernel as in _Level.cap_rows
-    capr, capc = (rw[5], kc[5, y0:y1]) if lv.cap is not None else (_NO_CAP, _NO_CAP)
-    out = new[y0:y1]
-    K.gn_update(T[1][o], T[2][o], T[3][o], T[4][o], T[5][o], T[6][o], R[o], lam_c, capr, capc, lv.rho_hi, out)
     if fin is None:
-        if io is not None:      # the infinity test, at this level (see _infinity_ambiguous)
-            io[y0:y1] = _infinity_ambiguous(lv, s, o, T[12], T, win)
-        return
-    nv, ni = K.gn_final(T[1][o], T[3][o], T[6][o], R[o], out, T[10][o], T[11][o], T[12][o], T[13][o], T[14][o],
-                        T[15][o], amb, amb.size > 0, fin.noise_info, fin.noise_G, fin.var_k, fin.floor2, fin.trunc2,
-                        fin.low_thr, fin.occ_px2, fin.occ_thr, fin.orient_min, F32(fin.rho_far),
-                        F32(fin.max_rel_std), fin.std[y0:y1], fin.flags[y0:y1], fin.rng[y0:y1], fin.conf[y0:y1],
-                        fin.amb[y0:y1].view(np.uint8))
-    fin.n_val += nv
-    fin.n_inf += ni
+        fp, outs = _NO_FP, (_NO_AMB, _NO_F2, _NO_AMB, _NO_F2, _NO_F2, _NO_AMB)
+        noise_info = False
+    else:
+        fp = np.array([fin.noise_G, fin.var_k, fin.floor2, fin.trunc2, fin.low_thr, fin.occ_px2, fin.occ_thr,
+                       fin.orient_min, fin.rho_far, fin.max_rel_std], F32)
+        outs = (_NO_AMB, fin.std, fin.flags, fin.rng, fin.conf, fin.amb.view(np.uint8))
+        noise_info = fin.noise_info
+    if io is not None:
+        outs = (io,) + outs[1:]
+    nv, ni = K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, ks, lam_c,
+                        lv.cap is not None, lv.rho_hi, int(prm["window"]), int(prm["occ_window"]), fin is not None,
+                        inf_mode, amb_in, fp, noise_info, new, *outs)
+    if fin is not None:
+        fin.n_val += nv
+        fin.n_inf += ni
+
+
+_NO_FP = np.zeros(10, F32)
+_NO_F2 = np.empty((0, 0), F32)
 
 
 def prepare_kernels() -> bool:
@@ -1090,29 +1082,11 @@ def prepare_kernels() -> bool:
     K = optional_kernels("_dense_kernels")
     if K is None:
         return False
-    n, w = 2, 4
-    p2 = [np.zeros((n, w), F32) for _ in range(16)]
-    row, col, f = np.zeros(w, F32), np.zeros(n, F32), F32(1.0)
-    wv = np.zeros((n, w, 4), F32)
-    K.epipolar_map(p2[0], row, col, row, col, row, col, f, f, f, p2[1], p2[2], p2[3])
-    args = (wv, p2[0], p2[1], p2[2], row, col, row, col, p2[3], p2[4], f, True, *p2[5:11])
-    K.gn_terms(*args)
-    K.gn_terms_final(*args, *p2[11:16])
-    K.inview_residual(wv, p2[0], p2[1])
-    for capr, capc in ((row, col), (_NO_CAP, _NO_CAP)):
-        K.gn_update(*p2[:7], f, capr, capc, f, p2[7])
-    for amb in (np.zeros((n, w), np.uint8), _NO_AMB):
-        K.gn_final(*p2[:11], amb, amb.size > 0, True, *([f] * 10), p2[11], np.zeros((n, w), np.uint8), p2[12], p2[13],
-                   np.zeros((n, w), np.uint8))
-    # the coarse search's passes (per-pixel hypotheses or not: one signature)
-    hyp, rows = np.zeros(2, np.float64), np.zeros(n + 2, np.int64)
-    g = np.zeros((2 * (n + 2), w), np.uint8)
-    K.search_warp(hyp, True, rows, *p2[:5], f, f, f, f, f, f, f, p2[5], p2[6], *[np.zeros((2 * (n + 2), w), F32)
-                                                                              for _ in range(3)], g)
-    K.search_cost(*[np.zeros((2 * (n + 2), w), F32) for _ in range(3)], g, np.zeros((n + 2, w), F32),
-                  np.zeros((n + 2, w), F32), f, 1, np.zeros((2, n, w), F32))
-    K.search_wta(np.zeros((2, n, w), F32), np.zeros((2, n, w), F32), hyp, True, *p2[:2], f, p2[2], p2[3], f,
-                 p2[4], p2[5])
+    # every kernel of a locate, with the argument types it passes them: two small simulated pairs, without a
+    # level 1 (the infinity test at level 0) and with one (its verdict carried down to level 0)
+    from ..sim.presets import make_pair
+    for size in (96, 160):
+        locate_dense(*make_pair("turning", size=size, supersample=1).views)
     # the fill's passes: a 64 x 64 plane with a hole, with and without an exclusion mask
     rho = np.full((64, 64), 0.05, F32)
     for ex in (None, np.zeros((64, 64), bool)):
