@@ -309,8 +309,8 @@ def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sx
     [I, gx, gy, in-view] sampled there bilinearly (s4_o: w x 4), zero outside b (cv2.remap INTER_LINEAR,
     BORDER_CONSTANT 0). bfp: b4 with a border of one zero pixel (hb + 2, wb + 2, 4), flat: a sample inside
     (-1, wb) x (-1, hb) reads its four neighbours from it; one outside reads the zero corner (index 0) with zero
-    weights. Two passes: the map, the index and the weights (vectorised; into the row buffers jx and sxy), then the
-    gathers (the four channels of a pixel side by side: numba does them as one 4-wide vector)."""
+    weights. Two passes: the map, the index, the weights and the in-view channel (vectorised; into the row buffers
+    jx and sxy), then the gathers of the other three."""
     w = R.shape[0]
     wp = wb + 2
     fw, fh = F32(wb), F32(hb)
@@ -323,9 +323,21 @@ def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sx
         inside = (u > F32(-1.0)) & (u < fw) & (v > F32(-1.0)) & (v < fh)
         fu = np.floor(u) if inside else _ZERO
         fv = np.floor(v) if inside else _ZERO
-        sxy[0, x] = u - fu if inside else _ZERO
-        sxy[1, x] = v - fv if inside else _ZERO
+        sx = u - fu if inside else _ZERO
+        sy = v - fv if inside else _ZERO
+        sxy[0, x] = sx
+        sxy[1, x] = sy
         jx[x] = ((np.int64(fv) + 1) * wp + np.int64(fu) + 1) * 4 if inside else 0
+        # the in-view channel (constant 1 in b, 0 outside) interpolated as the gathers would, from the
+        # neighbours' positions alone
+        x0 = _ONE if inside & (fu >= _ZERO) else _ZERO
+        x1 = _ONE if inside & (fu + _ONE < fw) else _ZERO
+        y0 = _ONE if inside & (fv >= _ZERO) else _ZERO
+        y1 = _ONE if inside & (fv + _ONE < fh) else _ZERO
+        m00, m01, m10, m11 = x0 * y0, x1 * y0, x0 * y1, x1 * y1
+        v0 = _fma32(sx, m01 - m00, m00)
+        v1 = _fma32(sx, m11 - m10, m10)
+        s4_o[x, 3] = _fma32(sy, v1 - v0, v0)
     rs = np.uint64(4 * wp)
     c4 = np.uint64(4)
     for x in range(w):
@@ -334,7 +346,6 @@ def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sx
         s4_o[x, 0] = _lerp2(bfp, j, c4, rs, sx, sy)
         s4_o[x, 1] = _lerp2(bfp, j + np.uint64(1), c4, rs, sx, sy)
         s4_o[x, 2] = _lerp2(bfp, j + np.uint64(2), c4, rs, sx, sy)
-        s4_o[x, 3] = _lerp2(bfp, j + np.uint64(3), c4, rs, sx, sy)
 
 
 @njit(**_JIT)
@@ -648,45 +659,47 @@ def _scharr_row(r0, r1, r2, x0, x1, x2):
     return gx, gy
 
 
+@njit(inline="always", **_JIT)
+def _scharr_rows(img, y, gx_o, gy_o):
+    """Row y of the Scharr gradient of img / 32 into gx_o[0], gy_o[0] (reflected border)."""
+    h, w = img.shape
+    r0, r1, r2 = img[_reflect(y - 1, h)], img[y], img[_reflect(y + 1, h)]
+    ox, oy = gx_o[0], gy_o[0]
+    u1 = np.uint64(1)
+    for x in range(1, w - 1):
+        ux = np.uint64(x)
+        ox[ux], oy[ux] = _scharr_row(r0, r1, r2, ux - u1, ux, ux + u1)
+    for x in (0, w - 1):
+        ox[x], oy[x] = _scharr_row(r0, r1, r2, _reflect(x - 1, w), x, _reflect(x + 1, w))
+
+
 @njit(**_JIT)
 def scharr(img, gx_o, gy_o):
     """The Scharr gradient of img / 32 into gx_o, gy_o (cv2.Scharr with scale 1/32 and BORDER_REFLECT, up to float
     rounding)."""
-    h, w = img.shape
-    u1 = np.uint64(1)
-    for y in range(h):
-        r0, r1, r2 = img[_reflect(y - 1, h)], img[y], img[_reflect(y + 1, h)]
-        ox, oy = gx_o[y], gy_o[y]
-        for x in range(1, w - 1):
-            ux = np.uint64(x)
-            ox[ux], oy[ux] = _scharr_row(r0, r1, r2, ux - u1, ux, ux + u1)
-        for x in (0, w - 1):
-            ox[x], oy[x] = _scharr_row(r0, r1, r2, _reflect(x - 1, w), x, _reflect(x + 1, w))
+    for y in range(img.shape[0]):
+        _scharr_rows(img, y, gx_o[y:y + 1], gy_o[y:y + 1])
 
 
 @njit(**_JIT)
 def pack_b4p(img, b4p_o):
     """The warp source of ``gn_level``: [img, its Scharr gradient / 32 (as ``scharr``), 1] per pixel, with a border
-    of one zero pixel: b4p_o is (h + 2, w + 2, 4)."""
+    of one zero pixel: b4p_o is (h + 2, w + 2, 4). Per row the gradient into row buffers (vectorised), then the
+    interleaving."""
     h, w = img.shape
     b4p_o[0, :, :] = _ZERO
     b4p_o[h + 1, :, :] = _ZERO
-    u1 = np.uint64(1)
+    gx = np.empty((1, w), F32)
+    gy = np.empty((1, w), F32)
     for y in range(h):
-        r0, r1, r2 = img[_reflect(y - 1, h)], img[y], img[_reflect(y + 1, h)]
+        _scharr_rows(img, y, gx, gy)
+        r1, ox, oy = img[y], gx[0], gy[0]
         o = b4p_o[y + 1]
         o[0, :] = _ZERO
         o[w + 1, :] = _ZERO
-        for x in range(1, w - 1):
-            ux = np.uint64(x)
-            gx, gy = _scharr_row(r0, r1, r2, ux - u1, ux, ux + u1)
-            o[ux + u1, 0] = r1[ux]
-            o[ux + u1, 1] = gx
-            o[ux + u1, 2] = gy
-            o[ux + u1, 3] = _ONE
-        for x in (0, w - 1):
-            gx, gy = _scharr_row(r0, r1, r2, _reflect(x - 1, w), x, _reflect(x + 1, w))
-            o[x + 1, 0] = r1[x]
-            o[x + 1, 1] = gx
-            o[x + 1, 2] = gy
-            o[x + 1, 3] = _ONE
+        for x in range(w):
+            ux = np.uint64(x) + np.uint64(1)
+            o[ux, 0] = r1[x]
+            o[ux, 1] = ox[x]
+            o[ux, 2] = oy[x]
+            o[ux, 3] = _ONE
