@@ -349,6 +349,39 @@ def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sx
 
 
 @njit(**_JIT)
+def residual_grid(b4p, ia, rw, kc, R, B0, Q1, Q2, step, r_o, inview_o):
+    """The residual I_b(map(rho)) - I_a on every step-th row and column (the noise estimate's sample), b sampled as
+    in ``gn_level`` (b4p: b's [I, gx, gy, 1] with a zero border), and where it is in view (the in-view channel
+    > 0.999 and 1 / den > 0): r_o and inview_o are (ceil(h / step), ceil(w / step))."""
+    hb, wb = b4p.shape[0] - 2, b4p.shape[1] - 2
+    bfp = b4p.ravel()
+    hg, wg = r_o.shape
+    rs = np.uint64(4 * (wb + 2))
+    c4 = np.uint64(4)
+    fw, fh = F32(wb), F32(hb)
+    for i in range(hg):
+        y = i * step
+        for k in range(wg):
+            x = k * step
+            r_ = R[y, x]
+            d = _ONE / _fma(r_, B0, rw[0, x] + kc[0, y])
+            u = _fma(r_, Q1, rw[1, x] + kc[1, y]) * d
+            v = _fma(r_, Q2, rw[2, x] + kc[2, y]) * d
+            val = _ZERO
+            m = _ZERO
+            if (u > F32(-1.0)) & (u < fw) & (v > F32(-1.0)) & (v < fh):
+                fu = np.floor(u)
+                fv = np.floor(v)
+                sx = u - fu
+                sy = v - fv
+                j = np.uint64(((np.int64(fv) + 1) * (wb + 2) + np.int64(fu) + 1) * 4)
+                val = _lerp2(bfp, j, c4, rs, sx, sy)
+                m = _lerp2(bfp, j + np.uint64(3), c4, rs, sx, sy)
+            r_o[i, k] = val - ia[y, x]
+            inview_o[i, k] = np.uint8(1) if (m > _MASK_IN) & (d > _ZERO) else np.uint8(0)
+
+
+@njit(**_JIT)
 def _residual_at_infinity_row(bfp, hb, wb, a0r, a0c, p1r, p1c, p2r, p2c, ia, r0_o):
     """One row of the squared residual of a point at infinity (rho = 0: b warped by the rotation alone), NaN where
     any of the four neighbours of the sample is outside b (cv2.remap with a NaN border)."""

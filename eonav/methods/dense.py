@@ -461,6 +461,7 @@ class _Level:
         self.Q2 = F32(fyb * t[2] + cyb * t[0])
         self.cap = aff[5] if t[0] < 0 else None
         self.rho_hi = F32(rho_hi)
+        self.kernels = kernels
         if kernels is not None:
             # the fused kernels: the gradient of a for the whole level, and b4 with a border of one zero pixel
             # (gn_level's samples then read no neighbour outside it); b4 is its interior
@@ -581,6 +582,12 @@ class _Level:
         """Robust residual noise on the subsampled grid (every ``step``-th pixel) at rho: over all pixels
         (Huber scale) and over the fully in-view ones (the final noise; None unless ``final``)."""
         sr, sc = slice(0, self.h, step), slice(0, self.w, step)
+        if self.kernels is not None:    # the same residuals in one numba pass (b sampled as gn_level does)
+            g = (-(-self.h // step), -(-self.w // step))
+            r, inview = _ws("noise_r", g), _ws("noise_in", g, np.uint8)
+            self.kernels.residual_grid(self.b4p, self.ia, self.rw, self.kc, rho, self.B0, self.Q1, self.Q2, step, r,
+                                       inview)
+            return _robust_sigma(r, step=1), (_robust_sigma(r, inview.view(bool), step=1) if final else None)
         rs = np.ascontiguousarray(rho[sr, sc])
         B0, Q1, Q2 = self.B0, self.Q1, self.Q2
         sub = lambda c: np.matmul(c[2][sr], np.ascontiguousarray(c[3][:, sc]))   # the map on the grid (exact)
