@@ -358,6 +358,18 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     from .launcher import run_pipeline
     stream = stream or sys.stdout
     rec = recording(flight, n_frames, rate_hz, size, seed, cache_dir)
+    if method == "dense":
+        # the locator compiles its numba kernels (or loads them from numba's cache, ~2 s) before it subscribes: on a
+        # fresh install ~25 s, far past the replay's start-up lead, and it ranged no frame. Compiled here first (the
+        # cache is shared), the locator only loads them.
+        from .methods.dense import prepare_kernels
+        t = time.monotonic()
+        if not quiet:
+            print("eonav demo: preparing the dense locator's kernels (compiled once per install)", file=stream,
+                  flush=True)
+        prepare_kernels()
+        if not quiet:
+            print(f"eonav demo: kernels ready in {time.monotonic() - t:.1f} s", file=stream, flush=True)
     shift_us = replay_shift_us(rec)
     truth = Truth(rec, shift_us)
     port = free_port()

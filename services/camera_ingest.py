@@ -570,20 +570,6 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
                           clock=clock, stop=stop, live_timeout_s=args.live_timeout, default_fps=args.default_fps)
 
 
-def _wait_matching(node: Node, pub, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not node.stop_event.is_set():
-        try:
-            if pub.matching_status.matching:
-                time.sleep(0.05)  # let the route settle on every hop
-                return
-        except Exception:
-            return
-        node.stop_event.wait(0.02)
-    if not node.stop_event.is_set():
-        node.log.info("no subscriber after %.1f s; publishing anyway", timeout_s)
-
-
 def body(node: Node, args) -> None:
     K.check_chunk(args.camera_id, "--camera-id")
     kind = classify_source(args.source) if args.source else None
@@ -598,7 +584,8 @@ def body(node: Node, args) -> None:
 
     def run():
         if kind in ("folder", "file") and args.wait_subscribers > 0:
-            _wait_matching(node, pub, args.wait_subscribers)
+            if not node.wait_matching(pub, args.wait_subscribers):
+                node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers)
         st = capture_loop(frames, sink, camera_id=args.camera_id, encoding=args.encoding, width=args.width,
                           height=args.height, metrics=node, stop=node.stop_event)
         if node.stop_event.is_set():

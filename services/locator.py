@@ -445,6 +445,9 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
                 sc = scalers[f.camera_id] = new_controller()
                 if warmup:
                     warm_up_camera(node, f, sc, method, params, cameras, locate)
+                # the camera's first map must not be lost to a route not set up yet (see the declaration above):
+                # its first frame only starts a pair, so a bounded wait here delays no map
+                node.wait_matching(pubs[f.camera_id], 1.0)
             sc.observe_frame(f.seq, f.stamp_us)          # (a calibrated start may move with the budget: gauge it)
             show_scale(node, f.camera_id, sc, shown)
             if not newest:                   # a newer frame of this camera is already waiting: partner only

@@ -175,18 +175,6 @@ def replay_tlog(path, feed, *, rate: float, stop: threading.Event, keep_stamps: 
     return reader
 
 
-def _wait_matching(node: Node, pub, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not node.stop_event.is_set():
-        try:
-            if pub.matching_status.matching:
-                time.sleep(0.05)
-                return
-        except Exception:
-            return
-        node.stop_event.wait(0.02)
-
-
 def add_arguments(p) -> None:
     g = p.add_argument_group("mavlink ingest")
     add_flag(g, "--source", env="EONAV_MAVLINK_SOURCE", default=None, required=False,
@@ -246,7 +234,7 @@ def body(node: Node, args) -> None:
 
 def _run_tlog(node: Node, args, pub: Publisher) -> None:
     if args.wait_subscribers > 0:
-        _wait_matching(node, pub.nav_pub, args.wait_subscribers)
+        node.wait_matching(pub.nav_pub, args.wait_subscribers)
     reader = replay_tlog(args.source, pub.feed, rate=args.rate, stop=node.stop_event, keep_stamps=args.keep_stamps,
                          shift_us=args.replay_shift_us)
     if node.stop_event.is_set():

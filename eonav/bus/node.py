@@ -295,6 +295,21 @@ class Node:
         return t
 
     # ---- messages -------------------------------------------------------------------------------
+    def wait_matching(self, publisher, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` until ``publisher`` has a matching subscriber (then 50 ms more, so the route is
+        set up on every hop): a put right after a declaration can miss subscribers whose route is not there yet
+        (ECOSYSTEM 1.5). Returns whether one matched (False also on shutdown)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not self.stop_event.is_set():
+            try:
+                if publisher.matching_status.matching:
+                    time.sleep(0.05)
+                    return True
+            except Exception:     # (a zenoh build without matching status: nothing to wait for)
+                return False
+            self.stop_event.wait(0.02)
+        return False
+
     def put(self, publisher, kind: str, **fields) -> int:
         """``schema.encode(kind, **fields)`` and put; counts ``out.<kind>`` and its rate. Returns bytes sent."""
         payload = schema.encode(kind, **fields)
