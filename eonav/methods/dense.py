@@ -805,8 +805,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         # strip arrays incl. the halo within strip_px (a strip's work planes stay in L2)
         step = max(8, strip_px // w - 2 * (window // 2)) if strip_px > 0 else h
         step = -(-h // -(-h // step))      # balanced: no thin last strip (each strip costs ~50 calls)
-        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1 and K is None, strip_rows=step + 2 * (window // 2),
-                    n_strips=-(-h // step), kernels=K)
+        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1 and K is None,
+                    strip_rows=step + 2 * (window // 2), n_strips=-(-h // step), kernels=K)
         if rho.shape != pa[lev].shape:
             if rho.shape[0] * 2 == h and rho.shape[1] * 2 == w:     # into a work buffer: same values
                 rho = cv2.pyrUp(rho, dst=_ws("rho_up", (h, w)), dstsize=(w, h))
