@@ -550,10 +550,9 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
     # inf_mode: se, r0^2 (window). One call site (numba compiles a callee into each caller's site)
     sum_plane = np.array([_P_WJJ, _P_WJQ, _P_W, _P_WJ, _P_WQ, _P_G, _P_MX, _P_MY, _P_G, _P_RR, _P_SE, _P_R0])
     sum_n = np.array([win, win, win, win, win, win, win, win, occ, occ, win, win])
-    active = np.zeros(_N_SUMS, np.bool_)
-    active[:5] = True
-    active[5:10] = final
-    active[10:] = inf_mode != 0
+    active = np.zeros(_N_SUMS, np.bool_)      # (element by element: numba's slice assignment compiles an error
+    for k in range(_N_SUMS):                   # path with string formatting, ~5 s of the kernels' first compile)
+        active[k] = k < 5 or (final and k < 10) or (inf_mode != 0 and k >= 10)
     use_amb = amb_in.shape[0] > 0
     hrow = np.empty(w, F32)
     s0row = np.empty(w, F32)
@@ -580,9 +579,13 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
             for x in range(w):
                 ambr[x] = np.uint8(1) if r0s[x] <= se[x] else np.uint8(0)   # (NaN: a window reaching out of b)
             if inf_mode == 1:
-                inf_o[y, :] = ambr
+                io = inf_o[y]
+                for x in range(w):
+                    io[x] = ambr[x]
         elif use_amb:
-            ambr[:] = amb_in[y]
+            ai = amb_in[y]
+            for x in range(w):
+                ambr[x] = ai[x]
         if final:
             nv_, ni_ = _classify_row(out[y], R[y], rc[_P_E2], hrow, s0row, hs[_S_G], hs[_S_G3], hs[_S_R2], hs[_S_MX],
                                      hs[_S_MY], rc[_P_MF], ambr, fp, noise_info, std_o[y], flags_o[y], rng_o[y],
@@ -720,16 +723,19 @@ def pack_b4p(img, b4p_o):
     of one zero pixel: b4p_o is (h + 2, w + 2, 4). Per row the gradient into row buffers (vectorised), then the
     interleaving."""
     h, w = img.shape
-    b4p_o[0, :, :] = _ZERO
-    b4p_o[h + 1, :, :] = _ZERO
+    for x in range(w + 2):
+        for c in range(4):
+            b4p_o[0, x, c] = _ZERO
+            b4p_o[h + 1, x, c] = _ZERO
     gx = np.empty((1, w), F32)
     gy = np.empty((1, w), F32)
     for y in range(h):
         _scharr_rows(img, y, gx, gy)
         r1, ox, oy = img[y], gx[0], gy[0]
         o = b4p_o[y + 1]
-        o[0, :] = _ZERO
-        o[w + 1, :] = _ZERO
+        for c in range(4):
+            o[0, c] = _ZERO
+            o[w + 1, c] = _ZERO
         for x in range(w):
             ux = np.uint64(x) + np.uint64(1)
             o[ux, 0] = r1[x]
