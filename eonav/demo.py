@@ -360,7 +360,7 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     rec = recording(flight, n_frames, rate_hz, size, seed, cache_dir)
     if method == "dense":
         # the locator compiles its numba kernels (or loads them from numba's cache, ~2 s) before it subscribes: on a
-        # fresh install ~25 s, far past the replay's start-up lead, and it ranged no frame. Compiled here first (the
+        # fresh install ~15-25 s, far past the replay's start-up lead, and it ranged no frame. Compiled here first (the
         # cache is shared), the locator only loads them.
         from .methods.dense import prepare_kernels
         t = time.monotonic()
