@@ -1084,7 +1084,7 @@ _NO_F2 = np.empty((0, 0), F32)
 
 def prepare_kernels() -> bool:
     """Compile (or load from numba's cache) the fused kernels now, for the argument types locate_dense passes them,
-    instead of in the first locate: ~15 s cold (once per install), ~2 s from the cache on the bench machine, which a
+    instead of in the first locate: ~15-25 s cold (once per install), ~2 s from the cache on the bench machine, which a
     service should spend before its first frame (a first pair delayed by it went stale). False without numba."""
     K = optional_kernels("_dense_kernels")
     if K is None:
