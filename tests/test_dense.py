@@ -411,3 +411,62 @@ def test_camera_moving_away_from_the_scene():
     assert fin.mean() > 0.4
     assert np.median(np.abs(res.range_m[fin] / gt[fin] - 1)) < 0.025
     assert res.info["rho_max_per_m"] <= 1.0 / (0.05 * res.info["baseline_m"]) + 1e-6
+
+
+def test_shift_windows_takes_the_side_window_that_fits_much_better():
+    """Hand-made window means of one row (S1 = Sq = g = 0, S0 = H = 1: a window's cost is its Q): the pixel whose
+    window 2 px to the left costs 0.1 against its own 1.0 takes that window's sums; where the side window is only
+    down to 0.5 (above 0.4 x 1.0) nothing moves; the numba row pass picks the same."""
+    from eonav.methods.dense import _shift_windows
+    for q1, expect in ((0.1, [1, 2, 3, 2, 5, 6, 7]), (0.5, [1, 2, 3, 4, 5, 6, 7])):
+        H = np.arange(1, 8, dtype=np.float32)[None, :]
+        g, S1, Sq = (np.zeros((1, 7), np.float32) for _ in range(3))
+        S0 = np.ones((1, 7), np.float32)
+        Q = np.ones((1, 7), np.float32)
+        Q[0, 1] = q1
+        _shift_windows(2, np.float32(0.4), H, g, S0, S1, Sq, Q)
+        np.testing.assert_array_equal(H[0], expect)
+
+
+def test_shift_windows_row_kernel_matches_numpy():
+    """The numba row pass of the shiftable windows selects exactly what dense._shift_windows does (random window
+    means, ties and borders included)."""
+    pytest.importorskip("numba")
+    from eonav.methods import _dense_kernels as K
+    from eonav.methods.dense import _shift_windows
+    rng = np.random.default_rng(3)
+    w = 40
+    hs = np.zeros((K._N_SUMS, w), np.float32)
+    hs[K._P_W] = rng.uniform(0.5, 1.0, w)
+    hs[K._P_WJ] = rng.normal(0, 0.3, w)
+    hs[K._P_WJJ] = rng.uniform(1.0, 2.0, w)
+    hs[K._P_WJQ] = rng.normal(0, 0.5, w)
+    hs[K._P_WQ] = rng.normal(0, 0.3, w)
+    hs[K._S_WQQ] = rng.uniform(0.0, 2.0, w) ** 3          # costs spread over decades: many shifts
+    hs[K._S_WQQ, 10:14] = hs[K._S_WQQ, 10]                 # equal neighbours
+    sel = np.zeros((5, w), np.float32)
+    K._shift_windows_row(hs, 2, np.float32(0.4), np.zeros(w, np.float32), np.zeros(w, np.int8), sel)
+    planes = [hs[k:k + 1].copy() for k in (K._P_WJJ, K._P_WJQ, K._P_W, K._P_WJ, K._P_WQ)]
+    planes[2] += np.float32(1e-6)                           # (the numpy path's S0 carries the + 1e-6 already)
+    _shift_windows(2, np.float32(0.4), *planes, hs[K._S_WQQ][None, :].copy())
+    planes[2] -= np.float32(1e-6)
+    moved = 0
+    for k, p in zip((K._P_WJJ, K._P_WJQ, K._P_W, K._P_WJ, K._P_WQ), planes):
+        np.testing.assert_allclose(sel[k], p[0], rtol=1e-6)
+        moved += int(np.count_nonzero(sel[k] != hs[k]))
+    assert moved > 10
+
+
+def test_shift_windows_reduce_gross_errors_on_the_paper_replica():
+    """Shiftable windows at the coarse levels (the default) against none, on the paper replica's ground truth:
+    measured 4.0 -> 3.2 % of the estimates off by more than 25 % and median 0.83 -> 0.75 %, with more pixels."""
+    sp = sim("paper", size=None)
+    t = sp.truth[0].range_m
+    out = []
+    for shift in (0, 2):
+        r = locate_dense(*sp.views, shift_px=shift)
+        m = np.isfinite(t) & np.isfinite(r.range_m) & (r.range_m < 1e9)
+        e = np.abs(r.range_m[m] - t[m]) / t[m]
+        out.append(((e > 0.25).mean(), np.median(e), m.sum()))
+    (g0, m0, n0), (g1, m1, n1) = out
+    assert g1 < 0.9 * g0 and m1 < m0 and n1 >= n0, out

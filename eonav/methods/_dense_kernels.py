@@ -275,10 +275,12 @@ _P_WJJ, _P_WJQ, _P_W, _P_WJ, _P_WQ = 0, 1, 2, 3, 4
 _P_G, _P_MX, _P_MY, _P_RR = 5, 6, 7, 8
 _P_SE, _P_R0 = 9, 10
 _P_E2, _P_MF = 11, 12
-_N_PLANES = 13
+_P_WQQ = 13                # w q^2: a window's least-squares cost (shiftable windows)
+_N_PLANES = 14
 # window sums (ext rows): the five terms, G / Mx / My (window), G / rr (occlusion window), se / r0^2 (window)
 _S_G, _S_MX, _S_MY, _S_G3, _S_R2, _S_SE, _S_R0 = 5, 6, 7, 8, 9, 10, 11
-_N_SUMS = 12
+_S_WQQ = 12
+_N_SUMS = 13
 
 
 @njit(inline="always", **_JIT)
@@ -416,6 +418,7 @@ def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, B0, Q
     d_ = smp[2]
     _sample_row(bfp, hb, wb, Ry, rw[0], kc[0, y], rw[1], kc[1, y], rw[2], kc[2, y], B0, Q1, Q2, jrow, smp, d_, s4)
     e2o, wJJo, wJqo, wo, wJo, wqo = rs[_P_E2], rs[_P_WJJ], rs[_P_WJQ], rs[_P_W], rs[_P_WJ], rs[_P_WQ]
+    wqqo = rs[_P_WQQ]
     for x in range(w):
         d = d_[x]
         mask = s4[x, 3]
@@ -437,7 +440,9 @@ def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, B0, Q
         wJqo[x] = wJ * q
         wo[x] = wgt
         wJo[x] = wJ
-        wqo[x] = wgt * q
+        wq = wgt * q
+        wqo[x] = wq
+        wqqo[x] = wq * q
     if final:
         mfo, Go, rro, mxo, myo = rs[_P_MF], rs[_P_G], rs[_P_RR], rs[_P_MX], rs[_P_MY]
         for x in range(w):
@@ -525,13 +530,13 @@ def _window_sum(ring, plane, slot0, n, ext, hs, k, inv_n):
 
 
 @njit(**_JIT)
-def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_hi, win, occ, final, inf_mode,
-             amb_in, fp, noise_info, out, inf_o, std_o, flags_o, rng_o, conf_o, amb_o):
+def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_hi, win, occ, shift, shift_ratio, final,
+             inf_mode, amb_in, fp, noise_info, out, inf_o, std_o, flags_o, rng_o, conf_o, amb_o):
     """One re-linearised Gauss-Newton step of a whole level (b4p: b's [I, gx, gy, 1] with a border of one zero
     pixel): the map, the warp, the terms, their window sums
     (window win, and occ for the occlusion test; reflected borders) and the Levenberg-damped update of every pixel
     into out (clipped to [0, cap]; cap: the affine cap map rw[5] + kc[5] clipped to [0, cap_hi] when use_cap, else
-    cap_hi). final: also the uncertainty, flags and classification (std_o .. amb_o; fp: the thresholds of
+    cap_hi; shift > 0: shiftable windows, ``_shift_windows_row``). final: also the uncertainty, flags and classification (std_o .. amb_o; fp: the thresholds of
     dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr, occ_px2, occ_thr, orient_min, rho_far,
     max_rel_std). Infinity test (dense._infinity_ambiguous): inf_mode 1 writes its verdict into inf_o; inf_mode 2
     (final) uses it for the flags; otherwise a non-empty amb_in (uint8, a coarser level's verdict) is used.
@@ -548,14 +553,18 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
     hs = np.empty((_N_SUMS, w), F32)
     # the window sums (ext / hs rows): the five terms; final: G, Mx, My (window), G, rr (occlusion window);
     # inf_mode: se, r0^2 (window). One call site (numba compiles a callee into each caller's site)
-    sum_plane = np.array([_P_WJJ, _P_WJQ, _P_W, _P_WJ, _P_WQ, _P_G, _P_MX, _P_MY, _P_G, _P_RR, _P_SE, _P_R0])
-    sum_n = np.array([win, win, win, win, win, win, win, win, occ, occ, win, win])
+    sum_plane = np.array([_P_WJJ, _P_WJQ, _P_W, _P_WJ, _P_WQ, _P_G, _P_MX, _P_MY, _P_G, _P_RR, _P_SE, _P_R0,
+                          _P_WQQ])
+    sum_n = np.array([win, win, win, win, win, win, win, win, occ, occ, win, win, win])
     active = np.zeros(_N_SUMS, np.bool_)      # (element by element: numba's slice assignment compiles an error
     for k in range(_N_SUMS):                   # path with string formatting, ~5 s of the kernels' first compile)
-        active[k] = k < 5 or (final and k < 10) or (inf_mode != 0 and k >= 10)
+        active[k] = k < 5 or (final and k < 10) or (inf_mode != 0 and 10 <= k < 12) or (k == _S_WQQ and shift > 0)
     use_amb = amb_in.shape[0] > 0
     hrow = np.empty(w, F32)
     s0row = np.empty(w, F32)
+    crow = np.empty(w, F32)
+    sel = np.empty((5, w), F32)
+    code = np.empty(w, np.int8)
     ambr = np.zeros(w, np.uint8)
     nv = 0
     ni = 0
@@ -572,7 +581,11 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
             n = sum_n[k]
             _window_sum(ring, sum_plane[k], (c - n // 2 + win) % win, n, ext, hs, k, _ONE / F32(n * n))
         rc = ring[c]
-        _update_row(hs[_P_WJJ], hs[_P_WJQ], hs[_P_W], hs[_P_WJ], hs[_P_WQ], rc[_P_E2], R[y], lam_c, use_cap,
+        src = hs
+        if shift > 0 and w > 2 * shift:
+            _shift_windows_row(hs, shift, shift_ratio, crow, code, sel)
+            src = sel
+        _update_row(src[_P_WJJ], src[_P_WJQ], src[_P_W], src[_P_WJ], src[_P_WQ], rc[_P_E2], R[y], lam_c, use_cap,
                     rw[5], kc[5, y] if use_cap else _ZERO, cap_hi, out[y], hrow, s0row)
         if inf_mode != 0:
             se, r0s = hs[_S_SE], hs[_S_R0]
@@ -593,6 +606,58 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
             nv += nv_
             ni += ni_
     return nv, ni
+
+
+@njit(inline="always", **_JIT)
+def _window_cost(sJJ, sJq, s0, sJ, sq, sqq):
+    """A window's weighted residual after its least-squares solution (rho and the brightness offset), per unit
+    weight (dense._shift_windows); +inf where not finite."""
+    s1n = sJ / s0
+    gp = sJq - sq * s1n
+    hp = sJJ - sJ * s1n
+    hp = hp if hp > F32(1e-12) else F32(1e-12)
+    c = (sqq - sq * sq / s0 - gp * gp / hp) / s0
+    return c if np.isfinite(c) else _INF
+
+
+@njit(inline="always", **_JIT)
+def _shift_code(c0, cl, cr, ratio):
+    """-1 / +1: take the window shifted left / right, 0: keep the centred one (a tie takes the left)."""
+    right = cr < cl
+    cs = cr if right else cl
+    d = np.int8(1) if right else np.int8(-1)
+    return d if cs < ratio * c0 else np.int8(0)
+
+
+@njit(**_JIT)
+def _shift_windows_row(hs, sh, ratio, cost, code, sel):
+    """dense._shift_windows on one row of window means (hs rows 0-4 and _S_WQQ), into sel (rows 0-4): a pixel takes
+    the sums of the window sh pixels to its left or right (clamped at the border) where that one's cost is below
+    ratio x its centred window's. The interior columns by shifted views (numba vectorises the selects), the sh
+    columns at each border one by one."""
+    w = hs.shape[1]
+    for x in range(w):
+        cost[x] = _window_cost(hs[_P_WJJ, x], hs[_P_WJQ, x], hs[_P_W, x] + _EPS_S0, hs[_P_WJ, x], hs[_P_WQ, x],
+                               hs[_S_WQQ, x])
+    n = w - 2 * sh
+    cL, cC, cR, kC = cost[0:n], cost[sh:sh + n], cost[2 * sh:2 * sh + n], code[sh:sh + n]
+    for i in range(n):
+        kC[i] = _shift_code(cC[i], cL[i], cR[i], ratio)
+    for i in range(2 * sh):                   # the border columns: 0 .. sh - 1, w - sh .. w - 1
+        x = i if i < sh else w - 2 * sh + i
+        jl = x - sh if x >= sh else 0
+        jr = x + sh if x + sh < w else w - 1
+        code[x] = _shift_code(cost[x], cost[jl], cost[jr], ratio)
+        for k in range(5):
+            sel[k, x] = hs[k, jl] if code[x] < 0 else (hs[k, jr] if code[x] > 0 else hs[k, x])
+    for k in range(5):
+        a, o = hs[k], sel[k]
+        aL, aC, aR, oC = a[0:n], a[sh:sh + n], a[2 * sh:2 * sh + n], o[sh:sh + n]
+        for i in range(n):
+            c = kC[i]
+            vl, vc, vr = aL[i], aC[i], aR[i]     # (loaded first: selects of loaded values vectorise, 5x faster)
+            v = vr if c > 0 else vc
+            oC[i] = vl if c < 0 else v
 
 
 @njit(**_JIT)
