@@ -2,8 +2,8 @@
 
 ``gn_level`` does one re-linearised Gauss-Newton step of a whole pyramid level in one pass: rows stream through a
 ring of window-height term planes (the map into b, b's bilinear samples, the Huber-weighted normal-equation terms),
-and as soon as a row's window is complete its window sums, its update and (final step) its uncertainty, flags and
-classification follow. Nothing per pixel is written but the outputs, where the OpenCV path (``dense._gn_block``,
+and as soon as a row's window is complete its window sums (at the coarse levels the shiftable windows' choice,
+``_shift_windows_row``), its update and (final step) its uncertainty, flags and classification follow. Nothing per pixel is written but the outputs, where the OpenCV path (``dense._gn_block``,
 the reference and the fallback without numba) makes ~100 passes over each strip of rows. The arithmetic is the
 OpenCV path's, in float32 with its fused multiply-adds (``_fma``); the window sums add in another order and the
 borders of the warp round differently, so the two agree to float rounding, not bit for bit
