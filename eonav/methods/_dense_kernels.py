@@ -305,6 +305,21 @@ def _lerp2(bf, j, dx, dy, sx, sy):
     return _fma32(sy, v1 - v0, v0)
 
 
+@njit(inline="always", **_JIT)
+def _map_px(r, a0, p1, p2, B0, Q1, Q2):
+    """One pixel's map into b at rho = r (eqs. 25-26 via the affine parts A0, P1, P2 at the pixel):
+    (1 / den, u_b, v_b)."""
+    d = _ONE / _fma(r, B0, a0)
+    return d, _fma(r, Q1, p1) * d, _fma(r, Q2, p2) * d
+
+
+@njit(inline="always", **_JIT)
+def _b4p_index(fu, fv, wb):
+    """Flat index (unsigned) in b4p, b's [I, gx, gy, 1] with a border of one zero pixel, of b's pixel (fu, fv)
+    (floored coordinates, -1 allowed: the border)."""
+    return np.uint64(((np.int64(fv) + 1) * (wb + 2) + np.int64(fu) + 1) * 4)
+
+
 @njit(**_JIT)
 def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sxy, d_o, s4_o):
     """One row of the map at rho = R (eqs. 25-26 via the affine parts: d = 1 / den, u_b, v_b) and of b's
@@ -317,10 +332,7 @@ def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sx
     wp = wb + 2
     fw, fh = F32(wb), F32(hb)
     for x in range(w):
-        r_ = R[x]
-        d = _ONE / _fma(r_, B0, a0r[x] + a0c)
-        u = _fma(r_, Q1, p1r[x] + p1c) * d
-        v = _fma(r_, Q2, p2r[x] + p2c) * d
+        d, u, v = _map_px(R[x], a0r[x] + a0c, p1r[x] + p1c, p2r[x] + p2c, B0, Q1, Q2)
         d_o[x] = d
         inside = (u > F32(-1.0)) & (u < fw) & (v > F32(-1.0)) & (v < fh)
         fu = np.floor(u) if inside else _ZERO
@@ -329,7 +341,7 @@ def _sample_row(bfp, hb, wb, R, a0r, a0c, p1r, p1c, p2r, p2c, B0, Q1, Q2, jx, sx
         sy = v - fv if inside else _ZERO
         sxy[0, x] = sx
         sxy[1, x] = sy
-        jx[x] = ((np.int64(fv) + 1) * wp + np.int64(fu) + 1) * 4 if inside else 0
+        jx[x] = _b4p_index(fu, fv, wb) if inside else np.uint64(0)
         # the in-view channel (constant 1 in b, 0 outside) interpolated as the gathers would, from the
         # neighbours' positions alone
         x0 = _ONE if inside & (fu >= _ZERO) else _ZERO
@@ -365,10 +377,7 @@ def residual_grid(b4p, ia, rw, kc, R, B0, Q1, Q2, step, r_o, inview_o):
         y = i * step
         for k in range(wg):
             x = k * step
-            r_ = R[y, x]
-            d = _ONE / _fma(r_, B0, rw[0, x] + kc[0, y])
-            u = _fma(r_, Q1, rw[1, x] + kc[1, y]) * d
-            v = _fma(r_, Q2, rw[2, x] + kc[2, y]) * d
+            d, u, v = _map_px(R[y, x], rw[0, x] + kc[0, y], rw[1, x] + kc[1, y], rw[2, x] + kc[2, y], B0, Q1, Q2)
             val = _ZERO
             m = _ZERO
             if (u > F32(-1.0)) & (u < fw) & (v > F32(-1.0)) & (v < fh):
@@ -376,7 +385,7 @@ def residual_grid(b4p, ia, rw, kc, R, B0, Q1, Q2, step, r_o, inview_o):
                 fv = np.floor(v)
                 sx = u - fu
                 sy = v - fv
-                j = np.uint64(((np.int64(fv) + 1) * (wb + 2) + np.int64(fu) + 1) * 4)
+                j = _b4p_index(fu, fv, wb)
                 val = _lerp2(bfp, j, c4, rs, sx, sy)
                 m = _lerp2(bfp, j + np.uint64(3), c4, rs, sx, sy)
             r_o[i, k] = val - ia[y, x]
@@ -399,8 +408,7 @@ def _residual_at_infinity_row(bfp, hb, wb, a0r, a0c, p1r, p1c, p2r, p2c, ia, r0_
             if (u >= _ZERO) & (u < F32(wb - 1)) & (v >= _ZERO) & (v < F32(hb - 1)):
                 fu = np.floor(u)
                 fv = np.floor(v)
-                j = np.uint64((np.int64(fv) + 1) * (wb + 2) + np.int64(fu) + 1) * c4
-                r0 = _lerp2(bfp, j, c4, rs, u - fu, v - fv) - ia[x]
+                r0 = _lerp2(bfp, _b4p_index(fu, fv, wb), c4, rs, u - fu, v - fv) - ia[x]
         r0_o[x] = r0 * r0
 
 
