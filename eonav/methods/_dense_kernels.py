@@ -3,8 +3,9 @@
 ``gn_level`` does one re-linearised Gauss-Newton step of a whole pyramid level in one pass: rows stream through a
 ring of window-height term planes (the map into b, b's bilinear samples, the Huber-weighted normal-equation terms),
 and as soon as a row's window is complete its window sums (at the coarse levels the shiftable windows' choice,
-``_shift_windows_row``), its update and (final step) its uncertainty, flags and classification follow. Nothing per pixel is written but the outputs, where the OpenCV path (``dense._gn_block``,
-the reference and the fallback without numba) makes ~100 passes over each strip of rows. The arithmetic is the
+``_shift_windows_row``), its update and (final step) its uncertainty, flags and classification follow. Nothing
+per pixel is written but the outputs, where the OpenCV path (``dense._gn_block``, the reference and the fallback
+without numba) makes ~100 passes over each strip of rows. The arithmetic is the
 OpenCV path's, in float32 with its fused multiply-adds (``_fma``); the window sums add in another order and the
 borders of the warp round differently, so the two agree to float rounding, not bit for bit
 (tests/test_dense.py::test_fused_kernels_match_opencv_path). ``scharr`` and ``pack_b4p`` prepare a level (a's
@@ -546,8 +547,9 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
     rw[5] + kc[5] clipped to [0, cap_hi] when use_cap, else cap_hi; shift > 0: shiftable windows,
     ``_shift_windows_row``). final: also the uncertainty, flags and classification (std_o .. amb_o; fp: the
     thresholds of dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr, occ_px2, occ_thr, orient_min,
-    rho_far, max_rel_std). Infinity test (dense._infinity_ambiguous): inf_mode 1 writes its verdict into inf_o; inf_mode 2
-    (final) uses it for the flags; otherwise a non-empty amb_in (uint8, a coarser level's verdict) is used.
+    rho_far, max_rel_std). Infinity test (dense._infinity_ambiguous): inf_mode 1 writes its verdict into inf_o;
+    inf_mode 2 (final) uses it for the flags; otherwise a non-empty amb_in (uint8, a coarser level's verdict) is
+    used.
     Returns (n_valid, n_at_infinity)."""
     h, w = R.shape
     p = win // 2
