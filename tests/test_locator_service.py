@@ -336,7 +336,12 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
         for i in range(3):
             t_s, view, truth = frames[i]
             pub.put(posed_frame_payload(i, time.time_ns() // 1000, view))
-            if i:
+            # one frame in flight at a time, as in the full-scale test: frame 1 put right behind frame 0 (the
+            # publisher drops under congestion, the ring holds 2) was lost now and then and no map came
+            if i == 0:
+                wait_until(lambda: latest_health(drain(health_sub, health)).get("locator", {}).get("counters", {})
+                           .get("skipped.first_frame") == 1, timeout=10, what="frame 0 taken as the first frame")
+            else:
                 wait_until(lambda: len(drain(maps_sub, maps)) >= i, timeout=20, what=f"range map {i}")
                 wait_until(lambda: len(drain(obs_sub, obstacles)) >= i, timeout=20, what=f"obstacle list {i}")
         boxes = {b.name: b for b in fl.scene.boxes}
