@@ -1,12 +1,19 @@
-"""MAVLink OBSTACLE_DISTANCE out to the autopilot, with pymavlink's own encoder (ECOSYSTEM.md §2.3, §2.4).
+"""MAVLink OBSTACLE_DISTANCE out to the autopilot, with pymavlink's own encoder (docs/autopilot.md).
 
-- ``encode_obstacle_distance(sectors, time_usec)`` -> the wire bytes of one MAVLink 2 message
-  (``MAV_FRAME_BODY_FRD``, ``increment_f`` = HFOV/72, ``angle_offset`` = camera yaw - HFOV/2, ``increment`` = 0,
-  min/max distance in cm, ``UINT16_MAX`` unknown, ``max + 1`` clear), from component 191 (onboard computer).
+- ``encode_obstacle_distance(sectors, time_usec)`` -> the wire bytes of one MAVLink 2 message in the autopilots' own
+  layout: ``MAV_FRAME_BODY_FRD``, 72 elements, ``increment_f`` = 5 deg, ``angle_offset`` = 0 (element k centred on
+  bearing 5k deg), ``increment`` = 0, min/max distance in cm, ``UINT16_MAX`` unknown, ``max + 1`` clear; from
+  component 191 (onboard computer). Layouts an autopilot misreads are refused (``check_sectors``).
 - ``ObstacleDistanceSender``: a pymavlink connection string (``udpout:host:port``, ``udpin:``, ``tcp:``,
-  ``/dev/ttyUSB0,921600``) with a companion HEARTBEAT at 1 Hz and OBSTACLE_DISTANCE at a steady rate
-  (default 10 Hz) carrying the latest sectors while they are fresh, and all-unknown once they are stale.
-  ``tick()`` does what is due now (testable with an injected clock); ``run(stop_event)`` loops it.
+  ``/dev/ttyUSB0,921600``) with a companion HEARTBEAT at 1 Hz and OBSTACLE_DISTANCE on a fixed timer (default 10 Hz)
+  carrying the merge of every camera's latest fresh sectors (ArduPilot resets all sectors on each message, so the
+  cameras must share one stream). ``tick()`` does what is due now (testable with an injected clock).
+
+A stall must look like a dead sensor, not like an empty sky: ArduPilot keeps a sensor that sends all-unknown
+"healthy with nothing around" forever, but reports "PRX1: No Data" 0.5 s after messages stop; PX4 drops its map
+0.5 s after the last message. So once every source is stale the sender sends ONE all-unknown message (it clears
+the autopilots' sectors at once) and then no OBSTACLE_DISTANCE at all until a fresh map arrives; the HEARTBEAT
+goes on, so the link itself stays visibly alive.
 
 pymavlink is imported only here (never by the math modules), with MAVLINK20=1 set first: without it
 pymavlink loads the v1 dialect, which has no OBSTACLE_DISTANCE at all.
@@ -14,6 +21,7 @@ pymavlink loads the v1 dialect, which has no OBSTACLE_DISTANCE at all.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 import time
@@ -22,7 +30,7 @@ from typing import Callable
 import numpy as np
 
 from . import InputError
-from .obstacles import N_SECTORS, UINT16_MAX, Sectors
+from .obstacles import N_SECTORS, SECTOR_INCREMENT_DEG, UINT16_MAX, Sectors, merge_sectors
 
 log = logging.getLogger(__name__)
 
@@ -30,13 +38,7 @@ COMPANION_COMPONENT_ID = 191          # MAV_COMP_ID_ONBOARD_COMPUTER
 MAV_FRAME_BODY_FRD = 12
 MAV_DISTANCE_SENSOR_UNKNOWN = 4
 
-# Both autopilots drop proximity data 0.5 s after the last message (ArduPilot PROXIMITY_MAV_TIMEOUT_MS = 500,
-# PX4 RANGE_STREAM_TIMEOUT_US = 0.5 s). We keep sending at a steady rate, so they would never time out on
-# their own: if we re-sent the last picture forever after the locator stalled, they would keep trusting
-# distances measured from where the vehicle used to be. So our own freshness limit is the same 0.5 s, and
-# past it we send explicit UINT16_MAX ("unknown / not used" in the spec), which both treat as no data
-# (ArduPilot skips 65535 and resets the face; PX4 counts the bin as no data), exactly as if the sensor
-# had timed out, while the link and the HEARTBEAT stay visibly alive.
+# Both autopilots drop proximity data 0.5 s after the last message; a map older than this is not sent.
 DEFAULT_STALE_S = 0.5
 
 
@@ -49,21 +51,27 @@ def mavutil():
     return mu
 
 
-def _check_sectors(sectors: Sectors):
+def check_sectors(sectors: Sectors):
+    """Refuse what either autopilot misreads: PX4 reads a body-frame message with an increment below 5 deg past the
+    end of its 72-element map (phantom obstacles) and keeps one element per 5-degree bin (so a finer or shifted grid
+    loses obstacles); ArduPilot ignores 0 cm. Only the 72 x 5-degree layout on 5-degree centres is sent."""
     d = np.asarray(sectors.distances_cm)
     if d.shape != (N_SECTORS,):
         raise InputError(f"OBSTACLE_DISTANCE needs {N_SECTORS} distances, got shape {d.shape}")
-    if not (0 < sectors.increment_deg <= 360.0 / N_SECTORS * 5 and np.isfinite(sectors.angle_offset_deg)):
-        raise InputError(f"OBSTACLE_DISTANCE: increment_deg {sectors.increment_deg} / angle_offset_deg "
-                         f"{sectors.angle_offset_deg} out of range")
-    if not 0 <= sectors.min_distance_cm < sectors.max_distance_cm < UINT16_MAX - 1:
-        raise InputError(f"OBSTACLE_DISTANCE: need 0 <= min_distance_cm < max_distance_cm < {UINT16_MAX - 1}, got "
+    inc, off = float(sectors.increment_deg), float(sectors.angle_offset_deg)
+    if not (inc == SECTOR_INCREMENT_DEG and math.isfinite(off) and -180.0 <= off <= 180.0
+            and off % SECTOR_INCREMENT_DEG == 0.0):
+        raise InputError(f"OBSTACLE_DISTANCE: increment_deg {inc} / angle_offset_deg {off}: only increment "
+                         f"{SECTOR_INCREMENT_DEG} deg with an angle_offset on a multiple of it is read right by "
+                         f"both ArduPilot and PX4")
+    if not 1 <= sectors.min_distance_cm < sectors.max_distance_cm < UINT16_MAX - 1:
+        raise InputError(f"OBSTACLE_DISTANCE: need 1 <= min_distance_cm < max_distance_cm < {UINT16_MAX - 1}, got "
                          f"{sectors.min_distance_cm}, {sectors.max_distance_cm}")
 
 
 def obstacle_distance_message(mav, sectors: Sectors, time_usec: int, sensor_type: int = MAV_DISTANCE_SENSOR_UNKNOWN):
     """The pymavlink message object (encoded by ``mav``, a ``MAVLink`` instance)."""
-    _check_sectors(sectors)
+    check_sectors(sectors)
     return mav.obstacle_distance_encode(
         time_usec=int(time_usec), sensor_type=int(sensor_type),
         distances=[int(x) for x in np.asarray(sectors.distances_cm, np.int64)],
@@ -106,10 +114,10 @@ class ObstacleDistanceSender:
         self.system_id, self.component_id, self.sensor_type = system_id, component_id, sensor_type
         self._clock, self._wall_us = clock, wall_us
         self._lock = threading.Lock()
-        self._latest: tuple | None = None       # (sectors, stamp_us, received at clock())
-        self._geometry: Sectors | None = None   # for the unknown message once data went stale
+        self._latest: dict = {}                 # source -> (sectors, stamp_us, received at clock())
+        self._flushed = True                    # nothing to flush before the first sectors
         self._next_send = self._next_hb = 0.0
-        self.counters = {"od_sent_fresh": 0, "od_sent_unknown": 0, "heartbeats_sent": 0, "send_errors": 0}
+        self.counters = {"od_sent_fresh": 0, "od_sent_flush": 0, "heartbeats_sent": 0, "send_errors": 0}
         if conn is None:
             mu = mavutil()
             try:
@@ -118,16 +126,18 @@ class ObstacleDistanceSender:
                 raise InputError(f"cannot open MAVLink output {connection!r}: {type(e).__name__}: {e}") from None
         self.conn = conn
 
-    def update(self, sectors: Sectors, stamp_us: int) -> None:
-        """New sectors measured at ``stamp_us`` (UNIX µs of the frame capture)."""
-        _check_sectors(sectors)
+    def update(self, sectors: Sectors, stamp_us: int, source: str = "") -> None:
+        """New sectors of one ``source`` (a camera) measured at ``stamp_us`` (UNIX µs of the frame capture)."""
+        check_sectors(sectors)
         with self._lock:
-            self._latest = (sectors, int(stamp_us), self._clock())
-            self._geometry = sectors
+            self._latest[source] = (sectors, int(stamp_us), self._clock())
+
+    def _fresh(self, now: float) -> list:
+        return [v for v in self._latest.values() if now - v[2] <= self.stale_s]
 
     def is_fresh(self) -> bool:
         with self._lock:
-            return self._latest is not None and self._clock() - self._latest[2] <= self.stale_s
+            return bool(self._fresh(self._clock()))
 
     def _send(self, fn, counter):
         try:
@@ -148,15 +158,19 @@ class ObstacleDistanceSender:
             self._next_hb = _next_due(self._next_hb, 1.0 / self.heartbeat_hz, now)
         if now >= self._next_send:
             with self._lock:
-                latest, geometry = self._latest, self._geometry
-            if latest is not None and now - latest[2] <= self.stale_s:
-                sectors, stamp_us, _ = latest
+                fresh = self._fresh(now)
+                last = next(iter(self._latest.values()), None)
+            if fresh:
+                merged = merge_sectors([f[0] for f in fresh])
+                stamp_us = min(f[1] for f in fresh)           # the oldest capture the picture holds
                 self._send(lambda: self.conn.mav.send(
-                    obstacle_distance_message(self.conn.mav, sectors, stamp_us, self.sensor_type)), "od_sent_fresh")
-            elif geometry is not None:
+                    obstacle_distance_message(self.conn.mav, merged, stamp_us, self.sensor_type)), "od_sent_fresh")
+                self._flushed = False
+            elif not self._flushed and last is not None:      # stalled: clear the autopilot's sectors once, then silence
                 self._send(lambda: self.conn.mav.send(
-                    obstacle_distance_message(self.conn.mav, Sectors.unknown(geometry), self._wall_us(),
-                                              self.sensor_type)), "od_sent_unknown")
+                    obstacle_distance_message(self.conn.mav, Sectors.unknown(last[0]), self._wall_us(),
+                                              self.sensor_type)), "od_sent_flush")
+                self._flushed = True
             self._next_send = _next_due(self._next_send, 1.0 / self.rate_hz, now)
         return max(0.0, min(self._next_hb, self._next_send) - self._clock())
 

@@ -16,15 +16,17 @@ ray's down slope) of the ground estimate, or below it, is ground. The ground est
 lowest dense surface in view), else 0 m. Points beyond ``max_distance_m`` are not obstacles either; they
 (and pixels at infinity) are evidence that a sector is clear.
 
-(a) Sectors, as MAVLink OBSTACLE_DISTANCE (ECOSYSTEM.md §2.3; vision_to_mavros ``d4xx_to_mavlink.py``):
-    72 bins over the camera's horizontal field of view, ``increment_deg = HFOV/72``,
-    ``angle_offset_deg = camera yaw on the body - HFOV/2`` (bin 0 at the left edge; 0 = nose, clockwise positive).
+(a) Sectors, as MAVLink OBSTACLE_DISTANCE (docs/autopilot.md): the autopilots' own layout, 72 bins of 5 degrees
+    round the vehicle (``increment_deg`` 5, ``angle_offset_deg`` 0: element k is CENTRED on the body-relative bearing
+    5k degrees, clockwise from the nose, and covers 5k +- 2.5 deg). PX4 keeps exactly this 72 x 5-degree map and
+    misreads finer increments (it reads past its array); ArduPilot keeps the nearest reading per 45-degree sector.
     A point falls in the bin of its horizontal bearing from the vehicle origin, relative to the heading. A bin is
       - the ``percentile`` (robust minimum) of the horizontal distances of its obstacle points, when it has at
         least ``min_sector_pixels`` of them, clamped to [min, max] distance;
-      - clear (``max_distance_cm + 1``) when it has no obstacle but at least ``min_clear_pixels`` pixels of
-        evidence (confident ground, beyond max distance, or at infinity);
-      - unknown (``UINT16_MAX``) otherwise.
+      - clear (``max_distance_cm + 1``) when it has no obstacle, lies wholly inside the camera's horizontal view
+        and has at least ``min_clear_pixels`` pixels of evidence (confident ground, beyond max distance, or at
+        infinity): a bin the camera sees only in part is never called clear;
+      - unknown (``UINT16_MAX``) otherwise, and always outside the camera's view.
 Resolution: obstacles do not need every pixel. A map wider than ``max_width_px`` (160) is analysed on k x k blocks
 (k = ceil(width / max_width_px): 4 for 640 or 512 px) and each block with confident pixels is represented by one of its
 own pixels, the ``pool_percentile`` (10 %) of its confident pixels by range: a robust minimum, so a block straddling a
@@ -52,6 +54,7 @@ from .rangemap import AT_INFINITY, VALID
 
 UINT16_MAX = 65535
 N_SECTORS = 72
+SECTOR_INCREMENT_DEG = 360.0 / N_SECTORS     # 5 degrees: the autopilots' own bins
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,9 @@ class ObstacleConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise InputError(f"obstacle config: {name} must be a finite number > 0, got {v!r}")
+        if self.min_distance_m < 0.01:
+            raise InputError(f"obstacle config: min_distance_m {self.min_distance_m} must be >= 0.01 (OBSTACLE_DISTANCE "
+                             f"min_distance >= 1 cm; ArduPilot ignores 0)")
         if not self.min_distance_m < self.max_distance_m:
             raise InputError(f"obstacle config: min_distance_m {self.min_distance_m} must be < max_distance_m "
                              f"{self.max_distance_m}")
@@ -132,7 +138,8 @@ class Sectors:
         return out
 
     def bin_centres_deg(self) -> np.ndarray:
-        return self.angle_offset_deg + (np.arange(N_SECTORS) + 0.5) * self.increment_deg
+        """Body-relative bearing of each element's centre (OBSTACLE_DISTANCE: angle_offset is element 0's centre)."""
+        return self.angle_offset_deg + np.arange(N_SECTORS) * self.increment_deg
 
     @classmethod
     def unknown(cls, like: "Sectors") -> "Sectors":
@@ -330,13 +337,51 @@ def estimate_ground_down_m(pts: Points, state: VehicleState, cfg: ObstacleConfig
     return 0.0
 
 
-def sector_geometry(camera: Camera) -> tuple:
-    """(increment_deg, angle_offset_deg): 72 bins over the horizontal field of view, bin 0 at the left image edge."""
-    left = math.atan2(-0.5 - camera.cx, camera.fx)
-    right = math.atan2(camera.width - 0.5 - camera.cx, camera.fx)
-    hfov = math.degrees(right - left)
+def camera_hfov_deg(camera: Camera) -> tuple:
+    """(left, right) body-relative bearings in degrees of the image's outer pixel edges (camera yaw eps1 included)."""
     yaw_cam = math.degrees(float(camera.eps_rad[0]))
-    return hfov / N_SECTORS, yaw_cam + math.degrees(left)
+    left = math.degrees(math.atan2(-0.5 - camera.cx, camera.fx))
+    right = math.degrees(math.atan2(camera.width - 0.5 - camera.cx, camera.fx))
+    return yaw_cam + left, yaw_cam + right
+
+
+def sector_geometry(camera: Camera) -> tuple:
+    """(increment_deg, angle_offset_deg) of the sectors: the fixed 72 x 5-degree layout, element 0 centred on the nose.
+
+    The layout does not depend on the camera: every camera's sectors index the same bins, so the sectors of several
+    cameras merge bin by bin into one message (``merge_sectors``)."""
+    return SECTOR_INCREMENT_DEG, 0.0
+
+
+def bins_in_view(camera: Camera) -> tuple:
+    """Masks over the 72 bins: (wholly inside the camera's horizontal view, touched by it)."""
+    left, right = camera_hfov_deg(camera)
+    centre = np.arange(N_SECTORS) * SECTOR_INCREMENT_DEG
+    half = SECTOR_INCREMENT_DEG / 2
+    # the bins' edges relative to the view's middle, wrapped to (-180, 180]
+    mid = 0.5 * (left + right)
+    rel = (centre - mid + 180.0) % 360.0 - 180.0
+    lo, hi = rel - half, rel + half
+    half_view = 0.5 * (right - left)
+    return (lo >= -half_view) & (hi <= half_view), (hi > -half_view) & (lo < half_view)
+
+
+def merge_sectors(parts: list) -> "Sectors":
+    """One OBSTACLE_DISTANCE picture from the sectors of several cameras (same layout and limits): per bin the nearest
+    obstacle any camera reports; else clear if any camera sees it clear; else unknown."""
+    if not parts:
+        raise InputError("merge_sectors: no sectors to merge")
+    first = parts[0]
+    for p in parts[1:]:
+        if (p.increment_deg, p.angle_offset_deg, p.min_distance_cm, p.max_distance_cm) != (
+                first.increment_deg, first.angle_offset_deg, first.min_distance_cm, first.max_distance_cm):
+            raise InputError("merge_sectors: sectors of different layouts or distance limits")
+    d = np.stack([np.asarray(p.distances_cm, np.int64) for p in parts])
+    clear = first.max_distance_cm + 1
+    hit = np.where(d <= first.max_distance_cm, d, UINT16_MAX).min(axis=0)
+    out = np.where(hit < UINT16_MAX, hit, np.where((d == clear).any(axis=0), clear, UINT16_MAX))
+    return Sectors(out.astype(np.uint16), first.increment_deg, first.angle_offset_deg, first.min_distance_cm,
+                   first.max_distance_cm)
 
 
 @dataclass
@@ -417,9 +462,9 @@ def relative_to(pts: Points, state: VehicleState) -> Points:
 
 
 def _bins(bearing_rad, inc_deg, off_deg):
-    b = np.floor((np.degrees(bearing_rad) - off_deg) / inc_deg).astype(np.int64)
-    ok = (b >= 0) & (b < N_SECTORS)
-    return b, ok
+    """Element index of each bearing: element j is centred on off + j inc and covers +- inc / 2 (wraps at 360)."""
+    b = np.floor((np.degrees(bearing_rad) - off_deg) / inc_deg + 0.5).astype(np.int64) % N_SECTORS
+    return b, np.ones(b.shape, bool)
 
 
 def _sorted_percentile(d, starts, n, q):
@@ -456,7 +501,8 @@ def _sectors(pts: Points, obstacle, evidence, camera, inf_cols, cfg: ObstacleCon
     sel = ok & obstacle
     bo, d = b[sel], pts.hdist_m[sel]
     counts = np.bincount(bo, weights=pts.weight[sel], minlength=N_SECTORS)[:N_SECTORS]   # obstacle pixels per bin
-    out[ev >= cfg.min_clear_pixels] = max_cm + 1
+    whole, _ = bins_in_view(camera)
+    out[(ev >= cfg.min_clear_pixels) & whole] = max_cm + 1
     if bo.size:
         order = np.lexsort((d, bo))
         d = d[order]

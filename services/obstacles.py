@@ -8,8 +8,8 @@ non-image publisher: CongestionControl.BLOCK, DATA_HIGH, express). Everything in
 capture stamp and pose, so guidance can use the absolute ``position_ned_m`` of each obstacle.
 
 With ``--mavlink-out udpout:127.0.0.1:14560`` (any pymavlink connection string) a sender thread emits
-OBSTACLE_DISTANCE at ``--mavlink-rate`` (>= 10 Hz) with the latest sectors while they are fresh, then
-all-UINT16_MAX (see ``eonav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz. The sectors sent to
+OBSTACLE_DISTANCE at ``--mavlink-rate`` (>= 10 Hz) with the merged latest sectors of every camera while they are
+fresh, then one all-unknown message and silence (see ``eonav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz. The sectors sent to
 the autopilot are measured from the latest navigation pose when one newer than the map is at hand
 (``sectors_now``): the autopilot applies them relative to where it is on arrival.
 
@@ -52,7 +52,8 @@ def add_arguments(p):
     add_flag(p, "--mavlink-rate", env="EONAV_OBSTACLES_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
              help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)")
     add_flag(p, "--stale", env="EONAV_OBSTACLES_STALE", default=0.5, type=float, metavar="S",
-             help="after this long without a new range map, send 'unknown' sectors")
+             help="after this long without a new range map, send one all-unknown OBSTACLE_DISTANCE and then none "
+                  "until maps flow again (the autopilot then reports No Data)")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
              help="do not re-reference MAVLink sectors to the latest navigation pose")
     g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
@@ -261,7 +262,8 @@ def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, a
     node.latency("compute", compute_s)
     node.latency("capture_to_obstacles", (now_us() - msg["stamp_us"]) * 1e-6)
     if sender is not None:
-        sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"])
+        sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"],
+                      source=msg["camera_id"])
         node.count("mavlink.nav_compensated" if res.sectors_now is not None else "mavlink.capture_pose")
 
 
