@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav import obstacles as ob
-from eonav.camera import Camera, VehicleState
-from eonav.rangemap import AT_INFINITY, VALID
+from eonav.obstacles import detect as ob
+from eonav.geometry.camera import Camera, VehicleState
+from eonav.ranging.rangemap import AT_INFINITY, VALID
 
 # 256 x 256, f = 128 px: horizontal FOV exactly 90 deg (pixel edges at -0.5 and 255.5, bearings -45 .. +45 deg)
 CAM = Camera("nose", 256, 256, 128.0, 128.0, 127.5, 127.5)
@@ -309,7 +309,7 @@ def test_sim_noisy_range_map_still_finds_van(fast_scene):
 
 def test_obstacles_module_imports_no_transport():
     import subprocess
-    code = "import eonav.obstacles, eonav.pair_policy, sys; print('zenoh' in sys.modules, 'pymavlink' in sys.modules)"
+    code = "import eonav.obstacles.detect, eonav.ranging.pair_policy, sys; print('zenoh' in sys.modules, 'pymavlink' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
 
@@ -327,7 +327,7 @@ def _free_udp_port():
 
 
 def test_obstacle_distance_bytes_decode_back():
-    from eonav import mavlink_out as mo
+    from eonav.nav import mavlink_out as mo
     mu = mo.mavutil()
     s = _wall_sectors()
     buf = mo.encode_obstacle_distance(s, 1_700_000_000_123_456, system_id=7)
@@ -345,7 +345,7 @@ def test_obstacle_distance_bytes_decode_back():
 
 
 def test_obstacle_distance_rejects_bad_sectors():
-    from eonav import mavlink_out as mo
+    from eonav.nav import mavlink_out as mo
     s = _wall_sectors()
     bad = ob.Sectors(s.distances_cm[:10], s.increment_deg, s.angle_offset_deg, 50, 15000)
     with pytest.raises(InputError, match="72 distances"):
@@ -365,7 +365,7 @@ def test_obstacle_distance_rejects_bad_sectors():
 
 
 def test_sender_fresh_then_unknown_over_udp():
-    from eonav import mavlink_out as mo
+    from eonav.nav import mavlink_out as mo
     mu = mo.mavutil()
     port = _free_udp_port()
     rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
@@ -423,7 +423,7 @@ def test_sender_fresh_then_unknown_over_udp():
 def test_sender_real_time_rate():
     import threading
     import time
-    from eonav import mavlink_out as mo
+    from eonav.nav import mavlink_out as mo
     mu = mo.mavutil()
     port = _free_udp_port()
     rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
@@ -450,7 +450,7 @@ def test_sender_real_time_rate():
 
 
 def test_sender_rejects_bad_setup():
-    from eonav import mavlink_out as mo
+    from eonav.nav import mavlink_out as mo
     with pytest.raises(InputError, match="2 Hz"):
         mo.ObstacleDistanceSender("udpout:127.0.0.1:9", rate_hz=1.0)
     with pytest.raises(InputError, match="cannot open MAVLink output"):
@@ -501,8 +501,8 @@ def test_map_on_the_locate_grid_gives_the_obstacles_of_the_upsampled_map(fast_sc
     the frame's grid as the locator did before: the same boxes at the same distance, pixel counts and boxes in frame
     pixels, the same sectors. (The scaled pixels sit between two frame pixels, so distances agree to a fraction of a
     per cent, not bit for bit.)"""
-    from eonav.camera import on_grid, scaled_camera
-    from services.locator import to_full_grid
+    from eonav.geometry.camera import on_grid, scaled_camera
+    from eonav.services.locator import to_full_grid
     sp = fast_scene_512
     v, gt = sp.views[0], sp.truth[0]
     sc = scaled_camera(v.camera, 0.5)
@@ -548,7 +548,7 @@ def test_warm_up_map_goes_through_the_analysis():
     """The obstacle service's warm-up map: the wall 30 m ahead is found, sky and ground make the other sectors clear."""
     from types import SimpleNamespace
 
-    from services.obstacles import warm_up
+    from eonav.services.obstacles import warm_up
     counted, lat = {}, {}
     node = SimpleNamespace(count=lambda k, n=1: counted.__setitem__(k, counted.get(k, 0) + n),
                            latency=lambda k, s: lat.__setitem__(k, s), log=SimpleNamespace(info=lambda *a: None))
