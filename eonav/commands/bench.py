@@ -1,9 +1,9 @@
-"""``eonav bench locate|pipeline``: benchmarks that print figures."""
+"""``eonav bench locate|fuse|pipeline``: benchmarks that print figures."""
 from __future__ import annotations
 
 import importlib
 
-TARGETS = {"locate": "eonav.bench_locate", "pipeline": "eonav.bench_pipeline"}
+TARGETS = {"locate": "eonav.bench_locate", "fuse": "eonav.bench_fuse", "pipeline": "eonav.bench_pipeline"}
 
 
 def add_arguments(p) -> None:
