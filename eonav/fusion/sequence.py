@@ -9,7 +9,7 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
    in a stereo rig, the reference camera's newest frame against the partner's frame of the same instant;
 3. each measurement (``measure(view_a, view_b)``, default the dense method without its own fill) fused into the
    state of its reference camera (``update``);
-4. the fused map (``fused_map``) of every state this frame predicted or updated.
+4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it.
 
 ``push`` returns those maps (usually one: the frame's own camera; a stereo partner's frame returns the rig
 reference's map, which it updated). A frame not newer than its camera's state is dropped (``counts``
@@ -114,7 +114,8 @@ class FusionRunner:
             else:
                 self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise)
                 self.frames[cid] = f
-                touched[cid] = []
+                if self.states[cid].occupied().any():      # nothing measured yet: no map to give
+                    touched[cid] = []
         if old is None:
             self.states[cid] = InverseRangeState.empty(f.camera, f.state, t_s)
             self.frames[cid] = f
