@@ -281,3 +281,28 @@ def test_stereo_partner_updates_the_rig_reference():
     assert [m.frame.camera_id for m in maps] == ["left"] and maps[0].measurements[0]["kind"] == "stereo"
     e, cov = median_error(maps[0].result.range_m, sp.truth[0].range_m)
     assert e < 0.03 and cov > 0.5
+
+
+@pytest.mark.realdata
+def test_real_indoor_sequence_fused_beats_single_pair_dense():
+    # the real HoloLens sequence (depth-sensor reference): the fused last frame against the dense method on the
+    # newest pair and the widest pair of the same frame
+    from pathlib import Path
+
+    from eonav.bench_fuse import indoor_config, widest_partner
+    from eonav.methods.dense import locate_dense
+    from eonav.realdata import hololens_sequence
+    data = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    if not (data / "hololens_dvmvs_20f").is_dir():
+        pytest.skip(f"real data not found at {data / 'hololens_dvmvs_20f'} (../shared/data)")
+    views, truth = hololens_sequence(data)
+    cfg = indoor_config()
+    runner = FusionRunner(cfg)
+    for k, v in enumerate(views):
+        maps = runner.push(frame("hololens", v, int(round(v.state.t_s * 1e6)), k))
+    k = len(views) - 1
+    assert maps[0].frame.seq == k
+    e_fused, cov = median_error(maps[0].result.range_m, truth[k])
+    e_newest, _ = median_error(locate_dense(views[k], views[k - 1]).range_m, truth[k])
+    e_widest, _ = median_error(locate_dense(views[k], views[widest_partner(views, k, cfg)]).range_m, truth[k])
+    assert e_fused < e_newest and e_fused < e_widest and cov > 0.5
