@@ -96,6 +96,9 @@ def add_arguments(p):
     add_flag(p, "--publish-grid", env="EONAV_LOCATOR_PUBLISH_GRID", default="locate", choices=("locate", "frame"),
              help="locate (default): publish the range map on the grid it was computed on, with that grid's (scaled) "
                   "camera and the frame size in the message; frame: upsample it to the frame's grid (nearest)")
+    add_flag(p, "--fusion", env="EONAV_LOCATOR_FUSION", default="auto", choices=("auto", "on", "off"),
+             help="fuse every camera's measurements over time into one inverse-range state per camera and publish "
+                  "the fused map (eonav.fusion); auto: on with the dense method, off with the others")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.ranging.pair_policy)")
@@ -310,13 +313,35 @@ def body(node: Node, args) -> None:
         raise InputError(f"--ring must be >= 1, got {args.ring}")
     new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
+    runner = fusion_runner(args, params)
     key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
     sub = node.subscribe(key, ring=args.ring)
     node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, args.warmup,
-                args.publish_grid, name="locate")
-    node.log.info("locator: method %s, scale %s (ladder %s, budget %s), publish grid %s, %s, policy %s", args.method,
-                  args.scale, new_controller().ladder, "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms",
-                  args.publish_grid, key, policy.config)
+                args.publish_grid, runner, name="locate")
+    node.log.info("locator: method %s, fusion %s, scale %s (ladder %s, budget %s), publish grid %s, %s, policy %s",
+                  args.method, "on" if runner else "off", args.scale, new_controller().ladder,
+                  "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms", args.publish_grid, key,
+                  policy.config)
+
+
+def fusion_runner(args, params: dict):
+    """The locator's ``eonav.fusion`` runner (None with fusion off): the pair policy's judgement schedules the
+    measurements, each one the configured method without its own fill (the fused map fills once)."""
+    if args.fusion == "off" or (args.fusion == "auto" and args.method != "dense"):
+        return None
+    if args.method != "dense":
+        raise InputError(f"--fusion on needs a method with a calibrated sigma (dense), not {args.method!r}")
+    from dataclasses import replace
+
+    from eonav.fusion.schedule import ScheduleConfig
+    from eonav.fusion.sequence import FusionConfig, FusionRunner
+    from eonav.ranging.locate import locate
+    pol = policy_config(args)
+    schedule = ScheduleConfig(policy=replace(pol, stereo_rig=None), stereo_rig=pol.stereo_rig,
+                              max_stereo_dt_s=pol.max_stereo_dt_s)
+    measure_params = dict(params, fill=False)
+    return FusionRunner(FusionConfig(schedule=schedule),
+                        measure=lambda va, vb: locate(va, vb, method=args.method, **measure_params))
 
 
 def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
@@ -404,10 +429,11 @@ def show_scale(node: Node, camera_id: str, controller, shown: dict) -> None:
 
 
 def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controller=None,
-                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate") -> None:
+                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate", runner=None) -> None:
     """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1);
     ``warmup``: ``warm_up_camera`` at each camera's first frame; ``publish_grid``: ``locate`` or ``frame`` (module
-    docstring)."""
+    docstring); ``runner``: an ``eonav.fusion`` FusionRunner (``fusion_runner``), which then schedules the pairs and
+    whose fused maps are published, instead of one pair's map per frame."""
     if publish_grid not in ("locate", "frame"):
         raise InputError(f"publish grid must be 'locate' or 'frame', got {publish_grid!r}")
     from eonav.ranging.locate import locate
@@ -418,6 +444,8 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     shown: dict = {}                            # camera -> scale_pct gauge value reported so far
     cameras = CameraCache(1.0)                  # the history keeps full-resolution grey images; pairs resize on use
     errors_in_row = 0
+    reported_fusion: dict = {}                  # runner counts reported to the health counters so far
+    sources: dict = {}                          # (camera, seq) -> posed frame, for the fused maps
 
     def one(sample, newest) -> None:
         nonlocal errors_in_row
@@ -456,8 +484,14 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
         sc.observe_frame(f.seq, f.stamp_us)          # (a calibrated start may move with the budget: gauge it)
         show_scale(node, f.camera_id, sc, shown)
         if not newest:                   # a newer frame of this camera is already waiting: partner only
-            policy.remember(f)
+            if runner is not None:
+                runner.remember(fusion_frame(f, sc.scale, cameras))
+            else:
+                policy.remember(f)
             node.count("frames_superseded")
+            return
+        if runner is not None:
+            fuse_frame(node, runner, f, sc, pubs, range_std, t_rx0, cameras, publish_grid, reported_fusion, sources)
             return
         d = policy.offer(f)
         node.count(f"pairs.{d.reason}")
@@ -484,6 +518,67 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     for first in sub:
         for sample, newest in drain_latest(first, sub):
             node.guarded("posed_frame", one, sample, newest)
+
+def fusion_frame(f, scale: float, cameras: CameraCache):
+    """The fusion runner's frame of posed frame ``f`` at the locate ``scale``."""
+    from eonav.fusion.sequence import frame
+    return frame(f.camera_id, scaled_view(f, scale, cameras), f.stamp_us, f.seq)
+
+
+def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: float, cameras: CameraCache,
+               publish_grid: str, reported: dict, sources: dict) -> None:
+    """Push posed frame ``f`` through the fusion runner and publish the fused maps it returns (normally one: ``f``'s
+    camera; a stereo partner's frame returns the rig reference's). The compute time (measurements + fusion) drives
+    the camera's scale controller as a single pair's would."""
+    scale = sc.scale
+    t0 = time.perf_counter()
+    sources[(f.camera_id, f.seq)] = f            # the posed frame behind a fused map (its quaternion, camera map)
+    while len(sources) > 64:
+        sources.pop(next(iter(sources)))
+    try:
+        maps = runner.push(fusion_frame(f, scale, cameras))
+    except Exception as e:  # one bad frame must not stop the locator: forget the camera's state, start afresh
+        node.count("locate_errors")
+        node.count("fusion.resets_on_error")
+        runner.reset(f.camera_id)
+        node.log_limited("fusion_error", logging.ERROR, "fusion of %s/%d failed (state reset): %s: %s",
+                         f.camera_id, f.seq, type(e).__name__, e)
+        return
+    for name, v in runner.counts.items():
+        d = v - reported.get(name, 0)
+        if d:
+            node.count(f"fusion.{name}", d)
+            reported[name] = v
+    for m in maps:
+        a = sources.get((m.frame.camera_id, m.frame.seq))
+        if a is None:
+            node.count("fusion.map_without_frame")
+            continue
+        ms = m.measurements[-1] if m.measurements else {}
+        compute_s = m.locate_s + m.fusion_s
+        fields = map_fields(m.result, a, m.frame.camera, range_std, publish_grid)
+        n = np.minimum(np.asarray(m.n_fused), 255).astype(np.uint8)
+        if fields["range_m"].shape != n.shape:
+            n = to_full_grid(n, a.camera)
+        node.put(pubs[a.camera_id], "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
+                 other_camera_id=ms.get("other_camera_id", ""), other_seq=ms.get("other_seq", -1),
+                 method=m.result.method, position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"],
+                 baseline_m=ms.get("baseline_m", float("nan")), compute_s=compute_s, scale=float(scale),
+                 overhead_s=(t0 - t_rx0), n_fused=n, **fields)
+        node.count("pairs_computed", len(m.measurements))
+        node.count("maps_fused")
+        node.tick("pairs_computed")
+        node.latency("compute", compute_s)
+        node.latency("fusion", m.fusion_s)
+        node.latency("capture_to_published", (now_us() - a.stamp_us) * 1e-6)
+        if m.measurements:
+            change = sc.observe_compute(scale, compute_s)
+            if change is not None:
+                node.count("scale_changes")
+                node.count(f"scale_changes.{change.direction}")
+                node.log.info("camera %s: locate scale %g -> %g: %s", a.camera_id, change.old, change.new,
+                              change.reason)
+
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
                errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate") -> tuple:

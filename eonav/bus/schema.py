@@ -97,6 +97,9 @@ FIELDS = {
         # frame's; a map published at the locate scale (services/locator.py --publish-grid locate) carries the
         # scaled camera (eonav.camera.scaled_camera) and the frame's size here, so readers can count in frame pixels
         "frame_width": ("int", 0), "frame_height": ("int", 0),
+        # appended: a fused map's number of measurements fused per pixel (uint8, saturating at 255); absent on a
+        # single pair's map
+        "n_fused": ("array", None),
     },
     "obstacle_list": {
         "stamp_us": ("int", REQUIRED), "camera_id": ("str", ""), "obstacles": ("list", REQUIRED),
@@ -307,7 +310,7 @@ def _check_map_arrays(kind, msg):
     cam = msg["camera"]
     hw = (cam["height"], cam["width"])
     for name, dtypes in (("range_m", FLOAT_DTYPES), ("confidence", FLOAT_DTYPES),
-                         ("inv_range_std_per_m", FLOAT_DTYPES), ("flags", ("uint8",))):
+                         ("inv_range_std_per_m", FLOAT_DTYPES), ("flags", ("uint8",)), ("n_fused", ("uint8",))):
         a = msg.get(name)
         if a is None:
             continue
