@@ -64,7 +64,7 @@ STABLE_RESET_S = 30.0
 DEFAULT_MAX_RESTARTS = 5
 EXIT_CONFIG = 2
 
-# The default pipeline (DESIGN §3). Services whose modules do not exist yet are reported as missing.
+# The default pipeline. Services whose modules do not exist yet are reported as missing.
 DEFAULT_SERVICES = [
     {"name": "mavlink", "module": "mavlink_ingest"},
     {"name": "sync", "module": "sync"},

@@ -14,7 +14,7 @@ A service module looks like this::
     if __name__ == "__main__":
         service_main("camera", add_arguments, body)
 
-Lifecycle (STYLE §3, ECOSYSTEM §1.5):
+Lifecycle (the zenoh pitfalls it avoids: docs/zenoh.md):
 
 1. configure: parse flags (env defaults), set up logging;
 2. open the zenoh session (context manager, so it is always closed);
@@ -299,7 +299,7 @@ class Node:
     def wait_matching(self, publisher, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` until ``publisher`` has a matching subscriber (then 50 ms more, so the route is
         set up on every hop): a put right after a declaration can miss subscribers whose route is not there yet
-        (ECOSYSTEM 1.5). Returns whether one matched (False also on shutdown)."""
+        (docs/zenoh.md, the declaration race). Returns whether one matched (False also on shutdown)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not self.stop_event.is_set():
             try:

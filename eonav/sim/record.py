@@ -1,4 +1,4 @@
-"""Write a simulated flight as a recording the services replay (DESIGN.md §5).
+"""Write a simulated flight as a recording the services replay.
 
 ``record_flight(out_dir, name="approach", n_frames=20, rate_hz=10.0, size=(160, 120), seed=0)`` writes::
 
