@@ -1,54 +1,16 @@
-"""Locator: posed frames -> range maps with confidence.
+"""Locator: posed frames -> range maps with confidence (docs/bus.md, "Locator").
 
-Subscribes ``keys.posed_frames_all(vehicle)`` (or one camera with ``--camera``) through a RingChannel: the
-newest frames win, so a locator slower than the camera skips frames instead of growing a queue (skipped
-frames show as ``frames_skipped`` from the ``seq`` gaps). A small history per camera feeds
-``eonav.ranging.pair_policy`` (parallax at a reference range, max age, max rotation, stereo rig); for every pair it
-runs ``eonav.locate.locate(view_a, view_b, method=--method)`` and publishes schema ``range_map`` on
-``keys.range_map(vehicle, camera_id)`` with the reference (newest) frame's stamp, camera and pose.
+In: schema ``posed_frame`` on ``keys.posed_frames_all(vehicle)`` (or one camera). Out: schema ``range_map`` on
+``keys.range_map(vehicle, camera_id)`` with the reference frame's stamp, pose and camera. A small history per camera
+feeds ``eonav.ranging.pair_policy``; each pair goes through ``eonav.ranging.locate.locate``.
 
-Scheduling: latest frame wins. After each locate the worker drains the ring and ranges only the newest frame of each
-camera; the older ones are decoded (malformed input is still counted) and only remembered as pair partners
-(``PairPolicy.remember``, counted ``frames_superseded``): a frame that arrived while locate ran never waits behind a
-stale one. The latency a frame can see is therefore at most one locate call (the one running when it arrived) plus its
-own.
+Two decisions a reader must know:
 
-Message: ``range_m`` float32, ``confidence`` float16, ``flags`` uint8, ``inv_range_std_per_m`` float16 (``--range-std
-f16``, the default: the obstacle service gates and sizes ground clearance with it), float32 (``f32``) or not sent
-(``off``); 7-9 bytes per pixel instead of 13.
-
-Scale: ``--scale auto`` (the default) chooses, per camera and per pair, the largest rung of the ladder 1, 0.5, ...
-``--min-scale`` whose compute time fits a budget (``--budget-ms``, default 60 % of the camera's measured frame
-interval, clamped to [20, 200] ms): ``eonav.scale_control.ScaleController`` steps down when the recent median compute
-time exceeds the budget and back up only when the predicted cost one rung up stays below 70 % of it for 5 pairs in a
-row. Warm-up (``--warmup``, on by default): at a camera's first frame (which cannot make a pair yet) the locator times
-one locate call per rung on a synthetic pair made of that frame (``calibrate_camera``) and hands the timings to the
-controller, whose first pairs then run warm and at the largest rung whose calibrated cost fits the budget, instead of
-at full scale until ``min_samples`` pairs over the budget (frames dropped in the first seconds at 15 fps 640x480).
-Both frames of a pair use the pair's scale: the history keeps the full-resolution grey images and each pair
-resizes on use (kept in the frame's payload, so a partner is resized once per scale). Each change is logged with its
-reason and counted (``scale_changes``, ``scale_changes.up|down``); the counter ``scale_pct.<camera>`` is the camera's
-current scale in percent (a gauge kept by deltas) and ``pairs_computed.scale_<pct>`` counts the pairs per scale.
-``--scale S`` (a number) always locates at S: on the grey images resized by S (cv2.INTER_AREA; the camera's intrinsics scaled
-with pixel centres kept: fx' = S fx, cx' = S (cx + 0.5) - 0.5: ``eonav.camera.scaled_camera``); the message says
-``scale``. The pair policy still judges parallax on the full-resolution camera.
-
-Grid of the published map (``--publish-grid``, env EONAV_LOCATOR_PUBLISH_GRID): ``locate`` (the default) publishes the
-maps on the grid they were computed on, with the camera model OF THAT GRID (the scaled camera) in the message's
-``camera`` and the frame's size in ``frame_width`` / ``frame_height``; every reader takes the geometry from the
-message's own camera (the obstacle service passes the frame size to ``eonav.obstacles.analyse`` so its pixel counts
-stay in frame pixels). ``frame`` upsamples the maps to the frame's grid by nearest neighbour (pixel u takes the scaled
-pixel floor((u + 0.5) S): ``to_full_grid``) and sends the frame's camera, as before. Why ``locate``: measured at
-640x480 and scale 0.5 the upsampling cost the locator 2.3 ms per pair, the message was 2.77 MB instead of 0.69 MB
-(encode 1.3 ms, decode 0.4 ms, the copies on the bus) and the obstacle analysis 15.1 ms instead of 10.4 ms, for the same
-obstacles (the upsampled pixels carry no information the scaled ones do not). 0.5 costs roughly a quarter of the
-locate time; what it costs in accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range
-error and coverage vs truth).
-
-Health: counters ``pairs_computed``, ``scale_changes``, ``scale_pct.<camera>`` (above), ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
-``locate_errors``, ``warmup_errors``, ``frames_skipped``, ``frames_superseded``; latencies ``warmup`` (per camera), ``capture_to_published`` (frame capture stamp
--> range map put, the pipeline's figure), ``capture_to_received``, ``compute`` (the locate call) and ``overhead``
-(everything else this service does per ranged frame: decode, camera/pose, grey image, scaling, encode, put).
+- latest frame wins: the subscriber is a RingChannel and, after each locate, only the newest frame of each camera
+  is ranged (older ones become pair partners), so a slow locator skips frames instead of queueing them;
+- the locate scale is adaptive by default (``eonav.ranging.scale_control``: the largest scale whose compute time
+  fits a budget, calibrated on a synthetic pair at a camera's first frame), and the map is published on the grid
+  it was computed on, with that grid's (scaled) camera in the message.
 """
 from __future__ import annotations
 
@@ -260,9 +222,8 @@ def scaled_view(f, scale: float, cameras: CameraCache):
 def to_full_grid(a, cam):
     """A map computed at the locate scale back on the frame's grid (nearest neighbour); None stays None.
 
-    Two ``take`` calls (rows, then columns) rather than one ``a[np.ix_(rows, cols)]``: the same pixels, but 0.55 ms
-    instead of 2.0 ms per 640 x 480 map from 320 x 240 on the bench machine, and the locator upsamples four maps per
-    pair (range, confidence, std, flags: 8.5 ms -> 2.3 ms of its per-pair overhead at scale 0.5)."""
+    Two ``take`` calls (rows, then columns) rather than one ``a[np.ix_(rows, cols)]``: the same pixels in about a
+    quarter of the time (four maps per pair: range, confidence, std, flags)."""
     if a is None or a.shape == (cam.height, cam.width):
         return a
     a = np.asarray(a)
@@ -385,8 +346,7 @@ def synthetic_partner(f):
 
 def calibrate_camera(f, controller, method: str, params: dict, cameras: CameraCache, locate) -> dict:
     """Warm-up at a camera's first frame: one untimed locate call at the lowest rung (the process's first call pays
-    imports, OpenCV and work-buffer set-up: 71 ms instead of 44 ms for a 640x480 dense pair on the bench machine),
-    then one timed call per rung of ``controller``'s ladder on ``synthetic_partner(f)``. Returns {scale: seconds}
+    imports, OpenCV and work-buffer set-up), then one timed call per rung of ``controller``'s ladder on ``synthetic_partner(f)``. Returns {scale: seconds}
     for ``controller.calibrate``, so the camera's first real pairs run warm and at a rung that fits the budget.
     Raises what locate raises."""
     b = synthetic_partner(f)
@@ -403,7 +363,7 @@ def calibrate_camera(f, controller, method: str, params: dict, cameras: CameraCa
 
 def warm_up_camera(node: Node, f, controller, method: str, params: dict, cameras: CameraCache, locate) -> None:
     """``calibrate_camera`` and hand the timings to the controller; a failure is counted (``warmup_errors``) and
-    logged, and the camera then starts uncalibrated at full scale as before."""
+    logged, and the camera then starts uncalibrated at full scale."""
     t0 = time.perf_counter()
     try:
         costs = calibrate_camera(f, controller, method, params, cameras, locate)
@@ -470,7 +430,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
         last_seq[f.camera_id] = f.seq
         if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map, and before
             # the warm-up: a put right after the declaration can miss subscribers the route to which is not set
-            # up yet (ECOSYSTEM 1.5); with the declaration after the warm-up, a second frame already waiting was
+            # up yet (docs/zenoh.md, the declaration race); with the declaration after the warm-up, a second frame already waiting was
             # ranged and put ~10 ms after it, and its map was lost now and then
             pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
         sc = scalers.get(f.camera_id)

@@ -2,19 +2,11 @@
 
     {"kind": "frame", "v": 1, "camera_id": "nose", "seq": 12, "stamp_us": ..., "image": {array}, ...}
 
-Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian).
-``range_map`` sends ``range_m`` as float32, ``confidence`` and ``inv_range_std_per_m`` as float16 (3 significant
-digits: plenty for a gate; half the bytes) and ``flags`` as uint8 (``eonav.ranging.rangemap``: VALID = measured, FILLED =
-inferred from the measured pixels around, both with a finite ``range_m``); readers must not assume float32 (numpy promotes
-float16 in arithmetic; ``np.asarray(a, np.float32)`` where a float32 copy is wanted). float16 was added to the
-allowed dtypes without a version bump: an older build rejects such a message (counted decode error), it never
-misreads it.
-``decode`` rejects anything malformed or hostile (wrong kind, unknown version, missing or mistyped
-field, array whose byte count does not match dtype x shape, absurd sizes) with ``SchemaError`` naming
-the problem; services count those and keep running. New fields are appended with defaults, so a
-reader of version 1 accepts version-1 messages carrying extra fields.
-
-No zenoh import here: the schema is pure data.
+Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian); a range
+map's ``confidence`` and ``inv_range_std_per_m`` are float16, so readers must not assume float32. ``encode`` builds a
+message of a kind; ``decode`` rejects anything malformed or hostile with ``SchemaError`` naming the problem
+(services count those and keep running). New fields are appended with defaults, so a version-1 reader accepts
+version-1 messages with extra fields. The kinds and keys: docs/bus.md. Pure data: no zenoh import.
 """
 from __future__ import annotations
 
