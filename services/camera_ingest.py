@@ -62,7 +62,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from eonav import EonavError, InputError
-from eonav import keys as K
+from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, service_main
 
 log = logging.getLogger("eonav.service.camera")

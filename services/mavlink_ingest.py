@@ -8,7 +8,7 @@ Live or recorded is one flag (STYLE §4): ``--source`` takes any pymavlink conne
   ATTITUDE_QUATERNION, LOCAL_POSITION_NED, GLOBAL_POSITION_INT or ODOMETRY message (each stream with
   its own stamps; absent quantities NaN; ``source`` = the message type), and ``clock_offset`` on
   ``keys.nav_clock(vehicle)`` (at most 1 Hz and on every change of method). Decoding, validation,
-  reboot handling and the clock-offset estimators are in :mod:`eonav.mavlink_nav` (see its docstring).
+  reboot handling and the clock-offset estimators are in :mod:`eonav.nav.mavlink_in` (see its docstring).
 - ``stamp_us`` is on the companion clock: autopilot time + the estimated offset.
 - .tlog: replayed at real time (``--rate 1``), ``--rate X`` times faster, or as fast as possible
   (``--rate 0``). Record-header times are mapped onto the current clock (shift = now at start - first
@@ -21,7 +21,7 @@ Live or recorded is one flag (STYLE §4): ``--source`` takes any pymavlink conne
 - ``--system-id``: the autopilot to follow (default: the first autopilot seen, component 1).
 
 Health counters: ``msg.<TYPE>`` per received message type, ``bad_data``, ``truncated_bytes``,
-``rejected.<reason>`` (see eonav.mavlink_nav), ``reboots``, ``nav_published``; the detail string
+``rejected.<reason>`` (see eonav.nav.mavlink_in), ``reboots``, ``nav_published``; the detail string
 carries the clock method and offset.
 """
 from __future__ import annotations
@@ -33,9 +33,9 @@ from collections import Counter
 from pathlib import Path
 
 from eonav import InputError
-from eonav import keys as K
+from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, service_main
-from eonav.mavlink_nav import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
+from eonav.nav.mavlink_in import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
 
 log = logging.getLogger(__name__)
 
