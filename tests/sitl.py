@@ -74,7 +74,7 @@ def _free(port: int, kind=socket.SOCK_STREAM) -> bool:
 
 
 def _mavutil():
-    from eonav.mavlink_out import mavutil
+    from eonav.nav.mavlink_out import mavutil
     return mavutil()
 
 
@@ -117,7 +117,7 @@ class _Link:
                 if typ in self.keep:
                     self.history.setdefault(typ, []).append((t, m))
 
-    def get(self, typ: str, src_component: int | None = None):
+    def get(self, typ: str):
         with self.lock:
             v = self.latest.get(typ)
         return None if v is None else v[1]
@@ -144,7 +144,7 @@ def wait_for(cond, timeout: float, what: str, period: float = 0.02):
     deadline = time.monotonic() + timeout
     while True:
         v = cond()
-        if v:
+        if v is not None and v is not False and (not hasattr(v, "__len__") or len(v)):
             return v
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout:.1f} s waiting for {what}")
@@ -478,7 +478,7 @@ def make_camera(yaw_deg: float = 0.0, width: int = 320, height: int = 240, hfov_
 
     import numpy as np
 
-    from eonav.camera import Camera
+    from eonav.geometry.camera import Camera
     f = (width / 2) / math.tan(math.radians(hfov_deg) / 2)
     return Camera(f"cam{yaw_deg:+.0f}".replace("+", "p").replace("-", "m"), width, height, f, f,
                   (width - 1) / 2, (height - 1) / 2, eps_rad=np.array([math.radians(yaw_deg), 0.0, 0.0]))
@@ -502,7 +502,7 @@ def range_map_of(scene, camera, state):
     finite, AT_INFINITY on the sky, confidence 1, a 0.01 %/m inverse-range sigma."""
     import numpy as np
 
-    from eonav.rangemap import AT_INFINITY, VALID
+    from eonav.ranging.rangemap import AT_INFINITY, VALID
     from eonav.sim.render import render
     r = render(scene, camera, state, supersample=1, noise_sigma=0.0, quantize=False).range_m
     flags = np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8)
@@ -511,8 +511,8 @@ def range_map_of(scene, camera, state):
 
 def range_map_payload(scene, camera, state, seq: int, stamp_us: int) -> bytes:
     """A ``range_map`` message (schema encoded) of the scene, as the locator publishes it."""
-    from eonav import schema
-    from eonav.geometry import quat_wxyz_from_rotation
+    from eonav.bus import schema
+    from eonav.geometry.frames import quat_wxyz_from_rotation
     r, flags, conf, sig = range_map_of(scene, camera, state)
     return schema.encode("range_map", camera_id=camera.name, seq=seq, stamp_us=stamp_us, method="truth",
                          range_m=r, confidence=conf, flags=flags, inv_range_std_per_m=sig,
@@ -557,8 +557,8 @@ class MapFeeder:
             self._live = source
 
     def _run(self):
-        from eonav import schema
-        from eonav.geometry import quat_wxyz_from_rotation
+        from eonav.bus import schema
+        from eonav.geometry.frames import quat_wxyz_from_rotation
         while not self._stop.wait(1.0 / self.rate_hz):
             with self._lock:                      # held while putting: pause() returns after the last put
                 if self._live is not None and not self.paused:
