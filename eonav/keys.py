@@ -8,6 +8,7 @@ Layout: ``eonav/<vehicle>/<subject>...`` so that several vehicles can share one 
     eonav/<vehicle>/posed/<camera_id>/frame       sync -> locator              (PosedFrame)
     eonav/<vehicle>/range/<camera_id>             locator -> obstacles         (RangeMap)
     eonav/<vehicle>/obstacles                     obstacle publisher -> guidance (ObstacleList)
+    eonav/<vehicle>/obstacles/tracks              obstacle publisher -> guidance (obstacle_tracks, eonav.guidance_msg)
     eonav/<vehicle>/health/<service>              every service, ~1 Hz         (Health)
     eonav/<vehicle>/alive/<service>               liveliness token per service process
     eonav/<vehicle>/config/<service>              queryable: the service's effective configuration
@@ -69,6 +70,10 @@ def range_maps_all(vehicle: str) -> str:
 
 def obstacles(vehicle: str) -> str:
     return f"{_v(vehicle)}/obstacles"
+
+
+def obstacle_tracks(vehicle: str) -> str:
+    return f"{_v(vehicle)}/obstacles/tracks"
 
 
 def health(vehicle: str, service: str) -> str:
