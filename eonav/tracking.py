@@ -10,7 +10,9 @@ the camera geometry. A point seen at pixel (u, v) and range x_c is x_cam = x_c [
 with s_x the range 1-sigma (the obstacle's ``range_std_m``, plus ``extent_fraction`` of its depth along the axis),
 s_u, s_v the pixel 1-sigma of the median point (``pixel_sigma_px``, ``extent_fraction`` of the box's pixel width /
 height: the median moves as more or less of the object is seen, and the attitude error ``attitude_sigma_rad`` x f).
-Error along the ray is the range sigma, across it the pixel extent at that range.
+Error along the ray is the range sigma, across it the pixel extent at that range. Obstacles of one list whose boxes
+come within ``merge_gap_m`` of each other are merged first (``merge_fragments``: the list cuts a thin pole at its
+range noise into stacked pieces; one object, one measurement).
 
 Filter: one constant-velocity Kalman filter per track, state [position_ned_m, velocity_ned_mps], white-noise
 acceleration of spectral density ``accel_sigma_mps2^2`` (F = [[I, dt I], [0, I]], Q = q [[dt^3/3 I, dt^2/2 I],
@@ -82,6 +84,7 @@ class TrackerConfig:
     attitude_sigma_rad: float = math.radians(0.2)
     nav_sigma_m: float = 0.2
     min_range_rel_sigma: float = 0.002     # floor of the range 1-sigma, relative to range
+    merge_gap_m: float = 0.5               # obstacles of one list whose boxes come this close are one (0: off)
     # visibility
     edge_margin_px: float = 1.0            # map pixels: a track projected this close to the edge is out of view
     occlusion_rel: float = 0.08            # nearer than (1 - this) x_c (and 3 sigma, and the depth extent): the
@@ -93,7 +96,7 @@ class TrackerConfig:
                      "max_position_sigma_m", "moving_chi2", "pixel_sigma_px", "occlusion_rel"):
             _positive(name, getattr(self, name))
         for name in ("extent_fraction", "attitude_sigma_rad", "nav_sigma_m", "min_range_rel_sigma",
-                     "edge_margin_px"):
+                     "edge_margin_px", "merge_gap_m"):
             _positive(name, getattr(self, name), allow_zero=True)
         for name in ("confirm_hits", "max_misses", "confidence_window"):
             v = getattr(self, name)
@@ -142,6 +145,38 @@ class Measurement:
             raise InputError("measurement extent_ned_m: must be >= 0")
 
 
+def merge_fragments(measurements, gap_m: float) -> list:
+    """Measurements whose extent boxes (position +- extent / 2, NED) come within ``gap_m`` of each other on every
+    axis, directly or through others, become one: the union box, the pixel-weighted mean position, the weighted mean
+    covariance plus the weighted spread of the positions, the summed pixels. The obstacle list splits a thin pole or a
+    mast into pieces at its range noise; one object, one track."""
+    meas = list(measurements)
+    if gap_m <= 0 or len(meas) < 2:
+        return meas
+    from scipy.sparse.csgraph import connected_components
+    p = np.stack([m.position_ned_m for m in meas])
+    half = 0.5 * np.stack([m.extent_ned_m for m in meas])
+    lo, hi = p - half, p + half
+    touch = np.all((lo[:, None] <= hi[None] + gap_m) & (lo[None] <= hi[:, None] + gap_m), axis=-1)
+    n, labels = connected_components(touch, directed=False)
+    if n == len(meas):
+        return meas
+    out = []
+    for k in range(n):
+        idx = np.flatnonzero(labels == k)
+        if idx.size == 1:
+            out.append(meas[idx[0]])
+            continue
+        w = np.array([max(meas[i].pixel_count, 1) for i in idx], float)
+        w /= w.sum()
+        pos = w @ p[idx]
+        d = p[idx] - pos
+        cov = np.einsum("i,ijk->jk", w, np.stack([meas[i].cov_ned_m2 for i in idx])) + (d * w[:, None]).T @ d
+        out.append(Measurement(pos, cov, hi[idx].max(0) - lo[idx].min(0), int(sum(meas[i].pixel_count for i in idx)),
+                               float(w @ [meas[i].confidence for i in idx]), meas[idx[0]].camera_id))
+    return out
+
+
 def R_ned_cam(camera: Camera, state: VehicleState) -> np.ndarray:
     """Rotation camera -> NED: T2^T T1^T (eq. 33)."""
     return state.T_body_ned.T @ camera.T_cam_body.T
@@ -170,9 +205,10 @@ def camera_covariance(point_ned_m, camera: Camera, state: VehicleState, sigma_ra
 
 def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, cfg: TrackerConfig = TrackerConfig(),
                                 frame_size=None, camera_id: str = "") -> list:
-    """``Measurement`` of each ``eonav.obstacles.Obstacle`` of one range map. ``camera`` / ``state`` /
-    ``frame_size`` are those given to ``analyse`` (the map's grid camera, the capture pose, the frame's (width,
-    height) or None): ``bbox_px`` and the pixel sigma are in frame pixels."""
+    """``Measurement`` of each ``eonav.obstacles.Obstacle`` of one range map, fragments of one object merged
+    (``merge_fragments`` with ``cfg.merge_gap_m``). ``camera`` / ``state`` / ``frame_size`` are those given to
+    ``analyse`` (the map's grid camera, the capture pose, the frame's (width, height) or None): ``bbox_px`` and the
+    pixel sigma are in frame pixels."""
     fw, fh = (camera.width, camera.height) if not frame_size or not any(frame_size) else map(int, frame_size)
     fx, fy = camera.fx * fw / camera.width, camera.fy * fh / camera.height       # focal lengths in frame pixels
     R = R_ned_cam(camera, state)
@@ -197,7 +233,7 @@ def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, 
         cov = camera_covariance(p, camera, state, s_range, s_u * camera.width / fw, s_v * camera.height / fh)
         cov = cov + cfg.nav_sigma_m ** 2 * np.eye(3)
         out.append(Measurement(p, cov, ext, int(o.pixel_count), float(o.confidence), camera_id))
-    return out
+    return merge_fragments(out, cfg.merge_gap_m)
 
 
 @dataclass

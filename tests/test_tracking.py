@@ -118,6 +118,29 @@ def test_measurement_from_obstacle_hand_derived_and_grid_independent():
     np.testing.assert_allclose(m3.cov_ned_m2, want + 0.25 * np.eye(3), rtol=1e-9)
 
 
+def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
+    cov = np.diag([0.25, 0.01, 0.01])
+    # a pole (0.3 m wide) listed as three stacked pieces 0.2 m apart, and a second pole 2 m to the east
+    parts = [T.Measurement([60.0, 0.0, -1.0], cov, [0.3, 0.3, 2.0], 100),
+             T.Measurement([60.2, 0.0, -3.2], cov, [0.3, 0.3, 2.0], 300),
+             T.Measurement([60.0, 0.1, -5.4], cov, [0.3, 0.3, 2.0], 100)]
+    other = T.Measurement([60.0, 2.0, -3.0], cov, [0.3, 0.3, 6.0], 50)
+    out = T.merge_fragments(parts + [other], gap_m=0.5)
+    assert len(out) == 2 and out[1] is other
+    m = out[0]
+    w = np.array([0.2, 0.6, 0.2])
+    want = w @ np.array([p.position_ned_m for p in parts])
+    np.testing.assert_allclose(m.position_ned_m, want)
+    np.testing.assert_allclose(m.extent_ned_m, [0.5, 0.4, 6.4])           # union of the three boxes
+    spread = sum(wi * np.outer(p.position_ned_m - want, p.position_ned_m - want) for wi, p in zip(w, parts))
+    np.testing.assert_allclose(m.cov_ned_m2, cov + spread, atol=1e-12)
+    assert m.pixel_count == 500
+    # pieces 0.6 m apart (beyond the 0.5 m gap) stay apart
+    apart = [parts[0], T.Measurement([60.0, 0.0, -3.6], cov, [0.3, 0.3, 2.0], 300)]
+    assert len(T.merge_fragments(apart, gap_m=0.5)) == 2
+    assert len(T.merge_fragments(apart, gap_m=0.7)) == 1
+
+
 def test_bad_measurements_and_config_are_named():
     with pytest.raises(InputError, match="positive definite"):
         T.Measurement([1, 2, 3], np.diag([1.0, 0.0, 1.0]))
