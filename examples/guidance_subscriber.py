@@ -3,7 +3,8 @@
     python examples/guidance_subscriber.py --connect tcp/127.0.0.1:7447 --vehicle demo [--count N]
 
 A line reads, e.g.:
-    seq 42 ok map 0.06 s | 3 tracks | threat id 7 in 2.41 s at 48.2 m (surface 47.9 m) az +3.1 el -1.0 deg closing 19.9 m/s
+    seq 42 ok map 0.06 s | 3 tracks | threat id 7 in 2.41 s at 48.2 m (surface 47.9 m) az +3.1 el -1.0 deg
+        closing 19.9 m/s
     seq 43 stale map 0.71 s | 3 tracks | no threat
 A "stale" or "no_map" status means the range maps have stopped: the tracks are only predictions (see the docs).
 Ctrl-C stops it.
