@@ -21,6 +21,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.bus import keys as K
+from eonav.bus.freshness import FreshnessGate, age_ms, screen
 from eonav.bus.node import Node, add_flag, now_us, service_main
 
 log = logging.getLogger("eonav.service.obstacles")
@@ -40,6 +41,13 @@ def add_arguments(p):
                   "until maps flow again (the autopilot then reports No Data)")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
              help="do not re-reference MAVLink sectors to the latest navigation pose")
+    add_flag(p, "--max-input-age-ms", env="EONAV_OBSTACLES_MAX_INPUT_AGE_MS", default=1000.0, type=float,
+             help="drop (count dropped.too_old) a range map whose frame is older than this on arrival or when its "
+                  "obstacle list would be published (docs/bus.md, Staleness)")
+    add_flag(p, "--input-timeout-ms", env="EONAV_OBSTACLES_INPUT_TIMEOUT_MS", default=1000.0, type=float,
+             help="no usable range map for this long: state degraded (5 periods of a 5 fps camera)")
+    add_flag(p, "--nav-timeout-ms", env="EONAV_OBSTACLES_NAV_TIMEOUT_MS", default=500.0, type=float,
+             help="no nav_state for this long: state degraded (not watched with --no-nav)")
     g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
     add_flag(g, "--min-distance", env="EONAV_OBST_MIN_DISTANCE", default=0.5, type=float, metavar="M")
     add_flag(g, "--max-distance", env="EONAV_OBST_MAX_DISTANCE", default=150.0, type=float, metavar="M",
@@ -107,8 +115,11 @@ def body(node: Node, args) -> None:
     pub = node.publisher(K.obstacles(node.vehicle))          # reliable, small, express
     maps = node.subscribe(K.range_maps_all(node.vehicle), ring=2)
     nav = LatestNav()
+    args._freshness = FreshnessGate(args.max_input_age_ms / 1000.0)
+    node.expect_input("range maps", args.input_timeout_ms / 1000.0)
     if not args.no_nav:
         navsub = node.subscribe(K.nav_state(node.vehicle), ring=1)
+        node.expect_input("nav", args.nav_timeout_ms / 1000.0)
         node.worker(nav_loop, node, navsub, nav, name="nav")
     node.worker(obstacle_loop, node, maps, pub, cfg, ObstacleTracker(), nav, sender, args, name="obstacles")
     if sender is not None:
@@ -147,6 +158,7 @@ def nav_loop(node: Node, sub, nav: LatestNav) -> None:
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
             node.count("nav_incomplete")
             return
+        node.input_seen("nav")
         nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]))
 
     for sample in sub:
@@ -224,8 +236,10 @@ def warm_up(node: Node, cfg, ob):
 
 def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, args, cameras, ob, VehicleState):
     msg = node.decode(sample, expect="range_map")
-    if msg is None:
+    gate = args._freshness
+    if msg is None or not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival"):
         return
+    node.input_seen("range maps")
     t0 = time.perf_counter()
     try:
         K.check_chunk(msg["camera_id"], "camera id")
@@ -242,9 +256,12 @@ def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, a
                          msg.get("seq"), e)
         return
     tracker.update(res.obstacles, msg["stamp_us"])
+    if not screen(node, gate, msg["camera_id"], msg["stamp_us"], "publish"):
+        return
     node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
              obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
-             position_ned_m=msg["position_ned_m"], q_wxyz=q)
+             position_ned_m=msg["position_ned_m"], q_wxyz=q, frame_age_ms=age_ms(msg["stamp_us"]))
+    gate.commit(msg["camera_id"], msg["stamp_us"])
     compute_s = time.perf_counter() - t0
     node.count("maps_processed")
     node.count("obstacles_published", len(res.obstacles))
