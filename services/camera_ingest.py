@@ -23,7 +23,7 @@ import numpy as np
 
 from eonav import EonavError, InputError
 from eonav.bus import keys as K
-from eonav.bus.node import Node, add_flag, service_main
+from eonav.bus.node import Node, add_flag, restart_count, service_main
 
 log = logging.getLogger("eonav.service.camera")
 
@@ -32,6 +32,7 @@ TIMESTAMPS_FILE = "timestamps.txt"
 ENCODINGS = ("mono8", "bgr8")
 US_THRESHOLD = 1e11  # integer stamps at or above this are microseconds (1e11 us = 27.8 h; 1e11 s = year 5138)
 LIVE_PLAUSIBLE_US = 2_000_000
+RESUME_LATE_US = 100_000  # a joint replay (re)starts at its first frame due no more than this long ago
 
 
 # --------------------------------------------------------------------------------------------------
@@ -70,6 +71,7 @@ class RawFrame:
     grab_mono: float = field(default_factory=time.monotonic)
     error: str = ""
     name: str = ""
+    skipped: int = 0          # frames of the recording passed over just before this one (a resumed replay)
 
 
 class Pacer:
@@ -164,7 +166,9 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
                   reader: Callable | None = None, replay_shift_us: int | None = None) -> Iterator[RawFrame]:
     """Frames of an image folder (sorted files), stamped from the timestamps file if there is one.
     With ``replay_shift_us``, each frame is stamped recorded + shift and released when the host clock
-    reaches that stamp (joint replays; the pacer is then not used)."""
+    reaches that stamp (joint replays; the pacer is then not used); frames already due more than
+    ``RESUME_LATE_US`` when the replay starts are passed over unread (``RawFrame.skipped``), so a replay restarted
+    mid-way resumes where the clock says it is and never publishes an old stamp."""
     import cv2
     clock = clock or Clock()
     folder = Path(folder)
@@ -190,6 +194,8 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
     offset_us = None
     lap_shift_us = 0
     index = 0
+    resume_us = None if replay_shift_us is None else clock.now_us() - RESUME_LATE_US
+    skipped = 0
     while True:
         for i, path in enumerate(files):
             if stop is not None and stop.is_set():
@@ -198,6 +204,10 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
                 media_us = rec[i] + lap_shift_us
             else:
                 media_us = (index * period_us)
+            if resume_us is not None and media_us + replay_shift_us < resume_us:
+                skipped += 1
+                index += 1
+                continue
             if pacer:
                 pacer.wait(media_us / 1e6)
             if replay_shift_us is not None:
@@ -222,7 +232,8 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
             except Exception as e:  # permission denied, truncated file, ...
                 img, err = None, f"{type(e).__name__}: {e}"
             yield RawFrame(index=index, image=img, stamp_us=stamp, stamp_source=src, source_pts_us=pts,
-                           grab_mono=t_grab, error=err, name=path.name)
+                           grab_mono=t_grab, error=err, name=path.name, skipped=skipped)
+            skipped = 0
             index += 1
         if not loop:
             return
@@ -402,6 +413,7 @@ class CaptureStats:
     published: int = 0
     corrupt: int = 0
     wrong_size: int = 0
+    skipped: int = 0
     last_stamp_us: int = -1
 
 
@@ -412,8 +424,9 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
     """Turn source frames into schema "frame" fields and hand them to ``sink``.
 
     Skips (and counts) unreadable frames (``corrupt_frames``) and, when ``width``/``height`` are given,
-    frames of another size (``wrong_size``). ``seq`` numbers published frames from 0. Returns when
-    ``frames`` is exhausted or ``stop`` is set."""
+    frames of another size (``wrong_size``). ``seq`` numbers published frames from 0, plus the frames a resumed
+    replay passed over (``replay_skipped``: downstream sees them as a gap, not a restart). Returns when ``frames`` is
+    exhausted or ``stop`` is set."""
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding {encoding!r}: expected one of {ENCODINGS}")
     m = metrics or NullMetrics()
@@ -422,6 +435,9 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
         if stop is not None and stop.is_set():
             break
         m.count("frames_in")
+        if f.skipped:
+            st.skipped += f.skipped
+            m.count("replay_skipped", f.skipped)
         if f.image is None:
             st.corrupt += 1
             m.count("corrupt_frames")
@@ -442,7 +458,7 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
             m.log_limited("size", logging.WARNING, "skipped frame %d %s: %dx%d, expected %sx%s",
                           f.index, f.name, w, h, width or "*", height or "*")
             continue
-        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": int(f.stamp_us),
+        sink({"camera_id": camera_id, "seq": st.published + st.skipped, "stamp_us": int(f.stamp_us),
               "stamp_source": f.stamp_source, "encoding": encoding, "image": img,
               "source_pts_us": int(f.source_pts_us)})
         m.latency("grab_to_put", monotonic() - f.grab_mono)
@@ -533,6 +549,12 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
 def body(node: Node, args) -> None:
     K.check_chunk(args.camera_id, "--camera-id")
     kind = classify_source(args.source) if args.source else None
+    if kind in ("folder", "file") and args.replay_shift_us is None and restart_count():
+        # no fixed time reference: it would start over with the recording's beginning presented as now
+        node.log.warning("replay of %s restarted without --replay-shift-us: it cannot resume where it was, so it "
+                         "ends here instead of starting over (docs/bus.md, Staleness)", args.source)
+        node.stop("restarted replay cannot resume")
+        return
     frames = make_frames(args, stop=node.stop_event)
     key = K.frame(node.vehicle, args.camera_id)
     pub = node.publisher(key, image=True)

@@ -35,6 +35,7 @@ BACKOFF_MAX_S = 10.0
 STABLE_RESET_S = 30.0
 DEFAULT_MAX_RESTARTS = 5
 EXIT_CONFIG = 2
+STATUS_DETAIL_CHARS = 40
 
 # The default pipeline. Services whose modules do not exist yet are reported as missing.
 DEFAULT_SERVICES = [
@@ -187,6 +188,7 @@ class Supervisor:
         env.update({k: _subst(v, self.ctx) for k, v in p.spec.env.items()})
         env.setdefault("PYTHONUNBUFFERED", "1")
         env["EONAV_SUPERVISOR_PID"] = str(os.getpid())
+        env["EONAV_RESTART_COUNT"] = str(p.restarts)       # a replay resumes, or ends, rather than start over
         stdout = stderr = None
         if self.log_dir:
             f = open(Path(self.log_dir) / f"{p.name}.log", "ab")
@@ -341,6 +343,8 @@ def _fmt_service(p: Proc, now: float) -> str:
         r = f" r{p.restarts}" if p.restarts else ""
         return f"{p.name} {p.state if p.state != 'running' else 'starting'}{extra}{r}"
     state = h["state"] if now - p.health_mono < 5.0 else "stale"
+    if state in ("degraded", "error") and h.get("detail"):
+        state += f"({h['detail'].split(';')[0][:STATUS_DETAIL_CHARS]})"      # e.g. degraded(no frames for 1.2 s ...)
     parts = [p.name, state]
     rates = h.get("rates_hz") or {}
     if rates:
