@@ -154,11 +154,11 @@ def nav_loop(node: Node, sub, nav: LatestNav) -> None:
         msg = node.decode(sample, expect="nav_state")
         if msg is None:
             return
+        node.input_seen("nav")
         p, q = np.asarray(msg["position_ned_m"], float), np.asarray(msg["q_wxyz"], float)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
             node.count("nav_incomplete")
             return
-        node.input_seen("nav")
         nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]))
 
     for sample in sub:
