@@ -292,3 +292,16 @@ def test_tlog_replay_restarted_midway_fast_forwards_and_resumes(tmp_path):
         headers = [h for h, _ in reader]
     assert len(skipped) == sum(h < first_hdr + 1_500_000 for h in headers) > 100    # the first 1.5 s of records
     assert len(skipped) + len(fed) == len(headers)
+
+
+def test_status_line_shows_the_silent_input():
+    import time as _t
+    from eonav.app import launcher as L
+    p = L.Proc(L.ServiceSpec(name="sync", module="m"), state="running")
+    p.health = {"state": "degraded", "detail": "no frames for 1.3 s (budget 1.00 s); no nav for 0.6 s",
+                "rates_hz": {}, "latency_ms": {}, "counters": {"dropped.too_old": 4}}
+    p.health_mono = _t.monotonic()
+    line = L._fmt_service(p, _t.monotonic())
+    assert line.startswith("sync degraded(no frames for 1.3 s (budget 1.00 s))") and "drops 4" in line, line
+    p.health = dict(p.health, state="ok", detail="clock receive")
+    assert L._fmt_service(p, _t.monotonic()).startswith("sync ok"), "an ok detail is not shown"
