@@ -163,7 +163,13 @@ def body(node: Node, args) -> None:
     node.log.info("sync: cameras %s; frames %s + nav %s -> %s", sorted(cams), K.frames_all(node.vehicle),
                   K.nav_state(node.vehicle), K.posed_frame(node.vehicle, "CAMERA"))
 
+    put_lock = threading.Lock()     # the nav, frame and tick threads all release frames: one at a time, in order
+
     def process():
+        with put_lock:
+            put_released()
+
+    def put_released():
         with lock:
             out = pairer.poll(time.monotonic())
             counts = Counter(pairer.counts)
