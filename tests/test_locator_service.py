@@ -473,7 +473,8 @@ def test_locator_publishes_fused_maps(flight_frames):
         assert max(errs) < 0.05, errs
         c = counters()
         assert c["maps_fused"] == N_FRAMES - 1 and c.get("locate_errors", 0) == 0
-        assert latest_health(drain(health_sub, health))["obstacles"]["counters"]["maps_processed"] == N_FRAMES - 1
+        wait_until(lambda: latest_health(drain(health_sub, health))["obstacles"]["counters"].get("maps_processed")
+                   == N_FRAMES - 1, timeout=5, what="the obstacle service's health counting every fused map")
         for name in ("locator", "obstacles"):
             code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
             assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
