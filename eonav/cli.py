@@ -14,6 +14,8 @@ COMMANDS = {
     "bench": ("eonav.commands.bench", "benchmarks that print figures (locate, pipeline)"),
     "run": ("eonav.launcher", "start the whole pipeline (embedded router + all services)"),
     "service": ("eonav.commands.service", "start one service in the foreground"),
+    "record": ("eonav.commands.record", "record the bus into an MCAP file (raw + Foxglove channels)"),
+    "replay": ("eonav.commands.replay", "put the raw channels of MCAP recordings back on the bus"),
 }
 
 
