@@ -490,7 +490,7 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                  on_status: Callable[[dict], None] | None = None, exit_when_done: str | None = None,
                  router: str | None = None, grace_s: float = 5.0, stop_event: threading.Event | None = None,
                  status_stream=None, quiet: bool = False, log_dir: str | None = None,
-                 router_config: str | None = None, extra_env: dict | None = None) -> int:
+                 router_config: str | None = None, extra_env: dict | None = None, record: str | None = None) -> int:
     """Run a pipeline until stopped; returns the exit code (see the module docstring).
 
     ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
@@ -498,13 +498,17 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
     after that many seconds. ``on_status(status_dict)``: called about once a second with
     {service: {state, pid, restarts, exit_code, alive, health}}. ``stop_event``: set it to stop
     (SIGINT/SIGTERM also stop when called from the main thread). ``log_dir``: one log file per
-    service instead of inheriting stderr. ``extra_env``: added to every service's environment."""
+    service instead of inheriting stderr. ``extra_env``: added to every service's environment. ``record``: also run
+    the recorder (``eonav.recording.recorder``) writing this MCAP file."""
     from .keys import check_chunk
     check_chunk(vehicle, "--vehicle")
     spec_dir = None
     if isinstance(spec, (str, Path)):
         spec_dir = str(Path(spec).resolve().parent)
     services = parse_spec(spec, spec_dir)
+    if record:
+        from .recording.recorder import recorder_service
+        services += parse_spec([recorder_service(record)])
     if exit_when_done and exit_when_done not in {s.name for s in services}:
         raise InputError(f"--exit-when-done {exit_when_done!r}: no such service in the pipeline "
                          f"({', '.join(s.name for s in services)})")
@@ -642,6 +646,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--watch", action="store_true",
                    help="start nothing: show the status of the services already on the bus (use with --router)")
     p.add_argument("--print-spec", action="store_true", help="print the effective pipeline spec as JSON and exit")
+    add_flag(p, "--record", env="EONAV_RECORD", default=None, metavar="FILE.mcap",
+             help="also record everything on the bus into this MCAP file (eonav record; the demo too)")
 
 
 def run(args) -> int:
@@ -660,4 +666,5 @@ def run(args) -> int:
         return 0
     return run_pipeline(spec, vehicle=args.vehicle, port=args.port, duration=args.duration,
                         exit_when_done=args.exit_when_done, router=args.router, grace_s=args.grace,
-                        quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config)
+                        quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config,
+                        record=args.record)
