@@ -72,13 +72,15 @@ def test_record_then_replay_gives_identical_payloads_in_order(tmp_path):
     with router_process() as ep, client_session(ep) as s:
         health = s.declare_subscriber(K.health(veh, "recorder"), zenoh.handlers.FifoChannel(256))
         rec = start_service(["-m", "eonav.recording.recorder", str(out), "--vehicle", veh, "--connect", ep,
-                             "--images", "raw", "--health-period", "0.2"])
+                             "--images", "raw", "--health-period", "0.2", "--exclude", f"eonav/{veh}/excluded/**"])
         pubs = {k: s.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k, *_ in sent}
         wait_until(lambda: all(p.matching_status.matching for p in pubs.values()), 30, what="recorder subscribed")
         time.sleep(0.1)
         t_put0 = time.time_ns()
-        for key, enc, payload, att in sent:
+        for i, (key, enc, payload, att) in enumerate(sent):
             pubs[key].put(payload, encoding=zenoh.Encoding(enc), attachment=att)
+            if i == 3:
+                s.put(f"eonav/{veh}/excluded/x", b"not recorded")          # --exclude: left out
         t_put1 = time.time_ns()
         wait_recorded(health, len(sent))
         code, err = stop_service(rec)
@@ -247,6 +249,22 @@ def test_foxglove_channels_have_their_schemas_and_decode(tmp_path):
     assert [c.pose.position.x, c.pose.position.y, c.pose.position.z] == [20.0, -2.0, -3.0]
     assert [c.size.x, c.size.y, c.size.z] == pytest.approx([0.3, 2.0, 4.0])
     assert e["obstacle/3"].frame_id == "ned" and "20.5 m" in e["obstacle/3"].texts[0].text
+
+
+def test_foxglove_layout_shows_recorded_topics(tmp_path):
+    # every topic docs/foxglove-layout.json shows is one a recording of camera "nose" has
+    from pathlib import Path
+    layout = json.loads((Path(__file__).parents[1] / "docs" / "foxglove-layout.json").read_text())
+    shown = set()
+    for cfg in layout["configById"].values():
+        shown |= {v for k, v in cfg.get("imageMode", {}).items() if k.endswith("Topic")}
+        shown |= set(cfg.get("topics", {}))
+        shown |= {p["value"].split(".", 1)[0] for p in cfg.get("paths", [])}
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    recorded = set(decoded(path))
+    assert shown and shown <= recorded, shown - recorded
+    assert layout["configById"]["3D!scene"]["followTf"] == "body"
 
 
 def test_point_cloud_subsampling_and_compressed_images(tmp_path):

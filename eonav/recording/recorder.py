@@ -15,8 +15,8 @@ before its payload on ``<key>/@attachment`` (``eonav.role=attachment``, same seq
 never replayed. DELETE samples are counted (``deletes_ignored``), not recorded.
 
 Foxglove channels (``eonav.recording.foxglove``; ``--no-foxglove`` to leave them out): protobuf messages of the
-``foxglove.*`` schemas, their FileDescriptorSets taken from the foxglove-sdk, ``eonav.role=foxglove`` and
-``eonav.source`` = the key they were made from, same log and publish time as that sample.
+``foxglove.*`` schemas, their FileDescriptorSets taken from the foxglove-sdk, ``eonav.role=foxglove``, same log and
+publish time as the sample they were made from.
 
 ``--attach FILE`` stores a file the recording needs (e.g. the cameras file of sync) as an MCAP attachment record.
 
@@ -25,8 +25,13 @@ Rotation: ``--split-size`` (bytes, with K/M/G suffixes) and ``--split-duration``
 never replaced unless ``--overwrite``. On SIGINT/SIGTERM the subscriber is closed, what it had queued is written, and
 the file is finished (summary and index): exit 0.
 
+``--exclude KEYEXPR`` leaves keys out (e.g. ``eonav/*/posed/**``: the posed frames carry the frames' images again).
+The recorder lowers its own CPU priority (``--nice``, default 10): the pipeline comes first, the recorder's queue
+(``--queue``) absorbs the bursts. ``--compression lz4`` (the default) costs about a third of the CPU of ``zstd`` for
+files about 1.5 times larger (docs/recording.md).
+
 Health counters: ``messages``, ``bytes``, ``foxglove_messages``, ``convert_errors``, ``files``, ``liveliness_events``,
-``deletes_ignored``; latency ``write`` (one sample: raw + conversion).
+``deletes_ignored``, ``excluded``; latency ``write`` (one sample: raw + conversion).
 """
 from __future__ import annotations
 
@@ -51,6 +56,7 @@ MCAP_ENCODINGS = {"application/msgpack": "msgpack", "application/json": "json", 
                   "application/cbor": "cbor"}
 ATTACHMENT_SUFFIX = "/@attachment"
 ROLE = "eonav.role"
+FOXGLOVE_METADATA = {ROLE: "foxglove"}     # one channel per topic (/tf is made from three kinds of message)
 
 
 def parse_size(text) -> int | None:
@@ -146,7 +152,7 @@ class Recorder:
         with self.lock:
             for topic, sch, data in encoded:
                 self.writer.add(topic, "protobuf", data, log_time_ns, publish_time_ns, schema=sch,
-                                metadata={ROLE: "foxglove", "eonav.source": key})
+                                metadata=FOXGLOVE_METADATA)
         self._count("foxglove_messages", len(encoded))
 
     def liveliness(self, key: str, alive: bool, log_time_ns: int) -> None:
@@ -167,6 +173,8 @@ def add_arguments(p) -> None:
              help="start a new file after this many bytes (suffix K, M, G)")
     add_flag(g, "--split-duration", env="EONAV_RECORD_SPLIT_DURATION", default=None, type=float, metavar="S",
              help="start a new file after this many seconds")
+    add_flag(g, "--compression", env="EONAV_RECORD_COMPRESSION", default="lz4", choices=("lz4", "zstd", "none"),
+             help="chunk compression: lz4 (least CPU), zstd (smallest files)")
     add_flag(g, "--overwrite", env="EONAV_RECORD_OVERWRITE", default=False, action="store_true",
              help="replace existing files")
     add_flag(g, "--no-foxglove", env="EONAV_RECORD_NO_FOXGLOVE", default=False, action="store_true",
@@ -181,6 +189,10 @@ def add_arguments(p) -> None:
              help="range colour scale: this range and farther are blue")
     add_flag(g, "--queue", env="EONAV_RECORD_QUEUE", default=256, type=int,
              help="samples the subscriber queues while the writer is busy")
+    add_flag(g, "--nice", env="EONAV_RECORD_NICE", default=10, type=int, metavar="N",
+             help="lower the recorder's CPU priority by N (os.nice): the pipeline first, the recorder in its gaps")
+    g.add_argument("--exclude", action="append", default=[], metavar="KEYEXPR",
+                   help="do not record keys matching this (repeatable), e.g. 'eonav/*/posed/**' (the frames again)")
     g.add_argument("--attach", action="append", default=[], metavar="FILE",
                    help="store FILE in the recording as an MCAP attachment (e.g. the cameras file; repeatable)")
 
@@ -190,7 +202,7 @@ def make_recorder(args, node: Node | None, vehicle: str) -> Recorder:
     from .writer import RecordingWriter
     out = Path(args.output).expanduser().resolve()
     writer = RecordingWriter(out, split_bytes=parse_size(args.split_size), split_s=args.split_duration,
-                             overwrite=args.overwrite)
+                             overwrite=args.overwrite, compression=args.compression)
     writer.add_metadata("eonav.recording", {"vehicle": vehicle, "key_expr": K.vehicle_all(vehicle),
                                             "schema_version": str(schema.SCHEMA_VERSION),
                                             "started_unix_ns": str(time.time_ns())})
@@ -207,6 +219,9 @@ def make_recorder(args, node: Node | None, vehicle: str) -> Recorder:
 
 def body(node: Node, args) -> None:
     import zenoh
+    if args.nice > 0:
+        import os
+        os.nice(args.nice)
     rec = make_recorder(args, node, node.vehicle)
     key = K.vehicle_all(node.vehicle)
     sub = node.subscribe(key, fifo=args.queue)
@@ -228,6 +243,8 @@ def body(node: Node, args) -> None:
 
     live = threading.Thread(target=watch_liveliness, name="recorder.liveliness")
 
+    excluded = [zenoh.KeyExpr(e) for e in args.exclude]
+
     def record_loop():
         live.start()
         try:
@@ -235,6 +252,9 @@ def body(node: Node, args) -> None:
                 log_ns = time.time_ns()
                 if s.kind != zenoh.SampleKind.PUT:
                     node.count("deletes_ignored")
+                    continue
+                if excluded and any(s.key_expr.intersects(e) for e in excluded):
+                    node.count("excluded")
                     continue
                 ts = s.timestamp
                 pub_ns = ts.get_time_as_ntp64().as_nanos() if ts is not None else None
@@ -253,7 +273,7 @@ def recorder_service(path, name: str = "recorder") -> dict:
     """The pipeline-spec entry of a recorder writing ``path`` (``eonav run --record``). Not restarted: a restart
     would stop at the existing file (and must not replace it)."""
     return {"name": name, "module": "eonav.recording.recorder", "restart": False,
-            "args": [str(Path(path).expanduser().resolve())]}
+            "args": [str(Path(path).expanduser().resolve()), "--mode", "client"]}
 
 
 if __name__ == "__main__":
