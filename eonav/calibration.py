@@ -105,7 +105,7 @@ def load_calibration(path, camera: str | None = None) -> DistortedCamera:
         return _from_opencv(p)
     import yaml
     text = p.read_text()
-    if text.lstrip().startswith("%YAML:"):      # OpenCV's own YAML dialect (!!opencv-matrix), not YAML 1.1
+    if text.lstrip().startswith("%YAML:") or "!!opencv-matrix" in text:     # cv2.FileStorage's own YAML
         return _from_opencv(p)
     try:
         doc = yaml.safe_load(text)
@@ -270,7 +270,8 @@ class Undistorter:
     @classmethod
     def for_camera(cls, dist: DistortedCamera, name: str, l_body_m=(0.0, 0.0, 0.0), eps_rad=(0.0, 0.0, 0.0)):
         K = output_camera_matrix(dist)
-        cam = Camera(name, dist.width, dist.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], l_body_m, eps_rad)
+        cam = Camera(name, dist.width, dist.height, *(float(x) for x in K[[0, 1, 0, 1], [0, 1, 2, 2]]),
+                     l_body_m, eps_rad)
         return cls(dist, cam)
 
     @property
