@@ -4,6 +4,7 @@ extrinsics project like the pair-file mount; pair and cameras files undistort on
 simulated distorted camera ranges, after undistortion, about as well as a pinhole one (and badly without it)."""
 import copy
 import json
+import time
 
 import cv2
 import numpy as np
@@ -408,3 +409,75 @@ def test_distorted_camera_ranges_after_undistortion_as_the_pinhole_one(distorted
     as_pinhole = Camera("nose", dc.width, dc.height, dc.fx, dc.fy, dc.cx, dc.cy, m.l_body_m, m.eps_rad)
     e_raw, _ = median_error(View(as_pinhole, s[0], d["raw"][0]), View(as_pinhole, s[1], d["raw"][1]), d["raw_truth"])
     assert e_raw >= 2.5 * e_pin, (e_raw, e_pin)                   # the lens model matters
+
+
+# ---- camera ingest ----------------------------------------------------------------------------------------------
+
+def _ingest_args(argv):
+    import argparse
+
+    from services import camera_ingest as C
+    p = argparse.ArgumentParser()
+    C.add_arguments(p)
+    return p.parse_args(argv)
+
+
+def test_camera_ingest_correction_from_the_cameras_file(tmp_path):
+    from services import camera_ingest as C
+    p = tmp_path / "cameras.json"
+    p.write_text(json.dumps({"nose": {**PAIR["cameras"]["nose"], "time_offset_s": -0.002}}))
+    a = _ingest_args(["--cameras", str(p), "--camera-id", "nose", "--exposure-us", "6000"])
+    corr = C.camera_correction(a)
+    assert (a.width, a.height) == (W, H) and corr.shift_us == -2000 + 3000 and corr.undistort is not None
+    with pytest.raises(InputError, match=r"--width 640: camera 'nose' in --cameras is 64x48"):
+        C.camera_correction(_ingest_args(["--cameras", str(p), "--camera-id", "nose", "--width", "640"]))
+    with pytest.raises(InputError, match=r"no camera 'tail' \(has \['nose'\]\)"):
+        C.camera_correction(_ingest_args(["--cameras", str(p), "--camera-id", "tail"]))
+    assert C.camera_correction(_ingest_args([])) is None
+    assert C.camera_correction(_ingest_args(["--exposure-us", "1000"])).shift_us == 500
+
+
+def test_camera_ingest_service_undistorts_and_stamps_mid_exposure(tmp_path):
+    """The real service: a folder of raw frames with recorded stamps, a cameras file with a lens model and a time
+    offset, a known exposure -> undistorted frames at recorded + offset + exposure / 2; a frame of another size is
+    skipped."""
+    zenoh = pytest.importorskip("zenoh")
+    from eonav import keys as K
+    from eonav import schema
+    from eonav.bus.testing import drain, endpoint, free_port, listener_session, start_service, wait_until
+
+    rng = np.random.default_rng(8)
+    d = tmp_path / "rec"
+    d.mkdir()
+    raw = [rng.integers(0, 255, (H, W), dtype=np.uint8) for _ in range(3)]
+    for i, img in enumerate(raw):
+        cv2.imwrite(str(d / f"f_{i}.png"), img)
+    cv2.imwrite(str(d / "f_3.png"), np.zeros((H, W + 2), np.uint8))                   # not the calibrated size
+    stamps_us = [1_700_000_000_000_000 + 100_000 * i for i in range(4)]
+    (d / "timestamps.txt").write_text("".join(f"{s}\n" for s in stamps_us))
+    cams = tmp_path / "cameras.json"
+    cams.write_text(json.dumps({"nose": {**PAIR["cameras"]["nose"], "time_offset_s": -0.0025}}))
+    port = free_port()
+    with listener_session(port) as s:
+        sub = s.declare_subscriber(K.frame("t1", "nose"), zenoh.handlers.FifoChannel(100))
+        proc = start_service(["-m", "services.camera_ingest", "--source", str(d), "--camera-id", "nose",
+                              "--cameras", str(cams), "--exposure-us", "8000", "--keep-stamps", "--rate", "0",
+                              "--vehicle", "t1", "--connect", endpoint(port), "--wait-subscribers", "10"])
+        try:
+            code = proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        err = proc.stderr.read()
+        assert code == 0, err
+        msgs = []
+        wait_until(lambda: len(drain(sub, msgs)) >= 3, 5, what="3 frames")
+        time.sleep(0.2)
+        drain(sub, msgs)
+    frames = [schema.decode(m.payload.to_bytes(), expect="frame") for m in msgs]
+    assert len(frames) == 3                                      # the 66 x 48 frame was skipped
+    und = load_camera_models(cams)["nose"].undistort
+    assert [f["stamp_us"] for f in frames] == [s - 2500 + 4000 for s in stamps_us[:3]]
+    for f, img in zip(frames, raw):
+        assert np.array_equal(f["image"], und(img))
+    assert "undistorted, stamps +1500 us" in err
