@@ -481,3 +481,17 @@ def test_camera_ingest_service_undistorts_and_stamps_mid_exposure(tmp_path):
     for f, img in zip(frames, raw):
         assert np.array_equal(f["image"], und(img))
     assert "undistorted, stamps +1500 us" in err
+
+
+def test_deploy_example_cameras_file_loads_and_matches_the_camera_ingest_env():
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / "deploy"
+    models = load_camera_models(root / "cameras.example.json")
+    assert sorted(models) == ["belly", "nose", "tail"]
+    env = dict(ln.split("=", 1) for ln in (root / "env" / "camera_ingest.env").read_text().splitlines()
+               if ln.strip() and not ln.startswith("#"))
+    nose = models[env["EONAV_CAMERA_ID"]]
+    assert (nose.camera.width, nose.camera.height) == (int(env["EONAV_CAMERA_WIDTH"]), int(env["EONAV_CAMERA_HEIGHT"]))
+    assert nose.undistort.dist.model == "radtan" and nose.time_offset_s == pytest.approx(-0.0042)
+    np.testing.assert_allclose(np.rad2deg(nose.camera.eps_rad), [0, -2, 0], atol=1e-6)   # from its T_cam_imu
+    assert models["belly"].undistort.dist.model == "equidistant" and models["tail"].undistort is None
