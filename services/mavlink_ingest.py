@@ -15,12 +15,16 @@ Live or recorded is one flag (STYLE §4): ``--source`` takes any pymavlink conne
   header) so a replay looks live downstream; the clock offset is then estimated from those receive
   times (``--clock receive`` is the default for tlogs). End of the file: clean exit 0. Corrupt
   packets (``bad_data``) and a truncated last record (``truncated_bytes``) are counted.
-- Live links: a companion HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID,
+- Live links (``eonav.links``): a link that is not up yet or drops (serial device absent, TCP refused, UDP peer
+  silent) is re-opened with back-off and the health says ``degraded`` (``link down`` / ``silent``) until the
+  autopilot is heard; only a malformed connection string is a configuration error (exit 2).
+  A companion HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID,
   component 191), TIMESYNC requests at ``--timesync-hz`` (default 5; 0 = off), and with
   ``--request-streams`` MAV_CMD_SET_MESSAGE_INTERVAL for the nav messages at ``--stream-hz``.
 - ``--system-id``: the autopilot to follow (default: the first autopilot seen, component 1).
 
-Health counters: ``msg.<TYPE>`` per received message type, ``bad_data``, ``truncated_bytes``,
+Health counters: ``msg.<TYPE>`` per received message type, ``bad_data``, ``truncated_bytes``, ``link.attempts`` /
+``link.opened`` / ``link.lost`` (live links),
 ``rejected.<reason>`` (see eonav.mavlink_nav), ``reboots``, ``nav_published``; the detail string
 carries the clock method and offset.
 """
@@ -35,6 +39,7 @@ from pathlib import Path
 from eonav import InputError
 from eonav import keys as K
 from eonav.bus.node import Node, add_flag, service_main
+from eonav.links import MavLink
 from eonav.mavlink_nav import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
 
 log = logging.getLogger(__name__)
@@ -260,28 +265,22 @@ def _run_tlog(node: Node, args, pub: Publisher) -> None:
 
 def _start_live(node: Node, args, pub: Publisher) -> None:
     mavutil = mavutil_v2()
-    try:
-        conn = mavutil.mavlink_connection(args.source, baud=args.baud, source_system=args.source_system,
-                                          source_component=COMPANION_COMPONENT, dialect="ardupilotmega",
-                                          autoreconnect=True)
-    except Exception as e:
-        raise InputError(f"--source {args.source}: cannot open ({type(e).__name__}: {e})") from None
+    link = MavLink(args.source, what="--source", baud=args.baud, source_system=args.source_system,
+                   source_component=COMPANION_COMPONENT, dialect="ardupilotmega", count=node.count)
     send_lock = threading.Lock()
     mav = mavutil.mavlink
 
     def receive():
+        state = None
         while not node.stop_event.is_set():
-            try:
-                m = conn.recv_match(blocking=True, timeout=0.2)
-            except Exception as e:      # link errors: keep trying (autoreconnect for tcp)
-                node.count("link_errors")
-                node.log_limited("recv", logging.WARNING, "link error: %s", e)
-                node.stop_event.wait(0.2)
-                continue
-            if m is None:
-                continue
-            pub.feed(m, now_us())
-        conn.close()
+            m = link.recv(0.2, node.stop_event)       # opens / re-opens the link with back-off (eonav.links)
+            if m is not None:
+                pub.feed(m, now_us())
+            now_state, detail = link.status()
+            if now_state != state:                    # down / silent: degraded until the autopilot is heard
+                node.set_state("ok" if now_state == "up" else "degraded", detail)
+                state = now_state
+        link.close()
 
     def send():
         next_hb = next_ts = next_req = time.monotonic()
@@ -291,23 +290,23 @@ def _start_live(node: Node, args, pub: Publisher) -> None:
             try:
                 if t >= next_hb:
                     with send_lock:
-                        conn.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0,
-                                                mav.MAV_STATE_ACTIVE)
+                        link.send(lambda c: c.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER,
+                                                                 mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
                     next_hb = t + 1.0
-                if ts_period and t >= next_ts:
+                if ts_period and t >= next_ts and link.conn is not None:
                     with pub.lock:
                         ts1 = pub.ingest.mapper.timesync.request(time.time_ns())
                     with send_lock:
-                        conn.mav.timesync_send(0, ts1)
-                    node.count("timesync_sent")
+                        if link.send(lambda c: c.mav.timesync_send(0, ts1)):
+                            node.count("timesync_sent")
                     next_ts = t + ts_period
                 sysid = pub.ingest.decoder.system_id
                 if args.request_streams and sysid is not None and t >= next_req:
                     for name, msg_id in STREAM_IDS.items():
                         hz = 1.0 if name == "SYSTEM_TIME" else args.stream_hz
                         with send_lock:
-                            conn.mav.command_long_send(sysid, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                                       msg_id, int(1e6 / hz), 0, 0, 0, 0, 0)
+                            link.send(lambda c: c.mav.command_long_send(sysid, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                                                        0, msg_id, int(1e6 / hz), 0, 0, 0, 0, 0))
                     node.count("stream_requests")
                     next_req = t + 30.0
             except Exception as e:
