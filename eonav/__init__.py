@@ -5,8 +5,8 @@ P. K. A. Menon, G. B. Chatterji and B. Sridhar, "Electro-Optical Navigation for
 Aircraft", IEEE Trans. Aerospace and Electronic Systems 29(3), 1993.
 Equation numbers in comments, "eq. (n)", are the paper's own.
 
-The math modules (geometry, camera, pairfile, derivatives, methods, sim, ...) never
-import the transport (zenoh); the services in ``services/`` are thin wrappers.
+Rooms (docs/architecture.md): geometry, io, ranging, obstacles, nav, bus, sim, app. The math never imports the
+transport (zenoh); the services (``eonav.services``) are thin wrappers.
 """
 import logging
 

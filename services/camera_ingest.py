@@ -40,7 +40,7 @@ it when the host clock reaches that stamp, so all replays stay aligned to the mi
 
 Real lenses and stamps (``--cameras FILE``, the cameras file the sync reads, docs/pair-file.md): when the entry of
 ``--camera-id`` has a lens model, every frame is undistorted to its pinhole camera (tables built once, one
-``cv2.remap`` a frame; ``eonav.calibration``), and frames of another size than its calibration are skipped as
+``cv2.remap`` a frame; ``eonav.io.calibration``), and frames of another size than its calibration are skipped as
 ``wrong_size``. Each stamp is moved by the entry's ``time_offset_s`` (source stamp -> start of exposure) plus half
 of ``--exposure-us`` when the exposure is known, so it names the middle of the exposure.
 
@@ -68,7 +68,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from eonav import EonavError, InputError
-from eonav import keys as K
+from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, service_main
 
 log = logging.getLogger("eonav.service.camera")
@@ -459,7 +459,7 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
 
     Skips (and counts) unreadable frames (``corrupt_frames``) and, when ``width``/``height`` are given,
     frames of another size (``wrong_size``). ``correct(image, stamp_us) -> (image, stamp_us)`` (a
-    ``eonav.calibration.FrameCorrection``) undistorts and re-stamps each kept frame. ``seq`` numbers published
+    ``eonav.io.calibration.FrameCorrection``) undistorts and re-stamps each kept frame. ``seq`` numbers published
     frames from 0. Returns when ``frames`` is exhausted or ``stop`` is set."""
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding {encoding!r}: expected one of {ENCODINGS}")
@@ -567,11 +567,11 @@ def add_arguments(p) -> None:
 def camera_correction(args):
     """The ``FrameCorrection`` of ``--cameras`` / ``--exposure-us`` (None when neither is given). The camera's
     calibrated size becomes ``--width``/``--height`` (requested from V4L2; other sizes are skipped)."""
-    from eonav.calibration import frame_correction
+    from eonav.io.calibration import frame_correction
     exposure_s = None if args.exposure_us is None else args.exposure_us / 1e6
     if not args.cameras:
         return None if exposure_s is None else frame_correction(None, 0.0, exposure_s)
-    from eonav.pairfile import load_camera_models
+    from eonav.io.pairfile import load_camera_models
     models = load_camera_models(args.cameras, "--cameras")
     if args.camera_id not in models:
         raise InputError(f"--cameras {args.cameras}: no camera {args.camera_id!r} (has {sorted(models)})")

@@ -3,7 +3,7 @@
 Subscribes ``keys.posed_frames_all(vehicle)`` (or one camera with ``--camera``) through a RingChannel: the
 newest frames win, so a locator slower than the camera skips frames instead of growing a queue (skipped
 frames show as ``frames_skipped`` from the ``seq`` gaps). A small history per camera feeds
-``eonav.pair_policy`` (parallax at a reference range, max age, max rotation, stereo rig); for every pair it
+``eonav.ranging.pair_policy`` (parallax at a reference range, max age, max rotation, stereo rig); for every pair it
 runs ``eonav.locate.locate(view_a, view_b, method=--method)`` and publishes schema ``range_map`` on
 ``keys.range_map(vehicle, camera_id)`` with the reference (newest) frame's stamp, camera and pose.
 
@@ -59,7 +59,7 @@ import time
 import numpy as np
 
 from eonav import InputError
-from eonav import keys as K
+from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, now_us, service_main
 from eonav.bus.session import env_flag
 
@@ -79,7 +79,7 @@ def add_arguments(p):
              help="RingChannel depth of the posed-frame subscriber (newest N kept)")
     add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|S",
              help="auto: per camera and pair, the largest scale of the ladder (1, 0.5, ... --min-scale) whose "
-                  "compute time fits --budget-ms (eonav.scale_control); a number S in (0, 1]: always locate on images "
+                  "compute time fits --budget-ms (eonav.ranging.scale_control); a number S in (0, 1]: always locate on images "
                   "resized by S (0.5 = half resolution, ~4x less work). See --publish-grid")
     add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="S",
              help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (S itself is the last rung)")
@@ -96,7 +96,7 @@ def add_arguments(p):
                   "camera and the frame size in the message; frame: upsample it to the frame's grid (nearest)")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
-    g = p.add_argument_group("pair policy (eonav.pair_policy)")
+    g = p.add_argument_group("pair policy (eonav.ranging.pair_policy)")
     add_flag(g, "--min-disparity", env="EONAV_PAIR_MIN_DISPARITY", default=2.0, type=float, metavar="PX",
              help="median translational disparity of a point at --ref-range needed for a pair")
     add_flag(g, "--ref-range", env="EONAV_PAIR_REF_RANGE", default=50.0, type=float, metavar="M",
@@ -132,7 +132,7 @@ def parse_params(items) -> dict:
 
 
 def policy_config(args):
-    from eonav.pair_policy import PairPolicyConfig
+    from eonav.ranging.pair_policy import PairPolicyConfig
     rig = None
     if args.stereo:
         rig = tuple(s.strip() for s in args.stereo.split(","))
@@ -160,7 +160,7 @@ def grey_image(msg: dict) -> np.ndarray:
 
 def scaled_camera(cam, scale: float):
     """``cam`` for images resized by ``scale`` (pixel centres kept): ``eonav.camera.scaled_camera``."""
-    from eonav.camera import scaled_camera as scaled
+    from eonav.geometry.camera import scaled_camera as scaled
     return scaled(cam, scale)
 
 
@@ -196,7 +196,7 @@ class CameraCache:
 
     def get(self, d: dict):
         """(camera, camera scaled for locate)."""
-        from eonav.schema import camera_from_msg
+        from eonav.bus.schema import camera_from_msg
         try:
             key = self._key(d)
             hash(key)
@@ -218,8 +218,8 @@ def frame_info(msg: dict, cameras: CameraCache | None = None):
 
     The payload carries the grey image at the cache's scale and the camera for it, the quaternion, the camera map and
     ``scaled``: the grey images at other scales made so far (``scaled_view``)."""
-    from eonav.camera import VehicleState
-    from eonav.pair_policy import PosedFrameInfo
+    from eonav.geometry.camera import VehicleState
+    from eonav.ranging.pair_policy import PosedFrameInfo
     cameras = cameras or CameraCache()
     cam, loc_cam = cameras.get(msg["camera"])
     q = np.asarray(msg["q_wxyz"], float)
@@ -240,7 +240,7 @@ def frame_info(msg: dict, cameras: CameraCache | None = None):
 def scaled_view(f, scale: float, cameras: CameraCache):
     """The View of frame ``f`` (from ``frame_info`` with a scale-1 cache: full-resolution grey image) at ``scale``. The
     resized image is kept in the frame's payload, so a frame that is the partner of the next pair is resized once."""
-    from eonav.camera import View
+    from eonav.geometry.camera import View
     p = f.payload
     if scale == 1.0:
         return View(p["camera"], f.state, p["image"])
@@ -273,7 +273,7 @@ def map_fields(res, f, loc_cam, range_std: str = "f16", publish_grid: str = "loc
     ``loc_cam`` (the frame ``f``'s camera scaled for locate, or ``f.camera`` itself). ``locate``: the maps as computed,
     with ``loc_cam`` as the camera and the frame's size (none when ``loc_cam`` is the frame's camera); ``frame``: the
     maps upsampled to the frame's grid (``to_full_grid``) with the frame's camera."""
-    from eonav.schema import camera_to_msg
+    from eonav.bus.schema import camera_to_msg
     std = None
     if res.inv_range_std_per_m is not None and range_std != "off":
         std = np.asarray(res.inv_range_std_per_m, np.float32)
@@ -293,14 +293,14 @@ def map_fields(res, f, loc_cam, range_std: str = "f16", publish_grid: str = "loc
 
 
 def body(node: Node, args) -> None:
-    from eonav.locate import get_method
-    from eonav.pair_policy import PairPolicy
+    from eonav.ranging.locate import get_method
+    from eonav.ranging.pair_policy import PairPolicy
     if args.cv_threads >= 0:
         import cv2
         cv2.setNumThreads(args.cv_threads)
     get_method(args.method)                     # unknown method: configuration error (exit 2)
     if args.method == "dense":                  # its numba kernels compiled / loaded now, not in the first pair
-        from eonav.methods.dense import prepare_kernels
+        from eonav.ranging.methods.dense import prepare_kernels
         prepare_kernels()
     params = parse_params(args.method_param)
     policy = PairPolicy(policy_config(args))
@@ -320,7 +320,7 @@ def body(node: Node, args) -> None:
 def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
     """A factory of per-camera ``ScaleController``s for ``--scale`` (``auto`` or a number), ``--min-scale`` and
     ``--budget-ms``. Raises InputError on a bad value."""
-    from eonav.scale_control import ScaleController, ladder, parse_scale
+    from eonav.ranging.scale_control import ScaleController, ladder, parse_scale
     fixed = parse_scale(scale)
     ladder(min_scale)
     budget_s = None if budget_ms is None else budget_ms * 1e-3
@@ -350,7 +350,7 @@ def synthetic_partner(f):
     nothing; it exists so that a locate call on the camera's size can be timed before the first real pair."""
     from dataclasses import replace
 
-    from eonav.camera import VehicleState
+    from eonav.geometry.camera import VehicleState
     st = f.state
     back = VehicleState(st.position_ned_m - 2.0 * st.T_body_ned[0], st.T_body_ned, st.t_s - 0.1)
     return replace(f, seq=f.seq - 1, stamp_us=f.stamp_us - 100_000, state=back, payload=dict(f.payload, scaled={}))
@@ -408,7 +408,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     docstring)."""
     if publish_grid not in ("locate", "frame"):
         raise InputError(f"publish grid must be 'locate' or 'frame', got {publish_grid!r}")
-    from eonav.locate import locate
+    from eonav.ranging.locate import locate
     new_controller = new_controller or scale_controllers(1.0)
     pubs: dict = {}
     last_seq: dict = {}

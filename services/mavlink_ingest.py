@@ -8,14 +8,14 @@ Live or recorded is one flag (STYLE §4): ``--source`` takes any pymavlink conne
   ATTITUDE_QUATERNION, LOCAL_POSITION_NED, GLOBAL_POSITION_INT or ODOMETRY message (each stream with
   its own stamps; absent quantities NaN; ``source`` = the message type), and ``clock_offset`` on
   ``keys.nav_clock(vehicle)`` (at most 1 Hz and on every change of method). Decoding, validation,
-  reboot handling and the clock-offset estimators are in :mod:`eonav.mavlink_nav` (see its docstring).
+  reboot handling and the clock-offset estimators are in :mod:`eonav.nav.mavlink_in` (see its docstring).
 - ``stamp_us`` is on the companion clock: autopilot time + the estimated offset.
 - .tlog: replayed at real time (``--rate 1``), ``--rate X`` times faster, or as fast as possible
   (``--rate 0``). Record-header times are mapped onto the current clock (shift = now at start - first
   header) so a replay looks live downstream; the clock offset is then estimated from those receive
   times (``--clock receive`` is the default for tlogs). End of the file: clean exit 0. Corrupt
   packets (``bad_data``) and a truncated last record (``truncated_bytes``) are counted.
-- Live links (``eonav.links``): a link that is not up yet or drops (serial device absent, TCP refused, UDP peer
+- Live links (``eonav.nav.links``): a link that is not up yet or drops (serial device absent, TCP refused, UDP peer
   silent) is re-opened with back-off and the health says ``degraded`` (``link down`` / ``silent``) until the
   autopilot is heard; only a malformed connection string is a configuration error (exit 2).
   A companion HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID,
@@ -25,7 +25,7 @@ Live or recorded is one flag (STYLE §4): ``--source`` takes any pymavlink conne
 
 Health counters: ``msg.<TYPE>`` per received message type, ``bad_data``, ``truncated_bytes``, ``link.attempts`` /
 ``link.opened`` / ``link.lost`` (live links),
-``rejected.<reason>`` (see eonav.mavlink_nav), ``reboots``, ``nav_published``; the detail string
+``rejected.<reason>`` (see eonav.nav.mavlink_in), ``reboots``, ``nav_published``; the detail string
 carries the clock method and offset.
 """
 from __future__ import annotations
@@ -37,10 +37,10 @@ from collections import Counter
 from pathlib import Path
 
 from eonav import InputError
-from eonav import keys as K
+from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, service_main
-from eonav.links import MavLink
-from eonav.mavlink_nav import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
+from eonav.nav.links import MavLink
+from eonav.nav.mavlink_in import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
 
 log = logging.getLogger(__name__)
 
@@ -273,7 +273,7 @@ def _start_live(node: Node, args, pub: Publisher) -> None:
     def receive():
         state = None
         while not node.stop_event.is_set():
-            m = link.recv(0.2, node.stop_event)       # opens / re-opens the link with back-off (eonav.links)
+            m = link.recv(0.2, node.stop_event)       # opens / re-opens the link with back-off (eonav.nav.links)
             if m is not None:
                 pub.feed(m, now_us())
             now_state, detail = link.status()

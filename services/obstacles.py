@@ -8,13 +8,13 @@ non-image publisher: CongestionControl.BLOCK, DATA_HIGH, express). Everything in
 capture stamp and pose, so guidance can use the absolute ``position_ned_m`` of each obstacle.
 
 With ``--mavlink-out udpout:127.0.0.1:14560`` (any pymavlink connection string) a sender thread emits
-OBSTACLE_DISTANCE at ``--mavlink-rate`` (>= 10 Hz) with the latest sectors while they are fresh, then
-all-UINT16_MAX (see ``eonav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz. The sectors sent to
+OBSTACLE_DISTANCE at ``--mavlink-rate`` (>= 10 Hz) with the merged latest sectors of every camera while they are
+fresh, then one all-unknown message and silence (see ``eonav.nav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz. The sectors sent to
 the autopilot are measured from the latest navigation pose when one newer than the map is at hand
 (``sectors_now``): the autopilot applies them relative to where it is on arrival.
 
 Latest map wins: after each map the worker drains the ring and analyses only the newest map of each camera (older
-ones count ``maps_superseded``). The range map is analysed pooled to <= ``--max-width`` columns (eonav.obstacles), on
+ones count ``maps_superseded``). The range map is analysed pooled to <= ``--max-width`` columns (eonav.obstacles.detect), on
 its own grid with its own ``camera`` (a locator publishing at its locate scale sends the scaled camera and the frame's
 size, ``frame_width`` / ``frame_height``: pixel counts and boxes come out in frame pixels); a map whose arrays do not
 match its camera's size, or whose frame size is smaller than its camera, is rejected and counted (``bad_maps``).
@@ -36,7 +36,7 @@ import time
 import numpy as np
 
 from eonav import InputError
-from eonav import keys as K
+from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, now_us, service_main
 
 log = logging.getLogger("eonav.service.obstacles")
@@ -52,7 +52,8 @@ def add_arguments(p):
     add_flag(p, "--mavlink-rate", env="EONAV_OBSTACLES_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
              help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)")
     add_flag(p, "--stale", env="EONAV_OBSTACLES_STALE", default=0.5, type=float, metavar="S",
-             help="after this long without a new range map, send 'unknown' sectors")
+             help="after this long without a new range map, send one all-unknown OBSTACLE_DISTANCE and then none "
+                  "until maps flow again (the autopilot then reports No Data)")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
              help="do not re-reference MAVLink sectors to the latest navigation pose")
     g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
@@ -74,7 +75,7 @@ def add_arguments(p):
 
 
 def obstacle_config(args):
-    from eonav.obstacles import ObstacleConfig
+    from eonav.obstacles.detect import ObstacleConfig
     if str(args.ground_down).lower() == "auto":
         ground = None
     else:
@@ -109,11 +110,11 @@ class LatestNav:
 
 
 def body(node: Node, args) -> None:
-    from eonav.obstacles import ObstacleTracker
+    from eonav.obstacles.detect import ObstacleTracker
     cfg = obstacle_config(args)
     sender = None
     if args.mavlink_out:
-        from eonav.mavlink_out import ObstacleDistanceSender
+        from eonav.nav.mavlink_out import ObstacleDistanceSender
         if args.mavlink_rate < 10.0:
             node.log.warning("--mavlink-rate %.1f Hz is below the 10 Hz the autopilots are tuned for",
                              args.mavlink_rate)
@@ -152,7 +153,7 @@ def mirror_counters(node: Node, sender) -> None:
 
 
 def nav_loop(node: Node, sub, nav: LatestNav) -> None:
-    from eonav.camera import VehicleState
+    from eonav.geometry.camera import VehicleState
     for sample in sub:
         msg = node.decode(sample, expect="nav_state")
         if msg is None:
@@ -167,9 +168,9 @@ def nav_loop(node: Node, sub, nav: LatestNav) -> None:
 def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, args) -> None:
     import scipy.ndimage  # noqa: F401  (now, with the subscriber declared: the first map must not pay ~0.5 s)
 
-    from eonav import obstacles as ob
-    from eonav.camera import VehicleState
-    from services.locator import CameraCache, drain_latest
+    from eonav.obstacles import detect as ob
+    from eonav.geometry.camera import VehicleState
+    from eonav.services.locator import CameraCache, drain_latest
     cameras = CameraCache()
     warm_up(node, cfg, ob)
     for first in sub:
@@ -192,9 +193,9 @@ def synthetic_map(width: int = 160, height: int = 120) -> dict:
     """A decoded range_map message of a level camera 10 m above flat ground facing a wall 30 m ahead that covers the
     middle third of the columns (sky above the horizon elsewhere): confident obstacle pixels, ground and pixels at
     infinity, so ``analyse`` goes through every branch (pooling, components, sectors)."""
-    from eonav import schema
-    from eonav.camera import Camera
-    from eonav.rangemap import AT_INFINITY, VALID
+    from eonav.bus import schema
+    from eonav.geometry.camera import Camera
+    from eonav.ranging.rangemap import AT_INFINITY, VALID
     cam = Camera("warmup", width, height, 0.8 * width, 0.8 * width, (width - 1) / 2, (height - 1) / 2)
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     slope = (v - cam.cy) / cam.fy
@@ -215,8 +216,8 @@ def warm_up(node: Node, cfg, ob):
     """One ``analyse_msg`` on ``synthetic_map`` (with a now-pose, so ``sectors_now`` runs too), timed as the latency
     ``warmup``; a failure is counted (``warmup_errors``) and logged, never raised: the real maps say whether the
     analysis works. Returns the result (None on failure)."""
-    from eonav.camera import VehicleState
-    from eonav.schema import camera_from_msg
+    from eonav.geometry.camera import VehicleState
+    from eonav.bus.schema import camera_from_msg
     t0 = time.perf_counter()
     try:
         msg = synthetic_map()
@@ -261,7 +262,8 @@ def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, a
     node.latency("compute", compute_s)
     node.latency("capture_to_obstacles", (now_us() - msg["stamp_us"]) * 1e-6)
     if sender is not None:
-        sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"])
+        sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"],
+                      source=msg["camera_id"])
         node.count("mavlink.nav_compensated" if res.sectors_now is not None else "mavlink.capture_pose")
 
 

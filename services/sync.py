@@ -5,9 +5,9 @@ In: schema ``frame`` on ``keys.frames_all(vehicle)`` (RingChannel: the newest fr
 Out: schema ``posed_frame`` on ``keys.posed_frame(vehicle, camera_id)`` (image publisher): the frame,
 its camera (intrinsics + mount from ``--cameras``), and the vehicle pose interpolated at the frame's
 capture stamp by :class:`eonav.timesync.NavBuffer` (slerp attitude; linear or velocity-aided Hermite
-position), with ``nav_gap_us`` (largest bracketing gap) and ``quality_flags`` (eonav.timesync QF_*).
+position), with ``nav_gap_us`` (largest bracketing gap) and ``quality_flags`` (eonav.nav.timesync QF_*).
 
-Watermark policy per pending frame (see eonav.timesync): posed as soon as attitude and position
+Watermark policy per pending frame (see eonav.nav.timesync): posed as soon as attitude and position
 bracket its stamp; dropped at once when it can never be (``older_than_buffer``, ``before_first_nav``,
 ``gap``); if it is still waiting after ``--max-wait-ms`` of wall time (nav late or stopped), posed by
 extrapolation up to ``--max-extrapolation-ms`` past the newest nav sample (flag QF_EXTRAPOLATED), else
@@ -34,11 +34,12 @@ import time
 from collections import Counter
 
 
-from eonav import InputError, schema
-from eonav import keys as K
+from eonav import InputError
+from eonav.bus import schema
+from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, service_main
-from eonav import pairfile
-from eonav.timesync import NavBuffer
+from eonav.io import pairfile
+from eonav.nav.timesync import NavBuffer
 
 log = logging.getLogger(__name__)
 

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from eonav.bench_locate import calibration, score
-from eonav.rangemap import RangeResult
+from eonav.app.bench_locate import calibration, score
+from eonav.ranging.rangemap import RangeResult
 
 
 def _result(rho, std):

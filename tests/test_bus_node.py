@@ -12,12 +12,12 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from eonav import keys as K  # noqa: E402
-from eonav import schema  # noqa: E402
+from eonav.bus import keys as K  # noqa: E402
+from eonav.bus import schema  # noqa: E402
 from eonav.bus import session as S  # noqa: E402
 from eonav.bus.node import LatencyWindow, Node, RateMeter  # noqa: E402
-from eonav.bus.testing import (drain, endpoint, free_port, listener_session, start_service,  # noqa: E402
-                               stop_service, wait_until)
+from eonav.bus.session import endpoint, listener_session  # noqa: E402
+from eonav.app.processes import drain, free_port, start_service, stop_service, wait_until  # noqa: E402
 
 VEHICLE = "testv"
 
@@ -25,7 +25,8 @@ VEHICLE = "testv"
 # --config-error makes body raise an InputError.
 TINY = textwrap.dedent('''
     import time
-    from eonav import InputError, keys
+    from eonav import InputError
+    from eonav.bus import keys
     from eonav.bus.node import service_main, add_flag
 
     def add_arguments(p):

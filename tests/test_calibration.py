@@ -1,4 +1,4 @@
-"""Real lenses (eonav.calibration): calibration files of each format written from known values give the camera and
+"""Real lenses (eonav.io.calibration): calibration files of each format written from known values give the camera and
 the remap tables cv2 computes from those values; the output camera has no black border and no wasted field; Kalibr
 extrinsics project like the pair-file mount; pair and cameras files undistort on load and reject unknown keys; a
 simulated distorted camera ranges, after undistortion, about as well as a pinhole one (and badly without it)."""
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.calibration import (DistortedCamera, Undistorter, frame_correction, load_calibration,
+from eonav.io.calibration import (DistortedCamera, Undistorter, frame_correction, load_calibration,
                                mount_from_T_cam_imu, output_camera_matrix)
-from eonav.camera import Camera, View
-from eonav.geometry import T_PAPERCAM_OPTICAL, T_cam_body_from_eps
-from eonav.pairfile import camera_to_dict, load_camera_models, load_cameras, load_pair_file
+from eonav.geometry.camera import Camera, View
+from eonav.geometry.frames import T_PAPERCAM_OPTICAL, T_cam_body_from_eps
+from eonav.io.pairfile import camera_to_dict, load_camera_models, load_cameras, load_pair_file
 
 W, H = 64, 48
 K_VALUES = dict(fx=52.0, fy=51.5, cx=32.7, cy=23.2)
@@ -356,8 +356,8 @@ def test_frame_correction_undistorts_and_stamps_mid_exposure():
 # ---- ranging with a distorted camera ----------------------------------------------------------------------------
 
 def median_error(view_a, view_b, truth_m):
-    from eonav.locate import locate
-    from eonav.rangemap import VALID
+    from eonav.ranging.locate import locate
+    from eonav.ranging.rangemap import VALID
     res = locate(view_a, view_b)
     near = np.isfinite(truth_m) & (truth_m < 200.0)
     ok = near & ((res.flags & VALID) > 0) & np.isfinite(res.range_m)
@@ -416,14 +416,14 @@ def test_distorted_camera_ranges_after_undistortion_as_the_pinhole_one(distorted
 def _ingest_args(argv):
     import argparse
 
-    from services import camera_ingest as C
+    from eonav.services import camera_ingest as C
     p = argparse.ArgumentParser()
     C.add_arguments(p)
     return p.parse_args(argv)
 
 
 def test_camera_ingest_correction_from_the_cameras_file(tmp_path):
-    from services import camera_ingest as C
+    from eonav.services import camera_ingest as C
     p = tmp_path / "cameras.json"
     p.write_text(json.dumps({"nose": {**PAIR["cameras"]["nose"], "time_offset_s": -0.002}}))
     a = _ingest_args(["--cameras", str(p), "--camera-id", "nose", "--exposure-us", "6000"])
@@ -442,9 +442,10 @@ def test_camera_ingest_service_undistorts_and_stamps_mid_exposure(tmp_path):
     offset, a known exposure -> undistorted frames at recorded + offset + exposure / 2; a frame of another size is
     skipped."""
     zenoh = pytest.importorskip("zenoh")
-    from eonav import keys as K
-    from eonav import schema
-    from eonav.bus.testing import drain, endpoint, free_port, listener_session, start_service, wait_until
+    from eonav.app.processes import drain, free_port, start_service, wait_until
+    from eonav.bus import keys as K
+    from eonav.bus import schema
+    from eonav.bus.session import endpoint, listener_session
 
     rng = np.random.default_rng(8)
     d = tmp_path / "rec"
@@ -460,7 +461,7 @@ def test_camera_ingest_service_undistorts_and_stamps_mid_exposure(tmp_path):
     port = free_port()
     with listener_session(port) as s:
         sub = s.declare_subscriber(K.frame("t1", "nose"), zenoh.handlers.FifoChannel(100))
-        proc = start_service(["-m", "services.camera_ingest", "--source", str(d), "--camera-id", "nose",
+        proc = start_service(["-m", "eonav.services.camera_ingest", "--source", str(d), "--camera-id", "nose",
                               "--cameras", str(cams), "--exposure-us", "8000", "--keep-stamps", "--rate", "0",
                               "--vehicle", "t1", "--connect", endpoint(port), "--wait-subscribers", "10"])
         try:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from services import camera_ingest as C
+from eonav.services import camera_ingest as C
 
 
 class FakeClock(C.Clock):
@@ -268,9 +268,10 @@ def test_flags_have_env_defaults(monkeypatch):
 
 def test_service_replays_folder_over_zenoh(tmp_path):
     zenoh = pytest.importorskip("zenoh")
-    from eonav import keys as K
-    from eonav import schema
-    from eonav.bus.testing import drain, endpoint, free_port, listener_session, start_service, wait_until
+    from eonav.bus import keys as K
+    from eonav.bus import schema
+    from eonav.bus.session import endpoint, listener_session
+    from eonav.app.processes import drain, free_port, start_service, wait_until
 
     stamps = [200.0, 200.05, 200.15, 200.2, 200.3, 200.35, 200.45, 200.5]
     d = tmp_path / "rec"
@@ -287,7 +288,7 @@ def test_service_replays_folder_over_zenoh(tmp_path):
     with listener_session(port) as s:
         frames_sub = s.declare_subscriber(K.frame("t1", "nose"), zenoh.handlers.FifoChannel(100))
         health_sub = s.declare_subscriber(K.health("t1", "camera_nose"), zenoh.handlers.FifoChannel(1000))
-        proc = start_service(["-m", "services.camera_ingest", "--source", str(d), "--camera-id", "nose",
+        proc = start_service(["-m", "eonav.services.camera_ingest", "--source", str(d), "--camera-id", "nose",
                               "--vehicle", "t1", "--name", "camera_nose", "--connect", endpoint(port),
                               "--width", "64", "--height", "48", "--rate", "20", "--health-period", "0.1",
                               "--wait-subscribers", "10"])

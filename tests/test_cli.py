@@ -8,7 +8,7 @@ import pytest
 
 
 def eonav(*args, check=True):
-    out = subprocess.run([sys.executable, "-m", "eonav.cli", *map(str, args)], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "eonav.app.cli", *map(str, args)], capture_output=True, text=True,
                          timeout=240)
     if check:
         assert out.returncode == 0, out.stderr
@@ -49,7 +49,7 @@ def test_paper_method_is_selectable(fast_pair, tmp_path):
 
 
 def test_measured_only_leaves_no_filled_pixel(fast_pair, tmp_path):
-    from eonav.rangemap import FILLED, VALID
+    from eonav.ranging.rangemap import FILLED, VALID
     eonav("locate", fast_pair / "pair.json", "--out", tmp_path / "all.npz")
     eonav("locate", fast_pair / "pair.json", "--out", tmp_path / "meas.npz", "--measured-only")
     full, meas = np.load(tmp_path / "all.npz"), np.load(tmp_path / "meas.npz")

@@ -12,11 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
-from eonav.camera import Camera, VehicleState, View
-from eonav.methods._common import optional_kernels
-from eonav.methods.dense import locate_dense
-from eonav.methods.flow_baseline import locate_dis
-from eonav.rangemap import AT_INFINITY, VALID
+from eonav.geometry.camera import Camera, VehicleState, View
+from eonav.ranging.methods._common import optional_kernels
+from eonav.ranging.methods.dense import locate_dense
+from eonav.ranging.methods.flow_baseline import locate_dis
+from eonav.ranging.rangemap import AT_INFINITY, VALID
 from eonav.sim.visibility import measurable_in_b
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -223,7 +223,7 @@ def test_middlebury_cones_beats_dis():
     """Middlebury 2003 'cones' as a rectified stereo pair (f = 1000 px, b = 0.1 m chosen; range = f b / d).
     Median relative range error over non-occluded ground-truth pixels, raw estimates of both methods on the
     same pixels. Measured: dense 0.59 %, DIS 0.86 %."""
-    from eonav.imageio import load_grey
+    from eonav.io.images import load_grey
     d = MIDDLEBURY / "cones"
     left, right = load_grey(d / "imL.png"), load_grey(d / "imR.png")
     scale = float((d / "info.txt").read_text().split()[0])
@@ -299,7 +299,7 @@ def test_fused_search_matches_opencv_search(preset, size, monkeypatch):
     reproduces cv2.remap's, the ZNCC cost, the winner-take-all) give exactly the OpenCV path's rho and confidence:
     per-pixel hypotheses (the default), one set of rho for all pixels, and with SGM."""
     pytest.importorskip("numba")
-    from eonav.methods import dense
+    from eonav.ranging.methods import dense
     seen = []
     orig = dense._search
 
@@ -325,7 +325,7 @@ def test_fused_search_matches_opencv_search(preset, size, monkeypatch):
 def test_sgm_reduces_gross_errors_teddy():
     """Optional semi-global aggregation of the coarse cost volume: fewer raw estimates off by > 5 % on
     Middlebury 'teddy' (measured 22.5 % -> 17.2 % of the non-occluded GT pixels)."""
-    from eonav.realdata import middlebury_pair
+    from eonav.io.datasets import middlebury_pair
     a, b, truth, mask = middlebury_pair(DATA, "teddy")
     out = {}
     for sgm in (False, True):
@@ -417,7 +417,7 @@ def test_shift_windows_takes_the_side_window_that_fits_much_better():
     """Hand-made window means of one row (S1 = Sq = g = 0, S0 = H = 1: a window's cost is its Q): the pixel whose
     window 2 px to the left costs 0.1 against its own 1.0 takes that window's sums; where the side window is only
     down to 0.5 (above 0.4 x 1.0) nothing moves; the numba row pass picks the same."""
-    from eonav.methods.dense import _shift_windows
+    from eonav.ranging.methods.dense import _shift_windows
     for q1, expect in ((0.1, [1, 2, 3, 2, 5, 6, 7]), (0.5, [1, 2, 3, 4, 5, 6, 7])):
         H = np.arange(1, 8, dtype=np.float32)[None, :]
         g, S1, Sq = (np.zeros((1, 7), np.float32) for _ in range(3))
@@ -432,8 +432,8 @@ def test_shift_windows_row_kernel_matches_numpy():
     """The numba row pass of the shiftable windows selects exactly what dense._shift_windows does (random window
     means, ties and borders included)."""
     pytest.importorskip("numba")
-    from eonav.methods import _dense_kernels as K
-    from eonav.methods.dense import _shift_windows
+    from eonav.ranging.methods import _dense_kernels as K
+    from eonav.ranging.methods.dense import _shift_windows
     rng = np.random.default_rng(3)
     w = 40
     hs = np.zeros((K._N_SUMS, w), np.float32)

@@ -1,12 +1,12 @@
-"""Filling the pixels a pair cannot measure (eonav.methods.fill): against planes whose inverse range is known in
+"""Filling the pixels a pair cannot measure (eonav.ranging.methods.fill): against planes whose inverse range is known in
 closed form, depth steps, and the dense method on simulator scenes with ground truth."""
 import cv2
 import numpy as np
 import pytest
 
-from eonav.methods.dense import locate_dense
-from eonav.methods.fill import fill_inverse_range, fill_unmeasured
-from eonav.rangemap import FILLED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
+from eonav.ranging.methods.dense import locate_dense
+from eonav.ranging.methods.fill import fill_inverse_range, fill_unmeasured
+from eonav.ranging.rangemap import FILLED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 from eonav.sim.presets import make_pair
 
 H, W = 240, 320

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eonav.camera import Camera, VehicleState, View, pair_geometry
-from eonav.methods.flow_baseline import locate_dis, locate_sgbm, sgbm_disparity, triangulate_matches
-from eonav.rangemap import VALID
+from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
+from eonav.ranging.methods.flow_baseline import locate_dis, locate_sgbm, sgbm_disparity, triangulate_matches
+from eonav.ranging.rangemap import VALID
 
 
 def sine_texture(x, y, seed=0, k=60):

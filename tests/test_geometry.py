@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.camera import Camera, VehicleState, View, pair_geometry
-from eonav.geometry import (T_body_ned_from_quat, T_body_ned_from_ypr, T_cam_body_from_eps, camera_from_ned,
+from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
+from eonav.geometry.frames import (T_body_ned_from_quat, T_body_ned_from_ypr, T_cam_body_from_eps, camera_from_ned,
                             ned_from_camera, quat_wxyz_from_rotation, quat_wxyz_from_ypr, relative_pose,
                             rotation_from_quat_wxyz, slerp_quat_wxyz, ypr_from_T_body_ned)
 
@@ -124,8 +124,8 @@ def test_map_to_b_is_exact_projection_for_two_different_cameras():
 def test_on_grid_samples_the_pixel_centres_the_locator_upsampled_from():
     """A map resized to a locate grid and upsampled back (the locator's nearest rule) is recovered exactly by sampling
     the frame grid at the small pixels' centres, for scale 0.5 and odd sizes; scaled_camera keeps the pixel centres."""
-    from eonav.camera import Camera, frame_pixel_index, on_grid, scaled_camera
-    from services.locator import to_full_grid, upsample_index
+    from eonav.geometry.camera import Camera, frame_pixel_index, on_grid, scaled_camera
+    from eonav.services.locator import to_full_grid, upsample_index
     for (W, H), s in (((640, 480), 0.5), ((15, 11), 0.4), ((512, 512), 0.25)):
         cam = Camera("c", W, H, 300.0, 310.0, W / 2 - 0.3, H / 2 + 0.2)
         sc = scaled_camera(cam, s)

@@ -6,9 +6,9 @@ own matrices, and disparities come from projecting 3-D points with eqs. (8), (9)
 import numpy as np
 import pytest
 
-from eonav.geometry import (T_body_ned_from_ypr, T_cam_body_from_eps, camera_from_ned, disparity_eq25_26,
+from eonav.geometry.frames import (T_body_ned_from_ypr, T_cam_body_from_eps, camera_from_ned, disparity_eq25_26,
                             k_coefficients, relative_pose)
-from eonav.methods.paper import disparity as disparity_fxfy
+from eonav.ranging.methods.paper import disparity as disparity_fxfy
 
 F_PX = 600.0
 
@@ -99,7 +99,7 @@ def test_eq25_26_disparities_equal_exact_projection():
     np.testing.assert_allclose(dx, xb - xa, atol=1e-9)
     np.testing.assert_allclose(dy, yb - ya, atol=1e-9)
     assert np.abs(dx).max() > 5.0                                       # not a trivially tiny motion
-    # separate fx, fy (eonav.methods.paper.disparity): k from m = [1, xp/fx, yp/fy]
+    # separate fx, fy (eonav.ranging.methods.paper.disparity): k from m = [1, xp/fx, yp/fy]
     fx, fy = F_PX, 1.2 * F_PX
     ya2, yb2 = fy * pa[:, 2] / pa[:, 0], fy * pb[:, 2] / pb[:, 0]
     k2 = k_coefficients(R, t, xa, ya2 * fx / fy, fx)

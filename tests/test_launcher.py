@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav import launcher as L
+from eonav.app import launcher as L
 
 zenoh = pytest.importorskip("zenoh")
 
-from eonav import keys as K  # noqa: E402
-from eonav.bus.testing import client_session, free_port, start_service, wait_until  # noqa: E402
+from eonav.bus import keys as K  # noqa: E402
+from eonav.bus.session import client_session  # noqa: E402
+from eonav.app.processes import free_port, start_service, wait_until  # noqa: E402
 
 # Test services live in a throw-away package on PYTHONPATH (the launcher spawns `python -m <module>`).
 SVC = textwrap.dedent('''
@@ -75,7 +76,7 @@ def _gone(pid):
 def test_parse_spec_validates(tmp_path):
     s = L.parse_spec({"services": [{"name": "camera_nose", "module": "camera_ingest", "args": ["--rate", 0]},
                                    {"name": "x.y", "module": "pkg.mod", "restart": False, "enabled": False}]})
-    assert s[0].module == "services.camera_ingest" and s[0].args == ["--rate", "0"]
+    assert s[0].module == "eonav.services.camera_ingest" and s[0].args == ["--rate", "0"]
     assert s[1].module == "pkg.mod" and not s[1].restart and not s[1].enabled
     with pytest.raises(InputError, match="used twice"):
         L.parse_spec({"services": [{"name": "a"}, {"name": "a"}]})
@@ -175,7 +176,7 @@ def test_eonav_run_camera_replay_until_done(tmp_path):
     spec.write_text(json.dumps({"services": [
         {"name": "camera_nose", "module": "camera_ingest",
          "args": ["--source", "{spec_dir}/rec", "--camera-id", "nose", "--rate", "10", "--wait-subscribers", "0"]}]}))
-    out = start_service(["-m", "eonav.cli", "run", "--pipeline", str(spec), "--vehicle", "lt3",
+    out = start_service(["-m", "eonav.app.cli", "run", "--pipeline", str(spec), "--vehicle", "lt3",
                          "--exit-when-done", "camera_nose"])
     code = out.wait(60)
     err = out.stderr.read()
@@ -185,7 +186,7 @@ def test_eonav_run_camera_replay_until_done(tmp_path):
 
 def start_launcher(spec: dict, kwargs: str):
     """``run_pipeline(spec, <kwargs>)`` in its own process (so the test can signal or kill the launcher)."""
-    return start_service(["-c", "import sys, json; from eonav.launcher import run_pipeline; "
+    return start_service(["-c", "import sys, json; from eonav.app.launcher import run_pipeline; "
                           f"sys.exit(run_pipeline(json.loads({json.dumps(spec)!r}), {kwargs}))"])
 
 
@@ -227,18 +228,18 @@ def _wait_port(port, timeout=20):
 
 
 def test_eonav_service_command_passes_args(tmp_path):
-    proc = start_service(["-m", "eonav.cli", "service", "camera_ingest", "--source", str(tmp_path / "missing"),
+    proc = start_service(["-m", "eonav.app.cli", "service", "camera_ingest", "--source", str(tmp_path / "missing"),
                           "--vehicle", "x"])
     assert proc.wait(30) == 2
     assert "not a directory" in proc.stderr.read()
-    proc = start_service(["-m", "eonav.cli", "service", "nope_service"])
+    proc = start_service(["-m", "eonav.app.cli", "service", "nope_service"])
     assert proc.wait(30) == 2
     assert "camera_ingest" in proc.stderr.read()           # lists what exists
     assert sys.executable
 
 
 def test_watch_mode_shows_remote_services(svc_pkg):
-    from eonav.bus.testing import router_process, stop_service
+    from eonav.app.processes import router_process, stop_service
     with router_process() as ep:
         svc = start_service(["-m", svc_pkg, "--connect", ep, "--vehicle", "lt5", "--name", "elsewhere",
                              "--health-period", "0.2"])

@@ -1,4 +1,4 @@
-"""Autopilot links that are not up yet (eonav.links): malformed strings are configuration errors, everything else
+"""Autopilot links that are not up yet (eonav.nav.links): malformed strings are configuration errors, everything else
 is retried with back-off. Real bytes: a TCP autopilot that starts late (and drops once), a serial link over a pty
 whose device appears late, a silent UDP peer; then the MAVLink ingest as a real process over both, its health
 degraded until the autopilot is heard."""
@@ -13,8 +13,8 @@ import tty
 import pytest
 
 from eonav import InputError
-from eonav.links import MavLink, parse_connection
-from eonav.mavlink_nav import mavlink2_dialect
+from eonav.nav.links import MavLink, parse_connection
+from eonav.nav.mavlink_in import mavlink2_dialect
 
 
 def free_tcp_port() -> int:
@@ -267,8 +267,9 @@ def test_udp_peer_silent_then_heard():
 # ---- the MAVLink ingest service, real processes ------------------------------------------------------------------
 
 def _service(source, vehicle, port):
-    from eonav.bus.testing import endpoint, start_service
-    return start_service(["-m", "services.mavlink_ingest", "--source", source, "--vehicle", vehicle,
+    from eonav.app.processes import start_service
+    from eonav.bus.session import endpoint
+    return start_service(["-m", "eonav.services.mavlink_ingest", "--source", source, "--vehicle", vehicle,
                           "--connect", endpoint(port), "--health-period", "0.1", "--clock", "receive",
                           "--timesync-hz", "0"])
 
@@ -277,9 +278,10 @@ def _ingest_recovers(source, vehicle, bring_up):
     """Start the ingest on a link that is not up; check its health says degraded and nothing is published; bring
     the autopilot up; check nav states flow, the health says ok and the companion HEARTBEAT reaches the autopilot."""
     zenoh = pytest.importorskip("zenoh")
-    from eonav import keys as K
-    from eonav import schema
-    from eonav.bus.testing import drain, free_port, listener_session, stop_service, wait_until
+    from eonav.app.processes import drain, free_port, stop_service, wait_until
+    from eonav.bus import keys as K
+    from eonav.bus import schema
+    from eonav.bus.session import listener_session
     port = free_port()
     health, nav = [], []
     with listener_session(port) as s:
@@ -340,7 +342,7 @@ def test_ingest_waits_for_a_late_serial_device(tmp_path):
 
 
 def test_ingest_malformed_connection_string_is_a_configuration_error():
-    from eonav.bus.testing import free_port
+    from eonav.app.processes import free_port
     proc = _service("tcp:localhost", "lk3", free_port())
     code = proc.wait(30)
     assert code == 2 and "not a MAVLink connection string" in proc.stderr.read()

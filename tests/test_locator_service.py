@@ -13,13 +13,13 @@ os.environ["MAVLINK20"] = "1"
 import numpy as np
 import pytest
 
-from eonav import keys as K
-from eonav import schema
-from eonav.camera import on_grid
-from eonav.bus.testing import (client_session, drain, free_port, router_process, start_service, stop_service,
-                               wait_until)
-from eonav.geometry import quat_wxyz_from_rotation
-from eonav.rangemap import VALID
+from eonav.bus import keys as K
+from eonav.bus import schema
+from eonav.geometry.camera import on_grid
+from eonav.bus.session import client_session
+from eonav.app.processes import drain, free_port, router_process, start_service, stop_service, wait_until
+from eonav.geometry.frames import quat_wxyz_from_rotation
+from eonav.ranging.rangemap import VALID
 
 VEHICLE = "loctest"
 N_FRAMES = 6
@@ -67,9 +67,9 @@ def locator_and_obstacles(locator_args=(), obstacles_args=()):
             subs = [s.declare_subscriber(key, zenoh.handlers.FifoChannel(n)) for key, n in
                     ((K.range_maps_all(VEHICLE), 64), (K.obstacles(VEHICLE), 64), (K.health_all(VEHICLE), 1024))]
             common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.2"]
-            procs["locator"] = start_service(["-m", "services.locator", *common, "--cv-threads", "1",
+            procs["locator"] = start_service(["-m", "eonav.services.locator", *common, "--cv-threads", "1",
                                               *locator_args])
-            procs["obstacles"] = start_service(["-m", "services.obstacles", *common, "--ground-down", "0",
+            procs["obstacles"] = start_service(["-m", "eonav.services.obstacles", *common, "--ground-down", "0",
                                                 *obstacles_args])
             yield (s, procs, *subs)
     except BaseException:
@@ -91,7 +91,7 @@ def locator_and_obstacles(locator_args=(), obstacles_args=()):
 
 
 def test_locator_and_obstacles_services(flight_frames):
-    from eonav.mavlink_out import mavutil
+    from eonav.nav.mavlink_out import mavutil
     frames, fl = flight_frames
     mu = mavutil()
     udp = free_port()
@@ -173,7 +173,7 @@ def test_locator_and_obstacles_services(flight_frames):
                 assert len(m["sectors"]["distances_cm"]) == 72
             assert len(set(truck_ids)) == 1, truck_ids     # the tracker keeps the truck's id
 
-            # -- MAVLink: fresh sectors with the truck, then 'unknown' once stale ------------------
+            # -- MAVLink: fresh sectors with the truck, then one 'unknown' flush and silence once stale ------
             od = []
             while True:
                 msg = rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.3)
@@ -186,14 +186,16 @@ def test_locator_and_obstacles_services(flight_frames):
             assert fresh, "no fresh OBSTACLE_DISTANCE received"
             last_fresh = fresh[-1]
             assert last_fresh.frame == 12 and last_fresh.get_srcComponent() == 191
+            assert (last_fresh.increment_f, last_fresh.angle_offset) == (5.0, 0.0)
             last_pos = sent[N_FRAMES - 1][1].state.position_ned_m
             c = np.asarray(boxes["truck"].center_ned_m) - last_pos
-            j = int((math.degrees(math.atan2(c[1], c[0])) - last_fresh.angle_offset) // last_fresh.increment_f)
+            j = round(math.degrees(math.atan2(c[1], c[0])) / 5.0) % 72     # element j is centred on 5 j deg
             near = min(last_fresh.distances[j - 1:j + 2])   # bins at the truck's centre bearing
             truck_h = box_distance(boxes["truck"], [*last_pos[:2], -1.5])
             assert near / 100 == pytest.approx(truck_h, rel=0.1)
-            assert set(od[-1][1].distances) == {65535}       # stale: explicit unknown
-            assert len(od) >= 10                             # >= 10 Hz, kept up after the data stopped
+            assert set(od[-1][1].distances) == {65535}       # stale: one explicit unknown ...
+            assert sum(set(m.distances) == {65535} for _, m in od) == 1
+            assert rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.7) is None   # ... then silence
 
             # -- health --------------------------------------------------------------------------------
             time.sleep(0.5)
@@ -207,7 +209,7 @@ def test_locator_and_obstacles_services(flight_frames):
             assert c["scale_pct.nose"] == 100 - 50 * c.get("scale_changes.down", 0) + 50 * c.get("scale_changes.up", 0)
             assert loc["latency_ms"]["capture_to_published"]["n"] == N_FRAMES - 1
             assert obs["counters"]["maps_processed"] == N_FRAMES - 1
-            assert obs["counters"]["mavlink.od_sent_fresh"] >= 1
+            assert obs["counters"]["mavlink.od_sent_fresh"] >= 1 and obs["counters"]["mavlink.od_sent_flush"] == 1
             assert obs["latency_ms"]["capture_to_obstacles"]["p99"] < 2000
             assert "warmup_errors" not in obs["counters"]
 
@@ -231,22 +233,22 @@ def run_to_exit(argv, timeout=30):
 
 def test_locator_rejects_bad_configuration():
     with router_process() as ep:
-        code, err = run_to_exit(["-m", "services.locator", "--vehicle", VEHICLE, "--connect", ep, "--method", "nonsense"])
+        code, err = run_to_exit(["-m", "eonav.services.locator", "--vehicle", VEHICLE, "--connect", ep, "--method", "nonsense"])
         assert code == 2 and "unknown method 'nonsense'" in err
         for bad, text in ((["--scale", "fast"], "--scale must be 'auto' or a number"),
                           (["--scale", "1.5"], "--scale must be 'auto' or a number"),
                           (["--min-scale", "0"], "--min-scale must be in (0, 1]"),
                           (["--budget-ms", "-5"], "--budget-ms must be > 0")):
-            code, err = run_to_exit(["-m", "services.locator", "--vehicle", VEHICLE, "--connect", ep, *bad])
+            code, err = run_to_exit(["-m", "eonav.services.locator", "--vehicle", VEHICLE, "--connect", ep, *bad])
             assert code == 2 and text in err, (bad, code, err[-2000:])
-        code, err = run_to_exit(["-m", "services.obstacles", "--vehicle", VEHICLE, "--connect", ep,
+        code, err = run_to_exit(["-m", "eonav.services.obstacles", "--vehicle", VEHICLE, "--connect", ep,
                                  "--ground-down", "x"])
         assert code == 2 and "--ground-down 'x'" in err
 
 def test_scaled_view_matches_frame_info_at_that_scale(flight_frames):
     """The history keeps full-resolution frames; a pair at 0.5 resizes them on use, exactly as a fixed --scale 0.5
     frame_info does, and the resized image is made once per frame and scale."""
-    from services.locator import CameraCache, frame_info, scaled_view
+    from eonav.services.locator import CameraCache, frame_info, scaled_view
     frames, _ = flight_frames
     msg = schema.decode(posed_frame_payload(0, 1_000_000, frames[0][1]), expect="posed_frame")
     full = CameraCache(1.0)
@@ -266,7 +268,7 @@ def test_to_full_grid_odd_sizes_match_the_nearest_pixel_centre_rule():
     floor((u + 0.5) small / full), for sizes that are not a multiple of the scale, every dtype sent, NaN kept."""
     from types import SimpleNamespace
 
-    from services.locator import to_full_grid
+    from eonav.services.locator import to_full_grid
     cam = SimpleNamespace(width=15, height=11)
     small = np.random.default_rng(3).random((5, 7)) * 100
     small[2, 3] = np.nan
@@ -288,9 +290,9 @@ def test_warm_up_times_every_rung_on_a_synthetic_partner_and_calibrates(flight_f
     gauge untouched here: that is the loop's job)."""
     from types import SimpleNamespace
 
-    from eonav.locate import locate
-    from eonav.scale_control import ScaleController
-    from services.locator import CameraCache, calibrate_camera, frame_info, synthetic_partner
+    from eonav.ranging.locate import locate
+    from eonav.ranging.scale_control import ScaleController
+    from eonav.services.locator import CameraCache, calibrate_camera, frame_info, synthetic_partner
     frames, _ = flight_frames
     cams = CameraCache(1.0)
     f = frame_info(schema.decode(posed_frame_payload(0, 1_000_000, frames[0][1]), expect="posed_frame"), cams)
@@ -306,7 +308,7 @@ def test_warm_up_times_every_rung_on_a_synthetic_partner_and_calibrates(flight_f
     def failing(va, vb, method, **kw):
         calls.append(va.image.shape)
         raise ValueError("boom")
-    from services.locator import warm_up_camera
+    from eonav.services.locator import warm_up_camera
     counted = {}
     node = SimpleNamespace(count=lambda k, n=1: counted.__setitem__(k, counted.get(k, 0) + n),
                            log_limited=lambda *a, **k: None, latency=lambda *a: None,
@@ -321,7 +323,7 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
     and the frame size beside it, accurate against the truth sampled at its pixel centres; the obstacle service
     ranges the truck from it (its own camera), counts a map whose arrays do not match its camera (bad_maps) and still
     takes an older locator's full-grid map without frame size."""
-    from eonav.camera import scaled_camera
+    from eonav.geometry.camera import scaled_camera
     frames, fl = flight_frames
     with locator_and_obstacles(("--scale", "0.5")) as (s, procs, maps_sub, obs_sub, health_sub):
         pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
@@ -394,7 +396,7 @@ def test_map_fields_on_either_grid(flight_frames):
     them (to_full_grid) with the frame's camera; at scale 1 both are the frame's grid without a frame size."""
     from types import SimpleNamespace
 
-    from services.locator import CameraCache, frame_info, map_fields, scaled_view, to_full_grid
+    from eonav.services.locator import CameraCache, frame_info, map_fields, scaled_view, to_full_grid
     frames, _ = flight_frames
     cams = CameraCache(1.0)
     f = frame_info(schema.decode(posed_frame_payload(0, 1_000_000, frames[0][1]), expect="posed_frame"), cams)

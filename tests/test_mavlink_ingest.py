@@ -11,12 +11,12 @@ import pytest
 
 from eonav import InputError
 
-from eonav import keys as K
-from eonav import schema
-from eonav.geometry import T_body_ned_from_quat
-from eonav.mavlink_nav import mavutil_v2
+from eonav.bus import keys as K
+from eonav.bus import schema
+from eonav.geometry.frames import T_body_ned_from_quat
+from eonav.nav.mavlink_in import mavutil_v2
 from eonav.sim.record import DEFAULT_START_UNIX_US, nav_truth, write_tlog
-from services import mavlink_ingest as MI
+from eonav.services import mavlink_ingest as MI
 
 BOOT_OFFSET_US = DEFAULT_START_UNIX_US - 123_456_000
 
@@ -86,23 +86,25 @@ def test_clock_flag_and_origin_parsing():
 
 
 def _run(args, subs, timeout=30):
-    from eonav.bus.testing import endpoint, free_port, listener_session, start_service, stop_service
+    from eonav.bus.session import endpoint, listener_session
+    from eonav.app.processes import free_port, start_service, stop_service
     zenoh = pytest.importorskip("zenoh")
     port = free_port()
     with listener_session(port) as s:
         chans = {k: s.declare_subscriber(k, zenoh.handlers.FifoChannel(20000)) for k in subs}
-        proc = start_service(["-m", "services.mavlink_ingest", "--vehicle", "t2", "--connect", endpoint(port),
+        proc = start_service(["-m", "eonav.services.mavlink_ingest", "--vehicle", "t2", "--connect", endpoint(port),
                               "--health-period", "0.2", *args])
         return s, chans, proc, stop_service
 
 
 def _drain_all(sub):
-    from eonav.bus.testing import drain
+    from eonav.app.processes import drain
     return [schema.decode(m.payload.to_bytes()) for m in drain(sub)]
 
 
 def test_service_replays_generated_tlog(tlog, tmp_path):
-    from eonav.bus.testing import endpoint, free_port, listener_session, start_service, stop_service, wait_until
+    from eonav.bus.session import endpoint, listener_session
+    from eonav.app.processes import free_port, start_service, stop_service, wait_until
     zenoh = pytest.importorskip("zenoh")
     path, counts = tlog
     # a copy with a corrupt packet in the middle and a truncated last record
@@ -120,7 +122,7 @@ def test_service_replays_generated_tlog(tlog, tmp_path):
         clk_sub = s.declare_subscriber(K.nav_clock("t2"), zenoh.handlers.FifoChannel(1000))
         h_sub = s.declare_subscriber(K.health("t2", "mavlink"), zenoh.handlers.FifoChannel(1000))
         t_start_us = time.time_ns() // 1000
-        proc = start_service(["-m", "services.mavlink_ingest", "--source", str(bad), "--rate", "0",
+        proc = start_service(["-m", "eonav.services.mavlink_ingest", "--source", str(bad), "--rate", "0",
                               "--vehicle", "t2", "--connect", endpoint(port), "--health-period", "0.2",
                               "--position-source", "LOCAL_POSITION_NED", "--wait-subscribers", "10"])
         try:
@@ -178,7 +180,8 @@ def _free_udp_port():
 def test_service_timesync_against_simulated_autopilot():
     """The service is the companion (udpout); a pymavlink autopilot (udpin) answers TIMESYNC with its
     boot clock in ns, streams ATTITUDE on the same clock and records the companion's HEARTBEAT."""
-    from eonav.bus.testing import endpoint, free_port, listener_session, start_service, stop_service, wait_until
+    from eonav.bus.session import endpoint, listener_session
+    from eonav.app.processes import free_port, start_service, stop_service, wait_until
     zenoh = pytest.importorskip("zenoh")
     mavutil = mavutil_v2()
     udp = _free_udp_port()
@@ -211,7 +214,7 @@ def test_service_timesync_against_simulated_autopilot():
         with listener_session(port) as s:
             nav_sub = s.declare_subscriber(K.nav_state("t3"), zenoh.handlers.FifoChannel(5000))
             clk_sub = s.declare_subscriber(K.nav_clock("t3"), zenoh.handlers.FifoChannel(1000))
-            proc = start_service(["-m", "services.mavlink_ingest", "--source", f"udpout:127.0.0.1:{udp}",
+            proc = start_service(["-m", "eonav.services.mavlink_ingest", "--source", f"udpout:127.0.0.1:{udp}",
                                   "--vehicle", "t3", "--connect", endpoint(port), "--timesync-hz", "10"])
             clk = []
             wait_until(lambda: any(c["method"] == "timesync" and c["samples"] >= 10

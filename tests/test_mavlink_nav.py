@@ -1,4 +1,4 @@
-"""eonav.mavlink_nav: decoding, validation, reboots, clock offsets, tlogs (real bytes through pymavlink)."""
+"""eonav.nav.mavlink_in: decoding, validation, reboots, clock offsets, tlogs (real bytes through pymavlink)."""
 import math
 import threading
 import time
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.geometry import T_body_ned_from_quat, quat_wxyz_from_ypr, ypr_from_T_body_ned
-from eonav.mavlink_nav import (WGS84_A_M, WGS84_E2, ClockMapper, MinWindowOffset, NavDecoder, NavIngest,
+from eonav.geometry.frames import T_body_ned_from_quat, quat_wxyz_from_ypr, ypr_from_T_body_ned
+from eonav.nav.mavlink_in import (WGS84_A_M, WGS84_E2, ClockMapper, MinWindowOffset, NavDecoder, NavIngest,
                                TimesyncEstimator, TlogReader, lla_from_ned, mavlink2_dialect, mavutil_v2,
                                ned_from_lla)
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.camera import Camera, VehicleState
-from eonav.geometry import camera_from_ned
-from eonav import pair_policy as pp
+from eonav.geometry.camera import Camera, VehicleState
+from eonav.geometry.frames import camera_from_ned
+from eonav.ranging import pair_policy as pp
 
 CAM = Camera("nose", 256, 256, 256.0, 256.0, 127.5, 127.5)
 

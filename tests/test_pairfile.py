@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.pairfile import load_pair_file
+from eonav.io.pairfile import load_pair_file
 
 DOC = {
     "cameras": {"nose": {"width": 32, "height": 24, "fx": 40.0, "fy": 40.0, "cx": 15.5, "cy": 11.5,
@@ -56,7 +56,7 @@ def test_sixteen_bit_image_is_scaled_to_the_8_bit_range(pair_dir):
 
 
 def test_quaternion_attitude_equals_ypr(pair_dir):
-    from eonav.geometry import quat_wxyz_from_ypr
+    from eonav.geometry.frames import quat_wxyz_from_ypr
     doc = copy.deepcopy(DOC)
     ypr = doc["frames"][1].pop("ypr_deg")
     doc["frames"][1]["q_wxyz"] = quat_wxyz_from_ypr(*np.deg2rad(ypr)).tolist()

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.camera import Camera, VehicleState, View, pair_geometry
-from eonav.derivatives import estimate_derivatives, noise_gains
-from eonav.geometry import k_coefficients
-from eonav.methods.paper import (camera_points_eq32, disparity, locate_paper, ned_point_cloud, range_eq28)
-from eonav.rangemap import LOW_TEXTURE, TRUNCATION, VALID, RangeResult
+from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
+from eonav.ranging.derivatives import estimate_derivatives, noise_gains
+from eonav.geometry.frames import k_coefficients
+from eonav.ranging.methods.paper import (camera_points_eq32, disparity, locate_paper, ned_point_cloud, range_eq28)
+from eonav.ranging.rangemap import LOW_TEXTURE, TRUNCATION, VALID, RangeResult
 
 # ----------------------------------------------------------------------------------------------------------
 # analytic scenes
@@ -300,7 +300,7 @@ def test_locator_input_errors():
 
 
 def test_disparity_matches_map_to_b():
-    """eonav.methods.paper.disparity (eqs. 25-26) agrees with the exact PairGeometry.map_to_b."""
+    """eonav.ranging.methods.paper.disparity (eqs. 25-26) agrees with the exact PairGeometry.map_to_b."""
     va, vb, ra = pair(S_LARGE)
     pg = pair_geometry(va, vb)
     u, v = CAM.pixel_grid()

@@ -5,7 +5,7 @@ recording's ground truth (range per pixel, true box positions)."""
 import math
 
 
-from eonav.demo import format_summary, run_demo
+from eonav.app.demo import format_summary, run_demo
 
 SERVICES = ("camera", "mavlink", "sync", "locator", "obstacles")
 

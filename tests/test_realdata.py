@@ -1,13 +1,13 @@
-"""Readers of the public real data (eonav.realdata) checked against independent references in that data."""
+"""Readers of the public real data (eonav.io.datasets) checked against independent references in that data."""
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from eonav.camera import pair_geometry
-from eonav.locate import locate
-from eonav.realdata import MIDDLEBURY_BASELINE_M, kitti_views, middlebury_pair
+from eonav.geometry.camera import pair_geometry
+from eonav.ranging.locate import locate
+from eonav.io.datasets import MIDDLEBURY_BASELINE_M, kitti_views, middlebury_pair
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 pytestmark = pytest.mark.realdata

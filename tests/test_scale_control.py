@@ -1,8 +1,8 @@
-"""The locator's adaptive scale controller (eonav.scale_control), edge case by edge case."""
+"""The locator's adaptive scale controller (eonav.ranging.scale_control), edge case by edge case."""
 import pytest
 
 from eonav import InputError
-from eonav.scale_control import ScaleController, ladder, parse_scale
+from eonav.ranging.scale_control import ScaleController, ladder, parse_scale
 
 FPS15_US = 66_667
 

@@ -3,8 +3,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from eonav import keys, schema
-from eonav.schema import SchemaError
+from eonav.bus import keys
+from eonav.bus import schema
+from eonav.bus.schema import SchemaError
 
 
 def frame_msg(**over):
@@ -84,7 +85,7 @@ def test_keys_carry_the_vehicle_prefix_and_reject_wildcards():
 
 
 def test_camera_message_round_trip():
-    from eonav.camera import Camera
+    from eonav.geometry.camera import Camera
     cam = Camera("nose", 64, 48, 50.0, 51.0, 31.5, 23.5, [7.6, 0, 0.6], np.deg2rad([0, -2, 0]))
     back = schema.camera_from_msg(schema.camera_to_msg(cam))
     assert back.name == "nose" and back.fy == 51.0 and np.allclose(back.eps_rad, cam.eps_rad)

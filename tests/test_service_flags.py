@@ -10,7 +10,7 @@ SHARED_ON_PURPOSE = {"EONAV_REPLAY_SHIFT_US"}   # the same shift must reach ever
 
 def service_env_vars(name):
     p = argparse.ArgumentParser()
-    importlib.import_module(f"services.{name}").add_arguments(p)
+    importlib.import_module(f"eonav.services.{name}").add_arguments(p)
     out, dests_with_env = {}, set()
     actions = [a for a in p._actions if a.option_strings and a.dest != "help"]
     for a in actions:
@@ -21,7 +21,7 @@ def service_env_vars(name):
     for a in actions:   # aliases (e.g. --grey for --encoding mono8) share the variable of their destination;
         if isinstance(a, argparse._AppendAction):   # repeatable flags (--method-param K=V ...) have none
             continue
-        assert a.dest in dests_with_env, f"services.{name} {a.option_strings}: no EONAV_ environment default"
+        assert a.dest in dests_with_env, f"eonav.services.{name} {a.option_strings}: no EONAV_ environment default"
     return out
 
 
@@ -31,5 +31,5 @@ def test_env_variables_are_unique_across_services():
         for var, flag in service_env_vars(name).items():
             if var in seen and var not in SHARED_ON_PURPOSE:
                 raise AssertionError(f"{var} is read by {seen[var]} and by services.{name} {flag}")
-            seen[var] = f"services.{name} {flag}"
+            seen[var] = f"eonav.services.{name} {flag}"
     assert len(seen) > 30

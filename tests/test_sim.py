@@ -1,4 +1,4 @@
-"""Simulator tests: the renderer's geometry against eonav.geometry / eonav.camera (independent truth),
+"""Simulator tests: the renderer's geometry against eonav.geometry.frames / eonav.geometry.camera (independent truth),
 ground truth against analytic intersections, and two-view consistency against eqs. (25)-(26) via
 pair_geometry().map_to_b."""
 import json
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.camera import Camera, VehicleState, View, pair_geometry
-from eonav.geometry import camera_from_ned, ned_from_camera
-from eonav.pairfile import load_pair_file
+from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
+from eonav.geometry.frames import camera_from_ned, ned_from_camera
+from eonav.io.pairfile import load_pair_file
 from eonav.sim.flight import FLIGHTS, flight, flight_states, render_flight
 from eonav.sim.presets import FT_M, PRESETS, make_pair, write_pair
 from eonav.sim.render import project_ned, render
@@ -55,7 +55,7 @@ def test_projection_matches_eonav_geometry():
 
 
 def test_box_seen_where_geometry_projects_it():
-    """A fronto-parallel box face: its centre projects (eonav.geometry) onto a pixel labelled with the box, whose
+    """A fronto-parallel box face: its centre projects (eonav.geometry.frames) onto a pixel labelled with the box, whose
     ground-truth range is the face's x_c; a point beside the box is not the box."""
     cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
     state = VehicleState.from_ypr([0.0, 0.0, -3.0], [0.0, 0.0, 0.0])

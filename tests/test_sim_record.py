@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from eonav.geometry import T_body_ned_from_quat
-from eonav.mavlink_nav import ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2
-from eonav.pairfile import parse_camera
+from eonav.geometry.frames import T_body_ned_from_quat
+from eonav.nav.mavlink_in import ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2
+from eonav.io.pairfile import parse_camera
 from eonav.sim.flight import flight_states
 from eonav.sim.record import nav_truth, record_flight
 

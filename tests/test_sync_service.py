@@ -8,15 +8,15 @@ import time
 import numpy as np
 import pytest
 
-from eonav import keys as K
-from eonav import schema
-from eonav.geometry import T_body_ned_from_quat
-from eonav.pairfile import camera_to_dict
+from eonav.bus import keys as K
+from eonav.bus import schema
+from eonav.geometry.frames import T_body_ned_from_quat
+from eonav.io.pairfile import camera_to_dict
 from eonav.sim.flight import flight
 from eonav.sim.presets import scale_camera
 from eonav.sim.record import nav_truth
-from eonav.timesync import QF_EXTRAPOLATED, QF_VELOCITY_AIDED, NavBuffer
-from services import sync as S
+from eonav.nav.timesync import QF_EXTRAPOLATED, QF_VELOCITY_AIDED, NavBuffer
+from eonav.services import sync as S
 
 W, H = 32, 24
 
@@ -82,8 +82,8 @@ def test_pairer_waits_poses_and_drops_with_reasons(tmp_path):
 
 def test_service_poses_frames_against_truth(tmp_path):
     zenoh = pytest.importorskip("zenoh")
-    from eonav.bus.testing import (drain, endpoint, free_port, listener_session, start_service, stop_service,
-                                   wait_until)
+    from eonav.bus.session import endpoint, listener_session
+    from eonav.app.processes import drain, free_port, start_service, stop_service, wait_until
     cams_path, cam = _cameras_file(tmp_path)
     port = free_port()
     proc = None
@@ -94,7 +94,7 @@ def test_service_poses_frames_against_truth(tmp_path):
         frame_pub = s.declare_publisher(K.frame("t4", "nose"))
         tail_pub = s.declare_publisher(K.frame("t4", "tail"))
         try:
-            proc = start_service(["-m", "services.sync", "--cameras", str(cams_path), "--vehicle", "t4",
+            proc = start_service(["-m", "eonav.services.sync", "--cameras", str(cams_path), "--vehicle", "t4",
                                   "--connect", endpoint(port), "--health-period", "0.2", "--max-wait-ms", "300"])
             wait_until(lambda: nav_pub.matching_status.matching and frame_pub.matching_status.matching, 15,
                        what="the sync service's subscribers")

@@ -1,12 +1,12 @@
-"""eonav.timesync: stamp association and pose interpolation, edge cases against hand-derived values."""
+"""eonav.nav.timesync: stamp association and pose interpolation, edge cases against hand-derived values."""
 import math
 
 import numpy as np
 import pytest
 
 from eonav import InputError
-from eonav.geometry import T_body_ned_from_quat, quat_wxyz_from_ypr, ypr_from_T_body_ned
-from eonav.timesync import (QF_EXTRAPOLATED, QF_GAP, QF_JITTER, QF_NO_VELOCITY, QF_VELOCITY_AIDED,
+from eonav.geometry.frames import T_body_ned_from_quat, quat_wxyz_from_ypr, ypr_from_T_body_ned
+from eonav.nav.timesync import (QF_EXTRAPOLATED, QF_GAP, QF_JITTER, QF_NO_VELOCITY, QF_VELOCITY_AIDED,
                             NavBuffer, match_stamps)
 
 D = math.radians

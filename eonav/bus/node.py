@@ -47,9 +47,10 @@ import threading
 import time
 from typing import Callable
 
-from .. import EonavError, schema
-from .. import keys as K
-from .session import add_flag, add_session_arguments, env_default, open_session
+from eonav import EonavError
+from eonav.bus import schema
+from eonav.bus import keys as K
+from eonav.bus.session import add_flag, add_session_arguments, env_default, open_session
 
 __all__ = ["Node", "service_main", "add_common_arguments", "add_flag", "env_default",
            "RateMeter", "LatencyWindow", "STATES", "EXIT_OK", "EXIT_ERROR", "EXIT_CONFIG"]

@@ -21,8 +21,8 @@ import signal
 import sys
 import threading
 
-from .. import EonavError
-from .session import add_flag, add_session_arguments, build_config, split_endpoints
+from eonav import EonavError
+from eonav.bus.session import add_flag, add_session_arguments, build_config, split_endpoints
 
 log = logging.getLogger("eonav.router")
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"

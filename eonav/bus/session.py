@@ -29,7 +29,7 @@ import argparse
 import json
 import os
 
-from .. import InputError
+from eonav import InputError
 
 MODES = ("peer", "client", "router")
 _TRUE = ("1", "true", "yes", "on")
@@ -161,3 +161,25 @@ def open_session(args):
 
     zenoh.init_log_from_env_or("error")
     return zenoh.open(build_config(args))
+
+
+# -- sessions on loopback (tests, the demo, benchmarks) -------------------------------------------------
+
+def endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def _open(mode: str, connect=None, listen=None):
+    import zenoh
+    args = argparse.Namespace(mode=mode, connect=connect, listen=listen, zenoh_config=None, multicast=False)
+    return zenoh.open(build_config(args))
+
+
+def listener_session(port: int):
+    """A peer session listening on tcp/127.0.0.1:<port> (use as a context manager)."""
+    return _open("peer", listen=endpoint(port))
+
+
+def client_session(ep: str):
+    """A client session connected to a router endpoint (use as a context manager)."""
+    return _open("client", connect=ep)

@@ -17,7 +17,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     import json
 
-    from .presets import make_pair, write_pair
+    from eonav.sim.presets import make_pair, write_pair
     pair = make_pair(args.preset, seed=args.seed, size=args.size, noise_sigma=args.noise,
                      supersample=args.supersample)
     path = write_pair(pair, args.out)

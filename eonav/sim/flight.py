@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import InputError
-from ..camera import Camera, VehicleState, View
-from .scene import Box, Runway, Scene
+from eonav import InputError
+from eonav.geometry.camera import Camera, VehicleState, View
+from eonav.sim.scene import Box, Runway, Scene
 
 FLIGHTS = ("approach", "turning", "climbing")
 G_MPS2 = 9.81
@@ -33,7 +33,7 @@ class Flight:
 
 
 def _camera(tilt_deg: float) -> Camera:
-    from .presets import _nose_camera
+    from eonav.sim.presets import _nose_camera
     return _nose_camera(tilt_deg=tilt_deg)
 
 
@@ -122,8 +122,8 @@ def render_flight(name: str, *, n_frames: int, rate_hz: float, size=None, seed: 
                   supersample: int = 3, noise_sigma: float = 1.0, t0_s: float = 0.0):
     """Yield (t_s, View, Render) for frames at t0_s + i / rate_hz, i < n_frames. Sensor noise of frame i uses
     seed (seed, i)."""
-    from .presets import scale_camera
-    from .render import render
+    from eonav.sim.presets import scale_camera
+    from eonav.sim.render import render
     if int(n_frames) != n_frames or n_frames < 1:
         raise InputError(f"render_flight: n_frames must be a whole number >= 1, got {n_frames!r}")
     if not (np.isfinite(rate_hz) and rate_hz > 0):

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import InputError
-from ..camera import Camera, VehicleState, View
-from .render import render
-from .scene import Box, Runway, Scene
+from eonav import InputError
+from eonav.geometry.camera import Camera, VehicleState, View
+from eonav.sim.render import render
+from eonav.sim.scene import Box, Runway, Scene
 
 FT_M = 0.3048
 PRESETS = ("paper", "fast", "turning", "climbing", "stereo", "hover")
@@ -57,7 +57,7 @@ def scale_camera(cam: Camera, size) -> Camera:
 def north_for_range(cam: Camera, state: VehicleState, x_c_m: float, east_m: float, down_m: float) -> float:
     """North coordinate at which the NED point (north, east_m, down_m) is at range x_c_m from ``cam`` at ``state``
     (x_c is affine in north)."""
-    from ..geometry import camera_from_ned
+    from eonav.geometry.frames import camera_from_ned
     args = (cam.T_cam_body, state.T_body_ned, state.position_ned_m, cam.l_body_m)
     x0 = camera_from_ned(np.array([0.0, east_m, down_m]), *args)[0]
     x1 = camera_from_ned(np.array([1.0, east_m, down_m]), *args)[0]
@@ -180,7 +180,7 @@ def preset_scene(name: str):
 
 
 def _motion_meta(cams, states) -> dict:
-    from ..geometry import ypr_from_T_body_ned
+    from eonav.geometry.frames import ypr_from_T_body_ned
     s0, s1 = states
     return {"dt_s": float(s1.t_s - s0.t_s),
             "delta_position_ned_m": [float(x) for x in s1.position_ned_m - s0.position_ned_m],
@@ -211,7 +211,7 @@ def write_pair(sim_pair: SimPair, out_dir) -> Path:
 
     import cv2
 
-    from ..pairfile import camera_to_dict, frame_to_dict, write_pair_file
+    from eonav.io.pairfile import camera_to_dict, frame_to_dict, write_pair_file
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cameras, frames = {}, []

@@ -25,7 +25,7 @@ Clocks (all integer microseconds):
 
 Truth attitude and position come from ``eonav.sim.flight.flight_states`` (closed form); body rates and
 NED velocities in the messages are central differences of it (h = 1 ms). GLOBAL_POSITION_INT is the
-NED position about ``origin_lla`` (manifest) through eonav.mavlink_nav's local-tangent conversion,
+NED position about ``origin_lla`` (manifest) through eonav.nav.mavlink_in's local-tangent conversion,
 quantised to degE7 / mm / cm/s as on the wire.
 """
 from __future__ import annotations
@@ -37,11 +37,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .. import InputError
-from ..geometry import quat_wxyz_from_rotation, ypr_from_T_body_ned
-from ..mavlink_nav import lla_from_ned, mavlink2_dialect
-from ..pairfile import camera_to_dict
-from .flight import FLIGHTS, flight_states, render_flight
+from eonav import InputError
+from eonav.geometry.frames import quat_wxyz_from_rotation, ypr_from_T_body_ned
+from eonav.nav.mavlink_in import lla_from_ned, mavlink2_dialect
+from eonav.io.pairfile import camera_to_dict
+from eonav.sim.flight import FLIGHTS, flight_states, render_flight
 
 DEFAULT_START_UNIX_US = 1_760_000_000_000_000       # 2025-10-09, fixed so recordings are reproducible
 DEFAULT_ORIGIN_LLA = (47.397742, 8.545594, 488.0)

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import InputError
-from ..camera import Camera, VehicleState
-from .scene import FIRST_BOX_ID, GROUND_ID, SKY_ID, Scene
-from .texture import fractal_noise
+from eonav import InputError
+from eonav.geometry.camera import Camera, VehicleState
+from eonav.sim.scene import FIRST_BOX_ID, GROUND_ID, SKY_ID, Scene
+from eonav.sim.texture import fractal_noise
 
 GROUND_LIGHT = 1.0
 AMBIENT = 0.45                       # box faces: grey = albedo * (AMBIENT + (1 - AMBIENT) * max(0, n . sun))

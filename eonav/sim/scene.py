@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import InputError
+from eonav import InputError
 
 SKY_ID = 0
 GROUND_ID = 1

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import View, pair_geometry
+from eonav.geometry.camera import View, pair_geometry
 
 
 def measurable_in_b(view_a: View, view_b: View, range_a_m: np.ndarray, range_b_m: np.ndarray | None = None,

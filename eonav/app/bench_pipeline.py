@@ -1,0 +1,308 @@
+"""``eonav bench pipeline``: frame capture -> range map published -> obstacles published, over the real bus.
+
+Starts the embedded router and the locator and obstacle services as processes, then plays posed frames of a
+simulated flight (rendered once per image size, cycled with fresh stamps) at a fixed rate straight onto the
+posed-frame key (camera ingest and sync are not in the loop: their cost is a copy each, measured in their own
+benches). A frame's ``stamp_us`` is the moment it is put ("capture"); the bench's subscriber stamps the arrival of
+the range map and of the obstacle list carrying that ``stamp_us`` on the same host clock. Reported per case:
+latency p50/p99 of capture -> range map and capture -> obstacles, throughput, drops (frames without a range map:
+the locator's RingChannel keeps the newest frames, so a slow locator skips frames instead of queueing them),
+the locator's own compute time, and whether payloads arrived through zenoh shared memory.
+
+``run_bench(cases, seconds=...)`` is the pipeline function; ``add_arguments``/``run`` are the CLI hooks that
+``eonav bench pipeline`` delegates to. ``--scale`` passes the locator's ``--scale`` (default ``auto``: the adaptive
+scale; a number fixes it, e.g. 0.5 = half-resolution locate); each line reports the scales the range maps came at;
+``--publish-grid`` passes the locator's ``--publish-grid`` (default ``locate``: maps on the grid they were computed
+on; ``frame``: upsampled to the frame's grid); ``--accuracy`` instead measures, in process, what a scale costs
+against the simulator's truth (``accuracy``).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+
+log = logging.getLogger("eonav.app.bench_pipeline")
+
+DEFAULT_CASES = ((30.0, 640, 480), (30.0, 512, 512), (15.0, 640, 480), (15.0, 512, 512))
+
+
+def _frames(width: int, height: int, n: int = 4, rate_hz: float = 10.0):
+    """n rendered frames of the approach flight at width x height (as posed_frame fields)."""
+    from eonav.geometry.frames import quat_wxyz_from_rotation
+    from eonav.bus.schema import camera_to_msg
+    from eonav.sim.flight import render_flight
+    out = []
+    for _, view, _ in render_flight("approach", n_frames=n, rate_hz=rate_hz, size=(width, height), t0_s=2.5,
+                                    supersample=1):
+        out.append({"image": np.clip(np.round(view.image), 0, 255).astype(np.uint8),
+                    "camera": camera_to_msg(view.camera), "position_ned_m": view.state.position_ned_m,
+                    "q_wxyz": quat_wxyz_from_rotation(view.state.T_body_ned.T)})
+    return out
+
+
+def _pct(v, q):
+    return float(np.percentile(v, q)) if len(v) else math.nan
+
+
+def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, frames: list, *, method: str = "dense",
+               cv_threads: int = 1, vehicle: str = "bench", scale="auto", publish_grid: str = "locate") -> dict:
+    import zenoh
+    from eonav.bus import keys as K
+    from eonav.bus import schema
+    from eonav.bus.session import client_session
+    from eonav.app.processes import start_service, stop_service, wait_until
+    common = ["--vehicle", vehicle, "--connect", ep, "--health-period", "1", "--log-level", "warning"]
+    procs = [start_service(["-m", "eonav.services.locator", *common, "--method", method, "--cv-threads", str(cv_threads),
+                            "--scale", str(scale), "--publish-grid", publish_grid]),
+             start_service(["-m", "eonav.services.obstacles", *common, "--ground-down", "0"])]
+    res = {"fps": fps, "width": width, "height": height, "method": method, "scale": scale,
+           "publish_grid": publish_grid}
+    try:
+        with client_session(ep) as s:
+            rx_map, rx_obs, shm = {}, {}, {"maps": 0, "maps_shm": 0}
+            health = {}
+            lock = threading.Lock()
+            subs = [s.declare_subscriber(K.range_maps_all(vehicle), zenoh.handlers.FifoChannel(256)),
+                    s.declare_subscriber(K.obstacles(vehicle), zenoh.handlers.FifoChannel(256)),
+                    s.declare_subscriber(K.health_all(vehicle), zenoh.handlers.FifoChannel(256))]
+
+            def consume(sub, kind):
+                try:
+                    for smp in sub:
+                        t = time.time_ns() // 1000
+                        m = schema.decode(smp.payload.to_bytes(), expect=kind)
+                        with lock:
+                            if kind == "range_map":
+                                rx_map[m["stamp_us"]] = (t, m["compute_s"], m["overhead_s"], m.get("scale", 1.0))
+                                shm["maps"] += 1
+                                shm["maps_shm"] += smp.payload.as_shm() is not None
+                            elif kind == "obstacle_list":
+                                rx_obs[m["stamp_us"]] = t
+                            else:
+                                health[m["service"]] = m
+                except Exception:
+                    pass
+
+            threads = [threading.Thread(target=consume, args=(sub, k))
+                       for sub, k in zip(subs, ("range_map", "obstacle_list", "health"))]
+            for t in threads:
+                t.start()
+            pub = s.declare_publisher(K.posed_frame(vehicle, "nose"))
+            wait_until(lambda: {"locator", "obstacles"} <= set(health), timeout=60, what="services up")
+            wait_until(lambda: pub.matching_status.matching, timeout=60, what="locator subscribed")
+            time.sleep(0.5)
+            # warm-up: a few frames not counted
+            sent = []
+            period = 1.0 / fps
+            t_next = time.monotonic()
+            n_total = int(round((seconds + 2.0) * fps))
+            for i in range(n_total):
+                fr = frames[i % len(frames)]
+                stamp = time.time_ns() // 1000
+                pub.put(schema.encode("posed_frame", camera_id="nose", seq=i, stamp_us=stamp, encoding="mono8", **fr))
+                if i >= int(2.0 * fps):
+                    sent.append(stamp)
+                t_next += period
+                dt = t_next - time.monotonic()
+                if dt > 0:
+                    time.sleep(dt)
+            time.sleep(1.5)
+            with lock:
+                maps = {k: v for k, v in rx_map.items() if k in set(sent)}
+                obs = {k: v for k, v in rx_obs.items() if k in set(sent)}
+            lat_r = [(v[0] - k) / 1e3 for k, v in maps.items()]
+            lat_o = [(v - k) / 1e3 for k, v in obs.items()]
+            comp = [v[1] * 1e3 for v in maps.values()]
+            over = [v[2] * 1e3 for v in maps.values() if math.isfinite(v[2])]
+            loc = health.get("locator", {}).get("counters", {})
+            scales = {}
+            for v in maps.values():
+                scales[f"{v[3]:g}"] = scales.get(f"{v[3]:g}", 0) + 1
+            obs_h = health.get("obstacles", {})
+            res.update(frames_sent=len(sent), range_maps=len(maps), obstacle_lists=len(obs),
+                       frames_dropped=len(sent) - len(maps), drop_fraction=(len(sent) - len(maps)) / max(1, len(sent)),
+                       throughput_maps_hz=len(maps) / seconds,
+                       capture_to_range_ms={"p50": _pct(lat_r, 50), "p99": _pct(lat_r, 99), "max": _pct(lat_r, 100)},
+                       capture_to_obstacles_ms={"p50": _pct(lat_o, 50), "p99": _pct(lat_o, 99),
+                                                "max": _pct(lat_o, 100)},
+                       locate_compute_ms={"p50": _pct(comp, 50), "p99": _pct(comp, 99)},
+                       locator_overhead_ms={"p50": _pct(over, 50), "p99": _pct(over, 99)},
+                       obstacles_compute_ms=obs_h.get("latency_ms", {}).get("compute", {}),
+                       locator_skipped=loc.get("frames_skipped", 0),
+                       maps_per_scale=scales, locator_scale_changes=loc.get("scale_changes", 0),
+                       locator_superseded=loc.get("frames_superseded", 0),
+                       obstacles_superseded=obs_h.get("counters", {}).get("maps_superseded", 0),
+                       range_map_payloads_via_shm=f"{shm['maps_shm']}/{shm['maps']}",
+                       payload_bytes_per_frame=len(schema.encode("posed_frame", camera_id="nose", seq=0, stamp_us=0,
+                                                                 encoding="mono8", **frames[0])))
+            for sub in subs:
+                sub.undeclare()
+            for t in threads:
+                t.join(5)
+    finally:
+        codes = []
+        for p in procs:
+            try:
+                codes.append(stop_service(p, signal.SIGINT, timeout=15)[0])
+            except AssertionError:
+                codes.append(None)
+        res["service_exit_codes"] = codes
+    return res
+
+
+def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense", cv_threads: int = 1,
+              stream=None, scale="auto", publish_grid: str = "locate") -> list:
+    """Run each (fps, width, height) case; print one line each and return the result dicts."""
+    from eonav.app.processes import router_process
+    stream = stream or sys.stdout
+    print("services: eonav session defaults (zenoh shared memory off, see eonav.bus.session); the bench's own "
+          "subscriber is a client of the embedded router", file=stream)
+    out = []
+    rendered = {}
+    with router_process() as ep:
+        for k, (fps, w, h) in enumerate(cases):
+            if (w, h) not in rendered:
+                rendered[(w, h)] = _frames(w, h)
+            # a vehicle name per case: no health or subscriber of the previous case's services can be mistaken
+            r = bench_case(ep, fps, w, h, seconds, rendered[(w, h)], method=method, cv_threads=cv_threads,
+                           vehicle=f"bench{k}", scale=scale, publish_grid=publish_grid)
+            out.append(r)
+            scales = ", ".join(f"{k}: {n}" for k, n in sorted(r["maps_per_scale"].items(), reverse=True))
+            print(f"{fps:4.0f} fps {w}x{h} {method} scale {scale} grid {publish_grid} (maps at {scales or '-'}; "
+                  f"{r['locator_scale_changes']} changes): capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
+                  f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
+                  f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
+                  f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} | "
+                  f"compute p50 {r['locate_compute_ms']['p50']:.0f} ms, locator overhead p50 "
+                  f"{r['locator_overhead_ms']['p50']:.1f} ms, obstacles p50 "
+                  f"{r['obstacles_compute_ms'].get('p50', math.nan):.1f} ms | shm {r['range_map_payloads_via_shm']}",
+                  file=stream, flush=True)
+    return out
+
+
+def accuracy(size=(640, 480), scales=(1.0, 0.5), n_frames: int = 5, rate_hz: float = 10.0, method: str = "dense",
+             stream=None, publish_grid: str = "locate") -> list:
+    """What the locator's ``--scale`` costs, in process, against the simulator's truth: consecutive frames of the
+    approach flight (the bench's frames) ranged through the locator's own code path (``frame_info`` at the scale,
+    locate, ``map_fields`` for ``publish_grid``), scored on the grid of the map that would be published (its own
+    camera's: the truth sampled at its pixel centres, ``eonav.camera.on_grid``): median |relative range error| and
+    coverage of confident pixels, and the obstacle list's nearest distance (the obstacle service's ``analyse_msg``)
+    against the one from the true full-resolution range map."""
+    import cv2
+    from eonav.services.locator import CameraCache, frame_info, map_fields
+    from eonav.services.obstacles import analyse_msg
+    from eonav.obstacles import detect as ob
+    from eonav.geometry.camera import on_grid
+    from eonav.bus import schema
+    from eonav.geometry.camera import View
+    from eonav.geometry.frames import quat_wxyz_from_rotation
+    from eonav.ranging.locate import locate
+    from eonav.ranging.rangemap import VALID
+    from eonav.sim.flight import render_flight
+    cv2.setNumThreads(1)
+    stream = stream or sys.stdout
+    w, h = size
+    rendered = list(render_flight("approach", n_frames=n_frames, rate_hz=rate_hz, size=(w, h), t0_s=2.5,
+                                  supersample=1))
+    msgs = [schema.decode(schema.encode("posed_frame", camera_id="nose", seq=i, stamp_us=int(t * 1e6) + 1,
+                                        encoding="mono8",
+                                        image=np.clip(np.round(v.image), 0, 255).astype(np.uint8),
+                                        camera=schema.camera_to_msg(v.camera), position_ned_m=v.state.position_ned_m,
+                                        q_wxyz=quat_wxyz_from_rotation(v.state.T_body_ned.T)))
+            for i, (t, v, _) in enumerate(rendered)]
+    cfg = ob.ObstacleConfig(ground_down_m=0.0)
+    out = []
+    for scale in scales:
+        cams = CameraCache(scale)
+        infos = [frame_info(m, cams) for m in msgs]
+        errs, cover, near_err, t_loc = [], [], [], []
+        for i in range(1, len(infos)):
+            a, b = infos[i], infos[i - 1]
+            t0 = time.perf_counter()
+            res = locate(View(a.payload["camera"], a.state, a.payload["image"]),
+                         View(b.payload["camera"], b.state, b.payload["image"]), method=method)
+            t_loc.append(time.perf_counter() - t0)
+            m = map_fields(res, a, a.payload["camera"], "f16", publish_grid)
+            r, fl = m["range_m"], m["flags"]
+            truth = on_grid(rendered[i][2].range_m, r.shape[1], r.shape[0])
+            ok = ((fl & VALID) != 0) & np.isfinite(r) & np.isfinite(truth)
+            errs.append(float(np.median(np.abs(r[ok] - truth[ok]) / truth[ok])))
+            cover.append(float(ok.mean()))
+            est = analyse_msg(ob, m, schema.camera_from_msg(m["camera"]), a.state, cfg)
+            tru = ob.analyse(rendered[i][2].range_m.astype(np.float32), a.camera, a.state, cfg=cfg)
+            if est.obstacles and tru.obstacles:
+                near_err.append(est.obstacles[0].distance_m / tru.obstacles[0].distance_m - 1.0)
+        row = {"width": w, "height": h, "scale": scale, "median_rel_error": float(np.median(errs)),
+               "worst_map_median_rel_error": float(np.max(errs)), "coverage": float(np.mean(cover)),
+               "nearest_obstacle_rel_error": [round(x, 4) for x in near_err],
+               "locate_ms_p50": 1e3 * float(np.median(t_loc))}
+        out.append(row)
+        print(f"{w}x{h} scale {scale:g}: median |rel range error| {100 * row['median_rel_error']:.2f} % (worst map "
+              f"{100 * row['worst_map_median_rel_error']:.2f} %), coverage {100 * row['coverage']:.1f} %, nearest "
+              f"obstacle vs truth {[f'{100 * x:+.1f} %' for x in near_err]}, locate p50 {row['locate_ms_p50']:.0f} ms",
+              file=stream, flush=True)
+    return out
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--case", action="append", default=[], metavar="FPS@WxH",
+                   help="a case, e.g. 30@640x480 (repeatable; default: 30@640x480 30@512x512 15@640x480 15@512x512)")
+    p.add_argument("--seconds", type=float, default=8.0, help="measured seconds per case (after 2 s warm-up)")
+    p.add_argument("--methods", default="dense,dis",
+                   help="locator methods, each over every case in the same run (default dense,dis: DIS is the "
+                        "OpenCV optical-flow baseline)")
+    p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
+    p.add_argument("--scale", default="auto",
+                   help="locator --scale: auto (default, adaptive) or a number (1: full, 0.5: half-resolution locate)")
+    p.add_argument("--publish-grid", default="locate", choices=("locate", "frame"),
+                   help="locator --publish-grid: range maps on the locate grid (default) or upsampled to the frame's")
+    p.add_argument("--accuracy", action="store_true",
+                   help="instead of the pipeline: range error, coverage and nearest obstacle vs simulator truth at "
+                        "scales 1 and 0.5 (in process, the locator's code path) for each case's image size")
+    p.add_argument("--json", action="store_true", help="print the results as JSON at the end")
+
+
+def parse_case(s: str):
+    from eonav import InputError
+    try:
+        fps, size = s.split("@")
+        w, h = size.lower().split("x")
+        return float(fps), int(w), int(h)
+    except ValueError:
+        raise InputError(f"--case {s!r}: expected FPS@WIDTHxHEIGHT, e.g. 30@640x480") from None
+
+
+def run(args) -> int:
+    cases = [parse_case(c) for c in args.case] or list(DEFAULT_CASES)
+    methods = [m for m in args.methods.split(",") if m]
+    from eonav.ranging.scale_control import parse_scale
+    fixed = parse_scale(args.scale)              # None: auto; InputError on anything else
+    scale = "auto" if fixed is None else fixed
+    if args.accuracy:
+        sizes = list(dict.fromkeys((w, h) for _, w, h in cases))
+        res = [r for m in methods for size in sizes
+               for r in accuracy(size, scales=sorted({1.0, fixed or 1.0, 0.5}, reverse=True), method=m,
+                                 publish_grid=args.publish_grid)]
+    else:
+        # every method in the same run: the OpenCV DIS baseline ("dis") beside the default ("dense")
+        res = [r for m in methods for r in run_bench(cases, seconds=args.seconds, method=m,
+                                                      cv_threads=args.cv_threads, scale=scale,
+                                                      publish_grid=args.publish_grid)]
+    if args.json:
+        print(json.dumps(res))
+    return 0
+
+
+if __name__ == "__main__":
+    import argparse
+    ap = argparse.ArgumentParser(prog="python -m eonav.app.bench_pipeline")
+    add_arguments(ap)
+    logging.basicConfig(level=logging.WARNING)
+    sys.exit(run(ap.parse_args()))

@@ -1,0 +1,100 @@
+"""``eonav locate PAIR.json --out RANGE.npz``: the pair-file contract of DESIGN.md §4."""
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from eonav.ranging.locate import DEFAULT_METHOD, METHODS
+    p.add_argument("pair", help="pair file (JSON, DESIGN.md §4); frame 0 is the reference")
+    p.add_argument("--out", required=True, help="output .npz: range_m (H x W float32, NaN = no estimate), confidence, ...")
+    p.add_argument("--method", default=DEFAULT_METHOD, choices=sorted(METHODS),
+                   help="; ".join(f"{k}: {v[2]}" for k, v in METHODS.items()))
+    p.add_argument("--other", type=int, default=1, help="index of the second frame in the pair file (default 1)")
+    p.add_argument("--png", help="also write a colour-mapped range picture beside frame 1")
+    p.add_argument("--truth", help="ground-truth .npz with range_m (e.g. from 'eonav sim'): print an accuracy summary")
+    p.add_argument("--timing", action="store_true", help="time the estimator; last stdout line is JSON")
+    p.add_argument("--repeat", type=int, default=5, help="runs for --timing (median after one warm-up)")
+    p.add_argument("--threads", type=int, default=0, help="OpenCV threads (0 = OpenCV default)")
+    p.add_argument("--measured-only", action="store_true",
+                   help="dense: no FILLED pixels (ranges the pair could not measure, inferred from their neighbours); "
+                        "range_m is then finite on VALID pixels only")
+
+
+def accuracy_summary(range_m, truth_m, confidence=None) -> dict:
+    """Median relative error and coverage against a ground-truth range map (finite, non-sky truth only)."""
+    import numpy as np
+    t = np.asarray(truth_m, np.float64)
+    r = np.asarray(range_m, np.float64)
+    scene = np.isfinite(t) & (t > 0)
+    est = scene & np.isfinite(r) & (r > 0)
+    rel = np.abs(r[est] - t[est]) / t[est]
+    sky = ~np.isfinite(t)
+    out = {"scene_pixels": int(scene.sum()), "coverage": float(est.sum() / max(scene.sum(), 1)),
+           "median_rel_error": float(np.median(rel)) if rel.size else float("nan"),
+           "within_5pct": float((rel < 0.05).mean()) if rel.size else float("nan"),
+           "p90_rel_error": float(np.percentile(rel, 90)) if rel.size else float("nan")}
+    if sky.any():
+        out["sky_reported_finite"] = float((np.isfinite(r[sky])).mean())
+    return out
+
+
+def run(args) -> int:
+    import json
+    import statistics
+    import time
+    from pathlib import Path
+
+    import numpy as np
+
+    from eonav import InputError
+    from eonav.ranging.locate import get_method
+    from eonav.io.pairfile import load_pair_file
+
+    if args.threads:
+        import cv2
+        cv2.setNumThreads(args.threads)
+    pf = load_pair_file(args.pair)
+    if not 1 <= args.other < len(pf.frames):
+        raise InputError(f"--other {args.other}: the pair file has frames 0..{len(pf.frames) - 1}")
+    views = pf.views()
+    a, b = views[0], views[args.other]
+    fn = get_method(args.method)
+    if args.measured_only:
+        if args.method != "dense":
+            raise InputError(f"--measured-only: method {args.method!r} fills nothing (only dense does)")
+        import functools
+        fn = functools.partial(fn, fill=False)
+    res = fn(a, b)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, **res.arrays())
+    r = res.range_m
+    n = r.size
+    print(f"{args.method}: {int(np.isfinite(r).sum())}/{n} pixels with a finite range "
+          f"({100.0 * np.isfinite(r).sum() / n:.1f} %), {int(np.isposinf(r).sum())} at infinity -> {out}")
+    if args.truth:
+        with np.load(args.truth) as t:
+            if "range_m" not in t:
+                raise InputError(f"--truth {args.truth}: no 'range_m' array")
+            truth = t["range_m"]
+        if truth.shape != r.shape:
+            raise InputError(f"--truth {args.truth}: shape {truth.shape} differs from the range map {r.shape}")
+        s = accuracy_summary(r, truth, res.confidence)
+        print(f"accuracy vs truth: median relative error {100 * s['median_rel_error']:.2f} %, "
+              f"{100 * s['within_5pct']:.1f} % of estimates within 5 %, coverage {100 * s['coverage']:.1f} % "
+              f"of {s['scene_pixels']} non-sky pixels")
+    if args.png:
+        from eonav.app.viz import write_range_png
+        write_range_png(args.png, r, a.image, confidence=res.confidence)
+        print(f"picture -> {args.png}")
+    if args.timing:
+        fn(a, b)  # warm-up
+        times = []
+        for _ in range(max(1, args.repeat)):
+            t0 = time.perf_counter()
+            fn(a, b)
+            times.append(time.perf_counter() - t0)
+        print(json.dumps({"seconds_per_pair": statistics.median(times), "method": args.method,
+                          "repeat": len(times), "width": a.camera.width, "height": a.camera.height}))
+    return 0

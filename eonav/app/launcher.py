@@ -1,0 +1,561 @@
+"""``eonav run``: the whole pipeline on one machine, with an embedded zenoh router.
+
+It starts ``python -m eonav.bus.router`` on a free (or given) loopback port, then every service of a
+pipeline spec as its own OS process (``sys.executable -m eonav.services.<module> ...``: spawn, never fork a
+process holding a zenoh session), all with ``--connect`` to the router and the same ``--vehicle``.
+It supervises them, shows a one-line status on stderr about once a second from the health topic,
+and stops everything cleanly on Ctrl-C / SIGTERM.
+
+Pipeline spec (a Python dict, or JSON via ``--pipeline FILE``)::
+
+    {"services": [
+        {"name": "camera_nose",            # instance name (health/alive/config keys); required
+         "module": "camera_ingest",        # eonav.services.<module>, or a dotted module path; default: name
+         "args": ["--source", "{spec_dir}/flight.mp4", "--camera-id", "nose"],
+         "env": {"EONAV_LOG_LEVEL": "info"},
+         "restart": true,                  # restart on a crash (default true)
+         "max_restarts": 5,                # then give up (default 5)
+         "enabled": true}                  # false: listed but not started
+    ]}
+
+In ``args`` and ``env`` values, ``{spec_dir}`` (directory of the spec file, else the working
+directory), ``{vehicle}``, ``{port}`` and ``{router}`` (the router endpoint) are substituted.
+A service whose module does not exist (yet) is reported as ``missing`` and the rest run.
+
+Supervision: exit 0 = the service finished (e.g. a replay reached its end): not restarted. Exit 2 =
+configuration error (bad flags/config): reported, not restarted (a restart would not help). Any
+other exit (crash, signal) = restarted after an exponential back-off (0.5 s, 1 s, 2 s ... 10 s), at
+most ``max_restarts`` times; the count resets after 30 s of stable running.
+
+Stopping: Ctrl-C or SIGTERM, ``--duration S``, ``--exit-when-done SERVICE`` (that service exited 0),
+or nothing left running (an empty pipeline, e.g. ``--watch``, only watches the health topic: services
+started elsewhere show up as ``remote``, until stopped). Services get SIGINT (they run in their own process groups, so a terminal
+Ctrl-C reaches only the launcher, which forwards it once), ``--grace`` seconds, then SIGKILL; the
+router last. Exit code 0 after a clean stop; 1 if a service failed for good (gave up restarting,
+config error) or the ``--exit-when-done`` service failed; 2 if the router could not start.
+
+For the integration engineer: :func:`run_pipeline` is the pipeline function this command calls.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from eonav import EonavError, InputError
+from eonav.app.processes import free_port, start_router, stop_processes
+
+log = logging.getLogger("eonav.app.launcher")
+
+BACKOFF_INITIAL_S = 0.5
+BACKOFF_MAX_S = 10.0
+STABLE_RESET_S = 30.0
+DEFAULT_MAX_RESTARTS = 5
+EXIT_CONFIG = 2
+
+# The default pipeline (DESIGN §3). Services whose modules do not exist yet are reported as missing.
+DEFAULT_SERVICES = [
+    {"name": "mavlink", "module": "mavlink_ingest"},
+    {"name": "sync", "module": "sync"},
+    {"name": "locator", "module": "locator"},
+    {"name": "obstacles", "module": "obstacles"},
+]
+
+
+# --------------------------------------------------------------------------------------------------
+# spec
+
+@dataclass
+class ServiceSpec:
+    name: str
+    module: str
+    args: list = field(default_factory=list)
+    env: dict = field(default_factory=dict)
+    restart: bool = True
+    max_restarts: int = DEFAULT_MAX_RESTARTS
+    enabled: bool = True
+
+
+def _module_path(m: str) -> str:
+    return m if "." in m else f"eonav.services.{m}"
+
+
+def parse_spec(spec, spec_dir: str | None = None) -> list[ServiceSpec]:
+    """Validate a pipeline spec (dict with "services", or a bare list) -> ServiceSpec list."""
+    from eonav.bus.keys import check_chunk
+    if isinstance(spec, (str, Path)):
+        p = Path(spec)
+        try:
+            doc = json.loads(p.read_text())
+        except FileNotFoundError:
+            raise InputError(f"--pipeline {p}: no such file") from None
+        except json.JSONDecodeError as e:
+            raise InputError(f"--pipeline {p}: not valid JSON ({e})") from None
+        return parse_spec(doc, spec_dir or str(p.resolve().parent))
+    items = spec.get("services") if isinstance(spec, dict) else spec
+    if not isinstance(items, list):
+        raise InputError('pipeline spec: expected {"services": [ {...}, ... ]}')
+    out, seen = [], set()
+    for i, it in enumerate(items):
+        if not isinstance(it, dict) or "name" not in it:
+            raise InputError(f"pipeline spec services[{i}]: expected an object with at least a name")
+        unknown = set(it) - {"name", "module", "args", "env", "restart", "max_restarts", "enabled"}
+        if unknown:
+            raise InputError(f"pipeline spec services[{i}] ({it['name']}): unknown key(s) {sorted(unknown)}")
+        name = check_chunk(str(it["name"]), f"pipeline spec services[{i}].name")
+        if name in seen:
+            raise InputError(f"pipeline spec: service name {name!r} used twice; give instances distinct names")
+        seen.add(name)
+        args = it.get("args", [])
+        if not isinstance(args, list) or not all(isinstance(a, (str, int, float)) for a in args):
+            raise InputError(f"pipeline spec {name}.args: expected a list of strings")
+        env = it.get("env", {})
+        if not isinstance(env, dict):
+            raise InputError(f"pipeline spec {name}.env: expected a map of strings")
+        mr = it.get("max_restarts", DEFAULT_MAX_RESTARTS)
+        if not isinstance(mr, int) or mr < 0:
+            raise InputError(f"pipeline spec {name}.max_restarts: expected an integer >= 0")
+        out.append(ServiceSpec(name=name, module=_module_path(str(it.get("module", name))),
+                               args=[str(a) for a in args], env={str(k): str(v) for k, v in env.items()},
+                               restart=bool(it.get("restart", True)), max_restarts=mr,
+                               enabled=bool(it.get("enabled", True))))
+    if spec_dir is not None:
+        for s in out:
+            s.env.setdefault("EONAV_SPEC_DIR", spec_dir)
+    return out
+
+
+def default_spec(cameras=(), mavlink: str | None = None) -> dict:
+    """The default pipeline: camera ingest per ``[ID=]SOURCE`` in ``cameras``, MAVLink ingest (with
+    ``--source`` when given), sync, locator, obstacles."""
+    services = []
+    for i, c in enumerate(cameras):
+        cid, _, src = c.partition("=") if "=" in c and "://" not in c.split("=", 1)[0] else (f"cam{i}", "", c)
+        services.append({"name": f"camera_{cid}", "module": "camera_ingest",
+                         "args": ["--source", src, "--camera-id", cid]})
+    for s in DEFAULT_SERVICES:
+        s = dict(s)
+        if s["name"] == "mavlink" and mavlink:
+            s["args"] = ["--source", mavlink]
+        services.append(s)
+    return {"services": services}
+
+
+def module_exists(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+# --------------------------------------------------------------------------------------------------
+# processes
+
+@dataclass
+class Proc:
+    spec: ServiceSpec
+    state: str = "pending"         # pending missing starting running restarting done failed config_error stopped disabled
+    popen: subprocess.Popen | None = None
+    restarts: int = 0
+    started_mono: float = 0.0
+    next_start_mono: float = 0.0
+    exit_code: int | None = None
+    health: dict | None = None
+    health_mono: float = 0.0
+    alive: bool = False
+
+    @property
+    def name(self):
+        return self.spec.name
+
+
+def _subst(s: str, ctx: dict) -> str:
+    for k, v in ctx.items():
+        s = s.replace("{" + k + "}", str(v))
+    return s
+
+
+class Supervisor:
+    """Starts, watches, restarts and stops the router and service processes."""
+
+    def __init__(self, services: list[ServiceSpec], *, vehicle: str, router: str, ctx: dict,
+                 grace_s: float = 5.0, log_dir: str | None = None, extra_env: dict | None = None):
+        self.vehicle, self.router, self.ctx, self.grace_s = vehicle, router, ctx, grace_s
+        self.procs = [Proc(s) for s in services]
+        self.log_dir = log_dir
+        self.extra_env = extra_env or {}
+        self._lock = threading.Lock()
+
+    def argv(self, sp: ServiceSpec) -> list[str]:
+        return [sys.executable, "-m", sp.module, "--name", sp.name, "--vehicle", self.vehicle,
+                "--connect", self.router, *[_subst(a, self.ctx) for a in sp.args]]
+
+    def check_modules(self) -> None:
+        for p in self.procs:
+            if not p.spec.enabled:
+                p.state = "disabled"
+            elif not module_exists(p.spec.module):
+                p.state = "missing"
+                log.warning("service %s: module %s not found; not started", p.name, p.spec.module)
+
+    def start(self, p: Proc) -> None:
+        env = dict(os.environ)
+        env.update(self.extra_env)
+        env.update({k: _subst(v, self.ctx) for k, v in p.spec.env.items()})
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        env["EONAV_SUPERVISOR_PID"] = str(os.getpid())
+        stdout = stderr = None
+        if self.log_dir:
+            f = open(Path(self.log_dir) / f"{p.name}.log", "ab")
+            stdout = stderr = f
+        argv = self.argv(p.spec)
+        log.debug("start %s: %s", p.name, " ".join(argv))
+        try:
+            # own process group: a terminal Ctrl-C reaches only the launcher, which forwards one SIGINT
+            p.popen = subprocess.Popen(argv, env=env, stdout=stdout, stderr=stderr, stdin=subprocess.DEVNULL,
+                                       start_new_session=True)
+        except OSError as e:
+            p.state, p.exit_code = "failed", None
+            log.error("service %s: cannot start (%s)", p.name, e)
+            return
+        finally:
+            if stdout is not None:
+                stdout.close()
+        p.state, p.started_mono, p.exit_code = "running", time.monotonic(), None
+        p.health, p.alive = None, False
+        log.info("service %s started (pid %d)", p.name, p.popen.pid)
+
+    def start_all(self) -> None:
+        for p in self.procs:
+            if p.state == "pending":
+                self.start(p)
+
+    def poll(self, now: float | None = None) -> list[Proc]:
+        """Reap exited processes and (re)start due ones; returns the processes that exited now."""
+        now = time.monotonic() if now is None else now
+        exited = []
+        for p in self.procs:
+            if p.state == "running" and p.popen is not None:
+                rc = p.popen.poll()
+                if rc is None:
+                    if p.restarts and now - p.started_mono > STABLE_RESET_S:
+                        p.restarts = 0
+                    continue
+                p.exit_code = rc
+                p.alive = False
+                exited.append(p)
+                if rc == 0:
+                    p.state = "done"
+                    log.info("service %s finished (exit 0)", p.name)
+                elif rc == EXIT_CONFIG:
+                    p.state = "config_error"
+                    log.error("service %s: configuration error (exit 2); not restarted", p.name)
+                elif not p.spec.restart or p.restarts >= p.spec.max_restarts:
+                    p.state = "failed"
+                    log.error("service %s exited %s; %s", p.name, rc,
+                              "restart disabled" if not p.spec.restart else f"gave up after {p.restarts} restarts")
+                else:
+                    delay = min(BACKOFF_MAX_S, BACKOFF_INITIAL_S * 2 ** p.restarts)
+                    p.restarts += 1
+                    p.state, p.next_start_mono = "restarting", now + delay
+                    log.warning("service %s exited %s; restart %d/%d in %.1f s", p.name, rc, p.restarts,
+                                p.spec.max_restarts, delay)
+            elif p.state == "restarting" and now >= p.next_start_mono:
+                self.start(p)
+        return exited
+
+    def active(self) -> bool:
+        return any(p.state in ("running", "restarting", "pending") for p in self.procs)
+
+    def stop_all(self) -> None:
+        running = [p for p in self.procs if p.popen is not None and p.popen.poll() is None]
+        for p in self.procs:
+            if p.state == "restarting":
+                p.state = "stopped"
+        stop_processes([p.popen for p in running], self.grace_s)
+        for p in running:
+            p.exit_code = p.popen.returncode
+            if p.state == "running":
+                p.state = "stopped"
+
+
+# --------------------------------------------------------------------------------------------------
+# status
+
+class HealthMonitor:
+    """A client session on the router: latest health message and liveliness per service."""
+
+    def __init__(self, vehicle: str, router: str, procs: list[Proc]):
+        self.vehicle, self.router = vehicle, router
+        self.procs = procs
+        self.by_name = {p.name: p for p in procs}
+        self._lock = threading.Lock()
+        self.session = None
+        self._subs = []
+        self._threads = []
+
+    def __enter__(self):
+        import zenoh
+        from eonav.bus import keys as K
+        from eonav.bus.session import build_config
+        args = argparse.Namespace(mode="client", connect=self.router, listen=None, zenoh_config=None, multicast=False)
+        self.session = zenoh.open(build_config(args))
+        hs = self.session.declare_subscriber(K.health_all(self.vehicle), zenoh.handlers.FifoChannel(256))
+        al = self.session.liveliness().declare_subscriber(K.alive_all(self.vehicle), zenoh.handlers.FifoChannel(256),
+                                                          history=True)
+        self._subs = [hs, al]
+        self._threads = [threading.Thread(target=self._health, args=(hs,), name="health", daemon=False),
+                         threading.Thread(target=self._alive, args=(al,), name="alive", daemon=False)]
+        for t in self._threads:
+            t.start()
+        return self
+
+    def _health(self, sub):
+        from eonav.bus import schema
+        try:
+            for s in sub:
+                try:
+                    msg = schema.decode(s.payload.to_bytes(), expect="health")
+                except schema.SchemaError as e:
+                    log.debug("bad health payload on %s: %s", s.key_expr, e)
+                    continue
+                p = self._proc(msg["service"])
+                p.health, p.health_mono = msg, time.monotonic()
+        except Exception:
+            pass
+
+    def _alive(self, sub):
+        import zenoh
+        try:
+            for s in sub:
+                name = str(s.key_expr).rsplit("/", 1)[-1]
+                self._proc(name).alive = s.kind == zenoh.SampleKind.PUT
+        except Exception:
+            pass
+
+    def _proc(self, name: str) -> Proc:
+        """The Proc of ``name``; a service that is not ours (another host, another launcher) is added
+        with state "remote" so the status line shows it too."""
+        with self._lock:
+            p = self.by_name.get(name)
+            if p is None:
+                p = self.by_name[name] = Proc(ServiceSpec(name=name, module="", restart=False), state="remote")
+                self.procs.append(p)
+            return p
+
+    def __exit__(self, *exc):
+        from eonav.bus.session import close_subscribers
+        close_subscribers(self._subs, self._threads, self.session, 5.0)
+
+
+def _fmt_service(p: Proc, now: float) -> str:
+    h = p.health
+    if p.state == "remote":
+        if h is None or not p.alive:
+            return f"{p.name} remote {'alive' if p.alive else 'gone'}"
+    elif p.state != "running" or h is None:
+        extra = f"({p.exit_code})" if p.exit_code not in (None, 0) and p.state != "running" else ""
+        r = f" r{p.restarts}" if p.restarts else ""
+        return f"{p.name} {p.state if p.state != 'running' else 'starting'}{extra}{r}"
+    state = h["state"] if now - p.health_mono < 5.0 else "stale"
+    parts = [p.name, state]
+    rates = h.get("rates_hz") or {}
+    if rates:
+        k, v = max(rates.items(), key=lambda kv: kv[1])
+        parts.append(f"{v:.1f}Hz")
+    for k, v in (h.get("latency_ms") or {}).items():
+        if isinstance(v, dict) and v.get("n"):
+            parts.append(f"p50 {v['p50']:.1f}ms p99 {v['p99']:.1f}ms")
+            break
+    c = h.get("counters") or {}
+    drops = sum(v for k, v in c.items() if isinstance(v, int)
+                and any(w in k for w in ("drop", "corrupt", "decode_errors", "wrong_size", "error")))
+    if drops:
+        parts.append(f"drops {drops}")
+    if p.restarts:
+        parts.append(f"r{p.restarts}")
+    return " ".join(parts)
+
+
+def status_line(procs: list[Proc], vehicle: str, elapsed_s: float) -> str:
+    now = time.monotonic()
+    return f"[eonav {vehicle} {elapsed_s:5.0f}s] " + " | ".join(_fmt_service(p, now) for p in list(procs))
+
+
+def status_dict(procs: list[Proc]) -> dict:
+    return {p.name: {"state": p.state, "pid": p.popen.pid if p.popen else None, "restarts": p.restarts,
+                     "exit_code": p.exit_code, "alive": p.alive, "health": p.health} for p in list(procs)}
+
+
+class StatusPrinter:
+    """One line on a terminal (rewritten in place), or a plain line every ``period_s`` otherwise."""
+
+    def __init__(self, stream=None, period_s: float | None = None):
+        self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.period_s = period_s if period_s is not None else (1.0 if self.tty else 10.0)
+        self._last = 0.0
+        self._shown = False
+
+    def __call__(self, line: str, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._last < self.period_s:
+            return
+        self._last = now
+        if self.tty:
+            try:
+                width = os.get_terminal_size(self.stream.fileno()).columns
+            except OSError:
+                width = 160
+            self.stream.write("\r\x1b[2K" + line[: max(20, width - 1)])
+            self._shown = True
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def end(self):
+        if self.tty and self._shown:
+            self.stream.write("\n")
+            self.stream.flush()
+            self._shown = False
+
+
+# --------------------------------------------------------------------------------------------------
+# the pipeline function
+
+def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, duration: float | None = None,
+                 on_status: Callable[[dict], None] | None = None, exit_when_done: str | None = None,
+                 router: str | None = None, grace_s: float = 5.0, stop_event: threading.Event | None = None,
+                 status_stream=None, quiet: bool = False, log_dir: str | None = None,
+                 router_config: str | None = None, extra_env: dict | None = None) -> int:
+    """Run a pipeline until stopped; returns the exit code (see the module docstring).
+
+    ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
+    ``router``: connect to this existing router endpoint instead of starting one. ``duration``: stop
+    after that many seconds. ``on_status(status_dict)``: called about once a second with
+    {service: {state, pid, restarts, exit_code, alive, health}}. ``stop_event``: set it to stop
+    (SIGINT/SIGTERM also stop when called from the main thread). ``log_dir``: one log file per
+    service instead of inheriting stderr. ``extra_env``: added to every service's environment."""
+    from eonav.bus.keys import check_chunk
+    check_chunk(vehicle, "--vehicle")
+    spec_dir = None
+    if isinstance(spec, (str, Path)):
+        spec_dir = str(Path(spec).resolve().parent)
+    services = parse_spec(spec, spec_dir)
+    if exit_when_done and exit_when_done not in {s.name for s in services}:
+        raise InputError(f"--exit-when-done {exit_when_done!r}: no such service in the pipeline "
+                         f"({', '.join(s.name for s in services)})")
+    if log_dir:
+        Path(log_dir).mkdir(parents=True, exist_ok=True)
+    stop = stop_event or threading.Event()
+    reason = {"why": ""}
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        def on_signal(signum, _frame):
+            if stop.is_set():
+                return
+            reason["why"] = signal.Signals(signum).name
+            stop.set()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, on_signal)
+
+    router_proc = None
+    printer = StatusPrinter(status_stream)
+    t0 = time.monotonic()
+    code = 0
+    try:
+        if router is None:
+            tries = 1 if port else 3
+            for attempt in range(tries):
+                p = port or free_port()
+                try:
+                    router_proc, router = start_router(p, zenoh_config=router_config)
+                    break
+                except EonavError as e:
+                    if attempt == tries - 1:
+                        log.error("%s", e)
+                        return 2
+            log.info("embedded router on %s (pid %d)", router, router_proc.pid)
+        ctx = {"spec_dir": spec_dir or os.getcwd(), "vehicle": vehicle, "router": router,
+               "port": router.rsplit(":", 1)[-1]}
+        sup = Supervisor(services, vehicle=vehicle, router=router, ctx=ctx, grace_s=grace_s, log_dir=log_dir,
+                         extra_env=extra_env)
+        sup.check_modules()
+        missing = [p.name for p in sup.procs if p.state == "missing"]
+        if missing:
+            log.warning("not started (module not found): %s", ", ".join(missing))
+        with HealthMonitor(vehicle, router, sup.procs):
+            sup.start_all()
+            last_status = 0.0
+            while not stop.wait(0.1):
+                exited = sup.poll()
+                if router_proc is not None and router_proc.poll() is not None:
+                    log.error("embedded router exited (%s); restarting it", router_proc.returncode)
+                    try:
+                        router_proc, _ = start_router(int(ctx["port"]), zenoh_config=router_config)
+                    except EonavError as e:
+                        log.error("%s", e)
+                        reason["why"], code = "router failed", 1
+                        break
+                now = time.monotonic()
+                if exit_when_done:
+                    p = next(p for p in sup.procs if p.name == exit_when_done)
+                    if p in exited and p.state == "done":
+                        reason["why"] = f"{exit_when_done} done"
+                        break
+                    if p.state in ("failed", "config_error", "missing", "disabled"):
+                        reason["why"], code = f"{exit_when_done} {p.state}", 1
+                        break
+                if duration is not None and now - t0 >= duration:
+                    reason["why"] = f"duration {duration:g} s"
+                    break
+                if services and not sup.active():
+                    if not any(p.popen is not None for p in sup.procs):
+                        reason["why"], code = "no service could be started", 1
+                    else:
+                        reason["why"] = "no service left running"
+                    break
+                if now - last_status >= 1.0:
+                    last_status = now
+                    if on_status:
+                        try:
+                            on_status(status_dict(sup.procs))
+                        except Exception as e:  # a status consumer must not kill the pipeline
+                            log.warning("on_status raised %s: %s", type(e).__name__, e)
+                    if not quiet:
+                        printer(status_line(sup.procs, vehicle, now - t0))
+            if not quiet:
+                printer(status_line(sup.procs, vehicle, time.monotonic() - t0), force=True)
+                printer.end()
+            log.info("stopping (%s)", reason["why"] or "stop requested")
+            sup.stop_all()
+            if on_status:
+                try:
+                    on_status(status_dict(sup.procs))
+                except Exception:
+                    pass
+        bad = [p for p in sup.procs if p.state in ("failed", "config_error")]
+        if bad:
+            code = code or 1
+        summary = ", ".join(f"{p.name}={p.state}" + (f"({p.exit_code})" if p.exit_code not in (None, 0) else "")
+                            + (f" r{p.restarts}" if p.restarts else "") for p in sup.procs)
+        log.info("pipeline stopped: %s", summary)
+        if not quiet:
+            print(f"eonav run: {reason['why'] or 'stopped'}; {summary}", file=status_stream or sys.stderr)
+        return code
+    finally:
+        if router_proc is not None:
+            stop_processes([router_proc], grace_s)
+        for sig, h in old.items():
+            signal.signal(sig, h)

@@ -1,0 +1,240 @@
+"""Adaptive locate scale: a pure controller choosing, per camera and per pair, the scale the locator ranges at.
+
+The locator can range a pair on images resized by a scale from a ladder (1.0, 0.5, ... down to ``min_scale``) and
+map the result back to the full grid. Guidance needs bounded latency more than pixel detail, but a fixed half scale
+throws accuracy away when the machine has headroom; ``ScaleController`` picks the largest rung whose measured
+compute time fits a latency budget.
+
+Budget: ``budget_s`` when given; else ``budget_fraction`` (0.6) of the camera's measured frame interval (median of
+the recent stamp differences per frame, a seq gap divides the stamp difference), clamped to ``budget_bounds_s``
+([0.02, 0.2] s). Until an interval is known the budget is the upper bound.
+
+Cost of a rung: the median of its recent compute times (``window`` pairs). The next rung up is predicted from the
+current rung's recent median times the cost ratio of the two rungs: area-proportional ((hi / lo)^2, x4 per halving)
+until measured, then learnt at each change between them from the old rung's median just before the change and the new
+rung's median over its first ``min_samples`` pairs (adjacent in time, so under the same load). The prediction thus
+follows today's load instead of a stale measurement taken when the machine was busier.
+
+Decision after each computed pair (``observe_compute``), with hysteresis:
+- step down one rung when the current rung's recent median (at least ``min_samples`` pairs) exceeds the budget;
+- step up one rung when the predicted cost there is below ``up_margin`` (0.7) of the budget for ``up_after``
+  consecutive pairs (the count restarts on any pair that does not qualify and after every change);
+- a rung's window restarts when it is entered: a step never judges the new rung by old or other rungs' times.
+Between ``up_margin * budget`` (predicted one rung up) and ``budget`` (measured) nothing changes: a cost at the
+boundary does not oscillate. A fixed scale (``fixed=S``) never changes.
+
+Calibrated start (``calibrate``): the locator times one locate call per rung on a synthetic pair of the camera's size
+before it ranges that camera's first pair. Until the first pair is computed, the rung is the largest whose calibrated
+cost fits the budget (re-chosen at every frame, as the frame-interval estimate and so the budget settle), and the
+calibrated cost ratios seed the prediction one rung up. Without it the controller starts at full scale and needs
+``min_samples`` pairs over the budget before it steps down: the first pairs of a 640x480 camera at 15 fps then took
+~45 ms each against a 40 ms budget, and frames were dropped in the first seconds. The steady-state hysteresis is
+unchanged: a calibration is a measurement made before any frame, not a reaction to one slow pair, and it never
+moves the rung once a pair has been computed.
+
+No zenoh, no images: the locator owns one controller per camera and reports changes (health counter, log line).
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from eonav import InputError
+
+AUTO = "auto"
+
+
+def parse_scale(value) -> float | None:
+    """``--scale`` value -> None for ``auto`` or a float in (0, 1]. Raises InputError."""
+    if value is None or (isinstance(value, str) and value.strip().lower() == AUTO):
+        return None
+    try:
+        s = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"--scale must be 'auto' or a number in (0, 1], got {value!r}") from None
+    if not (math.isfinite(s) and 0 < s <= 1):
+        raise InputError(f"--scale must be 'auto' or a number in (0, 1], got {value!r}")
+    return s
+
+
+def ladder(min_scale: float = 0.5) -> tuple:
+    """1.0, 0.5, 0.25, ... while >= ``min_scale``, with ``min_scale`` itself as the lowest rung."""
+    if not (math.isfinite(min_scale) and 0 < min_scale <= 1):
+        raise InputError(f"--min-scale must be in (0, 1], got {min_scale!r}")
+    out, s = [], 1.0
+    while s >= min_scale - 1e-12:
+        out.append(s)
+        s /= 2
+    if out[-1] > min_scale + 1e-12:
+        out.append(float(min_scale))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ScaleChange:
+    old: float
+    new: float
+    reason: str
+
+    @property
+    def direction(self) -> str:
+        return "down" if self.new < self.old else "up"
+
+
+class ScaleController:
+    """Per-camera scale choice (see the module docstring). Not thread-safe (one locator thread)."""
+
+    def __init__(self, *, fixed: float | None = None, min_scale: float = 0.5, budget_s: float | None = None,
+                 budget_fraction: float = 0.6, budget_bounds_s: tuple = (0.02, 0.2), window: int = 5,
+                 min_samples: int = 3, up_after: int = 5, up_margin: float = 0.7, interval_window: int = 15):
+        if fixed is not None:
+            fixed = parse_scale(fixed)
+        if budget_s is not None and not (math.isfinite(budget_s) and budget_s > 0):
+            raise InputError(f"--budget-ms must be > 0, got {budget_s * 1e3!r}")
+        lo, hi = budget_bounds_s
+        if not (0 < lo <= hi):
+            raise InputError(f"budget bounds must be 0 < low <= high, got {budget_bounds_s!r}")
+        if not (0 < up_margin < 1 and 0 < budget_fraction and window >= 1 and 1 <= min_samples <= window
+                and up_after >= 1):
+            raise InputError("scale controller: bad tuning parameters")
+        self.fixed = fixed
+        self.ladder = (fixed,) if fixed is not None else ladder(min_scale)
+        self._i = 0                                  # index into the ladder: start at full scale
+        self.budget_fixed_s = budget_s
+        self.budget_fraction, self.budget_bounds_s = budget_fraction, (lo, hi)
+        self.min_samples, self.up_after, self.up_margin = min_samples, up_after, up_margin
+        self._cost = {s: deque(maxlen=window) for s in self.ladder}
+        self._intervals = deque(maxlen=interval_window)
+        self._last_frame = None                      # (seq, stamp_us)
+        self._up_streak = 0
+        self._ratio: dict = {}                       # rung -> cost ratio to the next rung down, learnt at changes
+        self._pending = None                         # (rung left, its median) until the new rung has min_samples
+        self._calibrated: dict = {}                  # rung -> seconds of one locate call timed before any pair
+        self._computed = 0                           # pairs observed (at any rung)
+
+    # -- inputs -------------------------------------------------------------------------------
+    @property
+    def scale(self) -> float:
+        return self.ladder[self._i]
+
+    def observe_frame(self, seq: int, stamp_us: int) -> None:
+        """Every frame of the camera (ranged or not): feeds the frame-interval estimate."""
+        if self._last_frame is not None:
+            pseq, pstamp = self._last_frame
+            if seq > pseq and stamp_us > pstamp:
+                self._intervals.append((stamp_us - pstamp) * 1e-6 / (seq - pseq))
+            elif stamp_us <= pstamp:                 # replay restart or out of order: keep the estimate, re-anchor
+                pass
+        self._last_frame = (seq, stamp_us)
+        if self._calibrated and not self._computed:
+            self._i = self._calibrated_start()
+
+    def calibrate(self, costs: dict) -> float:
+        """Seconds of one locate call per rung ({scale: seconds}, timed before any pair: see the module docstring).
+        Rungs not on the ladder and bad values are ignored. Returns the scale the controller now starts at (the
+        largest calibrated rung that fits the budget; the lowest calibrated rung when none does). After the first
+        computed pair it only seeds the cost ratios and leaves the rung alone."""
+        good = {s: float(t) for s, t in costs.items()
+                if s in self._cost and isinstance(t, (int, float)) and math.isfinite(t) and t > 0}
+        if self.fixed is not None or not good:
+            return self.scale
+        self._calibrated = good
+        for hi, lo in zip(self.ladder, self.ladder[1:]):
+            if hi in good and lo in good and hi not in self._ratio:
+                self._ratio[hi] = max(1.0, good[hi] / good[lo])
+        if not self._computed:
+            self._i = self._calibrated_start()
+        return self.scale
+
+    def _calibrated_start(self) -> int:
+        budget = self.budget_s()
+        rungs = [i for i, s in enumerate(self.ladder) if s in self._calibrated]
+        for i in rungs:
+            if self._calibrated[self.ladder[i]] <= budget:
+                return i
+        return rungs[-1]
+
+    def frame_interval_s(self) -> float | None:
+        if not self._intervals:
+            return None
+        v = sorted(self._intervals)
+        n = len(v)
+        return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+    def budget_s(self) -> float:
+        if self.budget_fixed_s is not None:
+            return self.budget_fixed_s
+        lo, hi = self.budget_bounds_s
+        iv = self.frame_interval_s()
+        if iv is None:
+            return hi
+        return min(hi, max(lo, self.budget_fraction * iv))
+
+    # -- costs --------------------------------------------------------------------------------
+    @staticmethod
+    def _median(d) -> float:
+        v = sorted(d)
+        n = len(v)
+        return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+    def measured_s(self, scale: float) -> float | None:
+        d = self._cost.get(scale)
+        return self._median(d) if d else None
+
+    def ratio(self, hi: float, lo: float) -> float:
+        """Cost at rung ``hi`` over cost at the next rung down ``lo``: learnt at the last change between them, else
+        area-proportional."""
+        return self._ratio.get(hi, (hi / lo) ** 2)
+
+    def predicted_s(self, scale: float) -> float | None:
+        """Expected compute time at the next rung up, down, or the current one, from the current rung's recent
+        median; None before the current rung has a sample."""
+        cur = self.scale
+        c = self.measured_s(cur)
+        if c is None or scale == cur:
+            return c
+        if scale > cur:
+            return c * self.ratio(scale, cur)
+        return c / self.ratio(cur, scale)
+
+    # -- decision -----------------------------------------------------------------------------
+    def observe_compute(self, scale: float, seconds: float) -> ScaleChange | None:
+        """Record the compute time of a pair ranged at ``scale``; returns the change of scale it causes, if any."""
+        if scale in self._cost and math.isfinite(seconds) and seconds >= 0:
+            self._cost[scale].append(seconds)
+            self._computed += 1
+        if self.fixed is not None or scale != self.scale:
+            return None
+        budget = self.budget_s()
+        cur = self._cost[scale]
+        if self._pending is not None and len(cur) >= self.min_samples:
+            other, other_cost = self._pending            # the rung we left and its median just before the change
+            c = self._median(cur)
+            hi, lo, r = (other, scale, other_cost / c) if other > scale else (scale, other, c / other_cost)
+            self._ratio[hi] = max(1.0, r)
+            self._pending = None
+        if len(cur) >= self.min_samples and self._median(cur) > budget and self._i + 1 < len(self.ladder):
+            return self._change(self._i + 1, f"compute p50 {self._median(cur) * 1e3:.1f} ms over the budget "
+                                f"{budget * 1e3:.1f} ms")
+        if self._i == 0:
+            return None
+        up = self.ladder[self._i - 1]
+        pred = self.predicted_s(up)
+        if pred is not None and pred < self.up_margin * budget:
+            self._up_streak += 1
+            if self._up_streak >= self.up_after:
+                return self._change(self._i - 1, f"predicted compute at scale {up:g} {pred * 1e3:.1f} ms below "
+                                    f"{self.up_margin:g} x budget {budget * 1e3:.1f} ms for {self._up_streak} pairs")
+        else:
+            self._up_streak = 0
+        return None
+
+    def _change(self, i: int, reason: str) -> ScaleChange:
+        old = self.scale
+        m = self.measured_s(old)
+        self._pending = None if m is None else (old, m)
+        self._i = i
+        self._up_streak = 0
+        self._cost[self.scale].clear()               # the new rung is judged on fresh samples only
+        return ScaleChange(old, self.scale, reason)
