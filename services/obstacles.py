@@ -9,7 +9,9 @@ capture stamp and pose, so guidance can use the absolute ``position_ned_m`` of e
 
 With ``--mavlink-out udpout:127.0.0.1:14560`` (any pymavlink connection string) a sender thread emits
 OBSTACLE_DISTANCE at ``--mavlink-rate`` (>= 10 Hz) with the merged latest sectors of every camera while they are
-fresh, then one all-unknown message and silence (see ``eonav.nav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz. The sectors sent to
+fresh, then one all-unknown message and silence (see ``eonav.nav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz.
+An output link that is not up (refused, device absent) or whose autopilot is not heard is retried with back-off
+and makes the health ``degraded`` (``eonav.nav.links``), never a configuration error. The sectors sent to
 the autopilot are measured from the latest navigation pose when one newer than the map is at hand
 (``sectors_now``): the autopilot applies them relative to where it is on arrival.
 
@@ -130,11 +132,15 @@ def body(node: Node, args) -> None:
     if sender is not None:
         def send_loop():
             try:
-                last = 0.0
+                last, link_state = 0.0, None
                 while not node.stop_event.wait(sender.tick()):
                     if time.monotonic() - last >= 0.5:
                         last = time.monotonic()
                         mirror_counters(node, sender)
+                        state, detail = sender.link_status()     # autopilot link down / not heard: degraded
+                        if state != link_state:
+                            node.set_state("ok" if state == "up" else "degraded", detail)
+                            link_state = state
             finally:
                 mirror_counters(node, sender)
                 sender.close()

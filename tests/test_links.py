@@ -346,3 +346,68 @@ def test_ingest_malformed_connection_string_is_a_configuration_error():
     proc = _service("tcp:localhost", "lk3", free_port())
     code = proc.wait(30)
     assert code == 2 and "not a MAVLink connection string" in proc.stderr.read()
+
+
+# ---- OBSTACLE_DISTANCE out to an autopilot that starts late ---------------------------------------------------------
+
+def test_obstacle_distance_sender_waits_for_a_late_tcp_autopilot():
+    import numpy as np
+
+    from eonav.nav.mavlink_out import ObstacleDistanceSender
+    from eonav.obstacles.detect import N_SECTORS, Sectors
+    port = free_tcp_port()
+    tx = ObstacleDistanceSender(f"tcp:127.0.0.1:{port}", rate_hz=10.0)
+    sectors = Sectors(np.full(N_SECTORS, 1234, np.int64), 5.0, 0.0, 50, 15000)
+    ap = None
+    try:
+        t_end = time.monotonic() + 0.6
+        while time.monotonic() < t_end:
+            tx.update(sectors, time.time_ns() // 1000)
+            time.sleep(min(tx.tick(), 0.05))
+        state, detail = tx.link_status()
+        assert state == "down" and "ConnectionRefusedError" in detail and tx.counters["od_sent_fresh"] == 0
+        ap = TcpAutopilot(port)
+        deadline = time.monotonic() + 8
+        while time.monotonic() < deadline:
+            tx.update(sectors, time.time_ns() // 1000)
+            time.sleep(min(tx.tick(), 0.05))
+            od = [m for m in (ap.ap.received if ap.ap else []) if m.get_type() == "OBSTACLE_DISTANCE"]
+            if len(od) >= 3 and ap.companion_heartbeats() and tx.link_status()[0] == "up":
+                break
+        else:
+            raise AssertionError(f"no OBSTACLE_DISTANCE after the autopilot came up: {tx.link_status()}")
+        assert all(list(m.distances) == [1234] * N_SECTORS and m.get_srcComponent() == 191 for m in od)
+    finally:
+        tx.close()
+        if ap is not None:
+            ap.close()
+
+
+def test_obstacles_service_degraded_until_its_tcp_autopilot_is_up():
+    zenoh = pytest.importorskip("zenoh")
+    from eonav.app.processes import drain, free_port, start_service, stop_service, wait_until
+    from eonav.bus import keys as K
+    from eonav.bus import schema
+    from eonav.bus.session import endpoint, listener_session
+    port, ap_port = free_port(), free_tcp_port()
+    health = []
+    with listener_session(port) as s:
+        hsub = s.declare_subscriber(K.health("lk4", "obstacles"), zenoh.handlers.FifoChannel(10000))
+        proc = start_service(["-m", "eonav.services.obstacles", "--vehicle", "lk4", "--connect", endpoint(port),
+                              "--health-period", "0.1", "--mavlink-out", f"tcp:127.0.0.1:{ap_port}"])
+        ap = None
+        try:
+            def seen(pred):
+                health.extend(schema.decode(m.payload.to_bytes()) for m in drain(hsub))
+                return any(pred(h) for h in health)
+            wait_until(lambda: seen(lambda h: h["state"] == "degraded" and "down" in h["detail"]), 30,
+                       what="degraded while the autopilot refuses")
+            assert proc.poll() is None
+            ap = TcpAutopilot(ap_port)
+            wait_until(lambda: seen(lambda h: h["state"] == "ok"), 10, what="ok once the autopilot is heard")
+            wait_until(lambda: ap.companion_heartbeats(), 5, what="the service's HEARTBEAT at the autopilot")
+        finally:
+            code, err = stop_service(proc)
+            if ap is not None:
+                ap.close()
+    assert code == 0, err

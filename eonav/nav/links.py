@@ -128,7 +128,8 @@ class MavLink:
             log.info("%s %s open", self.what, self.connection)
             return conn
 
-    def _lost(self, conn, e: Exception) -> None:
+    def mark_lost(self, conn, e: Exception) -> None:
+        """``conn`` failed (``e``): close it and re-open after the first back-off step (no-op if already replaced)."""
         with self._lock:
             if self._conn is not conn:
                 return
@@ -157,10 +158,10 @@ class MavLink:
         try:
             m = conn.recv_match(blocking=timeout_s > 0, timeout=timeout_s if timeout_s > 0 else None)
         except Exception as e:          # OSError / SerialException, or pymavlink tripping over a closed port
-            self._lost(conn, e)
+            self.mark_lost(conn, e)
             return None
         if getattr(conn, "portdead", False):
-            self._lost(conn, OSError("serial port dead"))
+            self.mark_lost(conn, OSError("serial port dead"))
             return None
         if m is not None:
             self._last_rx = self._clock()
@@ -175,10 +176,10 @@ class MavLink:
         try:
             fn(conn)
         except OSError as e:
-            self._lost(conn, e)
+            self.mark_lost(conn, e)
             return False
         if getattr(conn, "portdead", False):        # pymavlink's serial write swallows the error and sets this
-            self._lost(conn, OSError("serial port dead"))
+            self.mark_lost(conn, OSError("serial port dead"))
             return False
         return True
 
