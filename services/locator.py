@@ -65,6 +65,8 @@ from eonav.bus.session import env_flag
 
 log = logging.getLogger("eonav.service.locator")
 
+MAX_SEQ_GAP = 10_000          # a larger jump of a camera's seq is a restart (or corruption), not dropped frames
+
 
 def add_arguments(p):
     add_flag(p, "--method", env="EONAV_LOCATOR_METHOD", default="dense",
@@ -416,65 +418,72 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     shown: dict = {}                            # camera -> scale_pct gauge value reported so far
     cameras = CameraCache(1.0)                  # the history keeps full-resolution grey images; pairs resize on use
     errors_in_row = 0
+
+    def one(sample, newest) -> None:
+        nonlocal errors_in_row
+        msg = node.decode(sample, expect="posed_frame")
+        if msg is None:
+            return
+        t_rx = now_us()
+        t_rx0 = time.perf_counter()
+        node.latency("capture_to_received", (t_rx - msg["stamp_us"]) * 1e-6)
+        try:
+            K.check_chunk(msg["camera_id"], "camera id")
+            f = frame_info(msg, cameras)
+        except InputError as e:
+            node.count("bad_frames")
+            node.log_limited("bad_frame", logging.WARNING, "bad posed frame on %s: %s", sample.key_expr, e)
+            return
+        prev = last_seq.get(f.camera_id)
+        if prev is not None and prev + 1 < f.seq <= prev + MAX_SEQ_GAP:
+            node.count("frames_skipped", f.seq - prev - 1)        # ring channel dropped them while we computed
+        elif prev is not None and f.seq != prev + 1:
+            node.count("seq_jumps")                               # a restarted camera, or a corrupt seq
+        last_seq[f.camera_id] = f.seq
+        if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map, and before
+            # the warm-up: a put right after the declaration can miss subscribers the route to which is not set
+            # up yet (ECOSYSTEM 1.5); with the declaration after the warm-up, a second frame already waiting was
+            # ranged and put ~10 ms after it, and its map was lost now and then
+            pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
+        sc = scalers.get(f.camera_id)
+        if sc is None:
+            sc = scalers[f.camera_id] = new_controller()
+            if warmup:
+                warm_up_camera(node, f, sc, method, params, cameras, locate)
+            # the camera's first map must not be lost to a route not set up yet (see the declaration above):
+            # its first frame only starts a pair, so a bounded wait here delays no map
+            node.wait_matching(pubs[f.camera_id], 1.0)
+        sc.observe_frame(f.seq, f.stamp_us)          # (a calibrated start may move with the budget: gauge it)
+        show_scale(node, f.camera_id, sc, shown)
+        if not newest:                   # a newer frame of this camera is already waiting: partner only
+            policy.remember(f)
+            node.count("frames_superseded")
+            return
+        d = policy.offer(f)
+        node.count(f"pairs.{d.reason}")
+        if not d.ok:
+            node.count("skipped")
+            node.count(f"skipped.{d.reason}")
+            node.log_limited(f"skip:{d.reason}", logging.INFO, "frame %s/%d: no pair (%s): %s",
+                             f.camera_id, f.seq, d.reason, d.detail)
+            return
+        ref = d.a.camera_id                 # the reference camera's controller (a stereo pair's `a` may
+        sc = scalers[ref]                   # be the rig frame that arrived before f)
+        scale = sc.scale                    # one scale for both frames of the pair
+        errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
+                                              t_rx0, cameras, locate, publish_grid)
+        if compute_s is not None:
+            change = sc.observe_compute(scale, compute_s)
+            if change is not None:
+                node.count("scale_changes")
+                node.count(f"scale_changes.{change.direction}")
+                show_scale(node, ref, sc, shown)
+                node.log.info("camera %s: locate scale %g -> %g: %s", ref, change.old, change.new, change.reason)
+
+
     for first in sub:
         for sample, newest in drain_latest(first, sub):
-            msg = node.decode(sample, expect="posed_frame")
-            if msg is None:
-                continue
-            t_rx = now_us()
-            t_rx0 = time.perf_counter()
-            node.latency("capture_to_received", (t_rx - msg["stamp_us"]) * 1e-6)
-            try:
-                K.check_chunk(msg["camera_id"], "camera id")
-                f = frame_info(msg, cameras)
-            except InputError as e:
-                node.count("bad_frames")
-                node.log_limited("bad_frame", logging.WARNING, "bad posed frame on %s: %s", sample.key_expr, e)
-                continue
-            prev = last_seq.get(f.camera_id)
-            if prev is not None and f.seq > prev + 1:
-                node.count("frames_skipped", f.seq - prev - 1)        # ring channel dropped them while we computed
-            last_seq[f.camera_id] = f.seq
-            if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map, and before
-                # the warm-up: a put right after the declaration can miss subscribers the route to which is not set
-                # up yet (ECOSYSTEM 1.5); with the declaration after the warm-up, a second frame already waiting was
-                # ranged and put ~10 ms after it, and its map was lost now and then
-                pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
-            sc = scalers.get(f.camera_id)
-            if sc is None:
-                sc = scalers[f.camera_id] = new_controller()
-                if warmup:
-                    warm_up_camera(node, f, sc, method, params, cameras, locate)
-                # the camera's first map must not be lost to a route not set up yet (see the declaration above):
-                # its first frame only starts a pair, so a bounded wait here delays no map
-                node.wait_matching(pubs[f.camera_id], 1.0)
-            sc.observe_frame(f.seq, f.stamp_us)          # (a calibrated start may move with the budget: gauge it)
-            show_scale(node, f.camera_id, sc, shown)
-            if not newest:                   # a newer frame of this camera is already waiting: partner only
-                policy.remember(f)
-                node.count("frames_superseded")
-                continue
-            d = policy.offer(f)
-            node.count(f"pairs.{d.reason}")
-            if not d.ok:
-                node.count("skipped")
-                node.count(f"skipped.{d.reason}")
-                node.log_limited(f"skip:{d.reason}", logging.INFO, "frame %s/%d: no pair (%s): %s",
-                                 f.camera_id, f.seq, d.reason, d.detail)
-                continue
-            ref = d.a.camera_id                 # the reference camera's controller (a stereo pair's `a` may
-            sc = scalers[ref]                   # be the rig frame that arrived before f)
-            scale = sc.scale                    # one scale for both frames of the pair
-            errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
-                                                  t_rx0, cameras, locate, publish_grid)
-            if compute_s is not None:
-                change = sc.observe_compute(scale, compute_s)
-                if change is not None:
-                    node.count("scale_changes")
-                    node.count(f"scale_changes.{change.direction}")
-                    show_scale(node, ref, sc, shown)
-                    node.log.info("camera %s: locate scale %g -> %g: %s", ref, change.old, change.new, change.reason)
-
+            node.guarded("posed_frame", one, sample, newest)
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
                errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate") -> tuple:

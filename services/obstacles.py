@@ -160,15 +160,19 @@ def mirror_counters(node: Node, sender) -> None:
 
 def nav_loop(node: Node, sub, nav: LatestNav) -> None:
     from eonav.geometry.camera import VehicleState
-    for sample in sub:
+
+    def one(sample):
         msg = node.decode(sample, expect="nav_state")
         if msg is None:
-            continue
+            return
         p, q = np.asarray(msg["position_ned_m"], float), np.asarray(msg["q_wxyz"], float)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
             node.count("nav_incomplete")
-            continue
+            return
         nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]))
+
+    for sample in sub:
+        node.guarded("nav_state", one, sample)
 
 
 def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, args) -> None:
@@ -184,7 +188,8 @@ def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, ar
             if not newest:                  # a newer map of the same camera is waiting: latest wins
                 node.count("maps_superseded")
                 continue
-            process_map(node, sample, pub, cfg, tracker, nav, sender, args, cameras, ob, VehicleState)
+            node.guarded("range_map", process_map, node, sample, pub, cfg, tracker, nav, sender, args, cameras, ob,
+                         VehicleState)
 
 
 def analyse_msg(ob, msg: dict, cam, state, cfg, now_state=None):

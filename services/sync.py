@@ -37,7 +37,7 @@ from collections import Counter
 from eonav import InputError
 from eonav.bus import schema
 from eonav.bus import keys as K
-from eonav.bus.node import Node, add_flag, service_main
+from eonav.bus.node import Node, add_flag, now_us, service_main
 from eonav.io import pairfile
 from eonav.nav.timesync import NavBuffer
 
@@ -132,6 +132,8 @@ def add_arguments(p) -> None:
              help="farthest a pose may be extrapolated beyond the nav samples")
     add_flag(g, "--max-gap-ms", env="EONAV_SYNC_MAX_GAP_MS", default=250.0, type=float,
              help="largest gap between bracketing nav samples accepted")
+    add_flag(g, "--max-nav-ahead-ms", env="EONAV_SYNC_MAX_NAV_AHEAD_MS", default=5000.0, type=float,
+             help="refuse nav samples stamped further than this ahead of the host clock (0: accept any)")
     add_flag(g, "--gap-warn-ms", env="EONAV_SYNC_GAP_WARN_MS", default=60.0, type=float,
              help="bracket gaps above this set the QF_GAP flag")
     add_flag(g, "--max-wait-ms", env="EONAV_SYNC_MAX_WAIT_MS", default=300.0, type=float,
@@ -155,7 +157,8 @@ def body(node: Node, args) -> None:
     cams = load_cameras(args.cameras)
     nav = NavBuffer(max_samples=args.nav_buffer, max_extrapolation_us=int(args.max_extrapolation_ms * 1000),
                     max_gap_us=int(args.max_gap_ms * 1000), gap_warn_us=int(args.gap_warn_ms * 1000),
-                    require_position=not args.attitude_only)
+                    require_position=not args.attitude_only, clock_us=now_us if args.max_nav_ahead_ms > 0 else None,
+                    max_future_us=int(args.max_nav_ahead_ms * 1000))
     if not 0 <= args.position_lead_ms <= args.max_extrapolation_ms:
         raise InputError(f"--position-lead-ms must be in [0, --max-extrapolation-ms], got {args.position_lead_ms}")
     pairer = Pairer(cams, nav, max_wait_s=args.max_wait_ms / 1000.0, position_lead_s=args.position_lead_ms / 1000.0)
@@ -181,30 +184,36 @@ def body(node: Node, args) -> None:
                 node.count(k, v - reported[k])
                 reported[k] = v
 
+    def on_nav(s):
+        msg = node.decode(s, "nav_state")
+        if msg is None:
+            return
+        with lock:
+            pairer.add_nav(msg)
+        process()
+
+    def on_frame(s):
+        msg = node.decode(s, "frame")
+        if msg is None:
+            return
+        with lock:
+            pairer.add_frame(msg, time.monotonic())
+        process()
+
     def nav_loop():
         for s in nav_sub:
-            msg = node.decode(s, "nav_state")
-            if msg is None:
-                continue
-            with lock:
-                pairer.add_nav(msg)
-            process()
+            node.guarded("nav_state", on_nav, s)
 
     def frame_loop():
         for s in frame_sub:
-            msg = node.decode(s, "frame")
-            if msg is None:
-                continue
-            with lock:
-                pairer.add_frame(msg, time.monotonic())
-            process()
+            node.guarded("frame", on_frame, s)
 
     def tick():
         while not node.stop_event.wait(0.02):
             process()
             with lock:
                 nav_counts = Counter(nav.counts)
-            for k in ("duplicate_stamp", "out_of_order", "too_old", "bad_attitude", "bad_position"):
+            for k in ("duplicate_stamp", "out_of_order", "too_old", "bad_attitude", "bad_position", "future_stamp"):
                 d = nav_counts[k] - reported[f"nav.{k}"]
                 if d:
                     node.count(f"nav.{k}", d)

@@ -114,7 +114,7 @@ def test_locator_and_obstacles_services(flight_frames):
             wait_until(lambda: locator_counters().get("decode_errors") == 1, timeout=10, what="decode_errors 1")
             pub.put(posed_frame_payload(100, time.time_ns() // 1000 - 10_000_000, frames[0][1],
                                         image=np.zeros((10, 10))))
-            wait_until(lambda: locator_counters().get("bad_frames") == 1, timeout=10, what="bad_frames 1")
+            wait_until(lambda: locator_counters().get("rejected.range") == 1, timeout=10, what="rejected.range 1")
             sent = {}
             maps, obstacles = [], []
             for i, (t_s, view, truth) in enumerate(frames):
@@ -208,7 +208,8 @@ def test_locator_and_obstacles_services(flight_frames):
             loc, obs = h["locator"], h["obstacles"]
             assert loc["state"] == "ok" and obs["state"] == "ok"
             c = loc["counters"]
-            assert c["pairs_computed"] == N_FRAMES - 1 and c["decode_errors"] == 1 and c["bad_frames"] == 1
+            assert c["pairs_computed"] == N_FRAMES - 1 and c["decode_errors"] == 2
+            assert c["rejected.msgpack"] == 1 and c["rejected.range"] == 1         # garbage; image vs camera
             assert c["skipped.first_frame"] == 1 and c.get("frames_superseded", 0) == 0
             assert c["scale_pct.nose"] in (100, 50)                    # the camera's current scale (gauge)
             assert c["scale_pct.nose"] == 100 - 50 * c.get("scale_changes.down", 0) + 50 * c.get("scale_changes.up", 0)
@@ -375,7 +376,7 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
             assert match and match[0]["distance_m"] == pytest.approx(box_distance(boxes["truck"], pos), rel=0.08)
             assert all(0 <= x["bbox_px"][2] <= 255 and 0 <= x["bbox_px"][3] <= 255 for x in o["obstacles"])
 
-        # a map whose arrays do not match its camera: rejected by name and counted; then an older locator's map
+        # a map whose arrays do not match its camera: rejected at decode by name and counted; then an older locator's map
         # (frame grid, no frame size) is still analysed
         _, view, truth = frames[2]
         old = dict(camera_id="test", seq=1, stamp_us=time.time_ns() // 1000, method="truth",
@@ -385,12 +386,12 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
         map_pub.put(schema.encode("range_map", **old, range_m=small, confidence=np.ones_like(small)))
         def obstacle_counters():
             return latest_health(drain(health_sub, health)).get("obstacles", {}).get("counters", {})
-        wait_until(lambda: obstacle_counters().get("bad_maps") == 1, timeout=10, what="bad_maps 1")
+        wait_until(lambda: obstacle_counters().get("rejected.range") == 1, timeout=10, what="rejected.range 1")
         full = truth.range_m.astype(np.float32)
         map_pub.put(schema.encode("range_map", **dict(old, seq=2, stamp_us=time.time_ns() // 1000), range_m=full,
                                   confidence=np.ones_like(full)))
         wait_until(lambda: obstacle_counters().get("maps_processed") == 3, timeout=10, what="maps_processed 3")
-        assert obstacle_counters()["bad_maps"] == 1
+        assert obstacle_counters()["rejected.range"] == 1 and obstacle_counters()["decode_errors"] == 1
         for name in ("locator", "obstacles"):
             code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
             assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"

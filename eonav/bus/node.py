@@ -60,6 +60,10 @@ EXIT_OK, EXIT_ERROR, EXIT_CONFIG = 0, 1, 2
 JOIN_TIMEOUT_S = 5.0
 
 
+MAX_COUNTERS = 512            # distinct health counter names per service
+COUNTER_LIMIT = 2 ** 53       # counter values are clamped here (exact in JSON and float64, fits msgpack int64)
+
+
 def now_us() -> int:
     """The project time base: UNIX-epoch microseconds on this host's realtime clock."""
     return time.time_ns() // 1000
@@ -329,7 +333,9 @@ class Node:
             msg = schema.decode(payload, expect=expect)
         except Exception as e:  # SchemaError, or anything odd from a hostile payload
             self.count("decode_errors")
-            if "unsupported schema version" in str(e):
+            reason = getattr(e, "reason", "payload")
+            self.count(f"rejected.{reason}")
+            if reason == "version":
                 self.count("unknown_version")
             self.log_limited(f"decode:{key}", logging.WARNING, "dropped payload on %s: %s", key, e)
             return None
@@ -354,8 +360,25 @@ class Node:
 
     # ---- metrics --------------------------------------------------------------------------------
     def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to a health counter. Bounded: at most ``MAX_COUNTERS`` names (later new names all count as
+        ``counters_overflow``) and values clamped to +-2^53, so no input can make the health message unsendable."""
         with self._lock:
-            self._counters[name] = self._counters.get(name, 0) + n
+            if name not in self._counters and len(self._counters) >= MAX_COUNTERS:
+                name = "counters_overflow"
+            v = self._counters.get(name, 0) + int(n)
+            self._counters[name] = max(-COUNTER_LIMIT, min(COUNTER_LIMIT, v))
+
+    def guarded(self, what: str, fn: Callable, *args):
+        """``fn(*args)`` for one message; whatever it raises is counted (``message_errors``, ``rejected.<what>``),
+        logged at a limited rate and swallowed (returns None): a payload never stops a service."""
+        try:
+            return fn(*args)
+        except Exception as e:  # noqa: BLE001  (the point: one message's failure is that message's)
+            self.count("message_errors")
+            self.count(f"rejected.{what}")
+            self.log_limited(f"guard:{what}", logging.WARNING, "%s failed on one message, dropped: %s: %s", what,
+                             type(e).__name__, e)
+            return None
 
     def tick(self, name: str, n: int = 1) -> None:
         with self._lock:

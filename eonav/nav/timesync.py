@@ -35,6 +35,7 @@ import bisect
 import math
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -196,10 +197,14 @@ class NavBuffer:
     ``max_extrapolation_us``: the farthest a pose may be extrapolated beyond the samples (20 ms).
     ``max_gap_us``: the largest bracket gap accepted (250 ms); ``gap_warn_us`` flags QF_GAP (60 ms).
     ``require_position``: a pose needs a position stream (True) or attitude alone is enough.
+    ``clock_us`` (host UNIX us now) with ``max_future_us``: a sample stamped further ahead than that is refused
+    (``future_stamp``): one bogus far-future sample would otherwise sit in the stream for good and turn every
+    later frame's bracket into a gap.
     """
 
     def __init__(self, max_samples: int = 4096, max_extrapolation_us: int = 20_000, max_gap_us: int = 250_000,
-                 gap_warn_us: int = 60_000, require_position: bool = True):
+                 gap_warn_us: int = 60_000, require_position: bool = True,
+                 clock_us: Callable[[], int] | None = None, max_future_us: int = 5_000_000):
         if max_samples < 2:
             raise InputError(f"max_samples {max_samples}: expected at least 2")
         if max_extrapolation_us < 0 or max_gap_us <= 0:
@@ -210,12 +215,16 @@ class NavBuffer:
         self.max_gap_us = int(max_gap_us)
         self.gap_warn_us = int(gap_warn_us)
         self.require_position = require_position
+        self.clock_us, self.max_future_us = clock_us, int(max_future_us)
         self.counts: Counter = Counter()      # add outcomes: attitude, position, duplicate_stamp, ...
 
     # ------------------------------------------------------------------ input
     def add(self, stamp_us: int, q_wxyz=None, position_ned_m=None, velocity_ned_mps=None) -> None:
         """Add one navigation sample; absent or non-finite parts are ignored (counted)."""
         t = int(stamp_us)
+        if self.clock_us is not None and t > self.clock_us() + self.max_future_us:
+            self.counts["future_stamp"] += 1
+            return
         if q_wxyz is not None:
             q = np.asarray(q_wxyz, float).reshape(4)
             n = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else math.nan
