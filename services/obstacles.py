@@ -1,34 +1,17 @@
 """Obstacle publisher: range maps (+ navigation) -> obstacle list for guidance, and MAVLink OBSTACLE_DISTANCE.
 
-Subscribes ``keys.range_maps_all(vehicle)`` (RingChannel: the newest map wins) and ``keys.nav_state`` (ring of
-1: only the latest pose matters). For each range map ``eonav.obstacles.analyse`` gives the 72 OBSTACLE_DISTANCE
-sectors and the obstacle list (ids kept across maps by ``ObstacleTracker``), published as schema
-``obstacle_list`` on ``keys.obstacles(vehicle)``: a reliable, small, express message (the node's default
-non-image publisher: CongestionControl.BLOCK, DATA_HIGH, express). Everything in it refers to the range map's
-capture stamp and pose, so guidance can use the absolute ``position_ned_m`` of each obstacle.
+In: schema ``range_map`` on ``keys.range_maps_all(vehicle)`` (RingChannel: the newest map of each camera wins) and
+``nav_state`` (only the latest pose matters). Out: schema ``obstacle_list`` on ``keys.obstacles(vehicle)``
+(``eonav.obstacles.detect.analyse``: 72 sectors and the obstacle list, referred to the map's capture stamp and
+pose; a small, reliable, express message), and with ``--mavlink-out`` OBSTACLE_DISTANCE plus a companion HEARTBEAT
+(``eonav.nav.mavlink_out``, docs/mavlink.md).
 
-With ``--mavlink-out udpout:127.0.0.1:14560`` (any pymavlink connection string) a sender thread emits
-OBSTACLE_DISTANCE at ``--mavlink-rate`` (>= 10 Hz) with the merged latest sectors of every camera while they are
-fresh, then one all-unknown message and silence (see ``eonav.nav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz.
-An output link that is not up (refused, device absent) or whose autopilot is not heard is retried with back-off
-and makes the health ``degraded`` (``eonav.nav.links``), never a configuration error. The sectors sent to
-the autopilot are measured from the latest navigation pose when one newer than the map is at hand
-(``sectors_now``): the autopilot applies them relative to where it is on arrival.
-
-Latest map wins: after each map the worker drains the ring and analyses only the newest map of each camera (older
-ones count ``maps_superseded``). The range map is analysed pooled to <= ``--max-width`` columns (eonav.obstacles.detect), on
-its own grid with its own ``camera`` (a locator publishing at its locate scale sends the scaled camera and the frame's
-size, ``frame_width`` / ``frame_height``: pixel counts and boxes come out in frame pixels); a map whose arrays do not
-match its camera's size, or whose frame size is smaller than its camera, is rejected and counted (``bad_maps``).
-
-Warm-up: before the subscriber is read, ``warm_up`` runs ``analyse`` once on a small synthetic range map (a wall and a
-ground plane, 160 x 120, through schema encode/decode) with the service's configuration and a navigation pose, so the
-first real map does not pay the first call's set-up (measured 291 ms for the first 640 x 480 map instead of ~15 ms);
-its time is the latency ``warmup``, a failure is counted (``warmup_errors``) and logged and the service goes on.
-
-Health: ``maps_processed``, ``obstacles_published``, ``bad_maps``, ``maps_superseded``, MAVLink counters; latencies
-``capture_to_obstacles`` (frame capture -> obstacle list put: the pipeline's end-to-end figure), ``compute`` and
-``warmup``.
+Decisions: the sectors sent to the autopilot are re-referenced to the latest navigation pose newer than the map
+(the autopilot applies them where it is on arrival); a stall sends one all-unknown message and then silence, so the
+autopilot sees a dead sensor, not an empty sky. Each map is read on its own grid with its own ``camera``; a map
+whose arrays or frame size do not fit that camera is rejected and counted. ``analyse`` is warmed up once on a
+synthetic map before the first real one. An output link that is not up (refused, device absent) or whose
+autopilot is not heard is retried with back-off and makes the health ``degraded`` (``eonav.nav.links``).
 """
 from __future__ import annotations
 
