@@ -36,7 +36,7 @@ def add_arguments(p):
              help="MAVLink system id (the autopilot's); component is 191 (onboard computer)")
     add_flag(p, "--mavlink-rate", env="EONAV_OBSTACLES_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
              help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)")
-    add_flag(p, "--stale", env="EONAV_OBSTACLES_STALE", default=0.5, type=float, metavar="S",
+    add_flag(p, "--stale", env="EONAV_OBSTACLES_STALE", default=0.3, type=float, metavar="S",
              help="after this long without a new range map, send one all-unknown OBSTACLE_DISTANCE and then none "
                   "until maps flow again (the autopilot then reports No Data)")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",

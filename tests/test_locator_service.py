@@ -186,10 +186,10 @@ def test_locator_and_obstacles_services(flight_frames):
             assert fresh, "no fresh OBSTACLE_DISTANCE received"
             last_fresh = fresh[-1]
             assert last_fresh.frame == 12 and last_fresh.get_srcComponent() == 191
-            assert (last_fresh.increment_f, last_fresh.angle_offset) == (5.0, 0.0)
+            assert (last_fresh.increment_f, last_fresh.angle_offset) == (5.0, -20.0)
             last_pos = sent[N_FRAMES - 1][1].state.position_ned_m
             c = np.asarray(boxes["truck"].center_ned_m) - last_pos
-            j = round(math.degrees(math.atan2(c[1], c[0])) / 5.0) % 72     # element j is centred on 5 j deg
+            j = round((math.degrees(math.atan2(c[1], c[0])) + 20.0) / 5.0) % 72   # element j: -20 + 5 j deg
             near = min(last_fresh.distances[j - 1:j + 2])   # bins at the truck's centre bearing
             truck_h = box_distance(boxes["truck"], [*last_pos[:2], -1.5])
             assert near / 100 == pytest.approx(truck_h, rel=0.1)

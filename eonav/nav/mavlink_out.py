@@ -29,8 +29,7 @@ COMPANION_COMPONENT_ID = 191          # MAV_COMP_ID_ONBOARD_COMPUTER
 MAV_FRAME_BODY_FRD = 12
 MAV_DISTANCE_SENSOR_UNKNOWN = 4
 
-# Both autopilots drop proximity data 0.5 s after the last message; a map older than this is not sent.
-DEFAULT_STALE_S = 0.5
+DEFAULT_STALE_S = 0.3   # + the autopilots' own 0.5 s timeout after the flush + one send period: No Data within 1 s
 
 
 def mavutil():

@@ -24,6 +24,10 @@ from eonav.ranging.rangemap import AT_INFINITY, VALID
 UINT16_MAX = 65535
 N_SECTORS = 72
 SECTOR_INCREMENT_DEG = 360.0 / N_SECTORS     # 5 degrees: the autopilots' own bins
+# element 0 is centred 20 deg left of the nose, so the array starts at the left edge of ArduPilot's ahead sector
+# (-22.5 .. 22.5 deg) instead of wrapping through it: ArduPilot stores a sector each time a run of elements leaves it,
+# so with element 0 on the nose the elements left of it (68 .. 71) overwrote a nearer obstacle right of it (0 .. 4)
+SECTOR_ANGLE_OFFSET_DEG = -20.0
 
 
 @dataclass(frozen=True)
@@ -314,17 +318,18 @@ def camera_hfov_deg(camera: Camera) -> tuple:
 
 
 def sector_geometry(camera: Camera) -> tuple:
-    """(increment_deg, angle_offset_deg) of the sectors: the fixed 72 x 5-degree layout, element 0 centred on the nose.
+    """(increment_deg, angle_offset_deg) of the sectors: the fixed 72 x 5-degree layout, element k centred on bearing
+    -20 + 5k deg (``SECTOR_ANGLE_OFFSET_DEG``).
 
     The layout does not depend on the camera: every camera's sectors index the same bins, so the sectors of several
     cameras merge bin by bin into one message (``merge_sectors``)."""
-    return SECTOR_INCREMENT_DEG, 0.0
+    return SECTOR_INCREMENT_DEG, SECTOR_ANGLE_OFFSET_DEG
 
 
 def bins_in_view(camera: Camera) -> tuple:
     """Masks over the 72 bins: (wholly inside the camera's horizontal view, touched by it)."""
     left, right = camera_hfov_deg(camera)
-    centre = np.arange(N_SECTORS) * SECTOR_INCREMENT_DEG
+    centre = SECTOR_ANGLE_OFFSET_DEG + np.arange(N_SECTORS) * SECTOR_INCREMENT_DEG
     half = SECTOR_INCREMENT_DEG / 2
     # the bins' edges relative to the view's middle, wrapped to (-180, 180]
     mid = 0.5 * (left + right)
