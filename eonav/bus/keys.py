@@ -63,6 +63,10 @@ def obstacles(vehicle: str) -> str:
     return f"{_v(vehicle)}/obstacles"
 
 
+def obstacle_tracks(vehicle: str) -> str:
+    return f"{_v(vehicle)}/obstacles/tracks"
+
+
 def health(vehicle: str, service: str) -> str:
     return f"{_v(vehicle)}/health/{check_chunk(service, 'service')}"
 
