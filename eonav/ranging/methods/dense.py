@@ -461,6 +461,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     own median error 0.3-2 %); Middlebury coverage 65-80 % -> 81-87 %, medians within +0.1 pp.
     (Not to be confused with fill_sigma / fill_c: the coarse search's normalised-convolution fill, which only
     seeds the Gauss-Newton steps.)
+    bias: a brightness offset per window, eliminated from the normal equations. The kernels always eliminate it;
+    False turns the shiftable windows off (they choose by the offset model's cost), nothing else.
     sgm: semi-global aggregation (4 scanline paths) of the coarse ZNCC cost volume before winner-take-all;
     sgm_p1 / sgm_p2: penalties (cost units, 1 - ZNCC) of a one-hypothesis / larger jump between neighbours,
     sgm_tau: grey levels over which the jump penalty halves across an intensity edge. Off by default:
