@@ -1,17 +1,16 @@
-"""Inverse range for the pixels a pair cannot measure, inferred from the measured ones around them.
+"""Inverse range for the pixels a pair cannot measure, inferred from the measured ones around them (flag FILLED).
 
 A plane's inverse range is an affine function of the image coordinates (a point X = x_c (1, x_n, y_n) on the plane
 n . X = d has rho = 1 / x_c = (n_1 + n_2 x_n + n_3 y_n) / d), so a weighted least-squares plane through the measured
-rho of a window predicts rho at a hole, including just outside the measured region (the ground band that has left
-image b by the second frame). Windows grow by octaves (7 x 7 cells of 2^g pixels, g = 2..7: 28 .. 896 px wide);
-each cell takes the finest window with enough measured support, a coarser window's plane carried to the cell's
-centre. Every window's sums come from box filters of per-cell moments, one pyramid (no per-pixel loop).
+rho of a window predicts rho at a hole, also just outside the measured region (the ground band that has left image
+b). Windows grow by octaves (7 x 7 cells of 2^g pixels, g = 2..7: 28 .. 896 px wide); each cell takes the finest
+window with enough measured support. Every window's sums come from box filters of per-cell moments (no per-pixel
+loop).
 
-The 1-sigma of a filled rho is the plane fit's prediction error -- residual variance of the window (which holds
-the measurement noise and any departure from a plane: a depth edge inside the window inflates it), scaled by
-(1 + (1 + leverage) / n) for the distance from the support's centroid -- plus the squared disagreement with the next
-coarser window's prediction (a plane that holds at two scales is trusted; one that does not is not). It errs large
-where the support's noise dominates (docs/methods.md has the measured calibration).
+The 1-sigma of a filled rho is the plane fit's prediction error (the window's residual variance, which a depth edge
+inflates, scaled for the distance from the support's centroid) plus the squared disagreement with the next coarser
+window's prediction: a plane that holds at two scales is trusted, one that does not is not. Its calibration against
+truth: docs/methods.md, "Figures".
 
 Cells of 4 px (first octave 2). The pixel passes (sums into the cells, the cells' planes back to the pixels with
 the gating) and the per-cell plane fits run in numba kernels (``_fill_kernels``, the only implementation);
