@@ -74,9 +74,9 @@ def _gone(pid):
 # ---- spec -------------------------------------------------------------------------------------------
 
 def test_parse_spec_validates(tmp_path):
-    s = L.parse_spec({"services": [{"name": "camera_nose", "module": "camera_ingest", "args": ["--rate", 0]},
+    s = L.parse_spec({"services": [{"name": "camera_nose", "module": "camera_ingest", "args": ["--rate-hz", 0]},
                                    {"name": "x.y", "module": "pkg.mod", "restart": False, "enabled": False}]})
-    assert s[0].module == "eonav.services.camera_ingest" and s[0].args == ["--rate", "0"]
+    assert s[0].module == "eonav.services.camera_ingest" and s[0].args == ["--rate-hz", "0"]
     assert s[1].module == "pkg.mod" and not s[1].restart and not s[1].enabled
     with pytest.raises(InputError, match="used twice"):
         L.parse_spec({"services": [{"name": "a"}, {"name": "a"}]})
@@ -129,7 +129,7 @@ def test_router_process_prints_ready_and_stops_on_sigint():
 def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_path):
     spec = {"services": [
         {"name": "crashy", "module": svc_pkg, "args": ["--exit-after", "0.3", "--exit-code", "3"], "max_restarts": 2},
-        {"name": "steady", "module": svc_pkg, "args": ["--health-period", "0.2"]},
+        {"name": "steady", "module": svc_pkg, "args": ["--health-period-s", "0.2"]},
         {"name": "badflags", "module": svc_pkg, "args": ["--no-such-flag"]},
         {"name": "ghost", "module": "services.not_written_yet"},
     ]}
@@ -175,7 +175,7 @@ def test_eonav_run_camera_replay_until_done(tmp_path):
     spec = tmp_path / "pipeline.json"
     spec.write_text(json.dumps({"services": [
         {"name": "camera_nose", "module": "camera_ingest",
-         "args": ["--source", "{spec_dir}/rec", "--camera-id", "nose", "--rate", "10", "--wait-subscribers", "0"]}]}))
+         "args": ["--source", "{spec_dir}/rec", "--camera-id", "nose", "--rate-hz", "10", "--wait-subscribers-s", "0"]}]}))
     out = start_service(["-m", "eonav.app.cli", "run", "--pipeline", str(spec), "--vehicle", "lt3",
                          "--exit-when-done", "camera_nose"])
     code = out.wait(60)
@@ -242,7 +242,7 @@ def test_watch_mode_shows_remote_services(svc_pkg):
     from eonav.app.processes import router_process, stop_service
     with router_process() as ep:
         svc = start_service(["-m", svc_pkg, "--connect", ep, "--vehicle", "lt5", "--name", "elsewhere",
-                             "--health-period", "0.2"])
+                             "--health-period-s", "0.2"])
         try:
             seen = []
             code = L.run_pipeline({"services": []}, vehicle="lt5", router=ep, duration=4.0, on_status=seen.append,
@@ -268,9 +268,18 @@ def test_deploy_configs_are_valid_zenoh_configs():
     assert json.loads(p.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
     assert json.loads(p.get_json("scouting/multicast/enabled")) is False
     unit = (root / "systemd" / "eonav@.service").read_text()
-    for line in ("ExecStart=/opt/eonav/venv/bin/python -m services.%i", "EnvironmentFile=/etc/eonav/%i.env",
+    for line in ("EnvironmentFile=/etc/eonav/%i.env",
                  "KillSignal=SIGINT", "Restart=on-failure", "After=network-online.target zenohd.service"):
         assert line in unit
+    # every unit starts a module that exists: eonav@<service> for each deploy/env/<service>.env, eonav-camera@<id>
+    services = sorted(f.stem for f in (root / "env").glob("*.env") if f.stem != "common")
+    assert services == ["camera_ingest", "locator", "mavlink_ingest", "obstacles", "sync"]
+    for name, instances in (("eonav@.service", services), ("eonav-camera@.service", ["nose"])):
+        (cmd,) = [ln for ln in (root / "systemd" / name).read_text().splitlines() if ln.startswith("ExecStart=")]
+        module = cmd.split(" -m ", 1)[1].split()[0]
+        assert module.startswith("eonav.services."), module     # the wheel installs the services under eonav only
+        for i in instances:
+            assert L.module_exists(module.replace("%i", i)), (name, module, i)
     for env in (root / "env").glob("*.env"):
         for ln in env.read_text().splitlines():
             if ln.strip() and not ln.startswith("#"):
