@@ -3,9 +3,9 @@ modules), --exit-when-done, --duration, and a clean stop on SIGINT, all with rea
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
-import sys
 import textwrap
 import time
 
@@ -126,7 +126,8 @@ def test_router_process_prints_ready_and_stops_on_sigint():
 
 # ---- supervision -------------------------------------------------------------------------------------
 
-def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_path):
+def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="eonav.app.launcher")
     spec = {"services": [
         {"name": "crashy", "module": svc_pkg, "args": ["--exit-after", "0.3", "--exit-code", "3"], "max_restarts": 2},
         {"name": "steady", "module": svc_pkg, "args": ["--health-period-s", "0.2"]},
@@ -148,8 +149,17 @@ def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_
     running = [s["steady"]["health"] for s in seen if s["steady"]["health"]]
     assert running and running[-1]["state"] == "ok" and running[-1]["rates_hz"]["loop"] > 5
     assert any(s["steady"]["alive"] for s in seen)
-    restarting = [s["crashy"]["state"] for s in seen]
-    assert "restarting" in restarting or final["crashy"]["restarts"] == 2
+    # crashy ran 1 + max_restarts = 3 times, each restart after the back-off (0.5 s, then 1 s) from its crash
+    assert (tmp_path / "logs" / "crashy.log").read_text().count("running (vehicle lt, pid") == 3
+    events = [(r.created, r.getMessage()) for r in caplog.records if "service crashy" in r.getMessage()]
+    crashes = [t for t, m in events if "exited 3; restart" in m]
+    starts = [t for t, m in events if " started (pid " in m]
+    assert [m.split("; ", 1)[1] for t, m in events if "exited 3; restart" in m] == ["restart 1/2 in 0.5 s",
+                                                                                  "restart 2/2 in 1.0 s"]
+    assert len(starts) == 3 and len(crashes) == 2
+    for crash, start, delay in zip(crashes, starts[1:], (0.5, 1.0)):
+        assert delay <= start - crash < delay + 0.5, (start - crash, delay)   # the launcher polls every 0.1 s
+    assert any("service crashy exited 3; gave up after 2 restarts" in m for _, m in events)
     assert code == 1                       # a service failed for good
     pids = {s[n]["pid"] for s in seen for n in ("crashy", "steady") if s[n]["pid"]}
     assert all(_gone(p) for p in pids)
@@ -234,8 +244,17 @@ def test_eonav_service_command_passes_args(tmp_path):
     assert "not a directory" in proc.stderr.read()
     proc = start_service(["-m", "eonav.app.cli", "service", "nope_service"])
     assert proc.wait(30) == 2
-    assert "camera_ingest" in proc.stderr.read()           # lists what exists
-    assert sys.executable
+    err = proc.stderr.read()
+    services = ("camera_ingest", "locator", "mavlink_ingest", "obstacles", "sync")
+    assert all(s in err for s in services) and "did you mean" not in err, err    # lists what exists
+    proc = start_service(["-m", "eonav.app.cli", "service", "camera"])              # the instance name, not the module
+    assert proc.wait(30) == 2
+    assert "did you mean 'camera_ingest'?" in proc.stderr.read()
+    # each service's --help names the command that runs it
+    procs = {s: start_service(["-m", "eonav.app.cli", "service", s, "--help"]) for s in services}
+    for s, proc in procs.items():
+        assert proc.wait(60) == 0
+        assert proc.stdout.read().startswith(f"usage: eonav service {s} "), s
 
 
 def test_watch_mode_shows_remote_services(svc_pkg):
