@@ -131,7 +131,7 @@ def test_folder_keep_stamps_loop_and_fixed_rate(tmp_path):
     assert [f["stamp_us"] for f in out] == [10_000_000, 10_200_000, 10_400_000,
                                             10_600_000, 10_800_000, 11_000_000, 11_200_000]
     assert out[0]["stamp_source"] == "recorded_raw"
-    assert clock.slept == pytest.approx([0.02] * 6, abs=1e-5)          # --rate 50: fixed pacing
+    assert clock.slept == pytest.approx([0.02] * 6, abs=1e-5)          # --rate-hz 50: fixed pacing
 
 
 def test_folder_without_timestamps_uses_host_clock(tmp_path):

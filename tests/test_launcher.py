@@ -1,5 +1,5 @@
 """eonav run: embedded router, supervision (restart with back-off, give up, config errors, missing
-modules), --exit-when-done, --duration, and a clean stop on SIGINT, all with real processes."""
+modules), --exit-when-done, --duration-s, and a clean stop on SIGINT, all with real processes."""
 from __future__ import annotations
 
 import json

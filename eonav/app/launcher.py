@@ -27,10 +27,10 @@ configuration error (bad flags/config): reported, not restarted (a restart would
 other exit (crash, signal) = restarted after an exponential back-off (0.5 s, 1 s, 2 s ... 10 s), at
 most ``max_restarts`` times; the count resets after 30 s of stable running.
 
-Stopping: Ctrl-C or SIGTERM, ``--duration S``, ``--exit-when-done SERVICE`` (that service exited 0),
+Stopping: Ctrl-C or SIGTERM, ``--duration-s S``, ``--exit-when-done SERVICE`` (that service exited 0),
 or nothing left running (an empty pipeline, e.g. ``--watch``, only watches the health topic: services
 started elsewhere show up as ``remote``, until stopped). Services get SIGINT (they run in their own process groups, so a terminal
-Ctrl-C reaches only the launcher, which forwards it once), ``--grace`` seconds, then SIGKILL; the
+Ctrl-C reaches only the launcher, which forwards it once), ``--grace-s`` seconds, then SIGKILL; the
 router last. Exit code 0 after a clean stop; 1 if a service failed for good (gave up restarting,
 config error) or the ``--exit-when-done`` service failed; 2 if the router could not start.
 
