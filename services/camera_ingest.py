@@ -1,53 +1,13 @@
-"""Camera ingest: one camera (live or recorded) -> schema "frame" messages on ``keys.frame(vehicle, camera_id)``.
+"""Camera ingest: one camera, live or recorded -> schema ``frame`` messages on ``keys.frame(vehicle, camera_id)``.
 
-Live or recorded is one flag (STYLE §4). ``--source`` takes:
+Live or recorded is one flag: ``--source`` takes a video file, an image folder (with an optional timestamps file),
+a V4L2 device or an RTSP/HTTP URL (docs/bus.md, "Camera ingest", lists the forms, the pacing and the stamps).
+Every frame carries ``stamp_us`` (UNIX microseconds of capture on this host's realtime clock) and ``stamp_source``,
+which says where the stamp came from: a recorded stamp, the stream's PTS, the V4L2 buffer time, the file's frame
+rate, or the host clock right after ``grab()`` (decode time kept out of the stamp). Replays of one recording given
+the same ``--replay-shift-us`` stay aligned with each other. The publisher drops frames rather than queueing them.
 
-- a video file (``flight.mp4``; FFMPEG);
-- an image folder: the image files in it, sorted by name, plus optionally ``timestamps.txt``
-  (or ``--timestamps FILE``) with **one stamp per line matching the sorted files**. The first
-  whitespace-separated column of each line is the stamp; blank lines and ``#`` comments are skipped.
-  Units (``--timestamps-unit``): ``s`` = seconds (float), ``us`` = integer microseconds, ``auto``
-  (default) = microseconds when every value is an integer >= 1e11, else seconds;
-- a V4L2 device: ``/dev/video0`` or an integer ``0``;
-- a network stream: ``rtsp://...``, ``http(s)://...`` (FFMPEG; set ``OPENCV_FFMPEG_CAPTURE_OPTIONS``
-  e.g. ``rtsp_transport;tcp`` for RTSP over TCP).
-
-Stamps (integer ``stamp_us``, UNIX-epoch microseconds on this host's realtime clock), and the
-``stamp_source`` field that says where each came from:
-
-- ``recorded``: an image folder with a timestamps file, mapped onto the current clock preserving the
-  spacing (offset = now at start - first recorded stamp), or shifted by ``--replay-shift-us`` (below);
-  ``recorded_raw`` with ``--keep-stamps``;
-- ``pts``: the stream/file presentation time (``CAP_PROP_POS_MSEC``) mapped to a wall-clock origin
-  taken at the first frame; the PTS itself travels in ``source_pts_us``;
-- ``v4l2``: the kernel buffer timestamp (``CAP_PROP_POS_MSEC`` of the V4L2 backend), converted from
-  CLOCK_MONOTONIC to the realtime clock when it is monotonic (the usual uvcvideo case);
-- ``fps``: a file without PTS: wall-clock origin at the first frame + index / frame rate;
-- ``host``: the realtime clock right after ``grab()`` (``retrieve()``/decode come afterwards, so
-  decode time is not in the stamp): image folders without timestamps, and any source whose driver
-  stamp is missing or implausible (> 2 s from the host clock for live sources).
-
-Pacing (``--rate-hz``) applies to files and folders only; live sources are paced by the camera:
-``auto`` (default) = real time from the recorded stamps / PTS / the file's fps (``--default-fps`` for
-a folder without timestamps), a number = that many frames per second, ``0`` = as fast as possible.
-``--loop`` replays a file source forever (stamps keep increasing across laps).
-
-Joint replays: a recording holds several streams (frames + a MAVLink tlog) on one clock. Replayed by
-separate services that each map "now at my start" to "my first record", they would drift apart by the
-difference of their start times. ``--replay-shift-us D`` (the same D for every replay of one recording,
-``EONAV_REPLAY_SHIFT_US``; ``eonav run`` sets it) instead stamps each record at recorded + D and publishes
-it when the host clock reaches that stamp, so all replays stay aligned to the microsecond.
-
-Output: ``--encoding mono8`` (default; the locators work on grey) or ``bgr8``; 16-bit input is
-scaled to 8 bit (/257). Corrupt or unreadable frames are counted (``corrupt_frames``), logged and
-skipped; frames whose size differs from ``--width``/``--height`` (when given) are counted
-(``wrong_size``) and skipped. ``seq`` counts published frames, so a gap downstream means a drop on the
-bus. The publisher is an image publisher (CongestionControl.DROP): a slow consumer never grows a queue.
-End of a file source: clean exit 0 (unless ``--loop``). A live source that stops delivering frames for
-``--live-timeout-s`` seconds makes the service exit 1, so the supervisor restarts it.
-
-The capture loop :func:`capture_loop` is a function over an injected source iterator, sink and
-metrics object, testable without zenoh or a camera.
+:func:`capture_loop` runs over an injected source, sink and metrics object, testable without zenoh or a camera.
 """
 from __future__ import annotations
 

@@ -1,28 +1,12 @@
-"""MAVLink ingest: an autopilot link (live or a recorded .tlog) -> nav_state and clock_offset on the bus.
+"""MAVLink ingest: an autopilot link, live or a recorded .tlog -> ``nav_state`` and ``clock_offset`` on the bus.
 
-Live or recorded is one flag (STYLE §4): ``--source`` takes any pymavlink connection string
-(``udpin:0.0.0.0:14550``, ``udpout:10.0.0.1:14550``, ``tcp:127.0.0.1:5760``, ``/dev/ttyACM0`` with
-``--baud``) or a ``.tlog`` file path.
-
-- Output: schema ``nav_state`` on ``keys.nav_state(vehicle)``, one per accepted ATTITUDE,
-  ATTITUDE_QUATERNION, LOCAL_POSITION_NED, GLOBAL_POSITION_INT or ODOMETRY message (each stream with
-  its own stamps; absent quantities NaN; ``source`` = the message type), and ``clock_offset`` on
-  ``keys.nav_clock(vehicle)`` (at most 1 Hz and on every change of method). Decoding, validation,
-  reboot handling and the clock-offset estimators are in :mod:`eonav.nav.mavlink_in` (see its docstring).
-- ``stamp_us`` is on the companion clock: autopilot time + the estimated offset.
-- .tlog: replayed at real time (``--speed 1``), ``--speed X`` times faster, or as fast as possible
-  (``--speed 0``). Record-header times are mapped onto the current clock (shift = now at start - first
-  header) so a replay looks live downstream; the clock offset is then estimated from those receive
-  times (``--clock receive`` is the default for tlogs). End of the file: clean exit 0. Corrupt
-  packets (``bad_data``) and a truncated last record (``truncated_bytes``) are counted.
-- Live links: a companion HEARTBEAT at 1 Hz (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID,
-  component 191), TIMESYNC requests at ``--timesync-hz`` (default 5; 0 = off), and with
-  ``--request-streams`` MAV_CMD_SET_MESSAGE_INTERVAL for the nav messages at ``--stream-hz``.
-- ``--system-id``: the autopilot to follow (default: the first autopilot seen, component 1).
-
-Health counters: ``msg.<TYPE>`` per received message type, ``bad_data``, ``truncated_bytes``,
-``rejected.<reason>`` (see eonav.nav.mavlink_in), ``reboots``, ``nav_published``; the detail string
-carries the clock method and offset.
+Live or recorded is one flag: ``--source`` takes any pymavlink connection string (``udpin:0.0.0.0:14550``,
+``tcp:127.0.0.1:5760``, ``/dev/ttyACM0`` with ``--baud``) or a ``.tlog`` path. Out: one schema ``nav_state`` on
+``keys.nav_state(vehicle)`` per accepted navigation message (each message type its own stream, absent quantities
+NaN), and ``clock_offset`` on ``keys.nav_clock(vehicle)``. Every ``stamp_us`` is autopilot time mapped onto the
+companion clock by the estimated offset; decoding, validation and the clock estimators are ``eonav.nav.mavlink_in``
+(docs/mavlink.md). A tlog replays at real time or a speed factor with its header times moved onto the current clock
+(exit 0 at its end); a live link also gets a companion HEARTBEAT and TIMESYNC requests.
 """
 from __future__ import annotations
 

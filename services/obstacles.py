@@ -1,32 +1,16 @@
 """Obstacle publisher: range maps (+ navigation) -> obstacle list for guidance, and MAVLink OBSTACLE_DISTANCE.
 
-Subscribes ``keys.range_maps_all(vehicle)`` (RingChannel: the newest map wins) and ``keys.nav_state`` (ring of
-1: only the latest pose matters). For each range map ``eonav.obstacles.analyse`` gives the 72 OBSTACLE_DISTANCE
-sectors and the obstacle list (ids kept across maps by ``ObstacleTracker``), published as schema
-``obstacle_list`` on ``keys.obstacles(vehicle)``: a reliable, small, express message (the node's default
-non-image publisher: CongestionControl.BLOCK, DATA_HIGH, express). Everything in it refers to the range map's
-capture stamp and pose, so guidance can use the absolute ``position_ned_m`` of each obstacle.
+In: schema ``range_map`` on ``keys.range_maps_all(vehicle)`` (RingChannel: the newest map of each camera wins) and
+``nav_state`` (only the latest pose matters). Out: schema ``obstacle_list`` on ``keys.obstacles(vehicle)``
+(``eonav.obstacles.detect.analyse``: 72 sectors and the obstacle list, referred to the map's capture stamp and
+pose; a small, reliable, express message), and with ``--mavlink-out`` OBSTACLE_DISTANCE plus a companion HEARTBEAT
+(``eonav.nav.mavlink_out``, docs/mavlink.md).
 
-With ``--mavlink-out udpout:127.0.0.1:14560`` (any pymavlink connection string) a sender thread emits
-OBSTACLE_DISTANCE at ``--mavlink-rate-hz`` (>= 10 Hz) with the merged latest sectors of every camera while they are
-fresh, then one all-unknown message and silence (see ``eonav.nav.mavlink_out`` for why), plus a companion HEARTBEAT at 1 Hz. The sectors sent to
-the autopilot are measured from the latest navigation pose when one newer than the map is at hand
-(``sectors_now``): the autopilot applies them relative to where it is on arrival.
-
-Latest map wins: after each map the worker drains the ring and analyses only the newest map of each camera (older
-ones count ``maps_superseded``). The range map is analysed pooled to <= ``--max-width-px`` columns (eonav.obstacles.detect), on
-its own grid with its own ``camera`` (a locator publishing at its locate scale sends the scaled camera and the frame's
-size, ``frame_width`` / ``frame_height``: pixel counts and boxes come out in frame pixels); a map whose arrays do not
-match its camera's size, or whose frame size is smaller than its camera, is rejected and counted (``bad_maps``).
-
-Warm-up: before the subscriber is read, ``warm_up`` runs ``analyse`` once on a small synthetic range map (a wall and a
-ground plane, 160 x 120, through schema encode/decode) with the service's configuration and a navigation pose, so the
-first real map does not pay the first call's set-up (measured 291 ms for the first 640 x 480 map instead of ~15 ms);
-its time is the latency ``warmup``, a failure is counted (``warmup_errors``) and logged and the service goes on.
-
-Health: ``maps_processed``, ``obstacles_published``, ``bad_maps``, ``maps_superseded``, MAVLink counters; latencies
-``capture_to_obstacles`` (frame capture -> obstacle list put: the pipeline's end-to-end figure), ``compute`` and
-``warmup``.
+Decisions: the sectors sent to the autopilot are re-referenced to the latest navigation pose newer than the map
+(the autopilot applies them where it is on arrival); a stall sends one all-unknown message and then silence, so the
+autopilot sees a dead sensor, not an empty sky. Each map is read on its own grid with its own ``camera``; a map
+whose arrays or frame size do not fit that camera is rejected and counted. ``analyse`` is warmed up once on a
+synthetic map before the first real one.
 """
 from __future__ import annotations
 
@@ -55,10 +39,12 @@ def add_arguments(p):
     add_flag(p, "--mavlink-rate-hz", env="EONAV_OBSTACLES_MAVLINK_RATE_HZ", default=10.0, type=float, metavar="HZ",
              help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)",
              aliases="--mavlink-rate", old_env="EONAV_OBSTACLES_MAVLINK_RATE")
-    add_flag(p, "--stale-s", env="EONAV_OBSTACLES_STALE_S", default=0.5, type=float, metavar="S",
+    add_flag(p, "--stale-s", env="EONAV_OBSTACLES_STALE_S", default=0.3, type=float, metavar="S",
              help="after this long without a new range map, send one all-unknown OBSTACLE_DISTANCE and then none "
                   "until maps flow again (the autopilot then reports No Data)",
              aliases="--stale", old_env="EONAV_OBSTACLES_STALE")
+    add_flag(p, "--tracks-rate-hz", env="EONAV_OBSTACLES_TRACKS_RATE_HZ", default=10.0, type=float, metavar="HZ",
+             help="obstacle-track topic (guidance's input): a message on every map and on this fixed timer")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
              help="do not re-reference MAVLink sectors to the latest navigation pose")
     g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
@@ -117,19 +103,90 @@ class LatestNav:
         self._lock = threading.Lock()
         self.state = None
         self.stamp_us = None
+        self.velocity_ned_mps = np.full(3, np.nan)
 
-    def set(self, state, stamp_us):
+    def set(self, state, stamp_us, velocity_ned_mps=None):
         with self._lock:
             if self.stamp_us is None or stamp_us >= self.stamp_us:
                 self.state, self.stamp_us = state, stamp_us
+                v = np.asarray(velocity_ned_mps if velocity_ned_mps is not None else [np.nan] * 3, float)
+                self.velocity_ned_mps = v if np.all(np.isfinite(v)) else np.full(3, np.nan)
 
     def get(self):
         with self._lock:
             return self.state, self.stamp_us
 
+    def ownship(self, fallback_state, fallback_stamp_us: int):
+        """The vehicle now for guidance: the latest nav state with its velocity, else ``fallback_state`` (a map's
+        capture pose) with an unknown velocity."""
+        from eonav.obstacles.tracking import Ownship
+        with self._lock:
+            if self.state is not None:
+                return Ownship(self.state.position_ned_m, self.state.T_body_ned, self.velocity_ned_mps, self.stamp_us)
+        return None if fallback_state is None else Ownship.from_state(fallback_state, stamp_us=fallback_stamp_us)
+
+
+class Guidance:
+    """The obstacle tracker and the track topic's publisher, shared by the map worker and the timer worker."""
+
+    def __init__(self, node: Node, nav: LatestNav, rate_hz: float, stale_after_s: float):
+        import threading
+
+        from eonav.obstacles.guidance import GuidancePublisher
+        from eonav.obstacles.tracking import Tracker, TrackerConfig
+        self.node, self.nav = node, nav
+        self.lock = threading.Lock()
+        self.tracker = Tracker(TrackerConfig())
+        self.publisher = GuidancePublisher(self.tracker, rate_hz=rate_hz, stale_after_s=stale_after_s)
+        self.pub = node.publisher(K.obstacle_tracks(node.vehicle))
+        self.last_state, self.last_stamp_us = None, -1      # the newest map's capture pose (no nav: the ownship)
+
+    def put(self, msg) -> None:
+        from eonav.bus import guidance_msg
+        if msg is None:
+            return
+        self.pub.put(guidance_msg.encode(msg))
+        self.node.count("out.obstacle_tracks")
+        self.node.tick("out.obstacle_tracks")
+
+    def on_map(self, res, msg, cam, state, cfg, ob) -> list:
+        """Track the map's obstacles; publish the tracks; the track id each listed obstacle supports (0: none)."""
+        from dataclasses import replace
+
+        from eonav.obstacles.tracking import FieldOfView, measurements_from_obstacles
+        frame_size = (msg.get("frame_width", 0), msg.get("frame_height", 0))
+        meas = measurements_from_obstacles(res.obstacles, cam, state, self.tracker.cfg, frame_size=frame_size,
+                                           camera_id=msg["camera_id"])
+        single = measurements_from_obstacles(res.obstacles, cam, state, replace(self.tracker.cfg, merge_gap_m=0.0),
+                                             frame_size=frame_size, camera_id=msg["camera_id"])
+        seen = ob.confident_mask(msg["range_m"], msg["confidence"], msg["flags"], msg["inv_range_std_per_m"], cfg) \
+            | ob.infinity_mask(msg["range_m"], msg["flags"])
+        view = FieldOfView(cam, state, cfg.max_obstacle_distance_m, cfg.min_distance_m, msg["range_m"], seen)
+        with self.lock:
+            try:
+                self.tracker.update(meas, msg["stamp_us"], view)
+            except InputError:                          # older than the last map (another camera's, late)
+                self.node.count("tracker.map_out_of_order")
+                return [0] * len(res.obstacles)
+            self.last_state, self.last_stamp_us = state, int(msg["stamp_us"])
+            ids = self.tracker.label(single) if len(single) == len(res.obstacles) else [0] * len(res.obstacles)
+            own = self.nav.ownship(state, msg["stamp_us"])
+            out = self.publisher.on_map(now_us(), own)
+        self.put(out)
+        return ids
+
+    def timer_loop(self) -> None:
+        """The fixed-rate messages (guidance sees a stall in ``status`` / ``map_age_s`` even with no map coming)."""
+        while not self.node.stop_event.wait(self.publisher.wait_s(now_us())):
+            with self.lock:
+                own = self.nav.ownship(self.last_state, self.last_stamp_us)
+                out = None if own is None else self.publisher.on_tick(now_us(), own)
+            self.node.guarded("obstacle_tracks", self.put, out)
+            if own is None:
+                self.node.stop_event.wait(0.1)
+
 
 def body(node: Node, args) -> None:
-    from eonav.obstacles.detect import ObstacleTracker
     cfg = obstacle_config(args)
     sender = None
     if args.mavlink_out:
@@ -145,7 +202,9 @@ def body(node: Node, args) -> None:
     if not args.no_nav:
         navsub = node.subscribe(K.nav_state(node.vehicle), ring=1)
         node.worker(nav_loop, node, navsub, nav, name="nav")
-    node.worker(obstacle_loop, node, maps, pub, cfg, ObstacleTracker(), nav, sender, args, name="obstacles")
+    guidance = Guidance(node, nav, args.tracks_rate_hz, args.stale_s)
+    node.worker(obstacle_loop, node, maps, pub, cfg, guidance, nav, sender, args, name="obstacles")
+    node.worker(guidance.timer_loop, name="tracks")
     if sender is not None:
         def send_loop():
             try:
@@ -173,18 +232,22 @@ def mirror_counters(node: Node, sender) -> None:
 
 def nav_loop(node: Node, sub, nav: LatestNav) -> None:
     from eonav.geometry.camera import VehicleState
-    for sample in sub:
+
+    def one(sample):
         msg = node.decode(sample, expect="nav_state")
         if msg is None:
-            continue
+            return
         p, q = np.asarray(msg["position_ned_m"], float), np.asarray(msg["q_wxyz"], float)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
             node.count("nav_incomplete")
-            continue
-        nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]))
+            return
+        nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]), msg["velocity_ned_mps"])
+
+    for sample in sub:
+        node.guarded("nav_state", one, sample)
 
 
-def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, args) -> None:
+def obstacle_loop(node: Node, sub, pub, cfg, guidance: Guidance, nav: LatestNav, sender, args) -> None:
     import scipy.ndimage  # noqa: F401  (now, with the subscriber declared: the first map must not pay ~0.5 s)
 
     from eonav.obstacles import detect as ob
@@ -197,7 +260,8 @@ def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, ar
             if not newest:                  # a newer map of the same camera is waiting: latest wins
                 node.count("maps_superseded")
                 continue
-            process_map(node, sample, pub, cfg, tracker, nav, sender, args, cameras, ob, VehicleState)
+            node.guarded("range_map", process_map, node, sample, pub, cfg, guidance, nav, sender, args, cameras, ob,
+                         VehicleState)
 
 
 def analyse_msg(ob, msg: dict, cam, state, cfg, now_state=None):
@@ -252,7 +316,8 @@ def warm_up(node: Node, cfg, ob):
     return res
 
 
-def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, args, cameras, ob, VehicleState):
+def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav, sender, args, cameras, ob,
+                VehicleState):
     msg = node.decode(sample, expect="range_map")
     if msg is None:
         return
@@ -271,7 +336,8 @@ def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, a
         node.log_limited("bad_map", logging.WARNING, "range map %s/%s rejected: %s", msg.get("camera_id"),
                          msg.get("seq"), e)
         return
-    tracker.update(res.obstacles, msg["stamp_us"])
+    for o, track_id in zip(res.obstacles, guidance.on_map(res, msg, cam, state, cfg, ob)):
+        o.id = track_id
     node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
              obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
              position_ned_m=msg["position_ned_m"], q_wxyz=q)

@@ -1,30 +1,14 @@
 """Time-sync pairing: frames + navigation states -> posed frames.
 
-In: schema ``frame`` on ``keys.frames_all(vehicle)`` (RingChannel: the newest frames win) and
-``nav_state`` on ``keys.nav_state(vehicle)`` (FifoChannel: must not be lost).
-Out: schema ``posed_frame`` on ``keys.posed_frame(vehicle, camera_id)`` (image publisher): the frame,
-its camera (intrinsics + mount from ``--cameras``), and the vehicle pose interpolated at the frame's
-capture stamp by :class:`eonav.timesync.NavBuffer` (slerp attitude; linear or velocity-aided Hermite
-position), with ``nav_gap_us`` (largest bracketing gap) and ``quality_flags`` (eonav.nav.timesync QF_*).
+In: schema ``frame`` on ``keys.frames_all(vehicle)`` (RingChannel: the newest frames win) and ``nav_state`` on
+``keys.nav_state(vehicle)`` (FifoChannel: must not be lost). Out: schema ``posed_frame`` on
+``keys.posed_frame(vehicle, camera_id)``: the frame, its camera (``--cameras``: the pair file's "cameras" section,
+or a whole pair file) and the vehicle pose interpolated at the capture stamp by ``eonav.nav.timesync.NavBuffer``,
+with ``nav_gap_us`` and ``quality_flags``.
 
-Watermark policy per pending frame (see eonav.nav.timesync): posed as soon as attitude and position
-bracket its stamp; dropped at once when it can never be (``older_than_buffer``, ``before_first_nav``,
-``gap``); if it is still waiting after ``--max-wait-ms`` of wall time (nav late or stopped), posed by
-extrapolation up to ``--max-extrapolation-ms`` past the newest nav sample (flag QF_EXTRAPOLATED), else
-dropped as ``extrapolation_limit``. Every drop is counted as ``dropped.<reason>``; frames of a camera
-not in ``--cameras`` as ``unknown_camera``.
-
-``--cameras FILE``: JSON, either the pair file's "cameras" section (``{name: {width, height, fx, fy,
-cx, cy, mount: {l_m, eps_deg}}}``) or a whole pair file (its "cameras" key is used).
-
-Latency it adds (measured: nav and frames paced in real time on loopback, ATTITUDE 50 Hz, position + velocity 25 Hz,
-frames 15 fps at random phase): frame -> posed p50 23 ms, p99 42 ms, i.e. the wait for the first position sample
-after the stamp (<= 40 ms at 25 Hz) plus transport; the release is driven by each nav arrival (and a 20 ms tick),
-never by ``--max-wait-ms`` while nav flows. ``--position-lead-ms 20`` releases as soon as attitude brackets the stamp
-and position is at most 20 ms behind (linear extrapolation of the last bracket, flagged QF_EXTRAPOLATED): p50 13 ms,
-p99 21 ms, bounded by the attitude period. Default 0 (wait for bracketing position). With the recorded demo (frame stamps on nav sample instants) it adds p50 5 ms, p99 32 ms.
-
-The pairing logic is :class:`Pairer`, a pure object over injected times, tested without zenoh.
+A frame is posed as soon as navigation brackets its stamp, dropped at once when it never can be, and posed by
+bounded extrapolation (flagged) when navigation is still late after a wall-time limit; every drop is counted by
+reason (docs/bus.md, "Sync"). The logic is :class:`Pairer`, a pure object over injected times.
 """
 from __future__ import annotations
 
@@ -37,7 +21,7 @@ from collections import Counter
 from eonav import InputError
 from eonav.bus import schema
 from eonav.bus import keys as K
-from eonav.bus.node import Node, add_flag, service_main
+from eonav.bus.node import Node, add_flag, now_us, service_main
 from eonav.io import pairfile
 from eonav.nav.timesync import NavBuffer
 
@@ -132,6 +116,8 @@ def add_arguments(p) -> None:
              help="farthest a pose may be extrapolated beyond the nav samples")
     add_flag(g, "--max-gap-ms", env="EONAV_SYNC_MAX_GAP_MS", default=250.0, type=float,
              help="largest gap between bracketing nav samples accepted")
+    add_flag(g, "--max-nav-ahead-ms", env="EONAV_SYNC_MAX_NAV_AHEAD_MS", default=5000.0, type=float,
+             help="refuse nav samples stamped further than this ahead of the host clock (0: accept any)")
     add_flag(g, "--gap-warn-ms", env="EONAV_SYNC_GAP_WARN_MS", default=60.0, type=float,
              help="bracket gaps above this set the QF_GAP flag")
     add_flag(g, "--max-wait-ms", env="EONAV_SYNC_MAX_WAIT_MS", default=300.0, type=float,
@@ -155,7 +141,8 @@ def body(node: Node, args) -> None:
     cams = load_cameras(args.cameras)
     nav = NavBuffer(max_samples=args.nav_buffer, max_extrapolation_us=int(args.max_extrapolation_ms * 1000),
                     max_gap_us=int(args.max_gap_ms * 1000), gap_warn_us=int(args.gap_warn_ms * 1000),
-                    require_position=not args.attitude_only)
+                    require_position=not args.attitude_only, clock_us=now_us if args.max_nav_ahead_ms > 0 else None,
+                    max_future_us=int(args.max_nav_ahead_ms * 1000))
     if not 0 <= args.position_lead_ms <= args.max_extrapolation_ms:
         raise InputError(f"--position-lead-ms must be in [0, --max-extrapolation-ms], got {args.position_lead_ms}")
     pairer = Pairer(cams, nav, max_wait_s=args.max_wait_ms / 1000.0, position_lead_s=args.position_lead_ms / 1000.0)
@@ -181,30 +168,36 @@ def body(node: Node, args) -> None:
                 node.count(k, v - reported[k])
                 reported[k] = v
 
+    def on_nav(s):
+        msg = node.decode(s, "nav_state")
+        if msg is None:
+            return
+        with lock:
+            pairer.add_nav(msg)
+        process()
+
+    def on_frame(s):
+        msg = node.decode(s, "frame")
+        if msg is None:
+            return
+        with lock:
+            pairer.add_frame(msg, time.monotonic())
+        process()
+
     def nav_loop():
         for s in nav_sub:
-            msg = node.decode(s, "nav_state")
-            if msg is None:
-                continue
-            with lock:
-                pairer.add_nav(msg)
-            process()
+            node.guarded("nav_state", on_nav, s)
 
     def frame_loop():
         for s in frame_sub:
-            msg = node.decode(s, "frame")
-            if msg is None:
-                continue
-            with lock:
-                pairer.add_frame(msg, time.monotonic())
-            process()
+            node.guarded("frame", on_frame, s)
 
     def tick():
         while not node.stop_event.wait(0.02):
             process()
             with lock:
                 nav_counts = Counter(nav.counts)
-            for k in ("duplicate_stamp", "out_of_order", "too_old", "bad_attitude", "bad_position"):
+            for k in ("duplicate_stamp", "out_of_order", "too_old", "bad_attitude", "bad_position", "future_stamp"):
                 d = nav_counts[k] - reported[f"nav.{k}"]
                 if d:
                     node.count(f"nav.{k}", d)

@@ -24,7 +24,7 @@ ALLOWED = {
     "app": None,                                   # the top: anything
     None: set(),                                   # eonav/__init__.py: the error types only
 }
-MATH = ["eonav.geometry", "eonav.ranging", "eonav.obstacles", "eonav.io", "eonav.sim"]
+MATH = ["eonav.geometry", "eonav.ranging", "eonav.obstacles", "eonav.io", "eonav.sim", "eonav.fusion"]
 
 
 def _modules():

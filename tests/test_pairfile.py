@@ -1,4 +1,4 @@
-"""The pair file contract (DESIGN.md §4): every error path names the field and what was expected."""
+"""The pair file contract (docs/pair-file.md): every error path names the field and what was expected."""
 import copy
 import json
 

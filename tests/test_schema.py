@@ -23,11 +23,14 @@ def test_round_trip_keeps_arrays_and_defaults():
     assert np.isnan(n["position_ned_m"]).all() and n["q_wxyz"][0] == 1.0
 
 
+CAM_2X3 = {"width": 3, "height": 2, "fx": 2.0, "fy": 2.0, "cx": 1.0, "cy": 0.5, "l_m": [0, 0, 0], "eps_deg": [0, 0, 0]}
+
+
 def test_float_array_round_trip():
     r = np.linspace(0, 1, 6, dtype=np.float32).reshape(2, 3)
     r[0, 0] = np.nan
     d = schema.decode(schema.encode("range_map", camera_id="c", seq=1, stamp_us=1, method="dense", range_m=r,
-                                    confidence=r, camera={"width": 3}, position_ned_m=[0, 0, 0],
+                                    confidence=r, camera=CAM_2X3, position_ned_m=[0, 0, 0],
                                     q_wxyz=[1, 0, 0, 0]))
     assert np.isnan(d["range_m"][0, 0]) and np.allclose(d["range_m"][1], r[1])
 
@@ -112,7 +115,7 @@ def test_range_map_frame_size_is_optional():
     """frame_width / frame_height were appended with defaults: a message without them (an older locator's) decodes
     with 0 x 0 (= the map is on the frame's grid), one with them carries them."""
     r = np.zeros((2, 3), np.float32)
-    base = dict(camera_id="c", seq=1, stamp_us=1, method="dense", range_m=r, confidence=r, camera={"width": 3},
+    base = dict(camera_id="c", seq=1, stamp_us=1, method="dense", range_m=r, confidence=r, camera=CAM_2X3,
                 position_ned_m=[0, 0, 0], q_wxyz=[1, 0, 0, 0])
     old = schema.decode(schema.encode("range_map", **base))
     assert (old["frame_width"], old["frame_height"], old["scale"]) == (0, 0, 1.0)

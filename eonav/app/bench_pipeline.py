@@ -1,20 +1,12 @@
 """``eonav bench pipeline``: frame capture -> range map published -> obstacles published, over the real bus.
 
 Starts the embedded router and the locator and obstacle services as processes, then plays posed frames of a
-simulated flight (rendered once per image size, cycled with fresh stamps) at a fixed rate straight onto the
-posed-frame key (camera ingest and sync are not in the loop: their cost is a copy each, measured in their own
-benches). A frame's ``stamp_us`` is the moment it is put ("capture"); the bench's subscriber stamps the arrival of
-the range map and of the obstacle list carrying that ``stamp_us`` on the same host clock. Reported per case:
-latency p50/p99 of capture -> range map and capture -> obstacles, throughput, drops (frames without a range map:
-the locator's RingChannel keeps the newest frames, so a slow locator skips frames instead of queueing them),
-the locator's own compute time, and whether payloads arrived through zenoh shared memory.
-
-``run_bench(cases, seconds=...)`` is the pipeline function; ``add_arguments``/``run`` are the CLI hooks that
-``eonav bench pipeline`` delegates to. ``--scale`` passes the locator's ``--scale`` (default ``auto``: the adaptive
-scale; a number fixes it, e.g. 0.5 = half-resolution locate); each line reports the scales the range maps came at;
-``--publish-grid`` passes the locator's ``--publish-grid`` (default ``locate``: maps on the grid they were computed
-on; ``frame``: upsampled to the frame's grid); ``--accuracy`` instead measures, in process, what a scale costs
-against the simulator's truth (``accuracy``).
+simulated flight at a fixed rate straight onto the posed-frame key (camera ingest and sync are not in the loop). A
+frame's ``stamp_us`` is the moment it is put; the bench's subscriber stamps the arrival of the range map and of the
+obstacle list carrying that stamp on the same host clock. Per case it prints latency p50/p99 (capture -> range map,
+capture -> obstacles), throughput, drops, the locator's compute time and the scales the maps came at.
+``--accuracy`` instead measures, in process, what a locate scale costs against the simulator's truth.
+``run_bench(cases, seconds=...)`` is the pipeline function under the command.
 """
 from __future__ import annotations
 

@@ -9,7 +9,8 @@ import logging
 import sys
 
 COMMANDS = {
-    "locate": ("eonav.app.commands.locate", "range map from a pair file (DESIGN.md §4)"),
+    "locate": ("eonav.app.commands.locate", "range map from a pair file (docs/pair-file.md)"),
+    "fuse": ("eonav.app.commands.fuse", "fused range maps of a sequence of posed frames (docs/pair-file.md)"),
     "sim": ("eonav.sim.command", "render simulated scenes and flights with ground truth"),
     "bench": ("eonav.app.commands.bench", "benchmarks that print figures (locate, pipeline)"),
     "run": ("eonav.app.commands.run", "start the whole pipeline (embedded router + all services)"),

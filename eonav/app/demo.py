@@ -1,24 +1,13 @@
 """``eonav run`` with no source: the newcomer's end-to-end demo on one machine.
 
-1. Record a simulated flight (``eonav.sim.record.record_flight``: frames + timestamps, MAVLink tlog, cameras,
-   ground truth), cached in the system temp directory so the second run starts at once.
-2. Start the whole pipeline through ``eonav.launcher.run_pipeline`` (embedded router, then camera ingest
-   replaying the frames, MAVLink ingest replaying the tlog, sync, locator, obstacles: each its own process).
-3. A monitor on the bus subscribes frames, range maps, obstacle lists and health, and compares them with the
-   recording's ground truth as they arrive.
-4. When the replay has ended and the pipeline has drained, stop everything, print a summary (frames, range
-   maps, median relative range error on confident pixels, coverage, obstacles vs the true nearest box, latency
-   p50/p99 capture->range and capture->obstacles, drops) and write a colour-mapped PNG of the last range map.
+Records a simulated flight (``eonav.sim.record``: frames, MAVLink tlog, cameras, ground truth; cached in the system
+temp directory), runs the whole pipeline on it through ``eonav.app.launcher.run_pipeline``, scores what arrives on
+the bus against the truth (:class:`Monitor`, :class:`Truth`, reused by ``tests/test_pipeline_e2e.py``), prints a
+summary (range error, coverage, obstacles against the true nearest box, latency, drops) and writes a picture of the
+last range map beside its truth (``last_range.png`` in the recording's folder unless ``png`` says otherwise).
 
-Replay clocks: the recording holds frames and navigation on one clock. Both replays get the same
-``--replay-shift-us D`` (D = now + a start-up lead - the recording's first stamp): every record is stamped
-recorded + D and released when the host clock reaches that stamp, so the camera and the navigation stay aligned
-to the microsecond (mapping each replay onto "now at its own start" would shift them by the difference of the
-two start times: metres of pose error at 20 m/s) and the services' own latency figures (now - stamp) are real.
-The monitor also measures latency on its own clock: from the moment a frame appears on the bus to the moment
-the range map / obstacle list for that frame (same ``stamp_us``) arrives.
-
-The monitor (:class:`Monitor`) and truth (:class:`Truth`) are reused by ``tests/test_pipeline_e2e.py``.
+Both replays get the same ``--replay-shift-us`` (now + a start-up lead - the recording's first stamp), so camera
+and navigation stay aligned to the microsecond and the services' latency figures (now - stamp) are real.
 """
 from __future__ import annotations
 

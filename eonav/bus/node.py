@@ -14,25 +14,11 @@ A service module looks like this::
     if __name__ == "__main__":
         service_main("camera", add_arguments, body)
 
-Lifecycle (STYLE §3, ECOSYSTEM §1.5):
-
-1. configure: parse flags (env defaults), set up logging;
-2. open the zenoh session (context manager, so it is always closed);
-3. declare: liveliness token ``keys.alive``, config queryable ``keys.config``, health publisher
-   ``keys.health``; then ``body(node, args)`` declares the service's own publishers, subscribers and
-   worker threads and returns;
-4. run: the main thread waits for ``node.stop_event``, set by SIGINT/SIGTERM, by ``node.stop()``
-   (e.g. a file replay reached its end) or by a worker that raised;
-5. shut down: undeclare subscribers and the queryable (this ends every ``for s in sub:`` loop) ->
-   join workers -> publish a last health message -> undeclare the token -> close the session.
-
-Exit codes: 0 after a clean stop; 1 when a worker or ``body`` raised (state "error": a supervisor
-restarts the service); 2 for a configuration error (``EonavError`` from ``body``, bad flags), which a
-restart would not fix. A second SIGINT/SIGTERM while shutting down forces the exit (code 1).
-
-Threads never block in zenoh callbacks: subscribers are channels (``RingChannel`` for images,
-``FifoChannel`` for small must-not-lose streams) consumed by worker threads that are joined before
-the interpreter exits.
+``service_main`` runs the lifecycle (configure, open the session, declare the liveliness token, config queryable
+and health publisher, call ``body``, wait for a stop, shut down) and maps the outcome to the exit code: 0 clean
+stop, 1 a worker or ``body`` raised, 2 a configuration error. Subscribers are channels (``RingChannel`` for images,
+``FifoChannel`` for small must-not-lose streams) read by worker threads that are joined before the session closes:
+nothing runs in a zenoh callback (docs/bus.md, docs/zenoh.md "Pitfalls").
 """
 from __future__ import annotations
 
@@ -58,6 +44,10 @@ __all__ = ["Node", "service_main", "add_common_arguments", "add_flag", "env_defa
 STATES = ("ok", "degraded", "error")
 EXIT_OK, EXIT_ERROR, EXIT_CONFIG = 0, 1, 2
 JOIN_TIMEOUT_S = 5.0
+
+
+MAX_COUNTERS = 512            # distinct health counter names per service
+COUNTER_LIMIT = 2 ** 53       # counter values are clamped here (exact in JSON and float64, fits msgpack int64)
 
 
 def now_us() -> int:
@@ -223,8 +213,7 @@ class Node:
     def watch_gc(self) -> None:
         """Time every collection of the interpreter's cyclic garbage collector into the latencies ``gc.gen<N>``
         (collections of generation 1 and 2 only: generation 0 is frequent and short). A collection stops every
-        thread of the service: a full one over the ~42,000 objects a service holds after its imports (numpy,
-        OpenCV, scipy, zenoh) took 20-35 ms on the bench machine, as long as a locate call."""
+        thread of the service, so its pauses belong in the latency figures (docs/bus.md)."""
         import gc
 
         def cb(phase, info):
@@ -299,7 +288,7 @@ class Node:
     def wait_matching(self, publisher, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` until ``publisher`` has a matching subscriber (then 50 ms more, so the route is
         set up on every hop): a put right after a declaration can miss subscribers whose route is not there yet
-        (ECOSYSTEM 1.5). Returns whether one matched (False also on shutdown)."""
+        (docs/zenoh.md, the declaration race). Returns whether one matched (False also on shutdown)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not self.stop_event.is_set():
             try:
@@ -329,7 +318,9 @@ class Node:
             msg = schema.decode(payload, expect=expect)
         except Exception as e:  # SchemaError, or anything odd from a hostile payload
             self.count("decode_errors")
-            if "unsupported schema version" in str(e):
+            reason = getattr(e, "reason", "payload")
+            self.count(f"rejected.{reason}")
+            if reason == "version":
                 self.count("unknown_version")
             self.log_limited(f"decode:{key}", logging.WARNING, "dropped payload on %s: %s", key, e)
             return None
@@ -354,8 +345,25 @@ class Node:
 
     # ---- metrics --------------------------------------------------------------------------------
     def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to a health counter. Bounded: at most ``MAX_COUNTERS`` names (later new names all count as
+        ``counters_overflow``) and values clamped to +-2^53, so no input can make the health message unsendable."""
         with self._lock:
-            self._counters[name] = self._counters.get(name, 0) + n
+            if name not in self._counters and len(self._counters) >= MAX_COUNTERS:
+                name = "counters_overflow"
+            v = self._counters.get(name, 0) + int(n)
+            self._counters[name] = max(-COUNTER_LIMIT, min(COUNTER_LIMIT, v))
+
+    def guarded(self, what: str, fn: Callable, *args):
+        """``fn(*args)`` for one message; whatever it raises is counted (``message_errors``, ``rejected.<what>``),
+        logged at a limited rate and swallowed (returns None): a payload never stops a service."""
+        try:
+            return fn(*args)
+        except Exception as e:  # noqa: BLE001  (the point: one message's failure is that message's)
+            self.count("message_errors")
+            self.count(f"rejected.{what}")
+            self.log_limited(f"guard:{what}", logging.WARNING, "%s failed on one message, dropped: %s: %s", what,
+                             type(e).__name__, e)
+            return None
 
     def tick(self, name: str, n: int = 1) -> None:
         with self._lock:
@@ -608,9 +616,8 @@ def run_node(name: str, args, body: Callable, freeze_gc: bool = False) -> int:
 
 def freeze_startup_objects() -> None:
     """``gc.freeze()`` once ``body`` has declared everything and imported its modules: the objects made so far
-    (modules, functions, classes: ~42,000 in the locator) move to the permanent generation, and later full collections
-    scan only what the service allocated since (0.0 ms instead of 20-35 ms for ``gc.collect()`` in a process with the
-    locator's imports, on the bench machine). Nothing is leaked: frozen objects are the ones a service keeps for its
+    (modules, functions, classes) move to the permanent generation, so later full collections scan only what the
+    service allocated since (docs/bus.md). Nothing is leaked: frozen objects are the ones a service keeps for its
     life anyway."""
     import gc
     gc.collect()

@@ -2,19 +2,11 @@
 
     {"kind": "frame", "v": 1, "camera_id": "nose", "seq": 12, "stamp_us": ..., "image": {array}, ...}
 
-Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian).
-``range_map`` sends ``range_m`` as float32, ``confidence`` and ``inv_range_std_per_m`` as float16 (3 significant
-digits: plenty for a gate; half the bytes) and ``flags`` as uint8 (``eonav.ranging.rangemap``: VALID = measured, FILLED =
-inferred from the measured pixels around, both with a finite ``range_m``); readers must not assume float32 (numpy promotes
-float16 in arithmetic; ``np.asarray(a, np.float32)`` where a float32 copy is wanted). float16 was added to the
-allowed dtypes without a version bump: an older build rejects such a message (counted decode error), it never
-misreads it.
-``decode`` rejects anything malformed or hostile (wrong kind, unknown version, missing or mistyped
-field, array whose byte count does not match dtype x shape, absurd sizes) with ``SchemaError`` naming
-the problem; services count those and keep running. New fields are appended with defaults, so a
-reader of version 1 accepts version-1 messages carrying extra fields.
-
-No zenoh import here: the schema is pure data.
+Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian); a range
+map's ``confidence`` and ``inv_range_std_per_m`` are float16, so readers must not assume float32. ``encode`` builds a
+message of a kind; ``decode`` rejects anything malformed or hostile with ``SchemaError`` naming the problem
+(services count those and keep running). New fields are appended with defaults, so a version-1 reader accepts
+version-1 messages with extra fields. The kinds and keys: docs/bus.md. Pure data: no zenoh import.
 """
 from __future__ import annotations
 
@@ -32,7 +24,23 @@ ARRAY_DTYPES = ("uint8", "uint16", "int16", "int32", "uint32", "float16", "float
 
 
 class SchemaError(InputError):
-    """A bus payload that is not a valid eonav message."""
+    """A bus payload that is not a valid eonav message. ``reason`` is a short slug for the health counter
+    ``rejected.<reason>`` (``msgpack``, ``kind``, ``version``, ``field``, ``array``, ``range``)."""
+
+    def __init__(self, message: str, reason: str = "field"):
+        super().__init__(message)
+        self.reason = reason
+
+
+# Plausible ranges of every field (hostile or corrupt values are refused at decode, not deep in a service).
+MAX_STAMP_US = 2 ** 62            # stamps and seqs are int64 on every path (msgpack would carry a uint64)
+MAX_SEQ = 2 ** 62
+MAX_POSITION_M = 1.0e7            # 10 000 km from the local origin
+MAX_SPEED_MPS = 1.0e4
+MAX_RATE_RADPS = 100.0
+MAX_IMAGE_SIDE_PX = 16384
+IMAGE_ENCODINGS = {"mono8": (np.uint8, 1), "mono16": (np.uint16, 1), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3)}
+FLOAT_DTYPES = ("float16", "float32", "float64")
 
 
 # field -> (type, default). A default of REQUIRED means the field must be present.
@@ -81,6 +89,9 @@ FIELDS = {
         # frame's; a map published at the locate scale (services/locator.py --publish-grid locate) carries the
         # scaled camera (eonav.camera.scaled_camera) and the frame's size here, so readers can count in frame pixels
         "frame_width": ("int", 0), "frame_height": ("int", 0),
+        # appended: a fused map's number of measurements fused per pixel (uint8, saturating at 255); absent on a
+        # single pair's map
+        "n_fused": ("array", None),
     },
     "obstacle_list": {
         "stamp_us": ("int", REQUIRED), "camera_id": ("str", ""), "obstacles": ("list", REQUIRED),
@@ -106,22 +117,22 @@ def pack_array(a: np.ndarray) -> dict:
 
 def unpack_array(d, name: str) -> np.ndarray:
     if not isinstance(d, dict) or set(d) < {"dtype", "shape", "data"}:
-        raise SchemaError(f"field {name}: expected an array map with dtype, shape, data")
+        raise SchemaError(f"field {name}: expected an array map with dtype, shape, data", "array")
     dtype, shape, data = d["dtype"], d["shape"], d["data"]
     if dtype not in ARRAY_DTYPES:
-        raise SchemaError(f"field {name}: dtype {dtype!r} not allowed; expected one of {ARRAY_DTYPES}")
+        raise SchemaError(f"field {name}: dtype {dtype!r} not allowed; expected one of {ARRAY_DTYPES}", "array")
     if (not isinstance(shape, (list, tuple)) or not 1 <= len(shape) <= 4
             or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s for s in shape)):
-        raise SchemaError(f"field {name}: shape {shape!r} must be 1 to 4 non-negative integers")
+        raise SchemaError(f"field {name}: shape {shape!r} must be 1 to 4 non-negative integers", "array")
     n = math.prod(shape)
     if n > MAX_ARRAY_ELEMENTS:
-        raise SchemaError(f"field {name}: {n} elements exceeds the limit {MAX_ARRAY_ELEMENTS}")
+        raise SchemaError(f"field {name}: {n} elements exceeds the limit {MAX_ARRAY_ELEMENTS}", "array")
     if not isinstance(data, (bytes, bytearray)):
-        raise SchemaError(f"field {name}: data must be bytes")
+        raise SchemaError(f"field {name}: data must be bytes", "array")
     dt = np.dtype(dtype).newbyteorder("<")
     if len(data) != n * dt.itemsize:
         raise SchemaError(f"field {name}: {len(data)} bytes but dtype {dtype} x shape {list(shape)} "
-                          f"needs {n * dt.itemsize}")
+                          f"needs {n * dt.itemsize}", "array")
     return np.frombuffer(data, dtype=dt).reshape(shape)
 
 
@@ -205,16 +216,17 @@ def decode(payload, expect: str | None = None) -> dict:
     try:
         doc = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=MAX_ARRAY_ELEMENTS * 8)
     except Exception as e:  # msgpack raises several unrelated types on garbage
-        raise SchemaError(f"payload is not msgpack ({type(e).__name__}: {e})") from None
+        raise SchemaError(f"payload is not msgpack ({type(e).__name__}: {e})", "msgpack") from None
     if not isinstance(doc, dict):
-        raise SchemaError("payload is not a msgpack map")
+        raise SchemaError("payload is not a msgpack map", "msgpack")
     kind, v = doc.get("kind"), doc.get("v")
     if kind not in FIELDS:
-        raise SchemaError(f"unknown message kind {kind!r}")
+        raise SchemaError(f"unknown message kind {kind!r}", "kind")
     if expect is not None and kind != expect:
-        raise SchemaError(f"expected a {expect} message, got {kind}")
+        raise SchemaError(f"expected a {expect} message, got {kind}", "kind")
     if v not in SUPPORTED_VERSIONS:
-        raise SchemaError(f"{kind}: unsupported schema version {v!r}; this build reads {SUPPORTED_VERSIONS}")
+        raise SchemaError(f"{kind}: unsupported schema version {v!r}; this build reads {SUPPORTED_VERSIONS}",
+                          "version")
     out = {"kind": kind, "v": v}
     for name, (typ, default) in FIELDS[kind].items():
         if name in doc:
@@ -223,7 +235,121 @@ def decode(payload, expect: str | None = None) -> dict:
             raise SchemaError(f"{kind}.{name}: missing required field")
         else:
             out[name] = np.asarray(default, float) if typ in ("vec3", "vec4") else default
+    validate(out)
     return out
+
+
+# -- the values: ranges, shapes, dtypes (after the types are right) ------------------------------------------
+def _range(kind, name, ok, expected, val):
+    if not ok:
+        raise SchemaError(f"{kind}.{name}: expected {expected}, got {str(val)[:80]}", "range")
+
+
+def _check_stamp(kind, name, v, allow_unset=False):
+    _range(kind, name, (allow_unset and v == -1) or 0 <= v < MAX_STAMP_US,
+           f"a stamp in 0 .. 2^62 us{' or -1' if allow_unset else ''}", v)
+
+
+def _check_vec(kind, name, v, limit, nan_ok):
+    finite = np.isfinite(v)
+    ok = bool(np.all(np.abs(v[finite]) <= limit)) and (nan_ok and not np.any(np.isinf(v)) or bool(finite.all()))
+    _range(kind, name, ok, f"{'finite ' if not nan_ok else ''}values within +-{limit:g}" +
+           (" (NaN = unknown)" if nan_ok else ""), v.tolist())
+
+
+def _check_quat(kind, name, q, nan_ok):
+    if nan_ok and np.all(np.isnan(q)):
+        return
+    n = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else math.nan
+    _range(kind, name, abs(n - 1.0) <= 1e-2, "a unit quaternion w, x, y, z (norm 1 +- 0.01)", q.tolist())
+
+
+def _check_camera(kind, cam):
+    where = f"{kind}.camera"
+    for k in ("width", "height"):
+        v = cam.get(k)
+        _range(where, k, isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE_PX,
+               f"an integer 1 .. {MAX_IMAGE_SIDE_PX}", v)
+    for k in ("fx", "fy", "cx", "cy"):
+        v = cam.get(k)
+        num = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        _range(where, k, num and (v > 0 if k in ("fx", "fy") else abs(v) <= 4 * MAX_IMAGE_SIDE_PX),
+               "a finite number" + (" > 0" if k in ("fx", "fy") else ""), v)
+    for k, lim in (("l_m", 1e3), ("eps_deg", 360.0)):
+        v = cam.get(k, [0, 0, 0])
+        ok = (isinstance(v, (list, tuple)) and len(v) == 3
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and abs(x) <= lim
+                      for x in v))
+        _range(where, k, ok, f"3 finite numbers within +-{lim:g}", v)
+
+
+def _check_image(kind, msg, cam=None):
+    img, enc = msg["image"], msg["encoding"]
+    if enc not in IMAGE_ENCODINGS:
+        raise SchemaError(f"{kind}.encoding: {enc!r} not one of {sorted(IMAGE_ENCODINGS)}", "range")
+    dtype, ch = IMAGE_ENCODINGS[enc]
+    shape_ok = (img.ndim == 2 and ch == 1) or (img.ndim == 3 and img.shape[2] == ch)
+    _range(kind, "image", img.dtype == dtype and shape_ok and 1 <= min(img.shape[:2])
+           and max(img.shape[:2]) <= MAX_IMAGE_SIDE_PX,
+           f"{np.dtype(dtype).name} {'H x W' if ch == 1 else f'H x W x {ch}'} for encoding {enc}",
+           f"{img.dtype.name} {list(img.shape)}")
+    if cam is not None:
+        _range(kind, "image", img.shape[:2] == (cam["height"], cam["width"]),
+               f"the camera's size {cam['width']} x {cam['height']}", f"{img.shape[1]} x {img.shape[0]}")
+
+
+def _check_map_arrays(kind, msg):
+    cam = msg["camera"]
+    hw = (cam["height"], cam["width"])
+    for name, dtypes in (("range_m", FLOAT_DTYPES), ("confidence", FLOAT_DTYPES),
+                         ("inv_range_std_per_m", FLOAT_DTYPES), ("flags", ("uint8",)), ("n_fused", ("uint8",))):
+        a = msg.get(name)
+        if a is None:
+            continue
+        _range(kind, name, a.dtype.name in dtypes and a.shape == hw,
+               f"{' or '.join(dtypes)} of the camera's shape {list(hw)}", f"{a.dtype.name} {list(a.shape)}")
+    for name, side in (("frame_width", cam["width"]), ("frame_height", cam["height"])):
+        v = msg[name]
+        _range(kind, name, v == 0 or side <= v <= MAX_IMAGE_SIDE_PX, f"0 or {side} .. {MAX_IMAGE_SIDE_PX}", v)
+
+
+def validate(msg: dict) -> None:
+    """Refuse values no sensor or service produces: stamps and seqs outside int64 use, positions beyond 10 000 km,
+    NaN where a value is required, images or maps whose dtype or shape do not match their encoding or camera."""
+    kind = msg["kind"]
+    for name in ("stamp_us", "other_stamp_us", "autopilot_time_us", "source_pts_us"):
+        if name in msg:
+            _check_stamp(kind, name, msg[name], allow_unset=name != "stamp_us")
+    for name in ("seq", "other_seq"):
+        if name in msg:
+            _range(kind, name, (name == "other_seq" and msg[name] == -1) or 0 <= msg[name] < MAX_SEQ,
+                   "a sequence number in 0 .. 2^62", msg[name])
+    required_pose = kind in ("posed_frame", "range_map")
+    if "position_ned_m" in msg:
+        _check_vec(kind, "position_ned_m", msg["position_ned_m"], MAX_POSITION_M, nan_ok=not required_pose)
+    if "q_wxyz" in msg:
+        _check_quat(kind, "q_wxyz", msg["q_wxyz"], nan_ok=not required_pose)
+    if "velocity_ned_mps" in msg:
+        _check_vec(kind, "velocity_ned_mps", msg["velocity_ned_mps"], MAX_SPEED_MPS, nan_ok=True)
+    if "rates_frd_radps" in msg:
+        _check_vec(kind, "rates_frd_radps", msg["rates_frd_radps"], MAX_RATE_RADPS, nan_ok=True)
+    if "camera" in msg:
+        _check_camera(kind, msg["camera"])
+    if kind == "frame":
+        _check_image(kind, msg)
+    elif kind == "posed_frame":
+        _check_image(kind, msg, msg["camera"])
+    elif kind == "range_map":
+        _check_map_arrays(kind, msg)
+    elif kind == "obstacle_list":
+        obs = msg["obstacles"]
+        _range(kind, "obstacles", len(obs) <= 1024 and all(isinstance(o, dict) for o in obs),
+               "a list of at most 1024 maps", f"{len(obs)} items")
+    elif kind == "health":
+        c = msg["counters"]
+        _range(kind, "counters", len(c) <= 4096 and all(isinstance(k, str) and isinstance(v, (int, float))
+                                                        and not isinstance(v, bool) for k, v in c.items()),
+               "at most 4096 name -> number entries", f"{len(c)} entries")
 
 
 def camera_to_msg(cam) -> dict:

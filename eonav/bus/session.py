@@ -1,27 +1,14 @@
-"""zenoh configuration from the shared command-line flags (defined once, here).
+"""zenoh configuration from the shared command-line flags (defined once, here), and session helpers.
 
-Order of precedence, lowest first:
+Precedence, lowest first: zenoh's defaults; ``--zenoh-config FILE`` (``EONAV_ZENOH_CONFIG``, overrides only); the
+flags ``--mode``, ``--connect``, ``--listen``, ``--multicast``, ``--shm``. Two decisions (docs/zenoh.md):
 
-1. zenoh's built-in defaults;
-2. ``--zenoh-config FILE`` (``EONAV_ZENOH_CONFIG``): a zenoh JSON5/YAML file holding only overrides;
-3. the flags: ``--mode``, ``--connect``, ``--listen``, ``--multicast``.
+- multicast scouting is off unless ``--multicast``: every deployment names its endpoints, and a peer given
+  ``--connect`` but no ``--listen`` (and no file) listens on ``tcp/127.0.0.1:0`` (the router-per-host pattern);
+- shared memory is off unless ``--shm`` (with a config file and neither flag, the file decides): with it on, range
+  maps were lost between same-host services.
 
-Multicast scouting is **off** unless ``--multicast`` is given (ECOSYSTEM §1.3: containers and CI drop
-multicast, discovery can take minutes), so every deployment names its endpoints explicitly.
-A peer that was given ``--connect`` but no ``--listen`` (and no config file) listens on
-``tcp/127.0.0.1:0``: the rmw_zenoh pattern, where same-host peers find each other through the
-router's gossip and talk directly (and over shared memory), while the router carries the legs
-between hosts.
-
-Shared memory (``--shm`` / ``--no-shm``, ``EONAV_ZENOH_SHM``): zenoh 1.10 moves same-host payloads over
-3 KB through SHM by default. eonav turns it **off** unless asked: with SHM on, the locator -> obstacles leg
-lost every range map of a run in 3 of 4 repeated runs of tests/test_pipeline_e2e.py followed by
-tests/test_locator_service.py (the test's own subscriber, through the router, received them), and 0 of 4 with
-SHM off. Public reports of the same family: ros2/rmw_zenoh#977 (no data through a router with SHM on),
-#220, #616. Over loopback TCP a 2.8 MB range map costs a few ms more; correctness first. With a config
-file and neither flag, the file's setting stands.
-
-No heavy import at module level: ``zenoh`` is imported inside :func:`build_config`.
+``zenoh`` is imported inside the functions only.
 """
 from __future__ import annotations
 

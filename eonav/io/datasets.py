@@ -79,3 +79,34 @@ def kitti_views(data_dir):
         views.append(View(cam_l, VehicleState(t_w, T_body_world, t_s=float(times[i])), img))
     right0 = View(cam_r, views[0].state, load_grey(d / "image_1" / "000000.png"))
     return views, right0
+
+
+HOLOLENS_RATE_HZ = 30.0       # the recording gives no stamps: frames are taken 1/30 s apart
+
+
+def hololens_sequence(data_dir):
+    """(views, truth_range_m list) of the 20-frame real HoloLens 2 indoor sequence (deep-video-mvs sample data):
+    colour PNGs as grey, poses camera-to-world (optical convention) as for KITTI, stamps k / HOLOLENS_RATE_HZ;
+    truth = the headset's depth sensor reprojected onto the colour camera (mm, 0 unknown -> NaN): a reference,
+    not perfect truth."""
+    d = Path(data_dir) / "hololens_dvmvs_20f"
+    if not d.is_dir():
+        raise InputError(f"HoloLens sequence folder not found: {d}")
+    K = np.loadtxt(d / "K.txt").reshape(3, 3)
+    poses = np.loadtxt(d / "poses.txt").reshape(-1, 4, 4)
+    images = sorted((d / "images").glob("*.png"))
+    if len(images) != len(poses):
+        raise InputError(f"{d}: {len(images)} images but {len(poses)} poses")
+    first = load_grey(images[0])
+    h, w = first.shape
+    cam = Camera("hololens", w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    views, truth = [], []
+    for i, (P, img) in enumerate(zip(poses, images)):
+        u, _, vt = np.linalg.svd(P[:3, :3])          # the file's rotations are orthonormal to ~1e-5 only
+        T_body_world = T_PAPERCAM_OPTICAL @ (u @ vt).T
+        views.append(View(cam, VehicleState(P[:3, 3], T_body_world, t_s=i / HOLOLENS_RATE_HZ), load_grey(img)))
+        depth = cv2.imread(str(d / "depth" / img.name), cv2.IMREAD_UNCHANGED)
+        if depth is None or depth.shape != (h, w):
+            raise InputError(f"{d / 'depth' / img.name}: missing or not {w}x{h}")
+        truth.append(np.where(depth > 0, depth.astype(np.float32) / 1000.0, np.nan).astype(np.float32))
+    return views, truth

@@ -1,4 +1,4 @@
-"""The pair file (DESIGN.md §4): a public contract read by ``eonav locate`` and written by users and tests.
+"""The pair file (docs/pair-file.md): a public contract read by ``eonav locate`` and written by users and tests.
 
     {"cameras": {"nose": {"width", "height", "fx", "fy", "cx", "cy",
                           "mount": {"l_m": [x, y, z], "eps_deg": [eps1, eps2, eps3]}}},

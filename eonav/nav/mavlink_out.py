@@ -1,22 +1,12 @@
-"""MAVLink OBSTACLE_DISTANCE out to the autopilot, with pymavlink's own encoder (docs/autopilot.md).
+"""MAVLink OBSTACLE_DISTANCE out to the autopilot, with pymavlink's own encoder (docs/mavlink.md, docs/autopilot.md).
 
-- ``encode_obstacle_distance(sectors, time_usec)`` -> the wire bytes of one MAVLink 2 message in the autopilots' own
-  layout: ``MAV_FRAME_BODY_FRD``, 72 elements, ``increment_f`` = 5 deg, ``angle_offset`` = 0 (element k centred on
-  bearing 5k deg), ``increment`` = 0, min/max distance in cm, ``UINT16_MAX`` unknown, ``max + 1`` clear; from
-  component 191 (onboard computer). Layouts an autopilot misreads are refused (``check_sectors``).
-- ``ObstacleDistanceSender``: a pymavlink connection string (``udpout:host:port``, ``udpin:``, ``tcp:``,
-  ``/dev/ttyUSB0,921600``) with a companion HEARTBEAT at 1 Hz and OBSTACLE_DISTANCE on a fixed timer (default 10 Hz)
-  carrying the merge of every camera's latest fresh sectors (ArduPilot resets all sectors on each message, so the
-  cameras must share one stream). ``tick()`` does what is due now (testable with an injected clock).
-
-A stall must look like a dead sensor, not like an empty sky: ArduPilot keeps a sensor that sends all-unknown
-"healthy with nothing around" forever, but reports "PRX1: No Data" 0.5 s after messages stop; PX4 drops its map
-0.5 s after the last message. So once every source is stale the sender sends ONE all-unknown message (it clears
-the autopilots' sectors at once) and then no OBSTACLE_DISTANCE at all until a fresh map arrives; the HEARTBEAT
-goes on, so the link itself stays visibly alive.
-
-pymavlink is imported only here (never by the math modules), with MAVLINK20=1 set first: without it
-pymavlink loads the v1 dialect, which has no OBSTACLE_DISTANCE at all.
+- ``encode_obstacle_distance(sectors, time_usec)``: the wire bytes of one MAVLink 2 message in the autopilots' own
+  layout (``MAV_FRAME_BODY_FRD``, 72 x 5 degrees, ``angle_offset`` 0 = element 0's centre on the nose), from
+  component 191; layouts either autopilot misreads are refused (``check_sectors``).
+- ``ObstacleDistanceSender``: one pymavlink connection with a companion HEARTBEAT at 1 Hz and OBSTACLE_DISTANCE on a
+  fixed timer carrying the merge of every camera's fresh sectors (ArduPilot resets all sectors on each message).
+  Once every source is stale it sends ONE all-unknown message and then none until a fresh map arrives: a stall must
+  look like a dead sensor (No Data at the autopilot), not like an empty sky. ``tick()`` takes an injected clock.
 """
 from __future__ import annotations
 
@@ -38,12 +28,11 @@ COMPANION_COMPONENT_ID = 191          # MAV_COMP_ID_ONBOARD_COMPUTER
 MAV_FRAME_BODY_FRD = 12
 MAV_DISTANCE_SENSOR_UNKNOWN = 4
 
-# Both autopilots drop proximity data 0.5 s after the last message; a map older than this is not sent.
-DEFAULT_STALE_S = 0.5
+DEFAULT_STALE_S = 0.3   # + the autopilots' own 0.5 s timeout after the flush + one send period: No Data within 1 s
 
 
 def mavutil():
-    """pymavlink's mavutil with MAVLink 2 selected (ECOSYSTEM.md §2.4)."""
+    """pymavlink's mavutil with MAVLink 2 selected (docs/mavlink.md, pymavlink pitfalls)."""
     os.environ.setdefault("MAVLINK20", "1")
     if os.environ["MAVLINK20"] != "1":
         raise InputError("MAVLINK20 is set to something other than 1: OBSTACLE_DISTANCE needs MAVLink 2")

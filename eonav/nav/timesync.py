@@ -2,32 +2,14 @@
 
 Pure numpy; stamps are integer microseconds on the companion clock (``stamp_us``).
 
-- ``match_stamps(a_us, b_us, max_diff_us, offset_us=0)``: one-to-one nearest-neighbour association
-  of two stamp lists (evo / TUM ``associate.py`` style): candidate pairs with
-  ``|a - (b + offset)| <= max_diff_us`` are accepted greedily from the closest, each index used once.
-- ``NavBuffer``: attitude and position kept as separate sorted, bounded streams (they arrive in
-  separate MAVLink messages with their own stamps). ``pose_at(t)`` interpolates each at the frame
-  time: attitude by slerp (shortest path, so +-180 deg yaw wraps correctly), position linearly, or
-  by cubic Hermite when both bracketing samples carry a velocity. ``decide(t)`` is the watermark
-  logic for a pending frame:
-
-  ====== ==================================================================================
-  ready  every needed stream brackets t (or t is within ``max_extrapolation_us`` before the
-         first sample), and the bracket gap is at most ``max_gap_us``
-  wait   some stream's newest sample is older than t (the watermark has not passed t yet)
-  never  ``older_than_buffer`` (t precedes samples already evicted), ``before_first_nav``
-         (t earlier than the first sample by more than the extrapolation limit), or ``gap``
-         (the watermark passed t but the bracketing samples are more than ``max_gap_us`` apart)
-  ====== ==================================================================================
-
-  A frame still waiting when the caller's latency budget runs out may be posed with
-  ``pose_at(t, allow_extrapolation=True)``: forward extrapolation up to ``max_extrapolation_us``
-  past the newest sample (flag ``QF_EXTRAPOLATED``), else no pose with reason ``extrapolation_limit``.
-
-Quality flags (``PoseResult.quality_flags``, the posed_frame ``quality_flags`` field):
-``QF_EXTRAPOLATED`` 1, ``QF_GAP`` 2 (bracket gap above ``gap_warn_us``), ``QF_JITTER`` 4 (bracket gap
-more than 1.5x the stream's median spacing), ``QF_VELOCITY_AIDED`` 8 (Hermite position),
-``QF_NO_VELOCITY`` 16 (no velocity to report).
+- ``match_stamps(a_us, b_us, max_diff_us, offset_us=0)``: one-to-one nearest-neighbour association of two stamp
+  lists, accepted greedily from the closest pair within ``max_diff_us``, each index used once.
+- ``NavBuffer``: attitude and position as separate sorted, bounded streams (they arrive in separate messages with
+  their own stamps). ``pose_at(t)`` interpolates each at the frame time: attitude by slerp (shortest path, so yaw
+  wraps at +-180 deg), position linearly or by cubic Hermite when both samples carry a velocity. ``decide(t)`` is
+  the watermark test for a pending frame: ``ready``, ``wait`` (the newest sample is still older than t) or
+  ``never`` with a reason; bounded forward extrapolation is allowed only on request and flagged.
+  ``PoseResult.quality_flags`` holds the ``QF_*`` bits (docs/bus.md, "Sync").
 """
 from __future__ import annotations
 
@@ -35,6 +17,7 @@ import bisect
 import math
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -196,10 +179,14 @@ class NavBuffer:
     ``max_extrapolation_us``: the farthest a pose may be extrapolated beyond the samples (20 ms).
     ``max_gap_us``: the largest bracket gap accepted (250 ms); ``gap_warn_us`` flags QF_GAP (60 ms).
     ``require_position``: a pose needs a position stream (True) or attitude alone is enough.
+    ``clock_us`` (host UNIX us now) with ``max_future_us``: a sample stamped further ahead than that is refused
+    (``future_stamp``): one bogus far-future sample would otherwise sit in the stream for good and turn every
+    later frame's bracket into a gap.
     """
 
     def __init__(self, max_samples: int = 4096, max_extrapolation_us: int = 20_000, max_gap_us: int = 250_000,
-                 gap_warn_us: int = 60_000, require_position: bool = True):
+                 gap_warn_us: int = 60_000, require_position: bool = True,
+                 clock_us: Callable[[], int] | None = None, max_future_us: int = 5_000_000):
         if max_samples < 2:
             raise InputError(f"max_samples {max_samples}: expected at least 2")
         if max_extrapolation_us < 0 or max_gap_us <= 0:
@@ -210,12 +197,16 @@ class NavBuffer:
         self.max_gap_us = int(max_gap_us)
         self.gap_warn_us = int(gap_warn_us)
         self.require_position = require_position
+        self.clock_us, self.max_future_us = clock_us, int(max_future_us)
         self.counts: Counter = Counter()      # add outcomes: attitude, position, duplicate_stamp, ...
 
     # ------------------------------------------------------------------ input
     def add(self, stamp_us: int, q_wxyz=None, position_ned_m=None, velocity_ned_mps=None) -> None:
         """Add one navigation sample; absent or non-finite parts are ignored (counted)."""
         t = int(stamp_us)
+        if self.clock_us is not None and t > self.clock_us() + self.max_future_us:
+            self.counts["future_stamp"] += 1
+            return
         if q_wxyz is not None:
             q = np.asarray(q_wxyz, float).reshape(4)
             n = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else math.nan

@@ -1,9 +1,9 @@
-"""``eonav bench locate|pipeline``: benchmarks that print figures."""
+"""``eonav bench locate|fuse|pipeline``: benchmarks that print figures."""
 from __future__ import annotations
 
 import importlib
 
-TARGETS = {"locate": "eonav.app.bench_locate", "pipeline": "eonav.app.bench_pipeline"}
+TARGETS = {"locate": "eonav.app.bench_locate", "fuse": "eonav.app.bench_fuse", "pipeline": "eonav.app.bench_pipeline"}
 
 
 def add_arguments(p) -> None:

@@ -1,4 +1,4 @@
-"""``eonav locate PAIR.json --out RANGE.npz``: the pair-file contract of DESIGN.md §4."""
+"""``eonav locate PAIR.json --out RANGE.npz``: a range map from a pair file (the contract: docs/pair-file.md)."""
 from __future__ import annotations
 
 import argparse
@@ -6,7 +6,7 @@ import argparse
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from eonav.ranging.locate import DEFAULT_METHOD, METHODS
-    p.add_argument("pair", help="pair file (JSON, DESIGN.md §4); frame 0 is the reference")
+    p.add_argument("pair", help="pair file (JSON, docs/pair-file.md); frame 0 is the reference")
     p.add_argument("--out", required=True, help="output .npz: range_m (H x W float32, NaN = no estimate), confidence, ...")
     p.add_argument("--method", default=DEFAULT_METHOD, choices=sorted(METHODS),
                    help="; ".join(f"{k}: {v[2]}" for k, v in METHODS.items()))

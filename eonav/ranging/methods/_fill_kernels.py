@@ -1,7 +1,7 @@
 """Fused per-pixel passes (numba) of the fill (``fill.fill_unmeasured``): the pixels' sums into the first octave's
-cells, and the cells' planes back to the pixels with the gating and the writing of the outputs. The numpy path of
-``fill`` does each in ~10 full-resolution array passes (~15 ms of a 512 x 512 locate); these do one pass each.
-The octaves' plane fits in between stay numpy / OpenCV (they run on the cells: 1/16 of the pixels and less).
+cells, and the cells' planes back to the pixels with the gating and the writing of the outputs, each one pass where
+the numpy path of ``fill`` makes about ten full-resolution array passes. The octaves' plane fits in between stay
+numpy / OpenCV (they run on the cells: 1/16 of the pixels and less).
 tests/test_fill.py::test_fill_kernels_match_numpy_path compares the two.
 
 Imported only when numba is installed; without it the numpy path runs.

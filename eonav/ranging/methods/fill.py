@@ -1,22 +1,16 @@
-"""Inverse range for the pixels a pair cannot measure, inferred from the measured ones around them.
+"""Inverse range for the pixels a pair cannot measure, inferred from the measured ones around them (flag FILLED).
 
 A plane's inverse range is an affine function of the image coordinates (a point X = x_c (1, x_n, y_n) on the plane
 n . X = d has rho = 1 / x_c = (n_1 + n_2 x_n + n_3 y_n) / d), so a weighted least-squares plane through the measured
-rho of a window predicts rho at a hole, including just outside the measured region (the ground band that has left
-image b by the second frame). Windows grow by octaves (7 x 7 cells of 2^g pixels, g = 2..7: 28 .. 896 px wide);
-each cell takes the finest window with enough measured support, a coarser window's plane carried to the cell's
-centre. Every window's sums come from box filters of per-cell moments, one pyramid (no per-pixel loop).
+rho of a window predicts rho at a hole, also just outside the measured region (the ground band that has left image
+b). Windows grow by octaves (7 x 7 cells of 2^g pixels, g = 2..7: 28 .. 896 px wide); each cell takes the finest
+window with enough measured support. Every window's sums come from box filters of per-cell moments (no per-pixel
+loop).
 
-The 1-sigma of a filled rho is the plane fit's prediction error -- residual variance of the window (which holds
-the measurement noise and any departure from a plane: a depth edge inside the window inflates it), scaled by
-(1 + (1 + leverage) / n) for the distance from the support's centroid -- plus the squared disagreement with the next
-coarser window's prediction (a plane that holds at two scales is trusted; one that does not is not). Measured on the
-simulator presets (filled pixels' z = (rho - rho_true) / sigma): robust spread 0.6-0.8 (the plane fit alone:
-1.6-3.6), 91-98 % within 2 sigma; Middlebury 0.6-1.2.
-
-Cells of 4 px (first octave 2), not 2: the fill's CPU time on a 512 x 512 locate 22 -> 7.6 ms (against 54 ms for
-the rest, same loaded machine), medians within +0.05 pp and coverage within 0.7 points on the sim presets and
-Middlebury.
+The 1-sigma of a filled rho is the plane fit's prediction error (the window's residual variance, which a depth edge
+inflates, scaled for the distance from the support's centroid) plus the squared disagreement with the next coarser
+window's prediction: a plane that holds at two scales is trusted, one that does not is not. Its calibration against
+truth: docs/methods.md, "Figures".
 """
 from __future__ import annotations
 
@@ -83,8 +77,8 @@ def _plane(S, xc, yc, min_share: float, min_det: float):
     min_share of the window's pixels inside the image (S[11]) are measured, or too little spread in x and y.
     Error variance: residual variance x (1 + (1 + leverage) / n), as for a new measurement -- the residual holds
     the support's noise besides the surface's departure from the plane, so this errs large where the noise
-    dominates (filled z spread 0.6-0.8 on the sim presets, 0.6-1.2 on Middlebury); without the noise's share it
-    erred small (1.3-1.8 on Middlebury)."""
+    dominates (the filled pixels' z spread is below 1: docs/methods.md); without the noise's share it erred
+    small."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         n = S[0]
         inv_n = 1.0 / n

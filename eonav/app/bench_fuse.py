@@ -1,0 +1,277 @@
+"""``eonav bench fuse``: fusion over the stream against single pairs, per sequence, printed as figures.
+
+Per sequence the frames are pushed in time order through ``eonav.fusion.sequence.FusionRunner`` (the code of
+``eonav fuse`` and the locator). At checkpoint frames k the fused map of frame k is scored against frame k's truth
+beside single pairs of the same frame: the dense method and the OpenCV DIS flow baseline, each on the newest pair
+(k, k-1) and on the widest pair (k, the earlier frame with the longest baseline within the pair policy's age and
+rotation limits). Scored: median relative error and coverage of the pixels with truth (non-sky), the same for far
+pixels (truth > 150 m), the fused sigma's calibration (robust z spread on VALID pixels) and, per frame, the CPU time
+of a push (measurement without its own fill + fusion) against a plain locate (dense with its fill) of the same pair:
+what fusion adds to the locator's time. Targets of issue 11 are printed with "met" / "NOT met". Figures, not
+assertions.
+
+Sequences: the paper replica flown 1 s at 30 fps (31 frames, 512 x 512, last frame = the preset's reference with
+the Table I vehicles), the "fast" preset and the approach flight at 30 fps; the real HoloLens indoor sequence (20
+frames, depth-sensor reference); KITTI 00 frames 5 -> 0 pushed as a reversing camera so that the last frame is frame
+0, where StereoSGBM gives the approximate reference (ratio only).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FAR_M = 150.0
+FT = 0.3048
+
+
+@dataclass
+class SeqCase:
+    name: str
+    views: list
+    truth: list                         # per frame: range_m on its grid (NaN unknown, inf sky) or None
+    config: object
+    objects: dict = field(default_factory=dict)
+    object_ids: list | None = None
+    table1: tuple = ()
+    ratio_only: bool = False
+    checkpoints: tuple = ()
+
+
+def sim_case(name, n_frames, rate_hz, size, seed=0):
+    from eonav.fusion.sequence import FusionConfig
+    from eonav.sim.sequence import render_sequence
+    seq = render_sequence(name, n_frames=n_frames, rate_hz=rate_hz, size=size, seed=seed)
+    label = f"sim:{name} {n_frames} frames at {rate_hz:g} fps, seed {seed}"
+    return SeqCase(label, seq.views, [r.range_m for r in seq.truth], FusionConfig(), dict(seq.objects),
+                   [r.object_id for r in seq.truth], ("vehicle1", "vehicle2", "vehicle3") if name == "paper" else ())
+
+
+def indoor_config():
+    """The pair policy judged at an indoor reference range (3 m; the default 50 m sees no parallax indoors)."""
+    from eonav.fusion.schedule import ScheduleConfig
+    from eonav.fusion.sequence import FusionConfig
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    return FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(ref_range_m=3.0)))
+
+
+def hololens_case(data):
+    from eonav.io.datasets import hololens_sequence
+    views, truth = hololens_sequence(data)
+    return SeqCase("real:hololens_dvmvs_20f (depth-sensor reference)", views, truth, indoor_config())
+
+
+def kitti_case(data):
+    from dataclasses import replace
+
+    from eonav.geometry.camera import VehicleState
+    from eonav.fusion.sequence import FusionConfig
+    from eonav.ranging.methods.flow_baseline import locate_sgbm
+    from eonav.io.datasets import kitti_views
+    views, right0 = kitti_views(data)
+    ref = locate_sgbm(views[0], right0).range_m
+    ref = np.where(np.isfinite(ref) & (ref < 40), ref, np.nan).astype(np.float32)
+    rev = []
+    for v in reversed(views):            # reversing camera: frame 5 first, frame 0 (the SGBM reference) last
+        st = v.state
+        rev.append(replace(v, state=VehicleState(st.position_ned_m, st.T_body_ned, views[-1].state.t_s - st.t_s)))
+    truth = [None] * (len(rev) - 1) + [ref]
+    return SeqCase("real:kitti00 frames 5 -> 0 (StereoSGBM reference, approximate: ratio only)", rev, truth,
+                   FusionConfig(), ratio_only=True, checkpoints=(len(rev) - 1,))
+
+
+def errors(range_m, truth, mask):
+    est = mask & np.isfinite(range_m) & (range_m > 0)
+    rel = np.abs(range_m[est] - truth[est]) / truth[est]
+    n = int(mask.sum())
+    return (float(np.median(rel)) if rel.size else float("nan")), float(est.sum() / max(n, 1))
+
+
+def z_spread(res, truth, mask) -> float:
+    from eonav.ranging.rangemap import VALID
+    ok = mask & ((res.flags & VALID) != 0) & np.isfinite(res.range_m) & (res.range_m > 0)
+    std = res.inv_range_std_per_m[ok]
+    good = np.isfinite(std) & (std > 0)
+    if good.sum() < 10:
+        return float("nan")
+    z = (res.inv_range_per_m[ok][good] - 1.0 / truth[ok][good]) / std[good]
+    return float(1.4826 * np.median(np.abs(z - np.median(z))))
+
+
+def widest_partner(views, k, cfg):
+    """Index of the earlier frame with the longest baseline to frame k within the policy's age and rotation."""
+    from eonav.geometry.camera import pair_geometry
+    pc = cfg.schedule.policy
+    best, best_b = None, -1.0
+    for j in range(k):
+        if views[k].state.t_s - views[j].state.t_s > pc.max_age_s:
+            continue
+        g = pair_geometry(views[k], views[j])
+        rot = np.degrees(np.arccos(np.clip((np.trace(g.R_ba) - 1) / 2, -1, 1)))
+        if rot <= pc.max_rotation_deg and g.baseline_m > best_b:
+            best, best_b = j, g.baseline_m
+    return best
+
+
+def fmt(e, c):
+    return f"{100 * e:6.2f}% {100 * c:5.1f}%" if np.isfinite(e) else "     -       -  "
+
+
+def run_case(case: SeqCase, out: list) -> dict:
+    from eonav.fusion.sequence import FusionRunner, frame
+    from eonav.ranging.locate import get_method
+    from eonav.ranging.rangemap import VALID
+    dense, dis = get_method("dense"), get_method("dis")
+    runner = FusionRunner(case.config)
+    n = len(case.views)
+    checks = set(case.checkpoints or (k for k in (1, 2, 3, 5, 10, 15, 20, 30) if k < n)) | {n - 1}
+    w, h = case.views[0].camera.width, case.views[0].camera.height
+    print(f"\n== {case.name}  ({w}x{h}, {n} frames)")
+    print(f"   {'k':>3} {'fused':>15} {'fused VALID':>15} {'dense newest':>15} {'dense widest':>15} "
+          f"{'DIS newest':>15} {'DIS widest':>15} {'z fused':>8}   (median error, coverage of the pixels with truth)")
+    t_push, t_plain, summary, far_rows, last = [], [], {}, [], None
+    for k, v in enumerate(case.views):
+        f = frame(v.camera.name, v, int(round(v.state.t_s * 1e6)), seq=k)
+        c0 = time.process_time()
+        maps = [m for m in runner.push(f) if m.frame.seq == k]
+        c1 = time.process_time()
+        if not maps:
+            continue
+        m = maps[0]
+        last = m
+        if m.measurements:
+            other = m.measurements[0]["other_seq"]
+            t_push.append(c1 - c0)
+            c2 = time.process_time()
+            plain = dense(v, case.views[other])
+            t_plain.append(time.process_time() - c2)
+            del plain
+        truth = case.truth[k]
+        if k not in checks or truth is None:
+            continue
+        mask = np.isfinite(truth) & (truth > 0)
+        res = m.result
+        jw = widest_partner(case.views, k, case.config)
+        singles = {"dense newest": dense(v, case.views[k - 1]), "dense widest": dense(v, case.views[jw]),
+                   "DIS newest": dis(v, case.views[k - 1]), "DIS widest": dis(v, case.views[jw])}
+        if case.ratio_only:
+            parts = []
+            for name, r in [("fused", res)] + list(singles.items()):
+                ok = mask & np.isfinite(r.range_m) & (r.range_m > 0)
+                parts.append(f"{name} x{np.median(r.range_m[ok] / truth[ok]):.3f} ({100 * ok.sum() / mask.sum():.0f} %)"
+                             if ok.any() else f"{name} -")
+            print(f"   {k:>3} median range / reference (coverage): " + ", ".join(parts))
+            continue
+        row = {"frame": k, "fused": errors(res.range_m, truth, mask),
+               "fused_valid": errors(np.where((res.flags & VALID) != 0, res.range_m, np.nan), truth, mask),
+               "z": z_spread(res, truth, mask)}
+        row.update({name: errors(r.range_m, truth, mask) for name, r in singles.items()})
+        far = mask & (truth > FAR_M)
+        if far.sum() >= 20:
+            far_rows.append((k, errors(res.range_m, truth, far), errors(singles["dense newest"].range_m, truth, far),
+                             errors(singles["dense widest"].range_m, truth, far), int(far.sum())))
+        summary[k] = row
+        print(f"   {k:>3} {fmt(*row['fused'])} {fmt(*row['fused_valid'])} {fmt(*row['dense newest'])} "
+              f"{fmt(*row['dense widest'])} {fmt(*row['DIS newest'])} {fmt(*row['DIS widest'])} {row['z']:>8.2f}")
+        out.append({"case": case.name, **{kk: (list(vv) if isinstance(vv, tuple) else vv) for kk, vv in row.items()}})
+    if far_rows:
+        print(f"   far pixels (truth > {FAR_M:g} m): k, fused, dense newest, dense widest, pixels")
+        for k, fu, dn, dw, npx in far_rows:
+            print(f"   {k:>3} {fmt(*fu)} {fmt(*dn)} {fmt(*dw)} {npx:>8d}")
+    if t_push:
+        tp, tl = float(np.median(t_push)), float(np.median(t_plain))
+        print(f"   time per frame (CPU, median of {len(t_push)}): push {1e3 * tp:.1f} ms (measurement without its fill "
+              f"+ fusion) vs plain dense locate of the same pair {1e3 * tl:.1f} ms: fusion adds {100 * (tp / tl - 1):+.0f} %")
+        summary["time_added"] = tp / tl - 1
+    if case.table1 and last is not None:
+        truth, oid = case.truth[last.frame.seq], case.object_ids[last.frame.seq]
+        print(f"   Table I vehicles on the last frame ({last.frame.seq}): object, actual m / ft, fused m / ft, error")
+        errs = []
+        for name in case.table1:
+            ids = [i for i, nm in case.objects.items() if nm == name]
+            on = oid == ids[0]
+            act = float(np.median(truth[on]))
+            est = last.result.range_m[on & np.isfinite(last.result.range_m)]
+            e = float(np.median(est)) if est.size else float("nan")
+            errs.append(abs(e - act) / act)
+            print(f"   {name:<10} {act:7.1f} / {act / FT:6.1f} {e:7.1f} / {e / FT:6.1f} {100 * (e - act) / act:+6.1f}% "
+                  f"({est.size}/{int(on.sum())} px)")
+        summary["table1_max_error"] = max(errs)
+    return summary
+
+
+def print_targets(summaries: dict) -> None:
+    def verdict(ok):
+        return "met" if ok else "NOT met"
+    print("\n== targets (issue 11)")
+    for name, s in summaries.items():
+        if "table1_max_error" in s:
+            v = s["table1_max_error"]
+            print(f"   {name}: every Table I vehicle within 3 % on the last frame: worst {100 * v:.1f} % -> {verdict(v <= 0.03)}")
+        if 10 in s:
+            r = s[10]
+            ratio = r["fused"][0] / r["dense newest"][0]
+            print(f"   {name}: after 10 frames median error {100 * r['fused'][0]:.2f} % = {ratio:.2f} x single-pair dense "
+                  f"{100 * r['dense newest'][0]:.2f} % (<= 0.5) -> {verdict(ratio <= 0.5)}; coverage "
+                  f"{100 * r['fused'][1]:.1f} % (>= 95 %) -> {verdict(r['fused'][1] >= 0.95)}; z spread {r['z']:.2f} "
+                  f"(0.8-1.2) -> {verdict(0.8 <= r['z'] <= 1.2)}")
+        if name.startswith("real:") and s:
+            ks = [k for k in s if isinstance(k, int)]
+            if ks:
+                r = s[max(ks)]
+                print(f"   {name}: last frame fused {100 * r['fused'][0]:.2f} % vs DIS widest {100 * r['DIS widest'][0]:.2f} % "
+                      f"-> {verdict(r['fused'][0] < r['DIS widest'][0])}; vs dense newest {100 * r['dense newest'][0]:.2f} % / "
+                      f"widest {100 * r['dense widest'][0]:.2f} % -> "
+                      f"{verdict(r['fused'][0] < min(r['dense newest'][0], r['dense widest'][0]))}")
+        if "time_added" in s:
+            print(f"   {name}: fusion adds {100 * s['time_added']:+.0f} % to the locator's time per frame (<= 30 %) -> "
+                  f"{verdict(s['time_added'] <= 0.30)}")
+
+
+def add_arguments(p):
+    p.add_argument("--sequences", default="paper,fast,flight:approach",
+                   help="simulated sequences (eonav.sim.sequence: presets or flight:<name>)")
+    p.add_argument("--size", type=int, default=320, help="image size of the simulated sequences other than 'paper'")
+    p.add_argument("--frames", type=int, default=16, help="frames of the simulated sequences other than 'paper' (31)")
+    p.add_argument("--seed", type=int, default=0, help="sensor-noise seed of the simulated sequences")
+    p.add_argument("--data", default=None, help="real data folder (default: shared/data beside the checkout)")
+    p.add_argument("--no-real", action="store_true", help="skip the HoloLens and KITTI sequences")
+    p.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1: one core)")
+    p.add_argument("--json", default=None, help="also write the figures as JSON")
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    import cv2
+
+    from eonav.ranging.methods.dense import prepare_kernels
+    from eonav.io.datasets import default_data_dir
+    cv2.setNumThreads(args.threads)
+    prepare_kernels()
+    cases = []
+    for name in [s for s in args.sequences.split(",") if s]:
+        if name == "paper":
+            cases.append(lambda: sim_case("paper", 31, 30.0, None, args.seed))
+        else:
+            cases.append(lambda name=name: sim_case(name, args.frames, 30.0, args.size, args.seed))
+    data = Path(args.data) if args.data else default_data_dir()
+    if not args.no_real:
+        if (data / "hololens_dvmvs_20f").is_dir():
+            cases.append(lambda: hololens_case(data))
+        else:
+            print(f"(real data {data / 'hololens_dvmvs_20f'} not found: skipped)")
+        if (data / "kitti00_frames0-5").is_dir():
+            cases.append(lambda: kitti_case(data))
+    print(f"eonav bench fuse: OpenCV threads {args.threads}; times are CPU time of this process")
+    rows, summaries = [], {}
+    for make in cases:
+        case = make()
+        summaries[case.name] = run_case(case, rows)
+    print_targets(summaries)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1)
+    return 0

@@ -1,0 +1,175 @@
+"""Fused per-pixel passes (numba) of the filter: the forward warp with its z-buffer and the crack closing
+(``predict``), and the Gaussian x uniform update (``update``). The numpy paths of those modules are the reference
+and do the same arithmetic in ~40 full-array passes each; these do one pass. tests/test_fusion.py compares the two.
+
+Imported only when numba is installed (``eonav.ranging.methods._common.optional_kernels``); without it the numpy paths run.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
+
+
+@njit(**_JIT)
+def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
+         o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags):
+    """Every occupied source cell's point into the new grid (predict's module docstring): the output arrays come
+    empty (o_rho NaN); where several points land on one pixel the largest rho_new wins (the first of equal ones).
+    cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of cells written."""
+    h, w = rho.shape
+    h1, w1 = o_rho.shape
+    fx0, fy0, cx0, cy0 = cam0[0], cam0[1], cam0[2], cam0[3]
+    fx1, fy1, cx1, cy1 = cam1[0], cam1[1], cam1[2], cam1[3]
+    written = 0
+    for y in range(h):
+        for x in range(w):
+            r = rho[y, x]
+            if not math.isfinite(r):
+                continue
+            m1 = (np.float32(x) + du[y, x] - cx0) / fx0
+            m2 = (np.float32(y) + dv[y, x] - cy0) / fy0
+            A0 = R[0, 0] + R[0, 1] * m1 + R[0, 2] * m2
+            A1 = R[1, 0] + R[1, 1] * m1 + R[1, 2] * m2
+            A2 = R[2, 0] + R[2, 1] * m1 + R[2, 2] * m2
+            den = A0 + t[0] * r
+            if not (den > 1e-3 and A0 > 1e-3):
+                continue
+            inv = np.float32(1.0) / den
+            un = cx1 + fx1 * (A1 + t[1] * r) * inv
+            vn = cy1 + fy1 * (A2 + t[2] * r) * inv
+            ui = np.rint(un)
+            vi = np.rint(vn)
+            if not (ui >= 0 and ui <= w1 - 1 and vi >= 0 and vi <= h1 - 1):
+                continue
+            X = int(ui)
+            Y = int(vi)
+            rn = r * inv
+            cur = o_rho[Y, X]
+            if math.isfinite(cur) and not rn > cur:
+                continue
+            if not math.isfinite(cur):
+                written += 1
+            j = A0 * inv * inv
+            o_rho[Y, X] = rn
+            o_var[Y, X] = var[y, x] * j * j + q * rn * rn + q_abs
+            o_a[Y, X] = a[y, x]
+            o_b[Y, X] = b[y, x]
+            o_n[Y, X] = n[y, x]
+            o_flags[Y, X] = flags[y, x]
+            o_du[Y, X] = un - ui
+            o_dv[Y, X] = vn - vi
+    return written
+
+
+@njit(**_JIT)
+def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
+    """predict.close_cracks in one pass per axis (horizontal neighbours first, then vertical). Returns the count."""
+    h, w = rho.shape
+    closed = 0
+    for axis in range(2):
+        oy = 1 if axis == 1 else 0
+        ox = 1 - oy
+        todo = np.zeros((h, w), np.bool_)
+        for y in range(oy, h - oy):
+            for x in range(ox, w - ox):
+                if math.isfinite(rho[y, x]):
+                    continue
+                r0 = rho[y - oy, x - ox]
+                r1 = rho[y + oy, x + ox]
+                d = r1 - r0
+                if d * d <= k2 * (var[y - oy, x - ox] + var[y + oy, x + ox]):
+                    todo[y, x] = True
+        for y in range(oy, h - oy):
+            for x in range(ox, w - ox):
+                if not todo[y, x]:
+                    continue
+                ya, xa, yb, xb = y - oy, x - ox, y + oy, x + ox
+                d = rho[yb, xb] - rho[ya, xa]
+                rho[y, x] = np.float32(0.5) * (rho[ya, xa] + rho[yb, xb])
+                var[y, x] = max(var[ya, xa], var[yb, xb]) + np.float32(0.25) * d * d
+                a[y, x] = min(a[ya, xa], a[yb, xb])
+                b[y, x] = max(b[ya, xa], b[yb, xb])
+                n[y, x] = min(n[ya, xa], n[yb, xb])
+                flags[y, x] = flags[ya, xa] & flags[yb, xb]
+                du[y, x] = 0.0
+                dv[y, x] = 0.0
+                closed += 1
+    return closed
+
+
+@njit(**_JIT)
+def update(rho, var, a, b, n, du, dv, rho_m, std_m, meas, s, rho_max, a_init, b_init, cap, eta_outlier):
+    """update.update's arithmetic per measured pixel (``meas``), in place. Returns (started, inliers, outliers,
+    restarted)."""
+    h, w = rho.shape
+    started = inl = outl = rest = 0
+    inv_u = np.float32(1.0 / rho_max)
+    two_pi = np.float32(2.0 * math.pi)
+    for y in range(h):
+        for x in range(w):
+            if not meas[y, x]:
+                continue
+            xm = rho_m[y, x]
+            tau = std_m[y, x] * s
+            tau2 = tau * tau
+            mu = rho[y, x]
+            if not math.isfinite(mu):
+                rho[y, x] = xm
+                var[y, x] = tau2
+                a[y, x] = a_init
+                b[y, x] = b_init
+                n[y, x] = 1
+                du[y, x] = 0.0
+                dv[y, x] = 0.0
+                started += 1
+                continue
+            s2 = var[y, x]
+            A = a[y, x]
+            B = b[y, x]
+            S = s2 + tau2
+            d = xm - mu
+            c1 = A / (A + B) * np.exp(np.float32(-0.5) * d * d / S) / np.sqrt(two_pi * S)
+            c2 = B / (A + B) * inv_u
+            c1 = c1 / (c1 + c2)
+            c2 = np.float32(1.0) - c1
+            sp2 = s2 * tau2 / S
+            m = mu + sp2 / tau2 * d
+            mu_new = c1 * m + c2 * mu
+            dm = m - mu
+            s2_new = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
+            ab1 = A + B + np.float32(1.0)
+            ab2 = ab1 + np.float32(1.0)
+            f = (c1 * (A + np.float32(1.0)) + c2 * A) / ab1
+            e = (c1 * (A + np.float32(1.0)) * (A + np.float32(2.0)) + c2 * A * (A + np.float32(1.0))) / (ab1 * ab2)
+            a_new = (e - f) / (f - e / f)
+            b_new = a_new * (np.float32(1.0) - f) / f
+            tot = a_new + b_new
+            if tot > cap:
+                k = cap / tot
+                a_new *= k
+                b_new *= k
+            if c1 > 0.5:
+                inl += 1
+            else:
+                outl += 1
+            if a_new / (a_new + b_new) < eta_outlier:
+                rho[y, x] = xm
+                var[y, x] = tau2
+                a[y, x] = a_init
+                b[y, x] = b_init
+                n[y, x] = 1
+                du[y, x] = 0.0
+                dv[y, x] = 0.0
+                rest += 1
+                continue
+            rho[y, x] = mu_new
+            var[y, x] = s2_new
+            a[y, x] = a_new
+            b[y, x] = b_new
+            if n[y, x] < 65535:
+                n[y, x] += 1
+    return started, inl, outl, rest

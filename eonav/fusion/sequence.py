@@ -1,0 +1,162 @@
+"""``FusionRunner``: posed frames in, fused range maps out, one ``push`` per frame.
+
+The code path of ``eonav fuse``, ``eonav bench fuse`` and (wired per posed frame) the locator service. For each
+frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
+
+1. predict c's state into the frame (``predict``); a state older than ``max_gap_s`` (a navigation or camera gap) is
+   dropped instead and the frame starts fresh;
+2. the scheduler's measurements (``schedule``): c's newest frame against a near or a wide earlier frame of c, and,
+   in a stereo rig, the reference camera's newest frame against the partner's frame of the same instant;
+3. each measurement (``measure(view_a, view_b)``, default the dense method without its own fill) fused into the
+   state of its reference camera (``update``);
+4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it.
+
+``push`` returns those maps (usually one: the frame's own camera; a stereo partner's frame returns the rig
+reference's map, which it updated). A frame not newer than its camera's state is dropped (``counts``
+``out_of_order``). Timing per map: ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+from eonav import InputError
+from eonav.geometry.camera import View, pair_geometry
+from eonav.ranging.methods._common import far_inverse_range
+from eonav.ranging.pair_policy import PosedFrameInfo
+from eonav.ranging.rangemap import RangeResult
+from eonav.fusion.fused_map import MapConfig, fused_map
+from eonav.fusion.predict import ProcessNoise, predict
+from eonav.fusion.schedule import ScheduleConfig, Scheduler
+from eonav.fusion.state import InverseRangeState
+from eonav.fusion.update import UpdateConfig, update
+
+
+def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrameInfo:
+    """A posed frame for ``FusionRunner.push``: the view (camera, vehicle state, grey image) at ``stamp_us``."""
+    return PosedFrameInfo(str(camera_id), int(seq), int(stamp_us), view.camera, view.state, payload=view)
+
+
+def dense_measurement(view_a: View, view_b: View) -> RangeResult:
+    """The default measurement: the dense method, measured pixels only (the fused map fills once, at the end)."""
+    from eonav.ranging.methods.dense import locate_dense
+    return locate_dense(view_a, view_b, fill=False)
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    noise: ProcessNoise = field(default_factory=ProcessNoise)
+    update: UpdateConfig = field(default_factory=UpdateConfig)
+    output: MapConfig = field(default_factory=MapConfig)
+    max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
+    far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
+
+    def __post_init__(self):
+        if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
+            raise InputError(f"fusion: max_gap_s must be > 0, got {self.max_gap_s!r}")
+
+
+@dataclass
+class FusedMap:
+    """The fused range map of ``frame`` (its camera's newest frame): ``result`` has the arrays of ``eonav locate``
+    (method "fused") and ``n_fused`` the measurements fused per pixel; ``measurements``: what this push measured
+    into it (kind, other camera and seq, baseline, update counts)."""
+    frame: PosedFrameInfo
+    result: RangeResult
+    n_fused: object
+    measurements: list
+    locate_s: float
+    fusion_s: float
+
+
+class FusionRunner:
+    """Per-camera inverse-range states fed by a stream of posed frames (module docstring). One thread."""
+
+    def __init__(self, config: FusionConfig = FusionConfig(), measure=None):
+        self.config = config
+        self.measure = measure or dense_measurement
+        self.scheduler = Scheduler(config.schedule)
+        self.states: dict[str, InverseRangeState] = {}
+        self.frames: dict[str, PosedFrameInfo] = {}          # the frame each state is on
+        self.counts: dict[str, int] = {}
+
+    def count(self, name: str, k: int = 1) -> None:
+        self.counts[name] = self.counts.get(name, 0) + k
+
+    def reset(self, camera_id: str | None = None) -> None:
+        """Forget the state of one camera (or of all): its next frame starts fresh."""
+        for cid in ([camera_id] if camera_id is not None else list(self.states)):
+            self.states.pop(cid, None)
+            self.frames.pop(cid, None)
+
+    def remember(self, f: PosedFrameInfo) -> None:
+        """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
+        self.scheduler.remember(f)
+
+    def push(self, f: PosedFrameInfo) -> list:
+        """Predict, measure, update; the fused maps of the states touched (see the module docstring)."""
+        if not isinstance(f.payload, View):
+            raise InputError("FusionRunner.push: the frame's payload must be its View (use eonav.fusion.sequence.frame)")
+        cid = f.camera_id
+        t_s = f.stamp_us * 1e-6
+        old = self.states.get(cid)
+        if old is not None and f.stamp_us <= self.frames[cid].stamp_us:
+            self.count("out_of_order")
+            return []
+        t0 = time.perf_counter()
+        touched = {}
+        if old is not None:
+            if t_s - old.stamp_s > self.config.max_gap_s:
+                self.count("gap_resets")
+                old = None
+            else:
+                self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise)
+                self.frames[cid] = f
+                if self.states[cid].occupied().any():      # nothing measured yet: no map to give
+                    touched[cid] = []
+        if old is None:
+            self.states[cid] = InverseRangeState.empty(f.camera, f.state, t_s)
+            self.frames[cid] = f
+        fusion_s = time.perf_counter() - t0
+        measurements, reason = self.scheduler.offer(f)
+        self.count(f"policy.{reason}")
+        locate_s = 0.0
+        for m in measurements:
+            ref = m.a.camera_id
+            if self.frames.get(ref) is not m.a:       # the reference's state moved on (or never started)
+                self.count("stale_measurements")
+                continue
+            t1 = time.perf_counter()
+            res = self.measure(m.a.payload, m.b.payload)
+            t2 = time.perf_counter()
+            rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
+            counts = update(self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags,
+                            self.config.update, rho_far=rho_far)
+            fusion_s += time.perf_counter() - t2
+            locate_s += t2 - t1
+            self.count(f"measurements.{m.kind}")
+            touched.setdefault(ref, []).append(dict(counts, kind=m.kind, other_camera_id=m.b.camera_id,
+                                                    other_seq=m.b.seq, baseline_m=m.baseline_m,
+                                                    disparity_px=m.disparity_px))
+        out = []
+        for ref, ms in touched.items():
+            t3 = time.perf_counter()
+            res = fused_map(self.states[ref], self.config.output)
+            n_fused = res.info.pop("n_fused")
+            dt = time.perf_counter() - t3
+            out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
+        return out
+
+
+def run_frames(frames, config: FusionConfig = FusionConfig(), measure=None) -> list:
+    """All fused maps of a list of posed frames pushed in order (a convenience of ``FusionRunner``)."""
+    runner = FusionRunner(config, measure)
+    out = []
+    for f in frames:
+        out.extend(runner.push(f))
+    return out
+
+
+__all__ = ["FusionRunner", "FusionConfig", "FusedMap", "frame", "dense_measurement", "run_frames"]

@@ -1,0 +1,148 @@
+"""Update: fuse one dense measurement (inverse range and its own sigma per pixel) into the state.
+
+Measurement model of Vogiatzis & Hernandez (2011), used by REMODE (Pizzoli et al. 2014) and SVO's depth filter:
+a measurement x of a cell is, with probability pi (the cell's inlier ratio), Gaussian about the true rho with the
+measurement's variance tau^2, and otherwise uniform over [0, rho_max] (an occlusion, a mismatch, a moving object).
+The posterior of (rho, pi) is approximated by a Gaussian in rho times a Beta(a, b) in pi, matched in moments:
+
+    C1 ~ a / (a + b) N(x; mu, s^2 + tau^2),   C2 ~ b / (a + b) / rho_max,   C1 + C2 = 1
+    m = s'^2 (mu / s^2 + x / tau^2),   s'^2 = 1 / (1 / s^2 + 1 / tau^2)
+    mu_new = C1 m + C2 mu,   s_new^2 = C1 s'^2 + C2 s^2 + C1 C2 (m - mu)^2
+    f = C1 (a + 1) / (a + b + 1) + C2 a / (a + b + 1)
+    e = C1 (a + 1)(a + 2) / ((a + b + 1)(a + b + 2)) + C2 a (a + 1) / ((a + b + 1)(a + b + 2))
+    a_new = (e - f) / (f - e / f),   b_new = a_new (1 - f) / f
+
+(the variance written as C1 s'^2 + C2 s^2 + C1 C2 (m - mu)^2, the same as the published C1 (s'^2 + m^2) + C2 (s^2
++ mu^2) - mu_new^2 without its cancellation in float32). An outlier (x many sigma off) has C1 ~ 0: the estimate and
+its variance stay, only b grows. A measurement that might be either (C1 ~ C2) widens the variance by the spread of
+the two: the cell is not confident until the evidence settles.
+
+Beyond the published filter, for a stream that never ends and a scene that may move:
+- the evidence is a window: when a + b exceeds ``evidence_cap`` both are scaled down to it (the inlier ratio of
+  about the last ``evidence_cap`` measurements, so a cell whose point changed -- a moving object -- loses its
+  confidence in a few frames instead of never);
+- a cell whose inlier ratio falls below ``eta_outlier`` (diverged) restarts from the measurement;
+- an empty cell starts from its first measurement (mu = x, s^2 = tau^2, Beta(a_init, b_init)).
+Only measured pixels (VALID, not FILLED) update; the rest keep their prediction.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from eonav import InputError
+from eonav.ranging.rangemap import FILLED, VALID
+from eonav.fusion.state import F32, InverseRangeState, optional_kernels
+
+
+@dataclass(frozen=True)
+class UpdateConfig:
+    rho_max_per_m: float = 2.0        # support of the uniform outlier density (nearest range 0.5 m)
+    sigma_scale: float = 1.0          # measurement sigma multiplier (correlation between pairs sharing frames)
+    a_init: float = 3.0               # Beta evidence of a cell started from one measurement: E[pi] = 0.75
+    b_init: float = 1.0
+    evidence_cap: float = 8.0         # a + b kept at most this (the last ~8 measurements' inlier ratio)
+    eta_outlier: float = 0.45         # E[pi] below this: diverged, restart from the measurement
+
+    def __post_init__(self):
+        for name in ("rho_max_per_m", "sigma_scale", "a_init", "b_init", "evidence_cap"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"fusion update: {name} must be a finite number > 0, got {v!r}")
+        if not 0 <= self.eta_outlier < 1:
+            raise InputError(f"fusion update: eta_outlier must be in [0, 1), got {self.eta_outlier!r}")
+        if self.evidence_cap < self.a_init + self.b_init:
+            raise InputError("fusion update: evidence_cap must be at least a_init + b_init")
+
+
+def measured(rho_m, std_m, flags_m) -> np.ndarray:
+    """Pixels of a measurement that carry one: VALID (measured, not FILLED) with a finite rho and sigma > 0."""
+    with np.errstate(invalid="ignore"):
+        return (((flags_m & np.uint8(VALID | FILLED)) == np.uint8(VALID)) & np.isfinite(rho_m)
+                & np.isfinite(std_m) & (std_m > 0))
+
+
+def gaussian_uniform_step(mu, s2, a, b, x, tau2, rho_max: float):
+    """One moment-matched update (module docstring) of arrays of cells; returns (mu, s2, a, b, C1): C1 is the
+    posterior probability that x was an inlier."""
+    S = s2 + tau2
+    d = x - mu
+    c1 = a / (a + b) * np.exp(F32(-0.5) * d * d / S) / np.sqrt(F32(2 * math.pi) * S)
+    c2 = b / (a + b) * F32(1.0 / rho_max)
+    norm = c1 + c2
+    c1 = c1 / norm
+    c2 = F32(1.0) - c1
+    sp2 = s2 * tau2 / S
+    m = mu + sp2 / tau2 * d                         # = s'^2 (mu / s^2 + x / tau^2), finite for s^2 = inf too
+    mu_new = c1 * m + c2 * mu
+    dm = m - mu
+    s2_new = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
+    ab1 = a + b + F32(1.0)
+    ab2 = ab1 + F32(1.0)
+    f = (c1 * (a + F32(1.0)) + c2 * a) / ab1
+    e = (c1 * (a + F32(1.0)) * (a + F32(2.0)) + c2 * a * (a + F32(1.0))) / (ab1 * ab2)
+    a_new = (e - f) / (f - e / f)
+    b_new = a_new * (F32(1.0) - f) / f
+    return mu_new, s2_new, a_new, b_new, c1
+
+
+def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = UpdateConfig(),
+           rho_far: float | None = None, kernels: bool | None = None) -> dict:
+    """Fuse a measurement on the state's grid into ``state`` (in place). ``rho_far``: the pair's far inverse range
+    (the state keeps the smallest seen). Returns counts: measured, started (empty cells), inliers (C1 > 0.5),
+    outliers, restarted (diverged cells started again from the measurement). kernels: the numba pass
+    (``_kernels.update``; None: when numba is installed; False: the numpy path, the reference)."""
+    if np.shape(rho_m) != state.shape:
+        raise InputError(f"fusion update: measurement shape {np.shape(rho_m)} differs from the state {state.shape}")
+    flags_m = np.asarray(flags_m, np.uint8)
+    meas = measured(rho_m, std_m, flags_m)
+    state.flags[...] = flags_m
+    if rho_far is not None and rho_far > 0:
+        state.rho_far = rho_far if state.rho_far <= 0 else min(state.rho_far, float(rho_far))
+    K = optional_kernels() if kernels is None or kernels else None
+    if kernels and K is None:
+        raise ImportError("update(kernels=True) needs numba")
+    if K is not None:
+        started, inl, outl, rest = K.update(
+            state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, np.asarray(rho_m, F32),
+            np.asarray(std_m, F32), meas, F32(cfg.sigma_scale), F32(cfg.rho_max_per_m), F32(cfg.a_init),
+            F32(cfg.b_init), F32(cfg.evidence_cap), F32(cfg.eta_outlier))
+        return {"measured": int(meas.sum()), "started": int(started), "inliers": int(inl), "outliers": int(outl),
+                "restarted": int(rest)}
+    occ = state.occupied()
+    s = F32(cfg.sigma_scale)
+    start = np.flatnonzero(meas & ~occ)
+    fuse = np.flatnonzero(meas & occ)
+    rho_m = np.asarray(rho_m, F32).ravel()
+    std_m = np.asarray(std_m, F32).ravel()
+    R, V, A, B, N = (x.ravel() for x in (state.rho, state.var, state.a, state.b, state.n))
+    x = rho_m[fuse]
+    tau = std_m[fuse] * s
+    mu, s2, a, b, c1 = gaussian_uniform_step(R[fuse], V[fuse], A[fuse], B[fuse], x, tau * tau, cfg.rho_max_per_m)
+    tot = a + b
+    over = tot > F32(cfg.evidence_cap)
+    k = np.where(over, F32(cfg.evidence_cap) / tot, F32(1.0))
+    a *= k
+    b *= k
+    diverged = a / (a + b) < F32(cfg.eta_outlier)
+    mu = np.where(diverged, x, mu)
+    s2 = np.where(diverged, tau * tau, s2)
+    a = np.where(diverged, F32(cfg.a_init), a)
+    b = np.where(diverged, F32(cfg.b_init), b)
+    R[fuse], V[fuse], A[fuse], B[fuse] = mu, s2, a, b
+    n = N[fuse]
+    N[fuse] = np.where(diverged, 1, np.minimum(n.astype(np.int64) + 1, np.iinfo(np.uint16).max)).astype(np.uint16)
+    restart = fuse[diverged]
+    for idx in (start, restart):
+        state.du.ravel()[idx] = 0.0
+        state.dv.ravel()[idx] = 0.0
+    R[start] = rho_m[start]
+    V[start] = (std_m[start] * s) ** 2
+    A[start] = cfg.a_init
+    B[start] = cfg.b_init
+    N[start] = 1
+    inl = c1 > F32(0.5)
+    return {"measured": int(meas.sum()), "started": int(start.size), "inliers": int(inl.sum()),
+            "outliers": int((~inl).sum()), "restarted": int(diverged.sum())}

@@ -1,0 +1,308 @@
+"""The per-pixel inverse-range filter (eonav.fusion) against hand-derived values and simulated truth."""
+import copy
+
+import numpy as np
+import pytest
+
+from eonav.geometry.camera import Camera, VehicleState, View
+from eonav.fusion.fused_map import MapConfig, fused_map
+from eonav.fusion.predict import ProcessNoise, predict
+from eonav.fusion.schedule import ScheduleConfig
+from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+from eonav.fusion.state import InverseRangeState, optional_kernels
+from eonav.fusion.update import UpdateConfig, update
+from eonav.ranging.rangemap import ILL_CONDITIONED, LOW_TEXTURE, VALID
+
+NO_NOISE = ProcessNoise(0.0, 0.0, 0.0)
+PATHS = [False] + ([True] if optional_kernels() is not None else [])
+F = 40.0
+
+
+def cam(w=64, h=48, f=F):
+    return Camera("c", w, h, f, f, (w - 1) / 2, (h - 1) / 2)
+
+
+def pose(north=0.0, east=0.0, t=0.0):
+    return VehicleState.from_ypr([north, east, 0.0], [0.0, 0.0, 0.0], t)
+
+
+def planar_state(c, rho, var=1e-6):
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    st.rho[...] = rho
+    st.var[...] = var
+    st.a[...] = 5.0
+    st.b[...] = 1.0
+    st.n[...] = 3
+    return st
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_forward_motion_carries_a_plane_to_the_pixels_and_inverse_ranges_derived_by_hand(kernels):
+    # fronto-parallel plane at 20 m, camera 2 m forward (no rotation): every point is at 18 m in the new frame,
+    # rho' = (1/20) / (1 - 2/20) = 1/18, and pixel u goes to cx + (u - cx) * 20/18; var' = var / 0.9^4 (Jacobian
+    # d rho'/d rho = 1/den^2 with den = 0.9)
+    c = cam()
+    st = planar_state(c, 1 / 20.0)
+    p = predict(st, c, pose(north=2.0, t=0.1), 0.1, NO_NOISE, kernels=kernels)
+    inner = (slice(3, -3), slice(3, -3))
+    assert np.isfinite(p.rho[inner]).all()                # stretching leaves cracks: closed, their neighbours agree
+    assert np.allclose(p.rho[inner], 1 / 18.0, rtol=1e-6)
+    assert np.allclose(p.var[inner], 1e-6 / 0.9 ** 4, rtol=1e-5)
+    # cx = 31.5: the point of source pixel 41 (x_p = 9.5) lands at x_p' = 9.5 * 20/18 = 10.556, pixel 42 with a
+    # remainder of 0.056 px, and keeps its evidence (no other point lands there: 40 -> 40.94, 42 -> 43.17)
+    assert p.du[24, 42] == pytest.approx(31.5 + 9.5 * 20 / 18 - 42, abs=1e-4)
+    assert p.dv[24, 42] == pytest.approx((24 - 23.5) * 20 / 18 + 23.5 - 24, abs=1e-4)
+    assert p.a[24, 42] == 5.0 and p.b[24, 42] == 1.0 and p.n[24, 42] == 3
+    # moving forward the new view lies inside the old one; moving back 2 m it is wider: its border saw nothing
+    # (x_p' = x_p * 20/22: the old image's edge x_p = -31.5 lands at -28.6, so new columns 0..2 start empty)
+    back = predict(st, c, pose(north=-2.0, t=0.1), 0.1, NO_NOISE, kernels=kernels)
+    assert np.allclose(back.rho[np.isfinite(back.rho)], 1 / 22.0, rtol=1e-6)
+    assert not np.isfinite(back.rho[:, :3]).any() and np.isfinite(back.rho[5:-5, 3]).all()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_sub_pixel_motion_is_not_rounded_away(kernels):
+    # one point at 20 m, camera 0.55 m to starboard per frame: the image moves 40 * 0.55 / 20 = 1.1 px left per
+    # frame; after 5 frames the point must be 5.5 px left (rounding each step without the remainder: 5 px)
+    c = cam()
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    st.rho[20, 40], st.var[20, 40], st.a[20, 40], st.b[20, 40] = 0.05, 1e-6, 3.0, 1.0
+    for k in range(1, 6):
+        st = predict(st, c, pose(east=0.55 * k, t=0.1 * k), 0.1 * k, NO_NOISE, crack_k=0, kernels=kernels)
+    ys, xs = np.nonzero(np.isfinite(st.rho))
+    assert list(ys) == [20] and len(xs) == 1
+    assert xs[0] + st.du[20, xs[0]] == pytest.approx(40 - 5.5, abs=1e-4)
+    assert st.rho[20, xs[0]] == pytest.approx(0.05, rel=1e-6)        # lateral motion: range unchanged
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_z_buffer_keeps_the_nearest_point(kernels):
+    # camera 1 m to starboard: a point at 10 m moves 4 px left, one at 20 m 2 px: from columns 30 and 28 both land
+    # on column 26; the nearer one (rho' = 0.1) must win
+    c = cam()
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    for x, rho, a in ((30, 0.1, 7.0), (28, 0.05, 2.0)):
+        st.rho[10, x], st.var[10, x], st.a[10, x], st.b[10, x] = rho, 1e-6, a, 1.0
+    p = predict(st, c, pose(east=1.0, t=0.1), 0.1, NO_NOISE, crack_k=0, kernels=kernels)
+    assert np.isfinite(p.rho).sum() == 1
+    assert p.rho[10, 26] == pytest.approx(0.1) and p.a[10, 26] == 7.0
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_disoccluded_region_starts_fresh(kernels):
+    # background at 20 m, a foreground block at 5 m in columns 20..35; camera 2 m to starboard: the background
+    # moves 4 px left (f b / 20), the block 16 px (f b / 5): the block goes to columns 4..19 and the background
+    # right of it to 32..59; in between a 12 px strip shows background that the block hid (old columns 24..35)
+    c = cam()
+    st = planar_state(c, 1 / 20.0)
+    st.rho[:, 20:36] = 1 / 5.0
+    p = predict(st, c, pose(east=2.0, t=0.1), 0.1, NO_NOISE, kernels=kernels)
+    rows = slice(5, -5)
+    assert np.allclose(p.rho[rows, 4:20], 1 / 5.0)                 # the block: columns 20..35 - 16
+    assert not np.isfinite(p.rho[rows, 20:32]).any()              # hidden by the block before, in view now
+    assert np.allclose(p.rho[rows, 32:60], 1 / 20.0)               # background from columns 36..63
+    assert (p.n[rows, 20:32] == 0).all()
+    # a measurement there starts those cells from it: its value, its sigma, one measurement, the initial evidence
+    m_rho = np.full(c.height * c.width, 1 / 20.0, np.float32).reshape(c.height, c.width)
+    m_std = np.full_like(m_rho, 2e-4)
+    flags = np.full(m_rho.shape, VALID, np.uint8)
+    update(p, m_rho, m_std, flags, UpdateConfig(), kernels=kernels)
+    assert np.allclose(p.rho[rows, 20:32], 1 / 20.0) and np.allclose(p.var[rows, 20:32], 4e-8)
+    assert (p.n[rows, 20:32] == 1).all() and np.allclose(p.a[rows, 20:32], UpdateConfig().a_init)
+    assert (p.n[rows, 40] == 4).all()                             # the rest fused: 3 before + this one
+
+
+def one_cell_state():
+    return InverseRangeState.empty(cam(4, 4), pose(), 0.0)
+
+
+def measure(st, x, tau, kernels, cfg=UpdateConfig(), flags=VALID):
+    shape = st.shape
+    return update(st, np.full(shape, x, np.float32), np.full(shape, tau, np.float32),
+                  np.full(shape, flags, np.uint8), cfg, kernels=kernels)
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_repeated_measurements_shrink_the_variance_as_a_kalman_filter(kernels):
+    # N consistent measurements of sigma tau: 1/var = N / tau^2 and the mean is their average (the outlier
+    # component is negligible: the Gaussian density at one sigma is ~240 /m, the uniform 0.5 /m)
+    st = one_cell_state()
+    tau = 1e-3
+    xs = [0.050, 0.0508, 0.0494, 0.0503, 0.0497, 0.0501]
+    for n, x in enumerate(xs, 1):
+        measure(st, x, tau, kernels)
+        assert st.var[0, 0] == pytest.approx(tau ** 2 / n, rel=3e-3)
+        assert st.rho[0, 0] == pytest.approx(np.mean(xs[:n]), abs=2e-6)
+        assert st.n[0, 0] == n
+    ratio = st.a[0, 0] / (st.a[0, 0] + st.b[0, 0])
+    assert ratio > 0.85                       # every measurement was an inlier: the evidence says so
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_an_outlier_leaves_a_converged_cell_where_it_was(kernels):
+    st = one_cell_state()
+    for _ in range(8):
+        measure(st, 0.05, 1e-3, kernels)
+    mu, var, a, b = (float(getattr(st, k)[0, 0]) for k in ("rho", "var", "a", "b"))
+    c = measure(st, 0.20, 1e-3, kernels)                 # an occlusion / mismatch: 150 sigma off
+    assert c["outliers"] == 16 and c["inliers"] == 0
+    assert st.rho[0, 0] == pytest.approx(mu, abs=1e-9) and st.var[0, 0] == pytest.approx(var, rel=1e-4)
+    assert st.b[0, 0] / (st.a[0, 0] + st.b[0, 0]) > b / (a + b)      # only the evidence moved
+    m = fused_map(st, MapConfig(fill=False))
+    assert (m.flags & VALID).all() and np.allclose(m.range_m, 20.0, rtol=1e-4)   # one outlier: still confident
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_disagreeing_evidence_gives_no_confident_range_then_restarts(kernels):
+    # a converged cell whose point changed (a moving object): a few outliers in a row take its confidence away
+    # (no range, ILL_CONDITIONED), more make it diverge and restart from the new value
+    cfg, mcfg = UpdateConfig(), MapConfig(fill=False)
+    st = one_cell_state()
+    for _ in range(8):
+        measure(st, 0.05, 1e-3, kernels, cfg)
+    seen = []
+    for k in range(1, 12):
+        measure(st, 0.10, 1e-3, kernels, cfg)
+        m = fused_map(st, mcfg)
+        seen.append((k, bool(m.flags[0, 0] & VALID), float(st.rho[0, 0]), int(st.n[0, 0])))
+        if not seen[-1][1] and st.n[0, 0] > 1:
+            assert m.flags[0, 0] & ILL_CONDITIONED and np.isnan(m.range_m[0, 0])
+        if st.n[0, 0] == 1:
+            break
+    valid = [s[1] for s in seen]
+    assert valid[0] and not all(valid)                   # confident after one outlier, not after several
+    k_off = valid.index(False)
+    assert all(s[2] == pytest.approx(0.05, abs=1e-6) for s in seen[:-1])   # never pulled towards the outliers
+    assert seen[-1][3] == 1 and seen[-1][2] == pytest.approx(0.10)         # diverged: restarted from the new value
+    assert k_off < len(seen) - 1                         # the unconfident frames come before the restart
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_unmeasured_pixels_keep_their_prediction_and_the_reason(kernels):
+    st = one_cell_state()
+    measure(st, 0.05, 1e-3, kernels)
+    before = st.rho.copy(), st.var.copy(), st.n.copy()
+    c = measure(st, 0.3, 1e-3, kernels, flags=LOW_TEXTURE)
+    assert c["measured"] == 0
+    assert np.array_equal(st.rho, before[0]) and np.array_equal(st.var, before[1]) and np.array_equal(st.n, before[2])
+    assert (st.flags == LOW_TEXTURE).all()
+
+
+@pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
+def test_numba_and_numpy_paths_agree_on_a_random_state():
+    rng = np.random.default_rng(3)
+    c = cam(96, 72)
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    occ = rng.random(st.shape) < 0.8
+    st.rho[occ] = rng.uniform(0.01, 0.3, occ.sum())
+    st.var[occ] = rng.uniform(1e-7, 1e-4, occ.sum())
+    st.a[occ], st.b[occ] = rng.uniform(1, 6, occ.sum()), rng.uniform(0.5, 3, occ.sum())
+    st.du[occ], st.dv[occ] = rng.uniform(-0.5, 0.5, (2, occ.sum()))
+    new = VehicleState.from_ypr([1.0, 0.3, -0.2], np.deg2rad([1.0, -0.5, 2.0]), 0.1)
+    noise = ProcessNoise(0.02, 0.01, 1e-5)
+    p0, p1 = (predict(st, c, new, 0.1, noise, kernels=k) for k in (False, True))
+    for name in ("rho", "var", "a", "b", "n", "du", "dv", "flags"):
+        a0, a1 = getattr(p0, name), getattr(p1, name)
+        assert np.array_equal(np.isfinite(a0), np.isfinite(a1)) if a0.dtype.kind == "f" else True
+        ok = np.isfinite(a0) if a0.dtype.kind == "f" else np.ones(a0.shape, bool)
+        assert np.allclose(a0[ok], a1[ok], rtol=1e-5, atol=1e-7), name
+    m_rho = np.where(rng.random(st.shape) < 0.1, rng.uniform(0, 0.3, st.shape), p0.rho + 1e-3).astype(np.float32)
+    m_std = rng.uniform(5e-4, 3e-3, st.shape).astype(np.float32)
+    flags = np.where(rng.random(st.shape) < 0.7, VALID, LOW_TEXTURE).astype(np.uint8)
+    u0, u1 = copy.deepcopy(p0), copy.deepcopy(p0)
+    c0 = update(u0, m_rho, m_std, flags, kernels=False)
+    c1 = update(u1, m_rho, m_std, flags, kernels=True)
+    assert c0 == c1
+    for name in ("rho", "var", "a", "b", "n"):
+        a0, a1 = getattr(u0, name), getattr(u1, name)
+        ok = np.isfinite(a0)
+        assert np.array_equal(ok, np.isfinite(a1))
+        assert np.allclose(a0[ok], a1[ok], rtol=2e-4, atol=1e-9), name
+
+
+@pytest.fixture(scope="module")
+def fast_sequence():
+    from eonav.sim.sequence import render_sequence
+    return render_sequence("fast", n_frames=4, rate_hz=10.0, size=128, supersample=2, seed=0)
+
+
+def median_error(range_m, truth):
+    ok = np.isfinite(truth) & np.isfinite(range_m) & (range_m > 0)
+    return float(np.median(np.abs(range_m[ok] - truth[ok]) / truth[ok])), float(ok.sum() / np.isfinite(truth).sum())
+
+
+def test_fused_simulated_sequence_beats_the_single_pairs():
+    # the paper replica flown at 30 fps, 10 frames at 160 x 160: the fused last frame against its truth, beside the
+    # dense method on the newest pair and on the widest (first frame, 0.3 s back) of the same frame
+    from eonav.ranging.methods.dense import locate_dense
+    from eonav.sim.sequence import render_sequence
+    seq = render_sequence("paper", n_frames=10, rate_hz=30.0, size=160, supersample=2, seed=0)
+    runner = FusionRunner(FusionConfig())
+    maps = []
+    for k, v in enumerate(seq.views):
+        maps += runner.push(frame("nose", v, int(round(v.state.t_s * 1e6)), k))
+    first = maps[0].frame.seq                   # the first frame with enough parallax to the first one, then all
+    assert [m.frame.seq for m in maps] == list(range(first, 10)) and first <= 6
+    last = maps[-1]
+    truth = seq.truth[-1].range_m
+    e_fused, cov_fused = median_error(last.result.range_m, truth)
+    e_newest, cov_newest = median_error(locate_dense(seq.views[-1], seq.views[-2]).range_m, truth)
+    e_widest, cov_widest = median_error(locate_dense(seq.views[-1], seq.views[0]).range_m, truth)
+    assert e_fused < 0.7 * e_newest and e_fused < 0.95 * e_widest
+    assert cov_fused > max(cov_newest, cov_widest) + 0.05
+    kinds = {ms["kind"] for m in maps for ms in m.measurements}
+    assert kinds == {"near", "wide"}
+    assert int(np.median(last.n_fused[np.isfinite(truth)])) >= 4
+
+
+def test_runner_drops_out_of_order_frames_and_resets_after_a_gap(fast_sequence):
+    seq = fast_sequence
+    runner = FusionRunner(FusionConfig(max_gap_s=0.5))
+    v = seq.views
+    us = [int(round(x.state.t_s * 1e6)) for x in v]
+    runner.push(frame("nose", v[0], us[0], 0))
+    assert len(runner.push(frame("nose", v[1], us[1], 1))) == 1
+    assert runner.push(frame("nose", v[0], us[0], 0)) == [] and runner.counts["out_of_order"] == 1
+    late = frame("nose", v[2], us[1] + 600_000, 2)                   # 0.6 s later: a gap, the state starts over
+    maps = runner.push(late)                 # (measured against an earlier frame still within the pair policy's age)
+    assert runner.counts["gap_resets"] == 1
+    st = runner.states["nose"]
+    assert st.occupied().any() and (st.n[st.occupied()] == 1).all()  # nothing carried over: one measurement each
+    assert [m.frame.seq for m in maps] == [2]
+
+
+def test_stereo_partner_updates_the_rig_reference():
+    from eonav.sim.presets import make_pair
+    sp = make_pair("stereo", size=96, supersample=1)
+    left, right = sp.views
+    runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=("left", "right"))))
+    assert runner.push(frame("left", left, 1_000_000, 0)) == []      # first frame, partner not there yet
+    maps = runner.push(frame("right", right, 1_000_500, 0))
+    assert [m.frame.camera_id for m in maps] == ["left"] and maps[0].measurements[0]["kind"] == "stereo"
+    e, cov = median_error(maps[0].result.range_m, sp.truth[0].range_m)
+    assert e < 0.03 and cov > 0.5
+
+
+@pytest.mark.realdata
+def test_real_indoor_sequence_fused_beats_single_pair_dense():
+    # the real HoloLens sequence (depth-sensor reference): the fused last frame against the dense method on the
+    # newest pair and the widest pair of the same frame
+    from pathlib import Path
+
+    from eonav.app.bench_fuse import indoor_config, widest_partner
+    from eonav.ranging.methods.dense import locate_dense
+    from eonav.io.datasets import hololens_sequence
+    data = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    if not (data / "hololens_dvmvs_20f").is_dir():
+        pytest.skip(f"real data not found at {data / 'hololens_dvmvs_20f'} (../shared/data)")
+    views, truth = hololens_sequence(data)
+    cfg = indoor_config()
+    runner = FusionRunner(cfg)
+    for k, v in enumerate(views):
+        maps = runner.push(frame("hololens", v, int(round(v.state.t_s * 1e6)), k))
+    k = len(views) - 1
+    assert maps[0].frame.seq == k
+    e_fused, cov = median_error(maps[0].result.range_m, truth[k])
+    e_newest, _ = median_error(locate_dense(views[k], views[k - 1]).range_m, truth[k])
+    e_widest, _ = median_error(locate_dense(views[k], views[widest_partner(views, k, cfg)]).range_m, truth[k])
+    assert e_fused < e_newest and e_fused < e_widest and cov > 0.5

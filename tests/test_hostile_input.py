@@ -1,0 +1,244 @@
+"""No payload stops or blinds a service: every field is checked at decode (both sides of each limit), a message that
+still raises in a service is counted and dropped, counters stay bounded, and a far-future nav stamp cannot blind
+the time sync. The process tests put the malformed payloads that once killed the locator and the obstacle service
+on a real bus, then check that the services still range and analyse good input."""
+import contextlib
+import signal
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from eonav.bus import keys as K
+from eonav.bus import schema
+from eonav.bus.node import COUNTER_LIMIT, MAX_COUNTERS, Node
+from eonav.nav.timesync import NavBuffer
+
+CAM = {"name": "nose", "width": 4, "height": 3, "fx": 4.0, "fy": 4.0, "cx": 1.5, "cy": 1.0, "l_m": [0, 0, 0],
+       "eps_deg": [0, 0, 0]}
+
+
+def arr(a):
+    a = np.ascontiguousarray(a)
+    return {"dtype": a.dtype.name, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def posed(**over):
+    doc = {"kind": "posed_frame", "v": 1, "camera_id": "nose", "seq": 1, "stamp_us": 1_700_000_000_000_000,
+           "encoding": "mono8", "image": arr(np.zeros((3, 4), np.uint8)), "camera": dict(CAM),
+           "position_ned_m": [0.0, 0.0, -10.0], "q_wxyz": [1.0, 0.0, 0.0, 0.0]}
+    doc.update(over)
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def range_map(**over):
+    z = np.ones((3, 4), np.float32)
+    doc = {"kind": "range_map", "v": 1, "camera_id": "nose", "seq": 1, "stamp_us": 1_700_000_000_000_000,
+           "method": "dense", "range_m": arr(z), "confidence": arr(z), "flags": arr(np.ones((3, 4), np.uint8)),
+           "camera": dict(CAM), "position_ned_m": [0.0, 0.0, -10.0], "q_wxyz": [1.0, 0.0, 0.0, 0.0]}
+    doc.update(over)
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def nav(**over):
+    doc = {"kind": "nav_state", "v": 1, "stamp_us": 1_700_000_000_000_000, "position_ned_m": [0.0, 0.0, -10.0],
+           "q_wxyz": [1.0, 0.0, 0.0, 0.0]}
+    doc.update(over)
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def rejected(payload, match, reason="range"):
+    with pytest.raises(schema.SchemaError, match=match) as e:
+        schema.decode(payload)
+    assert e.value.reason == reason
+
+
+# -- images that once crashed the locator (cv2.cvtColor on a float64 / int32 'bgr8' image) ------------------------
+@pytest.mark.parametrize("image,encoding", [
+    (np.zeros((3, 4, 3), np.float64), "bgr8"), (np.zeros((3, 4, 3), np.int32), "bgr8"),
+    (np.zeros((3, 4), np.float32), "mono8"), (np.zeros((3, 4, 3), np.uint8), "mono8"),
+    (np.zeros((3, 4), np.uint8), "bgr8"), (np.zeros((3, 4, 4), np.uint8), "rgb8"),
+])
+def test_posed_frame_image_must_match_its_encoding(image, encoding):
+    rejected(posed(image=arr(image), encoding=encoding), "posed_frame.image")
+
+
+def test_posed_frame_image_must_match_its_camera_and_known_encodings():
+    rejected(posed(image=arr(np.zeros((4, 3), np.uint8))), "camera's size 4 x 3")
+    rejected(posed(encoding="yuv9"), "posed_frame.encoding")
+    ok = schema.decode(posed(image=arr(np.zeros((3, 4, 3), np.uint8)), encoding="bgr8"))
+    assert ok["image"].shape == (3, 4, 3)
+    assert schema.decode(posed(image=arr(np.zeros((3, 4), np.uint16)), encoding="mono16"))["image"].dtype == np.uint16
+
+
+def test_range_map_arrays_are_checked():
+    rejected(range_map(flags=arr(np.ones((3, 4), np.float32))), "range_map.flags")      # crashed bitwise_and
+    rejected(range_map(range_m=arr(np.ones((3, 4), np.int32))), "range_map.range_m")
+    rejected(range_map(confidence=arr(np.ones((4, 3), np.float32))), "range_map.confidence")
+    rejected(range_map(frame_width=10 ** 9, frame_height=10 ** 9), "range_map.frame_width")
+    rejected(range_map(frame_width=3, frame_height=3), "range_map.frame_width")          # smaller than the map
+    assert schema.decode(range_map(frame_width=16384, frame_height=3))["frame_width"] == 16384
+    rejected(range_map(frame_width=16385, frame_height=3), "range_map.frame_width")
+    assert schema.decode(range_map(range_m=arr(np.ones((3, 4), np.float16))))["range_m"].dtype == np.float16
+
+
+@pytest.mark.parametrize("field,ok,bad", [
+    ("stamp_us", 2 ** 62 - 1, 2 ** 62), ("stamp_us", 0, -1), ("stamp_us", 1, 2 ** 63), ("stamp_us", 1, 2 ** 64 - 1),
+])
+def test_stamps_both_sides_of_the_limit(field, ok, bad):
+    assert schema.decode(nav(**{field: ok}))[field] == ok
+    rejected(nav(**{field: bad}), f"nav_state.{field}")
+
+
+def test_seq_both_sides_of_the_limit():
+    assert schema.decode(posed(seq=2 ** 62 - 1))["seq"] == 2 ** 62 - 1
+    for bad in (2 ** 62, 2 ** 64 - 1, -1):
+        rejected(posed(seq=bad), "posed_frame.seq")
+
+
+def test_positions_speeds_and_quaternions_both_sides():
+    assert schema.decode(nav(position_ned_m=[1e7, -1e7, 0.0]))["position_ned_m"][0] == 1e7
+    for bad in ([1e300, 0, 0], [0, 0, 1.0000001e7], [float("inf"), 0, 0]):
+        rejected(nav(position_ned_m=bad), "nav_state.position_ned_m")
+    assert np.isnan(schema.decode(nav(position_ned_m=[float("nan")] * 3))["position_ned_m"]).all()   # unknown
+    rejected(posed(position_ned_m=[float("nan"), 0, 0]), "posed_frame.position_ned_m")            # required there
+    rejected(nav(velocity_ned_mps=[1e5, 0, 0]), "nav_state.velocity_ned_mps")
+    assert schema.decode(nav(q_wxyz=[1.0099, 0, 0, 0]))["q_wxyz"][0] == pytest.approx(1.0099)
+    rejected(nav(q_wxyz=[1.0101, 0, 0, 0]), "nav_state.q_wxyz")
+    rejected(posed(q_wxyz=[0.0, 0, 0, 0]), "posed_frame.q_wxyz")
+
+
+def test_camera_fields_are_checked():
+    for key, bad in (("width", 10 ** 9), ("width", 0), ("fx", -1.0), ("fx", float("nan")), ("cy", 1e300)):
+        rejected(posed(camera=dict(CAM, **{key: bad})), f"posed_frame.camera.{key}")
+    rejected(posed(camera=dict(CAM, l_m=[0, 0, 1e9])), "posed_frame.camera.l_m")
+
+
+# -- the node: a message that still raises is that message's failure; counters bounded --------------------------
+class _Quiet:
+    def __init__(self):
+        self.lines = []
+
+    def log(self, level, fmt, *args):
+        self.lines.append(fmt % args)
+
+    def warning(self, fmt, *args):
+        self.lines.append(fmt % args)
+
+
+def bare_node():
+    node = Node.__new__(Node)          # the metrics part of a node, without a session
+    import threading
+    node._lock, node._counters, node._last_log, node._suppressed = threading.Lock(), {}, {}, {}
+    node.log = _Quiet()
+    return node
+
+
+def test_guarded_counts_and_swallows():
+    node = bare_node()
+    assert node.guarded("range_map", lambda x: x + 1, 1) == 2
+    assert node.guarded("range_map", lambda: np.bitwise_and(np.ones(2, np.float32), 1)) is None
+    assert node.counters() == {"message_errors": 1, "rejected.range_map": 1}
+    assert "TypeError" in node.log.lines[0]
+
+
+def test_counters_are_bounded_in_names_and_values():
+    node = bare_node()
+    for i in range(MAX_COUNTERS + 10):
+        node.count(f"unknown_msg_id.{i}")
+    c = node.counters()
+    assert len(c) == MAX_COUNTERS + 1 and c["counters_overflow"] == 10
+    node.count("unknown_msg_id.3")                    # a known name still counts as itself
+    assert node.counters()["unknown_msg_id.3"] == 2
+    node = bare_node()
+    node.count("frames_skipped", 2 ** 64)
+    node.count("frames_skipped", 5)
+    assert node.counters()["frames_skipped"] == COUNTER_LIMIT
+    # the health message of such a node still encodes and decodes
+    schema.decode(schema.encode("health", service="x", stamp_us=1, state="ok", counters=node.counters()))
+
+
+# -- the time sync: a far-future stamp is refused, not kept for good ---------------------------------------------
+def test_far_future_nav_stamp_is_refused_and_does_not_blind_the_sync():
+    now = [1_700_000_000_000_000]
+    q, p = [1.0, 0, 0, 0], [0.0, 0.0, -10.0]
+    real = [now[0] - 1_000_000 + k * 50_000 for k in range(20)]
+    frame_us = real[-1] + 25_000              # a frame just after the newest nav sample: its bracket is not there yet
+
+    def filled(buf):
+        for t in real:
+            buf.add(t, q, p)
+        return buf
+
+    buf = filled(NavBuffer(clock_us=lambda: now[0], max_future_us=5_000_000))
+    buf.add(now[0] + 5_000_000, q, p)         # exactly at the limit: kept
+    assert buf.counts["future_stamp"] == 0
+    buf = filled(NavBuffer(clock_us=lambda: now[0], max_future_us=5_000_000))
+    buf.add(now[0] + 5_000_001, q, p)         # beyond: refused
+    buf.add(2 ** 62 - 1, q, p)
+    assert buf.counts["future_stamp"] == 2
+    assert buf.decide(frame_us).state == "wait"           # waits for its bracket, as without the bogus samples
+    buf.add(real[-1] + 50_000, q, p)
+    assert buf.pose_at(frame_us).ok
+    # without the limit the bogus sample is taken as the newest: the frame is bracketed with it and lost as a gap
+    blind = filled(NavBuffer())
+    blind.add(2 ** 62 - 1, q, p)
+    assert blind.decide(frame_us).state != "wait" and not blind.pose_at(frame_us).ok
+
+
+# -- real processes on a real bus ---------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _services():
+    from tests.test_locator_service import locator_and_obstacles
+    with locator_and_obstacles(("--fusion", "off")) as ctx:
+        yield ctx
+
+
+def test_locator_and_obstacles_survive_the_payloads_that_killed_them():
+    from eonav.app.processes import drain, stop_service, wait_until
+    from eonav.sim.flight import render_flight
+    from tests.test_locator_service import VEHICLE, latest_health, posed_frame_payload
+
+    frames = list(render_flight("approach", n_frames=2, rate_hz=4.0, size=128, t0_s=3.0, seed=1))
+    with _services() as (s, procs, maps_sub, obs_sub, health_sub):
+        health = []
+        frame_pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
+        map_pub = s.declare_publisher(K.range_map(VEHICLE, "nose"))
+        wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))), timeout=60,
+                   what="both services up")
+        wait_until(lambda: frame_pub.matching_status.matching and map_pub.matching_status.matching, timeout=10,
+                   what="subscribers")
+        time.sleep(0.3)
+
+        def counters(name):
+            return latest_health(drain(health_sub, health)).get(name, {}).get("counters", {})
+
+        bad_frames = [posed(image=arr(np.zeros((3, 4, 3), t)), encoding="bgr8") for t in (np.float64, np.int32)]
+        bad_frames += [posed(seq=2 ** 64 - 1), posed(stamp_us=2 ** 63), posed(position_ned_m=[1e300, 0, 0]),
+                       posed(camera=dict(CAM, width=10 ** 9))]
+        for i, p in enumerate(bad_frames):
+            frame_pub.put(p)
+            wait_until(lambda: counters("locator").get("decode_errors", 0) >= i + 1, timeout=10,
+                       what=f"bad posed frame {i} counted")
+        map_pub.put(range_map(flags=arr(np.ones((3, 4), np.float32))))
+        wait_until(lambda: counters("obstacles").get("decode_errors", 0) >= 1, timeout=10, what="bad map counted")
+
+        # still alive and still working: a good pair gives a range map, and the map an obstacle list
+        drain(maps_sub)                       # (the bad map itself, put on the map key above)
+        t_us = time.time_ns() // 1000
+        for i, (t_s, view, _) in enumerate(frames):
+            frame_pub.put(posed_frame_payload(i, t_us + i * 250_000, view))
+            time.sleep(0.3)
+        maps = []
+        wait_until(lambda: any(schema.decode(m.payload.to_bytes())["method"] == "dense" for m in drain(maps_sub, maps)),
+                   timeout=30, what="a range map after the bad frames")
+        wait_until(lambda: drain(obs_sub), timeout=30, what="an obstacle list after the bad map")
+        loc, obs = counters("locator"), counters("obstacles")
+        assert loc["decode_errors"] == 6 and loc["rejected.range"] == 6 and loc.get("message_errors", 0) == 0
+        assert obs["decode_errors"] == 1 and obs["rejected.range"] == 1
+        h = latest_health(drain(health_sub, health))
+        assert h["locator"]["state"] == "ok" and h["obstacles"]["state"] == "ok"
+        for name in ("locator", "obstacles"):
+            code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
+            assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
