@@ -83,7 +83,7 @@ def all_parsers() -> dict:
         out[f"eonav {cmd}"] = sp
         for sub, ssp in _subparsers(sp):
             out[f"eonav {cmd} {sub}"] = ssp
-    for module in ("eonav.bus.router", "eonav.app.demo"):          # python -m ...
+    for module in ("eonav.bus.router", "eonav.app.demo", "eonav.app.bench_tracking"):          # python -m ...
         out[module] = argparse.ArgumentParser()
         importlib.import_module(module).add_arguments(out[module])
     return out
@@ -154,11 +154,11 @@ def test_one_name_per_concept():
         for label in labels:
             names = {s for a in visible(PARSERS[label]) for s in a.option_strings}
             assert flag in names, f"{label}: {flag} missing"
-    # the same name means the same thing everywhere: same type and metavar
+    # the same name means the same thing everywhere: same kind of flag, same unit
     kinds = {}
     for label, p in PARSERS.items():
         for a in visible(p):
-            kind = (a.type, a.metavar, type(a).__name__)
+            kind = (type(a).__name__, sorted(t for t in re.split(r"[|,]", a.metavar or "") if t in UNITS))
             for s in a.option_strings:
                 if s in ("-v", "--verbose", "--json", "--out", "--png", "--size", "--repeat", "--methods", "--method",
                          "--presets", "--seed", "--scale", "--camera"):
@@ -178,6 +178,9 @@ def test_one_name_per_concept():
         assert not any(n in names for n, _ in visible_names), names
 
 
+REQUIRED = {"eonav locate": ["pair.json", "--out", "x.npz"], "eonav fuse": ["seq.json", "--out", "x.npz"]}
+
+
 def _sample(a) -> list:
     if a.nargs == 0:
         return []
@@ -193,7 +196,7 @@ def test_old_spellings_parse_to_the_same_value():
         for old in hidden(p):
             new = new_by_dest[old.dest]
             v = _sample(new)
-            prefix = ["pair.json", "--out", "x.npz"] if label == "eonav locate" else []
+            prefix = REQUIRED.get(label, [])
             a_new = p.parse_args(prefix + [new.option_strings[0], *v])
             a_old = p.parse_args(prefix + [old.option_strings[0], *v])
             assert vars(a_old) == vars(a_new), (label, old.option_strings, new.option_strings)
@@ -204,7 +207,7 @@ def test_old_spellings_parse_to_the_same_value():
 
 def test_locate_old_threads_zero_still_means_opencv_default():
     p = PARSERS["eonav locate"]
-    base = ["pair.json", "--out", "x.npz"]
+    base = REQUIRED["eonav locate"]
     assert p.parse_args(base + ["--threads", "0"]).cv_threads == -1 == p.parse_args(base).cv_threads
     assert p.parse_args(base + ["--cv-threads", "0"]).cv_threads == 0
 
