@@ -60,20 +60,20 @@ def test_malformed_payloads_are_rejected_with_a_reason(payload, match):
         schema.decode(payload)
 
 
-@pytest.mark.parametrize("extra", [-4, -1, 0, 1, 4])
+@pytest.mark.parametrize("extra", [-6, -1, 0, 1, 6])
 def test_array_data_must_have_exactly_the_size_of_its_shape(extra):
-    """float32 2 x 3 needs 24 bytes: one byte more or less (or a whole element) is a SchemaError naming the sizes;
-    exactly 24 decodes to the array."""
-    a = np.arange(6, dtype="<f4").reshape(2, 3)
+    """A mono8 4 x 6 image needs 24 bytes: one byte or one row more or less is a SchemaError naming the sizes;
+    exactly 24 decodes to the image."""
+    a = np.arange(24, dtype=np.uint8).reshape(4, 6)
     data = a.tobytes() + b"\0" * max(extra, 0)
     data = data[:len(data) + extra] if extra < 0 else data
     payload = raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": 1, "stamp_us": 1,
-                   "image": {"dtype": "float32", "shape": [2, 3], "data": data}})
+                   "image": {"dtype": "uint8", "shape": [4, 6], "data": data}})
     if extra == 0:
         np.testing.assert_array_equal(schema.decode(payload)["image"], a)
     else:
-        with pytest.raises(SchemaError, match=rf"field frame\.image: {24 + extra} bytes but dtype float32 x shape "
-                                              rf"\[2, 3\] needs 24"):
+        with pytest.raises(SchemaError, match=rf"field frame\.image: {24 + extra} bytes but dtype uint8 x shape "
+                                              rf"\[4, 6\] needs 24"):
             schema.decode(payload)
 
 
