@@ -7,6 +7,11 @@ which says where the stamp came from: a recorded stamp, the stream's PTS, the V4
 rate, or the host clock right after ``grab()`` (decode time kept out of the stamp). Replays of one recording given
 the same ``--replay-shift-us`` stay aligned with each other. The publisher drops frames rather than queueing them.
 
+With ``--cameras FILE`` (the cameras file the sync reads) a camera whose entry has a lens model is undistorted
+to its pinhole camera (tables built once, one ``cv2.remap`` a frame; ``eonav.io.calibration``), and each stamp
+moves by the entry's ``time_offset_s`` plus half of ``--exposure-us`` to the middle of the exposure
+(docs/cameras.md).
+
 :func:`capture_loop` runs over an injected source, sink and metrics object, testable without zenoh or a camera.
 """
 from __future__ import annotations
@@ -409,12 +414,13 @@ class CaptureStats:
 def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, camera_id: str,
                  encoding: str = "mono8", width: int | None = None, height: int | None = None,
                  metrics=None, stop: threading.Event | None = None,
-                 monotonic: Callable[[], float] = time.monotonic) -> CaptureStats:
+                 monotonic: Callable[[], float] = time.monotonic, correct: Callable | None = None) -> CaptureStats:
     """Turn source frames into schema "frame" fields and hand them to ``sink``.
 
     Skips (and counts) unreadable frames (``corrupt_frames``) and, when ``width``/``height`` are given,
-    frames of another size (``wrong_size``). ``seq`` numbers published frames from 0. Returns when
-    ``frames`` is exhausted or ``stop`` is set."""
+    frames of another size (``wrong_size``). ``correct(image, stamp_us) -> (image, stamp_us)`` (a
+    ``eonav.io.calibration.FrameCorrection``) undistorts and re-stamps each kept frame. ``seq`` numbers published
+    frames from 0. Returns when ``frames`` is exhausted or ``stop`` is set."""
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding {encoding!r}: expected one of {ENCODINGS}")
     m = metrics or NullMetrics()
@@ -443,15 +449,18 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
             m.log_limited("size", logging.WARNING, "skipped frame %d %s: %dx%d, expected %sx%s",
                           f.index, f.name, w, h, width or "*", height or "*")
             continue
-        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": int(f.stamp_us),
+        stamp_us = int(f.stamp_us)
+        if correct is not None:
+            img, stamp_us = correct(img, stamp_us)
+        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": stamp_us,
               "stamp_source": f.stamp_source, "encoding": encoding, "image": img,
               "source_pts_us": int(f.source_pts_us)})
         m.latency("grab_to_put", monotonic() - f.grab_mono)
         m.tick("frames")
-        if st.last_stamp_us >= 0 and f.stamp_us <= st.last_stamp_us:
+        if st.last_stamp_us >= 0 and stamp_us <= st.last_stamp_us:
             m.count("nonincreasing_stamps")
         st.published += 1
-        st.last_stamp_us = int(f.stamp_us)
+        st.last_stamp_us = stamp_us
     return st
 
 
@@ -504,6 +513,10 @@ def add_arguments(p) -> None:
     add_flag(g, "--wait-subscribers-s", env="EONAV_CAMERA_WAIT_SUBSCRIBERS_S", default=2.0, type=float, metavar="S",
              help="file sources: wait up to S s for a subscriber before the first frame (declaration race)",
              aliases="--wait-subscribers", old_env="EONAV_CAMERA_WAIT_SUBSCRIBERS")
+    add_flag(g, "--cameras", env="EONAV_CAMERA_CAMERAS", default=None, metavar="FILE",
+             help="cameras file (as the sync's): this camera's lens model (frames undistorted) and time_offset_s")
+    add_flag(g, "--exposure-us", env="EONAV_CAMERA_EXPOSURE_US", default=None, type=float, metavar="US",
+             help="known exposure time: stamps move by half of it to the middle of the exposure")
     add_flag(g, "--fourcc", env="EONAV_CAMERA_FOURCC", default=None, help="V4L2 pixel format, e.g. MJPG")
     add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, metavar="FPS",
              help="V4L2 frame rate to request")
@@ -513,6 +526,27 @@ def add_arguments(p) -> None:
              aliases="--live-timeout", old_env="EONAV_CAMERA_LIVE_TIMEOUT")
     add_flag(g, "--open-timeout-s", env="EONAV_CAMERA_OPEN_TIMEOUT_S", default=10.0, type=float, metavar="S",
              help="network streams: open/read timeout", aliases="--open-timeout", old_env="EONAV_CAMERA_OPEN_TIMEOUT")
+
+
+def camera_correction(args):
+    """The ``FrameCorrection`` of ``--cameras`` / ``--exposure-us`` (None when neither is given). The camera's
+    calibrated size becomes ``--width``/``--height`` (requested from V4L2; other sizes are skipped)."""
+    from eonav.io.calibration import frame_correction
+    exposure_s = None if args.exposure_us is None else args.exposure_us / 1e6
+    if not args.cameras:
+        return None if exposure_s is None else frame_correction(None, 0.0, exposure_s)
+    from eonav.io.pairfile import load_camera_models
+    models = load_camera_models(args.cameras, "--cameras")
+    if args.camera_id not in models:
+        raise InputError(f"--cameras {args.cameras}: no camera {args.camera_id!r} (has {sorted(models)})")
+    m = models[args.camera_id]
+    for flag, want in (("width", m.camera.width), ("height", m.camera.height)):
+        if getattr(args, flag) is None:
+            setattr(args, flag, want)
+        elif getattr(args, flag) != want:
+            raise InputError(f"--{flag} {getattr(args, flag)}: camera {args.camera_id!r} in --cameras is "
+                             f"{m.camera.width}x{m.camera.height}")
+    return frame_correction(m.undistort, m.time_offset_s, exposure_s)
 
 
 def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | None = None) -> Iterator[RawFrame]:
@@ -538,11 +572,15 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
 def body(node: Node, args) -> None:
     K.check_chunk(args.camera_id, "--camera-id")
     kind = classify_source(args.source) if args.source else None
+    correct = camera_correction(args)
     frames = make_frames(args, stop=node.stop_event)
     key = K.frame(node.vehicle, args.camera_id)
     pub = node.publisher(key, image=True)
     node.log.info("camera %s: %s source %s -> %s (%s, rate %s)", args.camera_id, kind, args.source, key,
                   args.encoding, args.rate_hz)
+    if correct is not None:
+        node.log.info("camera %s: %s, stamps %+d us", args.camera_id,
+                      "undistorted" if correct.undistort is not None else "pinhole", correct.shift_us)
 
     def sink(fields):
         node.put(pub, "frame", **fields)
@@ -552,7 +590,7 @@ def body(node: Node, args) -> None:
             if not node.wait_matching(pub, args.wait_subscribers_s):
                 node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers_s)
         st = capture_loop(frames, sink, camera_id=args.camera_id, encoding=args.encoding, width=args.width,
-                          height=args.height, metrics=node, stop=node.stop_event)
+                          height=args.height, metrics=node, stop=node.stop_event, correct=correct)
         if node.stop_event.is_set():
             return
         if st.published == 0 and st.corrupt + st.wrong_size > 0:

@@ -6,7 +6,10 @@ Live or recorded is one flag: ``--source`` takes any pymavlink connection string
 NaN), and ``clock_offset`` on ``keys.nav_clock(vehicle)``. Every ``stamp_us`` is autopilot time mapped onto the
 companion clock by the estimated offset; decoding, validation and the clock estimators are ``eonav.nav.mavlink_in``
 (docs/mavlink.md). A tlog replays at real time or a speed factor with its header times moved onto the current clock
-(exit 0 at its end); a live link also gets a companion HEARTBEAT and TIMESYNC requests.
+(exit 0 at its end); a live link also gets a companion HEARTBEAT and TIMESYNC requests. A live link that is not up yet or drops
+(serial device absent, TCP refused, UDP peer silent) is re-opened with back-off (``eonav.nav.links``) and the
+health says ``degraded`` until the autopilot is heard; only a malformed connection string is a configuration
+error (exit 2).
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ from pathlib import Path
 from eonav import InputError
 from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, service_main
+from eonav.nav.links import MavLink
 from eonav.nav.mavlink_in import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
 
 log = logging.getLogger(__name__)
@@ -247,28 +251,22 @@ def _run_tlog(node: Node, args, pub: Publisher) -> None:
 
 def _start_live(node: Node, args, pub: Publisher) -> None:
     mavutil = mavutil_v2()
-    try:
-        conn = mavutil.mavlink_connection(args.source, baud=args.baud, source_system=args.source_system,
-                                          source_component=COMPANION_COMPONENT, dialect="ardupilotmega",
-                                          autoreconnect=True)
-    except Exception as e:
-        raise InputError(f"--source {args.source}: cannot open ({type(e).__name__}: {e})") from None
+    link = MavLink(args.source, what="--source", baud=args.baud, source_system=args.source_system,
+                   source_component=COMPANION_COMPONENT, dialect="ardupilotmega", count=node.count)
     send_lock = threading.Lock()
     mav = mavutil.mavlink
 
     def receive():
+        state = None
         while not node.stop_event.is_set():
-            try:
-                m = conn.recv_match(blocking=True, timeout=0.2)
-            except Exception as e:      # link errors: keep trying (autoreconnect for tcp)
-                node.count("link_errors")
-                node.log_limited("recv", logging.WARNING, "link error: %s", e)
-                node.stop_event.wait(0.2)
-                continue
-            if m is None:
-                continue
-            pub.feed(m, now_us())
-        conn.close()
+            m = link.recv(0.2, node.stop_event)       # opens / re-opens the link with back-off (eonav.nav.links)
+            if m is not None:
+                pub.feed(m, now_us())
+            now_state, detail = link.status()
+            if now_state != state:                    # down / silent: degraded until the autopilot is heard
+                node.set_state("ok" if now_state == "up" else "degraded", detail)
+                state = now_state
+        link.close()
 
     def send():
         next_hb = next_ts = next_req = time.monotonic()
@@ -278,23 +276,23 @@ def _start_live(node: Node, args, pub: Publisher) -> None:
             try:
                 if t >= next_hb:
                     with send_lock:
-                        conn.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0,
-                                                mav.MAV_STATE_ACTIVE)
+                        link.send(lambda c: c.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER,
+                                                                 mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
                     next_hb = t + 1.0
-                if ts_period and t >= next_ts:
+                if ts_period and t >= next_ts and link.conn is not None:
                     with pub.lock:
                         ts1 = pub.ingest.mapper.timesync.request(time.time_ns())
                     with send_lock:
-                        conn.mav.timesync_send(0, ts1)
-                    node.count("timesync_sent")
+                        if link.send(lambda c: c.mav.timesync_send(0, ts1)):
+                            node.count("timesync_sent")
                     next_ts = t + ts_period
                 sysid = pub.ingest.decoder.system_id
                 if args.request_streams and sysid is not None and t >= next_req:
                     for name, msg_id in STREAM_IDS.items():
                         hz = 1.0 if name == "SYSTEM_TIME" else args.stream_hz
                         with send_lock:
-                            conn.mav.command_long_send(sysid, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                                       msg_id, int(1e6 / hz), 0, 0, 0, 0, 0)
+                            link.send(lambda c: c.mav.command_long_send(sysid, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                                                        0, msg_id, int(1e6 / hz), 0, 0, 0, 0, 0))
                     node.count("stream_requests")
                     next_req = t + 30.0
             except Exception as e:

@@ -10,7 +10,8 @@ Decisions: the sectors sent to the autopilot are re-referenced to the latest nav
 (the autopilot applies them where it is on arrival); a stall sends one all-unknown message and then silence, so the
 autopilot sees a dead sensor, not an empty sky. Each map is read on its own grid with its own ``camera``; a map
 whose arrays or frame size do not fit that camera is rejected and counted. ``analyse`` is warmed up once on a
-synthetic map before the first real one.
+synthetic map before the first real one. An output link that is not up (refused, device absent) or whose
+autopilot is not heard is retried with back-off and makes the health ``degraded`` (``eonav.nav.links``).
 """
 from __future__ import annotations
 
@@ -208,11 +209,15 @@ def body(node: Node, args) -> None:
     if sender is not None:
         def send_loop():
             try:
-                last = 0.0
+                last, link_state = 0.0, None
                 while not node.stop_event.wait(sender.tick()):
                     if time.monotonic() - last >= 0.5:
                         last = time.monotonic()
                         mirror_counters(node, sender)
+                        state, detail = sender.link_status()     # autopilot link down / not heard: degraded
+                        if state != link_state:
+                            node.set_state("ok" if state == "up" else "degraded", detail)
+                            link_state = state
             finally:
                 mirror_counters(node, sender)
                 sender.close()

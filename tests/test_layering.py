@@ -19,7 +19,7 @@ ALLOWED = {
     "nav": {"geometry", "obstacles"},
     "bus": {"geometry", "io"},
     "sim": {"geometry", "io", "nav"},
-    "recording": {"bus", "geometry", "io"},
+    "recording": {"bus", "geometry", "io", "ranging"},
     "services": {"bus", "geometry", "io", "nav", "obstacles", "ranging", "fusion"},
     "app": None,                                   # the top: anything
     None: set(),                                   # eonav/__init__.py: the error types only

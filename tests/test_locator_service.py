@@ -197,8 +197,13 @@ def test_locator_and_obstacles_services(flight_frames):
             assert sum(set(m.distances) == {65535} for _, m in od) == 1
             assert rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.7) is None   # ... then silence
 
-            # -- health --------------------------------------------------------------------------------
+            # -- health: degraded while the autopilot is not heard on the output link, ok once it is ----------
             time.sleep(0.5)
+            obs = latest_health(drain(health_sub, health))["obstacles"]
+            assert obs["state"] == "degraded" and "no MAVLink" in obs["detail"], obs
+            rx.mav.heartbeat_send(2, 3, 0, 0, 4)                        # the autopilot's HEARTBEAT back
+            wait_until(lambda: latest_health(drain(health_sub, health))["obstacles"]["state"] == "ok", timeout=5,
+                       what="obstacles ok once the autopilot is heard")
             h = latest_health(drain(health_sub, health))
             loc, obs = h["locator"], h["obstacles"]
             assert loc["state"] == "ok" and obs["state"] == "ok"

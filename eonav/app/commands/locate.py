@@ -95,7 +95,7 @@ def run(args) -> int:
               f"{100 * s['within_5pct']:.1f} % of estimates within 5 %, coverage {100 * s['coverage']:.1f} % "
               f"of {s['scene_pixels']} non-sky pixels")
     if args.png:
-        from eonav.app.viz import write_range_png
+        from eonav.io.viz import write_range_png
         write_range_png(args.png, r, a.image, confidence=res.confidence)
         print(f"picture -> {args.png}")
     if args.timing:

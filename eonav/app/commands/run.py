@@ -35,6 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--watch", action="store_true",
                    help="start nothing: show the status of the services already on the bus (use with --router)")
     p.add_argument("--print-spec", action="store_true", help="print the effective pipeline spec as JSON and exit")
+    add_flag(p, "--record", env="EONAV_RECORD", default=None, metavar="FILE.mcap",
+             help="also record everything on the bus into this MCAP file (eonav record; the demo too)")
 
 
 def run(args) -> int:
@@ -54,4 +56,5 @@ def run(args) -> int:
         return 0
     return run_pipeline(spec, vehicle=args.vehicle, port=args.port, duration=args.duration_s,
                         exit_when_done=args.exit_when_done, router=args.router, grace_s=args.grace_s,
-                        quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config)
+                        quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config,
+                        record=args.record)
