@@ -178,7 +178,8 @@ def test_one_name_per_concept():
         assert not any(n in names for n, _ in visible_names), names
 
 
-REQUIRED = {"eonav locate": ["pair.json", "--out", "x.npz"], "eonav fuse": ["seq.json", "--out", "x.npz"]}
+REQUIRED = {"eonav locate": ["pair.json", "--out", "x.npz"], "eonav fuse": ["seq.json", "--out", "x.npz"],
+            "eonav record": ["out.mcap"], "eonav replay": ["in.mcap"]}
 
 
 def _sample(a) -> list:
