@@ -178,8 +178,7 @@ def test_hover_invents_no_range():
 
 def test_confidence_ranks_errors():
     """High-confidence pixels have lower errors than low-confidence ones (measured: median error ratio
-    0.36-0.37), and the reported sigma is calibrated (robust spread of (rho - rho_true) / sigma measured
-    1.11-1.12 at 256 px, 0.8-1.1 over the 512 px presets)."""
+    0.36-0.37)."""
     sp = sim("fast")
     gt = sp.truth[0].range_m
     res = locate_dense(*sp.views)
@@ -191,9 +190,32 @@ def test_confidence_ranks_errors():
     q = np.quantile(c, [0.0, 0.25, 0.5, 0.75, 1.0])
     meds = [np.median(e[(c >= lo) & (c <= up)]) for lo, up in zip(q[:-1], q[1:])]
     assert meds[0] > meds[-1]
-    z = (res.inv_range_per_m[fin] - 1.0 / gt[fin]) / res.inv_range_std_per_m[fin]
-    spread = 1.4826 * np.median(np.abs(z - np.median(z)))
-    assert 0.75 < spread < 1.5
+
+
+def z_spread(res, gt, mask):
+    """Robust spread (1.4826 x median absolute deviation) of z = (rho - rho_true) / sigma over ``mask``: 1 for a
+    calibrated sigma, above 1 when the sigma is too small."""
+    z = (res.inv_range_per_m[mask] - 1.0 / gt[mask]) / res.inv_range_std_per_m[mask]
+    return 1.4826 * np.median(np.abs(z - np.median(z)))
+
+
+def test_reported_sigma_is_calibrated():
+    """The sigma of VALID pixels against the truth, on every motion preset and the stereo rig at 256 px (23-30k
+    pixels each; the noise seed moves a spread by <= 0.03). Measured z spread: fast 1.17, paper 1.21, turning 0.85,
+    climbing 1.02, stereo 1.32; geometric mean 1.10 (std_scale was calibrated at 512 px, where it is 1.02). The
+    mean's band holds 1 and the measured value and fails for the sigma scaled by 1.2 (0.92) or 0.8 (1.38); each
+    scene within -25 / +40 %. (FILLED pixels have the fill's own sigma: tests/test_fill.py.)"""
+    spreads = {}
+    for preset in ("fast", "paper", "turning", "climbing", "stereo"):
+        sp = sim(preset)
+        gt = sp.truth[0].range_m
+        res = locate_dense(*sp.views[:2])
+        valid = ((res.flags & VALID) != 0) & np.isfinite(res.range_m) & np.isfinite(gt)
+        assert valid.sum() > 20000, preset
+        spreads[preset] = z_spread(res, gt, valid)
+    mean = float(np.exp(np.mean(np.log(list(spreads.values())))))
+    assert 0.95 < mean < 1.27, (mean, spreads)
+    assert all(0.75 < s < 1.4 for s in spreads.values()), spreads
 
 
 def test_paper_preset_vehicles():

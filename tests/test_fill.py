@@ -114,8 +114,9 @@ def turning():
 
 def test_dense_fill_on_a_turning_flight(turning):
     """The issue's target on the turning flight: a finite range for >= 90 % of the non-sky pixels at a median error
-    <= 1 % (measured 90.8 % at 0.74 %; measured only: 75.3 % at 0.76 %); the FILLED pixels' sigma is calibrated
-    (robust z spread 0.79, 98.5 % within 2 sigma)."""
+    <= 1 % (measured 90.8 % at 0.74 %; measured only: 75.3 % at 0.76 %); the FILLED pixels' sigma is not too small
+    (robust z spread 0.79 <= 1, 98.3 % within 2 sigma; with the sigma scaled by 0.75 the spread would be 1.05). It is
+    too large: see test_filled_sigma_is_calibrated."""
     sp, res = turning
     truth = sp.truth[0].range_m
     ground = np.isfinite(truth)
@@ -127,9 +128,21 @@ def test_dense_fill_on_a_turning_flight(turning):
     assert filled.sum() / ground.sum() > 0.10
     z = (res.inv_range_per_m[filled] - 1 / truth[filled]) / res.inv_range_std_per_m[filled]
     spread = 1.4826 * np.median(np.abs(z - np.median(z)))
-    assert 0.5 < spread < 1.3
-    assert np.mean(np.abs(z) < 2) > 0.9
+    assert 0.5 < spread <= 1.0
+    assert np.mean(np.abs(z) < 2) > 0.954                 # a Gaussian's share within 2 sigma
     assert not ((res.flags & FILLED) & (res.flags & VALID)).any()
+
+
+@pytest.mark.xfail(strict=True, reason="the FILLED sigma over-reports: z spread 0.79 here, 0.56-1.07 over the sim "
+                                       "presets at 256 and 512 px (geometric means 0.75 and 0.67), 0.14 on a plane "
+                                       "with white noise of known sigma")
+def test_filled_sigma_is_calibrated(turning):
+    """A calibrated sigma gives a robust z spread of 1 (band 0.85-1.18 fails for a sigma 25 % off either way)."""
+    sp, res = turning
+    truth = sp.truth[0].range_m
+    filled = np.isfinite(truth) & ((res.flags & FILLED) != 0)
+    z = (res.inv_range_per_m[filled] - 1 / truth[filled]) / res.inv_range_std_per_m[filled]
+    assert 0.85 < 1.4826 * np.median(np.abs(z - np.median(z))) < 1.18
 
 
 def test_fill_off_leaves_unmeasured_pixels_empty(turning):
