@@ -100,7 +100,7 @@ def test_frame_age_field_on_range_maps_and_obstacle_lists():
 # ---- the node's input watch ------------------------------------------------------------------------------------
 
 def _node(grace_s=10.0):
-    args = argparse.Namespace(vehicle="v", input_grace_s=grace_s, health_period=1.0)
+    args = argparse.Namespace(vehicle="v", input_grace_s=grace_s, health_period_s=1.0)
     n = Node("svc", args, session=None, log=logging.getLogger("test.staleness"))
     return n
 
@@ -159,7 +159,7 @@ def test_health_timer_publishes_at_once_when_an_input_falls_silent():
             self.got.append(schema.decode(payload, expect="health"))
 
     n = _node()
-    n.args.health_period = 30.0                                         # the periodic message would be far away
+    n.args.health_period_s = 30.0                                         # the periodic message would be far away
     n._health_pub = pub = Pub()
     n.expect_input("frames", 0.2)
     n.input_seen("frames")
@@ -283,7 +283,7 @@ def test_tlog_replay_restarted_midway_fast_forwards_and_resumes(tmp_path):
 
     shift = NOW_US - C.RESUME_LATE_US - first_hdr - 1_500_000          # restarted 1.6 s into the recording
     fed, skipped = [], []
-    MI.replay_tlog(p, lambda m, rx: fed.append(rx), rate=1.0, stop=threading.Event(), clock=lambda: now["us"],
+    MI.replay_tlog(p, lambda m, rx: fed.append(rx), speed=1.0, stop=threading.Event(), clock=lambda: now["us"],
                    sleep=sleep, shift_us=shift, skip=lambda m, rx: skipped.append(rx))
     assert skipped and fed
     assert max(skipped) < NOW_US - C.RESUME_LATE_US <= min(fed)        # nothing older than the limit is fed
