@@ -349,7 +349,7 @@ def main(argv=None) -> int:
 
 def _pct(errs, q):
     a = np.abs(np.asarray(errs, float))
-    return float(np.percentile(a, q)) if a.size else math.nan
+    return float(np.percentile(a, q, method="nearest")) if a.size else math.nan
 
 
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict:
