@@ -286,7 +286,7 @@ def analyse_msg(ob, msg: dict, cam, state, cfg, now_state=None):
     size (0 x 0 from older locators: the map is on the frame's grid) makes the pixel counts frame pixels."""
     return ob.analyse(msg["range_m"], cam, state, confidence=msg["confidence"], flags=msg["flags"],
                       inv_range_std_per_m=msg["inv_range_std_per_m"], cfg=cfg, now_state=now_state,
-                      frame_size=(msg.get("frame_width", 0), msg.get("frame_height", 0)))
+                      frame_size=(msg.get("frame_width", 0), msg.get("frame_height", 0)), n_fused=msg.get("n_fused"))
 
 
 def synthetic_map(width: int = 160, height: int = 120) -> dict:

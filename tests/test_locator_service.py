@@ -54,6 +54,16 @@ def latest_health(samples):
     return out
 
 
+def frame_publisher_when_up(s, health_sub, health: list):
+    """A posed-frame publisher for camera "nose", once both services sent health and the locator subscribed."""
+    pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
+    wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
+               timeout=30, what="both services' first health message")
+    wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
+    time.sleep(0.3)
+    return pub
+
+
 @contextlib.contextmanager
 def locator_and_obstacles(locator_args=(), obstacles_args=()):
     """A router; a client session subscribed to range maps, obstacle lists and health; the locator and the obstacle
@@ -99,12 +109,8 @@ def test_locator_and_obstacles_services(flight_frames):
     try:
         with locator_and_obstacles(("--fusion", "off"), ("--mavlink-out", f"udpout:127.0.0.1:{udp}")) as (
                 s, procs, maps_sub, obs_sub, health_sub):
-            pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
             health = []
-            wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
-                       timeout=30, what="both services' first health message")
-            wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
-            time.sleep(0.3)
+            pub = frame_publisher_when_up(s, health_sub, health)
             def locator_counters():
                 return latest_health(drain(health_sub, health)).get("locator", {}).get("counters", {})
 
@@ -447,12 +453,8 @@ def test_locator_publishes_fused_maps(flight_frames):
     # the first fused map pays the load of the fusion kernels (numba cache), past the default age limit on a loaded
     # machine: this test is about what fusion computes (the age limit has its own tests, test_staleness.py)
     with locator_and_obstacles(("--max-input-age-ms", "10000")) as (s, procs, maps_sub, obs_sub, health_sub):
-        pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
         health = []
-        wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
-                   timeout=30, what="both services' first health message")
-        wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
-        time.sleep(0.3)
+        pub = frame_publisher_when_up(s, health_sub, health)
 
         def counters():
             return latest_health(drain(health_sub, health)).get("locator", {}).get("counters", {})

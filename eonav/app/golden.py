@@ -175,9 +175,10 @@ def run_services(inputs_mcap, work_dir, *, speed: float = 1.0, timeout_s: float 
             except Exception:
                 rc = None
             codes["replay"] = rc if rc is not None else stop_service(replay)[0]
-            # drained: nothing new for 2 s (the locator ranges the last frame within ~0.1 s)
+            # drained: nothing new for 5 s (the locator ranges the last frame within ~0.1 s on a quiet machine, but a
+            # loaded 2-core machine has been seen to take over 2 s)
             last, t_last = -1, time.monotonic()
-            while time.monotonic() - t_last < 2.0 and time.monotonic() < deadline:
+            while time.monotonic() - t_last < 5.0 and time.monotonic() < deadline:
                 with lock:
                     n = len(out["range_maps"]) + len(out["obstacle_lists"])
                 if n != last:
