@@ -105,7 +105,13 @@ def obstacle_config(args):
 
 
 class LatestNav:
-    """The newest nav_state (pose + stamp), filled by a worker; read by the obstacle loop."""
+    """The vehicle's newest pose, filled by the nav worker, read by the obstacle loop and guidance.
+
+    The MAVLink ingest publishes attitude and position as separate nav_state messages (one autopilot message each),
+    so the newest attitude and the newest position are kept apart and joined when their stamps are within
+    ``MAX_PART_SKEW_US``: the pose then carries the newer stamp."""
+
+    MAX_PART_SKEW_US = 200_000
 
     def __init__(self):
         import threading
@@ -113,13 +119,29 @@ class LatestNav:
         self.state = None
         self.stamp_us = None
         self.velocity_ned_mps = np.full(3, np.nan)
+        self._q = self._p = None             # (stamp_us, value) of the newest attitude / position (+ velocity)
 
-    def set(self, state, stamp_us, velocity_ned_mps=None):
+    def add(self, stamp_us: int, q_wxyz=None, position_ned_m=None, velocity_ned_mps=None) -> bool:
+        """One nav_state's known parts (None or NaN: absent). True when a whole pose could be formed."""
+        from eonav.geometry.camera import VehicleState
+        t = int(stamp_us)
         with self._lock:
-            if self.stamp_us is None or stamp_us >= self.stamp_us:
-                self.state, self.stamp_us = state, stamp_us
-                v = np.asarray(velocity_ned_mps if velocity_ned_mps is not None else [np.nan] * 3, float)
-                self.velocity_ned_mps = v if np.all(np.isfinite(v)) else np.full(3, np.nan)
+            if q_wxyz is not None and np.all(np.isfinite(q_wxyz)) and abs(np.linalg.norm(q_wxyz) - 1) < 1e-3:
+                if self._q is None or t >= self._q[0]:
+                    self._q = (t, np.asarray(q_wxyz, float))
+            if position_ned_m is not None and np.all(np.isfinite(position_ned_m)):
+                if self._p is None or t >= self._p[0]:
+                    v = np.asarray(velocity_ned_mps if velocity_ned_mps is not None else [np.nan] * 3, float)
+                    self._p = (t, np.asarray(position_ned_m, float), v if np.all(np.isfinite(v)) else None)
+            if self._q is None or self._p is None or abs(self._q[0] - self._p[0]) > self.MAX_PART_SKEW_US:
+                return False
+            stamp = max(self._q[0], self._p[0])
+            if self.stamp_us is None or stamp >= self.stamp_us:
+                self.state = VehicleState.from_quat(self._p[1], self._q[1])
+                self.stamp_us = stamp
+                if self._p[2] is not None:
+                    self.velocity_ned_mps = self._p[2]
+            return True
 
     def get(self):
         with self._lock:
@@ -247,18 +269,13 @@ def mirror_counters(node: Node, sender) -> None:
 
 
 def nav_loop(node: Node, sub, nav: LatestNav) -> None:
-    from eonav.geometry.camera import VehicleState
-
     def one(sample):
         msg = node.decode(sample, expect="nav_state")
         if msg is None:
             return
         node.input_seen("nav")
-        p, q = np.asarray(msg["position_ned_m"], float), np.asarray(msg["q_wxyz"], float)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
-            node.count("nav_incomplete")
-            return
-        nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]), msg["velocity_ned_mps"])
+        if not nav.add(msg["stamp_us"], msg["q_wxyz"], msg["position_ned_m"], msg["velocity_ned_mps"]):
+            node.count("nav_incomplete")             # no whole pose yet (or its parts too far apart in time)
 
     for sample in sub:
         node.guarded("nav_state", one, sample)

@@ -621,3 +621,26 @@ def test_pool_confident_matches_its_definition(k, q):
     assert grid == (-(-H // k), -(-W // k)) and cell.size == want_idx.size
     np.testing.assert_array_equal(idx, want_idx)
     np.testing.assert_array_equal(weight, want_w)
+
+
+def test_latest_nav_joins_attitude_and_position_messages():
+    """The MAVLink ingest sends attitude and position as separate nav_state messages: the obstacle service joins the
+    newest of each into one pose (stamped with the newer part) when they are within 200 ms of each other."""
+    from eonav.services.obstacles import LatestNav
+    nav = LatestNav()
+    nan3, nan4 = [math.nan] * 3, [math.nan] * 4
+    q_yaw90 = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]
+    assert not nav.add(1_000_000, q_yaw90, nan3, nan3)                 # attitude alone: no pose
+    assert nav.get() == (None, None)
+    assert nav.add(1_150_000, nan4, [10.0, 20.0, -5.0], [3.0, 0.0, 0.0])  # position 150 ms later: joined
+    state, stamp = nav.get()
+    assert stamp == 1_150_000 and state.position_ned_m == pytest.approx([10.0, 20.0, -5.0])
+    assert state.T_body_ned @ np.array([0.0, 1.0, 0.0]) == pytest.approx([1.0, 0.0, 0.0], abs=1e-9)   # east = nose
+    assert nav.ownship(None, -1).velocity_ned_mps == pytest.approx([3.0, 0.0, 0.0])
+    assert not nav.add(1_360_000, nan4, [11.0, 20.0, -5.0], nan3)      # 360 ms after the attitude: too far apart
+    assert nav.get()[1] == 1_150_000
+    assert nav.add(1_400_000, [1.0, 0.0, 0.0, 0.0], nan3, nan3)        # a new attitude 40 ms after it: joined again
+    state, stamp = nav.get()
+    assert stamp == 1_400_000 and state.position_ned_m[0] == pytest.approx(11.0)
+    nav.add(1_500_000, [2.0, 0.0, 0.0, 0.0], nan3, nan3)                # not a unit quaternion: ignored
+    assert nav.get()[1] == 1_400_000 and nav._q[0] == 1_400_000
