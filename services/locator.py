@@ -288,6 +288,8 @@ def body(node: Node, args) -> None:
     new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
     runner = fusion_runner(args, params)
+    if runner is not None:
+        warm_up_fusion(node, runner)
     key = K.posed_frame(node.vehicle, args.camera_id) if args.camera_id else K.posed_frames_all(node.vehicle)
     gate = FreshnessGate(args.max_input_age_ms / 1000.0)
     sub = node.subscribe(key, ring=args.ring)
@@ -318,6 +320,28 @@ def fusion_runner(args, params: dict):
     measure_params = dict(params, fill=False)
     return FusionRunner(FusionConfig(schedule=schedule),
                         measure=lambda va, vb: locate(va, vb, method=args.method, **measure_params))
+
+
+def warm_up_fusion(node: Node, runner) -> None:
+    """Run predict, update and the fused map once on a small plane pair, before the first frame: their numba passes
+    load (or compile, on a fresh install) now, not in the first fused map, which would then be too old to publish.
+    A failure is counted (``warmup_errors``) and logged; the real frames then pay the load."""
+    from eonav.fusion.schedule import ScheduleConfig
+    from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+    from eonav.ranging.methods.dense import _plane_pair
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    t0 = time.perf_counter()
+    try:
+        va, vb = _plane_pair(96)
+        probe = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01))),
+                             measure=runner.measure)
+        maps = [m for k, v in enumerate((va, vb, va)) for m in probe.push(frame("warmup", v, 1_000_000 + k * 100_000, k))]
+    except Exception as e:  # noqa: BLE001  (see docstring)
+        node.count("warmup_errors")
+        node.log.warning("fusion warm-up failed: %s: %s", type(e).__name__, e)
+        return
+    node.latency("warmup_fusion", time.perf_counter() - t0)
+    node.log.info("fusion warm-up: %.0f ms, %d fused maps", (time.perf_counter() - t0) * 1e3, len(maps))
 
 
 def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
