@@ -15,6 +15,7 @@ COMMANDS = {
     "bench": ("eonav.app.commands.bench", "benchmarks that print figures (locate, pipeline)"),
     "run": ("eonav.app.commands.run", "start the whole pipeline (embedded router + all services)"),
     "service": ("eonav.app.commands.service", "start one service in the foreground"),
+    "acl": ("eonav.app.commands.acl", "access-control files: users, router and session configs (eonav.bus.acl)"),
 }
 
 
