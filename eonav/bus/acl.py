@@ -47,6 +47,10 @@ ROLES = {
 # the pipeline of one host as deploy/ names it: service name -> module
 DEFAULT_SERVICES = {"camera_nose": "camera_ingest", "mavlink": "mavlink_ingest", "sync": "sync",
                     "locator": "locator", "obstacles": "obstacles"}
+# deploy/zenoh/router-acl.example.json5 and users.example.txt: the generator's output with these
+PLACEHOLDER = "<written by eonav acl init>"
+EXAMPLE_LISTEN = ("tcp/127.0.0.1:7447", "tcp/192.0.2.10:7447")
+EXAMPLE_CONNECT = ("tcp/192.0.2.11:7447",)
 ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token",
                 "declare_liveliness_subscriber", "liveliness_query"]
 
@@ -194,6 +198,15 @@ def _dump(header: str, cfg: dict) -> str:
     return "".join(f"// {line}\n" for line in header.splitlines()) + text + "\n"
 
 
+def router_text(services: dict, users_file: str, router_password: str, listen=(DEFAULT_ENDPOINT,), connect=(),
+                tls: dict | None = None) -> str:
+    """The router config file as :func:`write_acl_dir` writes it (deploy/zenoh/router-acl.example.json5 is this
+    with placeholder secrets)."""
+    return _dump("zenoh router with access control, written by `eonav acl init` (eonav.bus.acl; docs/zenoh.md).\n"
+                 "Users and passwords: the dictionary_file; each service connects with its own zenoh-<user>.json5.",
+                 router_config(services, users_file, router_password, listen, connect, tls))
+
+
 def read_users(acl_dir) -> dict[str, str]:
     """user -> password from ``<acl_dir>/zenoh-users.txt`` (``name:password`` lines)."""
     path = Path(acl_dir) / USERS_FILE
@@ -226,9 +239,7 @@ def write_acl_dir(acl_dir, services: dict | None = None, *, listen=(DEFAULT_ENDP
     pw = {u: old.get(u) or secrets.token_urlsafe(24) for u in users}
     _write_private(d / USERS_FILE, "".join(f"{u}:{pw[u]}\n" for u in users))
     uf = users_file or str((d / USERS_FILE).resolve())
-    _write_private(d / ROUTER_FILE, _dump(
-        "zenoh router with access control (eonav acl init). Users: " + USERS_FILE + "; docs/zenoh.md.",
-        router_config(services, uf, pw[ROUTER_USER], listen, connect, tls)))
+    _write_private(d / ROUTER_FILE, router_text(services, uf, pw[ROUTER_USER], listen, connect, tls))
     for u in users:
         if u == ROUTER_USER:
             continue
