@@ -317,3 +317,102 @@ def test_tls_with_access_control(tmp_path):
             zenoh.open(plain)
     finally:
         stop_processes([proc], 5.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# the real pipeline under eonav run's access control
+
+def _forge(sessions: dict, stop: threading.Event, counts: dict) -> None:
+    """Authenticated sessions of the wrong users put forged nav (30 m off), obstacle lists, range maps and
+    health every 50 ms until ``stop``."""
+    fakes = [
+        ("camera", K.nav_state(V + "run"), "nav_state",
+         dict(stamp_us=0, position_ned_m=[30.0, 0.0, -10.0], q_wxyz=[1, 0, 0, 0], source="forged")),
+        ("locator", K.obstacles(V + "run"), "obstacle_list",
+         dict(stamp_us=0, camera_id="forged", obstacles=[{"distance_m": 3.0, "bearing_deg": 0.0, "id": 99}])),
+        ("guidance", K.range_map(V + "run", "nose"), "range_map",
+         dict(camera_id="nose", seq=1, stamp_us=0, method="forged", range_m=np.full((3, 4), 2.0, np.float32),
+              confidence=np.ones((3, 4), np.float32), camera=CAM, position_ned_m=[0, 0, 0], q_wxyz=[1, 0, 0, 0])),
+        ("guidance", K.health(V + "run", "locator"), "health",
+         dict(service="locator", stamp_us=0, state="error", detail="forged")),
+    ]
+    pubs = [(sessions[u].declare_publisher(k), kind, f) for u, k, kind, f in fakes]
+    while not stop.wait(0.05):
+        for pub, kind, f in pubs:
+            pub.put(schema.encode(kind, **dict(f, stamp_us=time.time_ns() // 1000)))
+            counts[kind] = counts.get(kind, 0) + 1
+
+
+def test_pipeline_under_eonav_run_access_control(tmp_path):
+    """Five real services under ``run_pipeline(acl_dir=...)`` (what ``eonav run --acl DIR`` / ``--secure`` call),
+    while wrong users forge nav, obstacles, range maps and health: the pipeline ranges and finds the pole as
+    without access control, and no forged sample reaches the operator or guidance."""
+    from eonav.app.demo import Monitor, Truth, pipeline_spec, recording, replay_shift_us
+    from eonav.app.launcher import run_pipeline
+    from eonav.ranging.methods.dense import prepare_kernels
+    vehicle = V + "run"
+    rec = recording(n_frames=10, rate_hz=5.0, size=256, seed=0, cache_dir=tmp_path / "rec")
+    prepare_kernels()
+    shift = replay_shift_us(rec, start_in_s=5.0)
+    truth = Truth(rec, shift)
+    d, port = tmp_path / "acl", free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    stop, status, result = threading.Event(), {}, {}
+    th = threading.Thread(target=lambda: result.update(code=run_pipeline(
+        pipeline_spec(rec, shift), vehicle=vehicle, port=port, stop_event=stop, quiet=True,
+        log_dir=str(tmp_path / "logs"), acl_dir=str(d), on_status=status.update)))
+    th.start()
+    forge_stop, forged = threading.Event(), {}
+    sessions = {}
+    try:
+        def router_up():
+            import socket
+            with socket.socket() as s:
+                return s.connect_ex(("127.0.0.1", port)) == 0
+        wait_until(router_up, 20.0, what="the embedded router")
+        users = acl.read_users(d)
+        assert set(users) >= {"camera", "mavlink", "sync", "locator", "obstacles", "operator", "guidance"}
+
+        def open_as(u):
+            cfg = zenoh.Config.from_file(str(acl.session_file(d, u)))
+            cfg.insert_json5("connect/endpoints", json.dumps([ep]))
+            return zenoh.open(cfg)
+        sessions = {u: open_as(u) for u in ("camera", "locator", "guidance")}
+        listener = open_as("guidance")
+        sessions["listener"] = listener
+        obst_sub = listener.declare_subscriber(K.obstacles(vehicle), zenoh.handlers.FifoChannel(1000))
+        forger = threading.Thread(target=_forge, args=(sessions, forge_stop, forged))
+        forger.start()
+        with Monitor(ep, vehicle, truth, zenoh_config=str(acl.session_file(d, "operator"))) as mon:
+            def done():
+                c = mon.counts()
+                replays = all(status.get(s, {}).get("state") in ("done", "failed", "config_error")
+                              for s in ("camera", "mavlink"))
+                return replays and c["range_maps"] >= 9 and c["obstacle_lists"] >= 9
+            try:
+                wait_until(done, 60.0, period=0.2, what="range maps and obstacle lists of every frame")
+            finally:
+                time.sleep(1.2)                       # one more round of health
+                forge_stop.set()
+                forger.join()
+                summary = mon.summary()
+        lists = [schema.decode(s.payload.to_bytes(), expect="obstacle_list") for s in drain(obst_sub)]
+    finally:
+        forge_stop.set()
+        stop.set()
+        th.join(60.0)
+        for s in sessions.values():
+            s.close()
+    print(summary, forged)
+    assert result.get("code") == 0
+    assert forged["obstacle_list"] > 50 and forged["nav_state"] > 50      # the forgers did try, all the while
+    # guidance got the real lists only
+    assert len(lists) >= 9 and {m["camera_id"] for m in lists} == {"nose"}
+    # the operator saw no forged range map (method "forged", a flat 2 m map) and no forged health
+    assert summary["range_maps"] >= 9 and summary["bad_messages"] == 0
+    assert summary["median_rel_error"] < 0.05 and summary["worst_map_median_rel_error"] < 0.10
+    assert summary["nearest_box"] == "pole" and summary["nearest_box_found_fraction"] >= 0.6
+    assert summary["nearest_box_median_rel_error"] < 0.08
+    states = summary["health_states_seen"]
+    assert {k: states.get(k) for k in ("camera", "mavlink", "sync", "locator", "obstacles")} == \
+        {k: ["ok"] for k in ("camera", "mavlink", "sync", "locator", "obstacles")}, states
