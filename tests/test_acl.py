@@ -44,6 +44,13 @@ def config_as(bus, user: str, password: str | None = None, mode: str = "client")
     cfg.insert_json5("connect/endpoints", json.dumps([ep]))
     cfg.insert_json5("transport/auth/usrpwd",
                      json.dumps({"user": user, "password": pw.get(user) if password is None else password}))
+    return fail_fast(cfg)
+
+
+def fail_fast(cfg):
+    """Fail ``zenoh.open`` at once when the router refuses (the generated configs wait for the router)."""
+    cfg.insert_json5("connect/timeout_ms", "0")
+    cfg.insert_json5("connect/exit_on_failure", "true")
     return cfg
 
 
@@ -295,7 +302,7 @@ def test_tls_with_access_control(tmp_path):
             cfg = zenoh.Config.from_file(str(acl.session_file(d, user)))
             if ca:
                 cfg.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
-            return zenoh.open(cfg)
+            return zenoh.open(fail_fast(cfg))
 
         with session("sync") as s_sync, session("mavlink") as s_nav, session("camera_nose") as s_cam:
             sub = s_sync.declare_subscriber(K.nav_state(V), zenoh.handlers.FifoChannel(100))
@@ -314,7 +321,7 @@ def test_tls_with_access_control(tmp_path):
         plain = zenoh.Config.from_file(str(acl.session_file(d, "sync")))
         plain.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
         with pytest.raises(zenoh.ZError):
-            zenoh.open(plain)
+            zenoh.open(fail_fast(plain))
     finally:
         stop_processes([proc], 5.0)
 

@@ -164,8 +164,9 @@ def router_config(services: dict, users_file: str, router_password: str, listen=
 
 def session_config(user: str, password: str, connect=(DEFAULT_ENDPOINT,), tls: dict | None = None) -> dict:
     """A service's (or a tool's) session: a client of its host's router, so every sample passes the router's
-    access control (peers would talk to each other directly, past it). ``tls``: {"ca"} to verify the router."""
-    cfg = {"mode": "client", "connect": {"endpoints": list(connect)},
+    access control (peers would talk to each other directly, past it). It waits for the router (a service may
+    start first at boot) and reconnects when the router restarts. ``tls``: {"ca"} to verify the router."""
+    cfg = {"mode": "client", "connect": {"endpoints": list(connect), "timeout_ms": -1, "exit_on_failure": False},
             "scouting": {"multicast": {"enabled": False}},
             "transport": {"shared_memory": {"enabled": False},
                           "auth": {"usrpwd": {"user": user, "password": password}}}}
