@@ -118,6 +118,20 @@ def test_acl_init_command(tmp_path, capsys):
     r = zenoh.Config.from_file(str(tmp_path / acl.ROUTER_FILE))
     assert json.loads(r.get_json("connect/endpoints")) == ["tcp/192.0.2.11:7447"]
     assert json.loads(r.get_json("access_control/default_permission")) == "deny"
+    zids = acl.read_users(tmp_path, acl.ROUTERS_FILE)
+    assert set(zids) == {"a"} and json.loads(r.get_json("id")) == zids["a"]
+    # the second host: the same users and routers files, its own --host: both routers trust both zids
+    other = tmp_path / "b"
+    other.mkdir()
+    for f in (acl.USERS_FILE, acl.ROUTERS_FILE):
+        shutil.copy(tmp_path / f, other / f)
+    assert cli.main(["acl", "init", str(other), "--host", "b", "--camera", "nose", "--camera", "tail"]) == 0
+    assert acl.read_users(other) == users
+    zids_b = acl.read_users(other, acl.ROUTERS_FILE)
+    assert zids_b["a"] == zids["a"] and set(zids_b) == {"a", "b"}
+    rb = zenoh.Config.from_file(str(other / acl.ROUTER_FILE))
+    assert json.loads(rb.get_json("id")) == zids_b["b"]
+    assert sorted(zids_b.values()) in [s.get("zids") for s in json.loads(rb.get_json("access_control/subjects"))]
     assert cli.main(["acl", "init", str(tmp_path), "--service", "locator"]) == 2
     assert "expected NAME=MODULE" in capsys.readouterr().err
 
@@ -127,7 +141,8 @@ def test_shipped_example_is_what_the_generator_writes():
     from pathlib import Path
     deploy = Path(__file__).resolve().parents[1] / "deploy" / "zenoh"
     text = acl.router_text(acl.DEFAULT_SERVICES, "/etc/eonav/zenoh-users.txt", acl.PLACEHOLDER,
-                           listen=acl.EXAMPLE_LISTEN, connect=acl.EXAMPLE_CONNECT)
+                           listen=acl.EXAMPLE_LISTEN, connect=acl.EXAMPLE_CONNECT, zid=acl.EXAMPLE_ZIDS[0],
+                           router_zids=acl.EXAMPLE_ZIDS)
     assert (deploy / "router-acl.example.json5").read_text() == text
     users = (deploy / "users.example.txt").read_text()
     for u in (*USERS, acl.ROUTER_USER):

@@ -33,6 +33,7 @@ ROUTER_USER = "router"
 OPERATOR_USER = "operator"
 GUIDANCE_USER = "guidance"
 USERS_FILE = "zenoh-users.txt"
+ROUTERS_FILE = "zenoh-routers.txt"
 ROUTER_FILE = "zenoh-router.json5"
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -51,6 +52,7 @@ DEFAULT_SERVICES = {"camera_nose": "camera_ingest", "mavlink": "mavlink_ingest",
 PLACEHOLDER = "<written by eonav acl init>"
 EXAMPLE_LISTEN = ("tcp/127.0.0.1:7447", "tcp/192.0.2.10:7447")
 EXAMPLE_CONNECT = ("tcp/192.0.2.11:7447",)
+EXAMPLE_ZIDS = ("<zid of host a>", "<zid of host b>")
 ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "declare_queryable", "reply", "liveliness_token",
                 "declare_liveliness_subscriber", "liveliness_query"]
 
@@ -125,8 +127,10 @@ def grants(services: dict) -> dict[str, Grant]:
     return out
 
 
-def access_control(services: dict) -> dict:
-    """The router's ``access_control`` block for a pipeline (``services``: name -> module)."""
+def access_control(services: dict, router_zids=()) -> dict:
+    """The router's ``access_control`` block for a pipeline (``services``: name -> module). ``router_zids``: the
+    zenoh ids of every host's router: user/password authenticates the side that connects only, so the router
+    that dialled the other one knows it by its zid (docs/zenoh.md, "Access control")."""
     rules, subjects, policies = [], [], []
     for user, g in grants(services).items():
         r = g.rules(user)
@@ -137,21 +141,26 @@ def access_control(services: dict) -> dict:
     rules.append({"id": "router-relay", "permission": "allow", "flows": ["ingress", "egress"],
                   "messages": ALL_MESSAGES, "key_exprs": [f"{ROOT}/**"]})
     subjects.append({"id": ROUTER_USER, "usernames": [ROUTER_USER]})
-    policies.append({"id": ROUTER_USER, "rules": ["router-relay"], "subjects": [ROUTER_USER]})
+    router_subjects = [ROUTER_USER]
+    if router_zids:
+        subjects.append({"id": "router-zids", "zids": sorted(router_zids)})
+        router_subjects.append("router-zids")
+    policies.append({"id": ROUTER_USER, "rules": ["router-relay"], "subjects": router_subjects})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 
 
 def router_config(services: dict, users_file: str, router_password: str, listen=(DEFAULT_ENDPOINT,),
-                  connect=(), tls: dict | None = None) -> dict:
+                  connect=(), tls: dict | None = None, zid: str | None = None, router_zids=()) -> dict:
     """A router config (zenohd or ``python -m eonav.bus.router``) that authenticates every session against
     ``users_file`` and enforces :func:`access_control`. ``tls``: {"ca", "cert", "key"} file paths for ``tls/``
-    endpoints (the router's certificate and key, the CA that signed the other routers' certificates)."""
-    cfg = {"mode": "router", "listen": {"endpoints": list(listen)},
+    endpoints (the router's certificate and key, the CA that signed the other routers' certificates). ``zid``: this
+    router's zenoh id; ``router_zids``: every host router's (see :func:`access_control`)."""
+    cfg = {"mode": "router", **({"id": zid} if zid else {}), "listen": {"endpoints": list(listen)},
            "scouting": {"multicast": {"enabled": False}},
            "transport": {"auth": {"usrpwd": {"user": ROUTER_USER, "password": router_password,
                                               "dictionary_file": str(users_file)}}},
-           "access_control": access_control(services)}
+           "access_control": access_control(services, router_zids)}
     if connect:
         cfg["connect"] = {"endpoints": list(connect), "exit_on_failure": False,
                           "retry": {"period_init_ms": 500, "period_max_ms": 5000, "period_increase_factor": 2}}
@@ -179,6 +188,13 @@ def session_file(acl_dir, user: str) -> Path:
     return Path(acl_dir) / f"zenoh-{user}.json5"
 
 
+def new_zid() -> str:
+    """A random zenoh id: 16 bytes in hex, no leading zero (zenoh refuses one)."""
+    while (z := secrets.token_hex(16))[0] == "0":
+        pass
+    return z
+
+
 def _write_private(path: Path, text: str) -> None:
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as f:
@@ -200,17 +216,18 @@ def _dump(header: str, cfg: dict) -> str:
 
 
 def router_text(services: dict, users_file: str, router_password: str, listen=(DEFAULT_ENDPOINT,), connect=(),
-                tls: dict | None = None) -> str:
+                tls: dict | None = None, zid: str | None = None, router_zids=()) -> str:
     """The router config file as :func:`write_acl_dir` writes it (deploy/zenoh/router-acl.example.json5 is this
     with placeholder secrets)."""
     return _dump("zenoh router with access control, written by `eonav acl init` (eonav.bus.acl; docs/zenoh.md).\n"
                  "Users and passwords: the dictionary_file; each service connects with its own zenoh-<user>.json5.",
-                 router_config(services, users_file, router_password, listen, connect, tls))
+                 router_config(services, users_file, router_password, listen, connect, tls, zid, router_zids))
 
 
-def read_users(acl_dir) -> dict[str, str]:
-    """user -> password from ``<acl_dir>/zenoh-users.txt`` (``name:password`` lines)."""
-    path = Path(acl_dir) / USERS_FILE
+def read_users(acl_dir, name: str = USERS_FILE) -> dict[str, str]:
+    """user -> password from ``<acl_dir>/zenoh-users.txt`` (``name:password`` lines); with ``name``
+    ROUTERS_FILE: host -> router zid."""
+    path = Path(acl_dir) / name
     if not path.is_file():
         raise InputError(f"access control: {path}: no such file (eonav acl init {acl_dir})")
     users = {}
@@ -226,12 +243,14 @@ def read_users(acl_dir) -> dict[str, str]:
 
 def write_acl_dir(acl_dir, services: dict | None = None, *, listen=(DEFAULT_ENDPOINT,), connect=(),
                   session_connect=(DEFAULT_ENDPOINT,), users_file: str | None = None,
-                  keep_passwords: bool = True, tls: dict | None = None) -> dict[str, str]:
+                  keep_passwords: bool = True, tls: dict | None = None, host: str = "a",
+                  hosts=()) -> dict[str, str]:
     """Write the users file, the router config and one session config per user into ``acl_dir``; returns
     user -> password. Passwords already in the users file are kept (``keep_passwords``): copy the same file to
     every host of a vehicle, so that the routers' link and every user authenticate everywhere. ``users_file``:
     the path the router config names (default: the file in ``acl_dir``, absolute). ``tls``: see
-    :func:`router_config` (the endpoints must then be ``tls/...``)."""
+    :func:`router_config` (the endpoints must then be ``tls/...``). ``host``: this host's name; ``hosts``: the
+    others: each host's router gets a random zid, kept in ``zenoh-routers.txt`` (copy it with the users file)."""
     services = dict(DEFAULT_SERVICES if services is None else services)
     d = Path(acl_dir)
     d.mkdir(parents=True, exist_ok=True)
@@ -240,7 +259,13 @@ def write_acl_dir(acl_dir, services: dict | None = None, *, listen=(DEFAULT_ENDP
     pw = {u: old.get(u) or secrets.token_urlsafe(24) for u in users}
     _write_private(d / USERS_FILE, "".join(f"{u}:{pw[u]}\n" for u in users))
     uf = users_file or str((d / USERS_FILE).resolve())
-    _write_private(d / ROUTER_FILE, router_text(services, uf, pw[ROUTER_USER], listen, connect, tls))
+    old_zids = read_users(d, ROUTERS_FILE) if (d / ROUTERS_FILE).is_file() else {}
+    zids = dict(old_zids)
+    for h in (host, *hosts):
+        zids.setdefault(check_chunk(h, "host name"), new_zid())
+    _write_private(d / ROUTERS_FILE, "".join(f"{h}:{z}\n" for h, z in zids.items()))
+    _write_private(d / ROUTER_FILE, router_text(services, uf, pw[ROUTER_USER], listen, connect, tls, zids[host],
+                                                sorted(zids.values())))
     for u in users:
         if u == ROUTER_USER:
             continue

@@ -1,6 +1,7 @@
 """``eonav acl init DIR``: the access-control files of one vehicle (``eonav.bus.acl``): a users file with fresh random
 passwords (kept when it exists), the router config that enforces the ACL, and one session config per user
-(``zenoh-<user>.json5``). Run it once per vehicle and copy the same users file to every host (deploy/README.md)."""
+(``zenoh-<user>.json5``). Run it on one host, copy its users and routers files to the others and run it there with
+their ``--host`` (deploy/README.md)."""
 from __future__ import annotations
 
 import argparse
@@ -20,6 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       help="router listen endpoints (default tcp/127.0.0.1:7447; add this host's LAN address)")
     init.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                       help="the other hosts' routers")
+    init.add_argument("--host", default="a", metavar="NAME",
+                      help="this host's name (its router's zenoh id is kept in DIR/zenoh-routers.txt)")
+    init.add_argument("--other-host", action="append", default=[], metavar="NAME",
+                      help="another host of the vehicle whose router this one trusts (repeatable)")
     init.add_argument("--session-connect", default="tcp/127.0.0.1:7447", metavar="ENDPOINT",
                       help="where the sessions connect: this host's router")
     init.add_argument("--users-file", default=None, metavar="PATH",
@@ -55,10 +60,12 @@ def run(args) -> int:
     tls = {"ca": args.tls_ca, "cert": args.tls_cert, "key": args.tls_key} if all(tls_parts) else None
     services = services_from(args)
     acl.write_acl_dir(args.dir, services, listen=args.listen or [acl.DEFAULT_ENDPOINT], connect=args.connect,
-                      session_connect=[args.session_connect], users_file=args.users_file, tls=tls)
+                      session_connect=[args.session_connect], users_file=args.users_file, tls=tls,
+                      host=args.host, hosts=args.other_host)
     users = sorted(acl.read_users(args.dir))
-    print(f"eonav acl: wrote {args.dir}/{acl.USERS_FILE} (users {', '.join(users)}), {acl.ROUTER_FILE} and "
-          f"zenoh-<user>.json5 for each user but {acl.ROUTER_USER}")
+    print(f"eonav acl: wrote {args.dir}/{acl.USERS_FILE} (users {', '.join(users)}), {acl.ROUTERS_FILE} (hosts "
+          f"{', '.join(sorted(acl.read_users(args.dir, acl.ROUTERS_FILE)))}), {acl.ROUTER_FILE} (host {args.host}) "
+          f"and zenoh-<user>.json5 for each user but {acl.ROUTER_USER}")
     if args.print:
         print(json.dumps(acl.access_control(services or acl.DEFAULT_SERVICES), indent=2))
     return 0
