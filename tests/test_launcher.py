@@ -268,7 +268,7 @@ def test_deploy_configs_are_valid_zenoh_configs():
     assert json.loads(p.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
     assert json.loads(p.get_json("scouting/multicast/enabled")) is False
     unit = (root / "systemd" / "eonav@.service").read_text()
-    for line in ("ExecStart=/opt/eonav/venv/bin/python -m services.%i", "EnvironmentFile=/etc/eonav/%i.env",
+    for line in ("ExecStart=/opt/eonav/venv/bin/python -m eonav.services.%i", "EnvironmentFile=/etc/eonav/%i.env",
                  "KillSignal=SIGINT", "Restart=on-failure", "After=network-online.target zenohd.service"):
         assert line in unit
     for env in (root / "env").glob("*.env"):
