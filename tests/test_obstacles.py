@@ -198,6 +198,26 @@ def test_flags_confidence_and_std_gate_pixels():
     assert res.obstacles[0].range_std_m == pytest.approx(1e-3 * 400, rel=0.01)   # sigma_rho r^2
 
 
+def test_fused_evidence_count_gates_pixels():
+    # a fused map: the wall's pixels fused from 2 measurements, the rest from 9
+    r = add_wall(ground_and_sky(), 20.0, 128, 192)
+    n = np.full(r.shape, 9, np.uint16)
+    n[:, 128:192] = 2
+    assert len(ob.analyse(r, CAM, LEVEL, cfg=CFG, n_fused=n).obstacles) == 1        # min_fused 1: off
+    cfg2 = ob.ObstacleConfig(ground_down_m=0.0, min_fused=2)
+    assert len(ob.analyse(r, CAM, LEVEL, cfg=cfg2, n_fused=n).obstacles) == 1       # 2 >= 2: kept
+    cfg3 = ob.ObstacleConfig(ground_down_m=0.0, min_fused=3)
+    res = ob.analyse(r, CAM, LEVEL, cfg=cfg3, n_fused=n)
+    assert res.obstacles == []                                                      # 2 < 3: not trusted
+    assert res.n_confident == np.count_nonzero(np.isfinite(r)) - np.count_nonzero(np.isfinite(r[:, 128:192]))
+    # a map without n_fused (a single pair) is not affected by min_fused
+    assert len(ob.analyse(r, CAM, LEVEL, cfg=cfg3).obstacles) == 1
+    with pytest.raises(InputError, match="n_fused has shape"):
+        ob.analyse(r, CAM, LEVEL, cfg=cfg3, n_fused=n[:10])
+    with pytest.raises(InputError, match="min_fused"):
+        ob.ObstacleConfig(min_fused=0)
+
+
 def test_ground_estimated_from_points_when_not_configured():
     r = add_wall(ground_and_sky(alt_m=25.0), 30.0, 128, 192, alt_m=25.0)
     st = VehicleState.from_ypr([0.0, 0.0, -25.0], [0.0, 0.0, 0.0])
@@ -454,8 +474,11 @@ def test_sender_rejects_bad_setup():
     from eonav.nav import mavlink_out as mo
     with pytest.raises(InputError, match="2 Hz"):
         mo.ObstacleDistanceSender("udpout:127.0.0.1:9", rate_hz=1.0)
-    with pytest.raises(InputError, match="cannot open MAVLink output"):
-        mo.ObstacleDistanceSender("tcp:127.0.0.1:1")
+    with pytest.raises(InputError, match="MAVLink output 'tcp:127.0.0.1': not a MAVLink connection string"):
+        mo.ObstacleDistanceSender("tcp:127.0.0.1")
+    tx = mo.ObstacleDistanceSender("tcp:127.0.0.1:1")         # refused: not an error, retried (tests/test_links.py)
+    assert tx.tick() > 0 and tx.link_status()[0] == "down"
+    tx.close()
 
 
 def test_sectors_now_move_with_the_vehicle():

@@ -281,7 +281,7 @@ def range_picture(msg: dict, truth_range=None, max_range_m: float = 150.0) -> np
     colour scale from 5 m (red) to ``max_range_m`` (blue)."""
     import cv2
     from eonav.ranging.rangemap import VALID
-    from eonav.app.viz import inverse_range_colours
+    from eonav.io.viz import inverse_range_colours
 
     r = np.asarray(msg["range_m"], np.float32)
     valid = np.isfinite(r) & (r > 0) & (r < max_range_m)
@@ -321,8 +321,8 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
     rec = Path(rec_dir).resolve()
     man = json.loads((rec / "manifest.json").read_text())
     shift_us = str(int(shift_us))
-    obst = ["--ground-down", "0",                       # local NED origin at the take-off (ground) level
-            "--max-obstacle-distance", "150"]
+    obst = ["--ground-down-m", "0",                     # local NED origin at the take-off (ground) level
+            "--max-obstacle-distance-m", "150"]
     if mavlink_out:
         obst += ["--mavlink-out", mavlink_out]
     return {"services": [
@@ -343,7 +343,8 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
 def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, rate_hz: float = DEFAULT_RATE_HZ,
              size: int = DEFAULT_SIZE, seed: int = 0, cache_dir=None, png=None, vehicle: str = "demo",
              method: str = "dense", mavlink_out: str | None = None, timeout_s: float = 180.0,
-             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None, acl_dir=None) -> dict:
+             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None, record=None,
+             acl_dir=None) -> dict:
     """Record (cached), run the pipeline, score it; returns the summary dict (``summary["exit_code"]``).
     ``acl_dir``: under access control (``run_pipeline``); the monitor connects as the operator."""
     from eonav.app.processes import free_port
@@ -376,7 +377,7 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     def pipeline():
         result["code"] = run_pipeline(pipeline_spec(rec, shift_us, method=method, mavlink_out=mavlink_out), vehicle=vehicle,
                                       port=port, on_status=on_status, stop_event=stop, quiet=quiet,
-                                      log_dir=log_dir, acl_dir=acl_dir)
+                                      log_dir=log_dir, record=record, acl_dir=acl_dir)
 
     th = threading.Thread(target=pipeline, name="pipeline")
     th.start()
@@ -499,7 +500,8 @@ def run(args) -> int:
                  rate_hz=getattr(args, "fps", DEFAULT_RATE_HZ), size=getattr(args, "size", DEFAULT_SIZE),
                  method=getattr(args, "method", "dense"), png=getattr(args, "png", None),
                  cache_dir=getattr(args, "cache_dir", None), vehicle=getattr(args, "vehicle", "demo") or "demo",
-                 quiet=getattr(args, "quiet", False), log_dir=log_dir, acl_dir=getattr(args, "acl_dir", None))
+                 quiet=getattr(args, "quiet", False), log_dir=log_dir, record=getattr(args, "record", None),
+                 acl_dir=getattr(args, "acl_dir", None))
     print(format_summary(s))
     if getattr(args, "json", False):
         print(json.dumps(s, default=str))

@@ -430,7 +430,8 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                  on_status: Callable[[dict], None] | None = None, exit_when_done: str | None = None,
                  router: str | None = None, grace_s: float = 5.0, stop_event: threading.Event | None = None,
                  status_stream=None, quiet: bool = False, log_dir: str | None = None,
-                 router_config: str | None = None, extra_env: dict | None = None, acl_dir: str | None = None) -> int:
+                 router_config: str | None = None, extra_env: dict | None = None, record: str | None = None,
+                 acl_dir: str | None = None) -> int:
     """Run a pipeline until stopped; returns the exit code (see the module docstring).
 
     ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
@@ -438,16 +439,20 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
     after that many seconds. ``on_status(status_dict)``: called about once a second with
     {service: {state, pid, restarts, exit_code, alive, health}}. ``stop_event``: set it to stop
     (SIGINT/SIGTERM also stop when called from the main thread). ``log_dir``: one log file per
-    service instead of inheriting stderr. ``extra_env``: added to every service's environment. ``acl_dir``: run
-    with access control (``eonav.bus.acl``): the embedded router enforces it and every service and the status
-    monitor connect with their own credentials from ``acl_dir`` (written there for this pipeline, passwords
-    already there kept; with ``router``, only read)."""
+    service instead of inheriting stderr. ``extra_env``: added to every service's environment. ``record``: also run
+    the recorder (``eonav.recording.recorder``) writing this MCAP file. ``acl_dir``: run with access control
+    (``eonav.bus.acl``): the embedded router enforces it and every service and the status monitor connect with
+    their own credentials from ``acl_dir`` (written there for this pipeline, passwords already there kept; with
+    ``router``, only read)."""
     from eonav.bus.keys import check_chunk
     check_chunk(vehicle, "--vehicle")
     spec_dir = None
     if isinstance(spec, (str, Path)):
         spec_dir = str(Path(spec).resolve().parent)
     services = parse_spec(spec, spec_dir)
+    if record:
+        from eonav.recording.recorder import recorder_service
+        services += parse_spec([recorder_service(record)])
     if exit_when_done and exit_when_done not in {s.name for s in services}:
         raise InputError(f"--exit-when-done {exit_when_done!r}: no such service in the pipeline "
                          f"({', '.join(s.name for s in services)})")
