@@ -12,16 +12,29 @@ import numpy as np
 from numba import njit
 
 _JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
+# reciprocals, contractions and approximate functions allowed; not "no NaN / no inf" (empty cells are NaN)
+_FAST = dict(_JIT, fastmath={"arcp", "contract", "afn"})
 
 
 @njit(**_JIT)
 def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
          o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags):
-    """Every occupied source cell's point into the new grid (predict's module docstring): the output arrays come
-    empty (o_rho NaN); where several points land on one pixel the largest rho_new wins (the first of equal ones).
-    cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of cells written."""
+    """Every occupied source cell's point into the new grid (predict's module docstring): the output arrays are
+    first emptied (any contents: a reused state); where several points land on one pixel the largest rho_new wins
+    (the first of equal ones). cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of
+    cells written."""
     h, w = rho.shape
     h1, w1 = o_rho.shape
+    for y in range(h1):
+        for x in range(w1):
+            o_rho[y, x] = np.nan
+            o_var[y, x] = np.inf
+            o_a[y, x] = 0.0
+            o_b[y, x] = 0.0
+            o_n[y, x] = 0
+            o_du[y, x] = 0.0
+            o_dv[y, x] = 0.0
+            o_flags[y, x] = 0
     fx0, fy0, cx0, cy0 = cam0[0], cam0[1], cam0[2], cam0[3]
     fx1, fy1, cx1, cy1 = cam1[0], cam1[1], cam1[2], cam1[3]
     written = 0
@@ -101,20 +114,30 @@ def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
     return closed
 
 
-@njit(**_JIT)
-def update(rho, var, a, b, n, du, dv, rho_m, std_m, meas, s, rho_max, a_init, b_init, cap, eta_outlier):
-    """update.update's arithmetic per measured pixel (``meas``), in place. Returns (started, inliers, outliers,
-    restarted)."""
+@njit(**_FAST)
+def update(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, max_rel_std, s, rho_max, a_init,
+           b_init, cap, eta_outlier):
+    """update.update's arithmetic in place: every pixel's flags taken from the measurement's, and each measured one
+    (``update.measured``; bits: VALID | FILLED, VALID, WEAK_BITS (0: no weak measurements), ILL_CONDITIONED) fused.
+    Returns (measured, started, inliers, outliers, restarted)."""
     h, w = rho.shape
-    started = inl = outl = rest = 0
+    measured = started = inl = outl = rest = 0
     inv_u = np.float32(1.0 / rho_max)
     two_pi = np.float32(2.0 * math.pi)
     for y in range(h):
         for x in range(w):
-            if not meas[y, x]:
-                continue
+            fm = flags_m[y, x]
+            flags[y, x] = fm
             xm = rho_m[y, x]
-            tau = std_m[y, x] * s
+            sd = std_m[y, x]
+            if not (math.isfinite(xm) and math.isfinite(sd) and sd > 0):
+                continue
+            if (fm & bits[0]) != bits[1]:
+                if not (bits[2] != 0 and (fm & bits[2]) == bits[3]
+                        and not (sd <= max_rel_std * xm and xm >= np.float32(2.0) * sd)):
+                    continue
+            measured += 1
+            tau = sd * s
             tau2 = tau * tau
             mu = rho[y, x]
             if not math.isfinite(mu):
@@ -172,4 +195,94 @@ def update(rho, var, a, b, n, du, dv, rho_m, std_m, meas, s, rho_max, a_init, b_
             b[y, x] = b_new
             if n[y, x] < 65535:
                 n[y, x] += 1
-    return started, inl, outl, rest
+    return measured, started, inl, outl, rest
+
+
+@njit(**_FAST)
+def classify_state(rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
+                   o_rho, o_std, o_flags, o_rng, o_conf, o_exclude):
+    """fused_map's arrays in one pass: o_rho = rho, o_std = sqrt(var + slant2 * g2) (g2: ``fused_map.slant_g2``'s
+    squared inverse-range gradient), the flags of fused_map and the rules of
+    ``eonav.ranging.methods._common.classify_into`` (the same float32 arithmetic), o_exclude = occupied cells whose
+    evidence disagrees. bits: uint8 (reason bits kept for empty cells, ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE
+    | ILL_CONDITIONED | TRUNCATION, AT_INFINITY, VALID) of ``eonav.ranging.rangemap``. Returns (n_valid,
+    n_at_infinity, n_occupied, n_disagree)."""
+    h, w = rho.shape
+    reason_bits, ILL, BAD, INF, VAL = bits[0], bits[1], bits[2], bits[3], bits[4]
+    n_val = n_inf = n_occ = n_dis = 0
+    two_f = np.float32(2.0)
+    for y in range(h):
+        for x in range(w):
+            r = rho[y, x]
+            o_rho[y, x] = r
+            occ = math.isfinite(r)
+            if occ:
+                n_occ += 1
+                A = a[y, x]
+                agree = A >= eta_inlier * (A + b[y, x])
+                f = np.uint8(0) if agree else ILL
+                sd = np.float32(math.sqrt(var[y, x] + slant2 * slant_g2(rho, var, y, x)))
+                if not agree:
+                    n_dis += 1
+            else:
+                agree = False
+                f = flags[y, x] & reason_bits
+                if f == 0:
+                    f = ILL
+                sd = np.float32(math.sqrt(var[y, x]))
+            o_std[y, x] = sd
+            o_exclude[y, x] = occ and not agree
+            two = two_f * sd
+            near0 = r < two
+            inf_ok = (two < rho_far) and near0
+            good = ((sd / r <= max_rel_std) and not near0) or inf_ok
+            good = good and occ and math.isfinite(sd)
+            if not good:
+                f |= ILL
+            ok = (f & BAD) == 0
+            rng = np.float32(np.nan)
+            conf = np.float32(0.0)
+            if ok and inf_ok:
+                f |= INF | VAL
+                n_inf += 1
+                rng = np.float32(np.inf)
+                conf = max(np.float32(rho_far) / sd, np.float32(0.0))
+            elif ok:
+                f |= VAL
+                n_val += 1
+                rng = np.float32(1.0) / abs(r)
+                conf = max(r / sd, np.float32(0.0))
+            o_flags[y, x] = f
+            o_rng[y, x] = rng
+            o_conf[y, x] = conf
+    return n_val, n_inf, n_occ, n_dis
+
+
+@njit(**_FAST)
+def slant_g2(rho, var, y, x):
+    """The squared inverse-range gradient (1/m per pixel)^2 of the surface cell (y, x) lies on: per axis the
+    smaller of its two one-sided squared differences (the side across a depth edge is not its surface); a side with
+    an empty neighbour (NaN) or outside the image is not used, an axis with none contributes 0. (Not less the two
+    cells' noise: neighbours share most of their windows, their errors are nearly the same.)
+    Branch-free (fmin / fmax skip NaN): which side is smaller is noise, a branch on it is mispredicted."""
+    h, w = rho.shape
+    r = rho[y, x]
+    nan = np.float32(np.nan)
+    x0, x1, y0, y1 = max(x - 1, 0), min(x + 1, w - 1), max(y - 1, 0), min(y + 1, h - 1)
+    d = rho[y, x0] - r
+    el = d * d
+    d = rho[y, x1] - r
+    er = d * d
+    d = rho[y0, x] - r
+    eu = d * d
+    d = rho[y1, x] - r
+    ed = d * d
+    if x == 0:
+        el = nan
+    if x == w - 1:
+        er = nan
+    if y == 0:
+        eu = nan
+    if y == h - 1:
+        ed = nan
+    return np.fmax(np.fmin(el, er), np.float32(0.0)) + np.fmax(np.fmin(eu, ed), np.float32(0.0))

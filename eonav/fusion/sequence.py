@@ -81,6 +81,7 @@ class FusionRunner:
         self.states: dict[str, InverseRangeState] = {}
         self.frames: dict[str, PosedFrameInfo] = {}          # the frame each state is on
         self.counts: dict[str, int] = {}
+        self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
 
     def count(self, name: str, k: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + k
@@ -90,6 +91,7 @@ class FusionRunner:
         for cid in ([camera_id] if camera_id is not None else list(self.states)):
             self.states.pop(cid, None)
             self.frames.pop(cid, None)
+            self._spare.pop(cid, None)
 
     def remember(self, f: PosedFrameInfo) -> None:
         """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
@@ -112,7 +114,8 @@ class FusionRunner:
                 self.count("gap_resets")
                 old = None
             else:
-                self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise)
+                self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise, out=self._spare.get(cid))
+                self._spare[cid] = old
                 self.frames[cid] = f
                 if self.states[cid].occupied().any():      # nothing measured yet: no map to give
                     touched[cid] = []
