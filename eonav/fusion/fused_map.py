@@ -31,6 +31,8 @@ from eonav.ranging.methods.fill import fill_unmeasured
 from eonav.ranging.rangemap import (AT_INFINITY, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION,
                                    VALID, RangeResult)
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
+from eonav.fusion.update import (UpdateConfig, counts_dict, kernel_params, measurement_arrays, update,
+                                 update_rho_far)
 
 METHOD = "fused"
 REASON_BITS = np.uint8(TRUNCATION | ILL_CONDITIONED | OUT_OF_VIEW | LOW_TEXTURE | OCCLUDED)
@@ -77,31 +79,77 @@ def slant_g2(rho: np.ndarray, var: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(rho), g2, F32(0)).astype(F32)
 
 
-def fused_map(state: InverseRangeState, cfg: MapConfig = MapConfig(), kernels: bool | None = None) -> RangeResult:
+def fused_map(state: InverseRangeState, cfg: MapConfig = MapConfig(), kernels: bool | None = None,
+              reuse: RangeResult | None = None) -> RangeResult:
     """A RangeResult of the state (method "fused"); ``info`` holds the counts and ``n_fused`` (uint16 H x W).
     kernels: the numba pass (``_kernels.classify_state``; None: when numba is installed; False: the numpy path,
-    the reference)."""
+    the reference). reuse: a range map of the state's shape that nobody holds any more (the measurement just fused)
+    whose arrays to overwrite with the result (numba pass): no fresh memory to page in."""
     K = optional_kernels() if kernels is None or kernels else None
     if kernels and K is None:
         raise ImportError("fused_map(kernels=True) needs numba")
-    shape = state.shape
-    if K is not None:
+    if K is None:
+        rho, std, flags, rng, conf, n_val, n_inf, occ, exclude = _classify_numpy(state, cfg)
+        return _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, int(occ.sum()), exclude)
+    out = _outputs(state.shape, reuse)
+    n_val, n_inf, n_occ, n_dis = K.classify_state(state.rho, state.var, state.a, state.b, state.flags,
+                                                  *_classify_params(state, cfg), *out)
+    return _finish(state, cfg, *out[:5], n_val, n_inf, n_occ, out[5])
+
+
+def update_and_map(state: InverseRangeState, rho_m, std_m, flags_m, ucfg: UpdateConfig = UpdateConfig(),
+                   mcfg: MapConfig = MapConfig(), rho_far: float | None = None, kernels: bool | None = None,
+                   reuse: RangeResult | None = None):
+    """``update`` then ``fused_map``: (update counts, RangeResult); with numba in one sweep over the state
+    (``_kernels.update_classify``), the same result."""
+    K = optional_kernels() if kernels is None or kernels else None
+    if kernels and K is None:
+        raise ImportError("update_and_map(kernels=True) needs numba")
+    if K is None:
+        counts = update(state, rho_m, std_m, flags_m, ucfg, rho_far=rho_far, kernels=False)
+        return counts, fused_map(state, mcfg, kernels=False)
+    if np.shape(rho_m) != state.shape:
+        raise InputError(f"fusion update: measurement shape {np.shape(rho_m)} differs from the state {state.shape}")
+    update_rho_far(state, rho_far)
+    meas = measurement_arrays(rho_m, std_m, flags_m)
+    out = _outputs(state.shape, reuse)
+    r = K.update_classify(state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags, *meas,
+                          *kernel_params(ucfg), *_classify_params(state, mcfg), *out)
+    res = _finish(state, mcfg, *out[:5], r[5], r[6], r[7], out[5])
+    return counts_dict(*r[:5]), res
+
+
+def _classify_params(state, cfg):
+    return _BITS, F32(cfg.eta_inlier), F32(cfg.max_rel_std), F32(state.rho_far), F32(cfg.slant_px ** 2)
+
+
+def _outputs(shape, reuse):
+    """(rho, std, flags, rng, conf, exclude) to write: ``reuse``'s arrays where they fit, else fresh."""
+    if reuse is not None and _reusable(reuse, shape):
+        rho, std, rng, conf, flags = (reuse.inv_range_per_m, reuse.inv_range_std_per_m, reuse.range_m,
+                                      reuse.confidence, reuse.flags)
+    else:
         rho, std, rng, conf = (np.empty(shape, F32) for _ in range(4))
         flags = np.empty(shape, np.uint8)
-        exclude = np.empty(shape, np.bool_)
-        n_val, n_inf, n_occ, n_dis = K.classify_state(
-            state.rho, state.var, state.a, state.b, state.flags, _BITS, F32(cfg.eta_inlier),
-            F32(cfg.max_rel_std), F32(state.rho_far), F32(cfg.slant_px ** 2), rho, std, flags, rng, conf, exclude)
-    else:
-        rho, std, flags, rng, conf, n_val, n_inf, occ, exclude = _classify_numpy(state, cfg)
-        n_occ, n_dis = int(occ.sum()), int(exclude.sum())
+    return rho, std, flags, rng, conf, np.empty(shape, np.bool_)
+
+
+def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude) -> RangeResult:
     # a cell whose measurements disagree gets no range from its neighbours either
     n_filled = (fill_unmeasured(rho, std, flags, rng, conf, cfg.max_rel_std, rho_far=state.rho_far,
                                 exclude=exclude) if cfg.fill else 0)
     size = max(rho.size, 1)
-    info = {"occupied_fraction": n_occ / size, "disagree_fraction": n_dis / size,
+    info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(np.count_nonzero(exclude)) / size,
             "filled_fraction": n_filled / size, "n_fused": state.n.copy()}
-    return make_result(rho, std, flags, rng, conf, METHOD, n_val, n_inf, info)
+    return make_result(rho, std, flags, rng, conf, METHOD, int(n_val), int(n_inf), info)
+
+
+def _reusable(r: RangeResult, shape) -> bool:
+    arrs = (r.inv_range_per_m, r.inv_range_std_per_m, r.range_m, r.confidence)
+    return (all(isinstance(a, np.ndarray) and a.shape == shape and a.dtype == F32 and a.flags.c_contiguous
+                and a.flags.writeable for a in arrs)
+            and isinstance(r.flags, np.ndarray) and r.flags.shape == shape and r.flags.dtype == np.uint8
+            and r.flags.flags.writeable and len({id(a) for a in arrs}) == 4)
 
 
 def _classify_numpy(state: InverseRangeState, cfg: MapConfig):

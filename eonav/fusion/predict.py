@@ -103,8 +103,8 @@ def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_
         return out
     out.clear()
     idx, u_new, v_new, rho_new, jac, baseline_m = transfer(state, camera, pose)
-    ui = np.rint(u_new)
-    vi = np.rint(v_new)
+    ui = np.floor(u_new + F32(0.5))          # the nearest pixel (halves up: cheaper than rint in the kernel)
+    vi = np.floor(v_new + F32(0.5))
     h, w = out.shape
     inside = (ui >= 0) & (ui <= w - 1) & (vi >= 0) & (vi <= h - 1)
     idx, ui, vi, u_new, v_new, rho_new, jac = (x[inside] for x in (idx, ui, vi, u_new, v_new, rho_new, jac))

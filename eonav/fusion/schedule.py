@@ -177,6 +177,20 @@ def _cam_pose(f: PosedFrameInfo):
     return R, c
 
 
+def _probe_rays(cam):
+    """[1, x_p/fx, y_p/fy] of ``pair_metrics``' probe pixels of ``cam`` (3 x p), computed once per camera."""
+    key = (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+    m = _RAYS.get(key)
+    if m is None:
+        u, v = _probe_pixels(cam)
+        m = _RAYS[key] = np.stack([np.ones_like(u), (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy])
+        m.setflags(write=False)
+    return m
+
+
+_RAYS: dict = {}
+
+
 def wide_metrics(a: PosedFrameInfo, bs: list, ref_range_m: float, poses=None):
     """``pair_metrics(a, b, ref_range_m)``'s rotation (deg), median translational disparity (px) and baseline (m) of
     a against every frame of ``bs`` in one pass (arrays): the same pose algebra as ``relative_pose`` (R_ba = R_b
@@ -189,9 +203,7 @@ def wide_metrics(a: PosedFrameInfo, bs: list, ref_range_m: float, poses=None):
     R = Rb @ Ra.T                                                       # (n, 3, 3)
     t = np.einsum("nij,nj->ni", Rb, ca[None, :] - cb)                  # (n, 3)
     rot_deg = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
-    ka = a.camera
-    u, v = _probe_pixels(ka)
-    m = np.stack([np.ones_like(u), (u - ka.cx) / ka.fx, (v - ka.cy) / ka.fy])     # (3, p)
+    m = _probe_rays(a.camera)                                           # (3, p)
     A = R @ m                                                           # (n, 3, p): X_b / x_c at rho = 0
     rho = 1.0 / ref_range_m
     den_inf = A[:, 0]

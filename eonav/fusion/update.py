@@ -83,6 +83,30 @@ def measured(rho_m, std_m, flags_m, cfg: UpdateConfig = UpdateConfig()) -> np.nd
     return sel & ok
 
 
+def measurement_arrays(rho_m, std_m, flags_m):
+    """The measurement as the kernels take it (float32, float32, uint8)."""
+    return np.asarray(rho_m, F32), np.asarray(std_m, F32), np.asarray(flags_m, np.uint8)
+
+
+def kernel_params(cfg: UpdateConfig):
+    """(bits, prm) of ``_kernels.update``."""
+    bits = np.array([VALID | FILLED, VALID, WEAK_BITS if cfg.weak else 0, ILL_CONDITIONED], np.uint8)
+    prm = np.array([cfg.max_rel_std, cfg.sigma_scale, cfg.rho_max_per_m, cfg.a_init, cfg.b_init, cfg.evidence_cap,
+                    cfg.eta_outlier], F32)
+    return bits, prm
+
+
+def counts_dict(n_meas, started, inl, outl, rest) -> dict:
+    return {"measured": int(n_meas), "started": int(started), "inliers": int(inl), "outliers": int(outl),
+            "restarted": int(rest)}
+
+
+def update_rho_far(state: InverseRangeState, rho_far: float | None) -> None:
+    """The state keeps the smallest far inverse range of the pairs fused."""
+    if rho_far is not None and rho_far > 0:
+        state.rho_far = rho_far if state.rho_far <= 0 else min(state.rho_far, float(rho_far))
+
+
 def gaussian_uniform_step(mu, s2, a, b, x, tau2, rho_max: float):
     """One moment-matched update (module docstring) of arrays of cells; returns (mu, s2, a, b, C1): C1 is the
     posterior probability that x was an inlier."""
@@ -116,20 +140,15 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     if np.shape(rho_m) != state.shape:
         raise InputError(f"fusion update: measurement shape {np.shape(rho_m)} differs from the state {state.shape}")
     flags_m = np.asarray(flags_m, np.uint8)
-    if rho_far is not None and rho_far > 0:
-        state.rho_far = rho_far if state.rho_far <= 0 else min(state.rho_far, float(rho_far))
+    update_rho_far(state, rho_far)
     K = optional_kernels() if kernels is None or kernels else None
     if kernels and K is None:
         raise ImportError("update(kernels=True) needs numba")
     if K is not None:
         n_meas, started, inl, outl, rest = K.update(
             state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags,
-            np.asarray(rho_m, F32), np.asarray(std_m, F32), flags_m,
-            np.array([VALID | FILLED, VALID, WEAK_BITS if cfg.weak else 0, ILL_CONDITIONED], np.uint8),
-            F32(cfg.max_rel_std), F32(cfg.sigma_scale), F32(cfg.rho_max_per_m), F32(cfg.a_init), F32(cfg.b_init), F32(cfg.evidence_cap),
-            F32(cfg.eta_outlier))
-        return {"measured": int(n_meas), "started": int(started), "inliers": int(inl), "outliers": int(outl),
-                "restarted": int(rest)}
+            *measurement_arrays(rho_m, std_m, flags_m), *kernel_params(cfg))
+        return counts_dict(n_meas, started, inl, outl, rest)
     meas = measured(rho_m, std_m, flags_m, cfg)
     state.flags[...] = flags_m
     occ = state.occupied()
@@ -165,5 +184,4 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     B[start] = cfg.b_init
     N[start] = 1
     inl = c1 > F32(0.5)
-    return {"measured": int(meas.sum()), "started": int(start.size), "inliers": int(inl.sum()),
-            "outliers": int((~inl).sum()), "restarted": int(diverged.sum())}
+    return counts_dict(meas.sum(), start.size, inl.sum(), (~inl).sum(), diverged.sum())
