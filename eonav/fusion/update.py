@@ -50,7 +50,7 @@ WEAK_BITS = np.uint8(VALID | FILLED | ILL_CONDITIONED | LOW_TEXTURE | OUT_OF_VIE
 @dataclass(frozen=True)
 class UpdateConfig:
     rho_max_per_m: float = 2.0        # support of the uniform outlier density (nearest range 0.5 m)
-    sigma_scale: float = 1.0          # measurement sigma multiplier (correlation between pairs sharing frames)
+    sigma_scale: float = 1.0          # measurement sigma multiplier (the error pairs share: fused_map's slant term)
     a_init: float = 3.0               # Beta evidence of a cell started from one measurement: E[pi] = 0.75
     b_init: float = 1.0
     evidence_cap: float = 8.0         # a + b kept at most this (the last ~8 measurements' inlier ratio)
