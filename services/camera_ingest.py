@@ -1,53 +1,18 @@
-"""Camera ingest: one camera (live or recorded) -> schema "frame" messages on ``keys.frame(vehicle, camera_id)``.
+"""Camera ingest: one camera, live or recorded -> schema ``frame`` messages on ``keys.frame(vehicle, camera_id)``.
 
-Live or recorded is one flag (STYLE §4). ``--source`` takes:
+Live or recorded is one flag: ``--source`` takes a video file, an image folder (with an optional timestamps file),
+a V4L2 device or an RTSP/HTTP URL (docs/bus.md, "Camera ingest", lists the forms, the pacing and the stamps).
+Every frame carries ``stamp_us`` (UNIX microseconds of capture on this host's realtime clock) and ``stamp_source``,
+which says where the stamp came from: a recorded stamp, the stream's PTS, the V4L2 buffer time, the file's frame
+rate, or the host clock right after ``grab()`` (decode time kept out of the stamp). Replays of one recording given
+the same ``--replay-shift-us`` stay aligned with each other. The publisher drops frames rather than queueing them.
 
-- a video file (``flight.mp4``; FFMPEG);
-- an image folder: the image files in it, sorted by name, plus optionally ``timestamps.txt``
-  (or ``--timestamps FILE``) with **one stamp per line matching the sorted files**. The first
-  whitespace-separated column of each line is the stamp; blank lines and ``#`` comments are skipped.
-  Units (``--timestamps-unit``): ``s`` = seconds (float), ``us`` = integer microseconds, ``auto``
-  (default) = microseconds when every value is an integer >= 1e11, else seconds;
-- a V4L2 device: ``/dev/video0`` or an integer ``0``;
-- a network stream: ``rtsp://...``, ``http(s)://...`` (FFMPEG; set ``OPENCV_FFMPEG_CAPTURE_OPTIONS``
-  e.g. ``rtsp_transport;tcp`` for RTSP over TCP).
+With ``--cameras FILE`` (the cameras file the sync reads) a camera whose entry has a lens model is undistorted
+to its pinhole camera (tables built once, one ``cv2.remap`` a frame; ``eonav.io.calibration``), and each stamp
+moves by the entry's ``time_offset_s`` plus half of ``--exposure-us`` to the middle of the exposure
+(docs/cameras.md).
 
-Stamps (integer ``stamp_us``, UNIX-epoch microseconds on this host's realtime clock), and the
-``stamp_source`` field that says where each came from:
-
-- ``recorded``: an image folder with a timestamps file, mapped onto the current clock preserving the
-  spacing (offset = now at start - first recorded stamp), or shifted by ``--replay-shift-us`` (below);
-  ``recorded_raw`` with ``--keep-stamps``;
-- ``pts``: the stream/file presentation time (``CAP_PROP_POS_MSEC``) mapped to a wall-clock origin
-  taken at the first frame; the PTS itself travels in ``source_pts_us``;
-- ``v4l2``: the kernel buffer timestamp (``CAP_PROP_POS_MSEC`` of the V4L2 backend), converted from
-  CLOCK_MONOTONIC to the realtime clock when it is monotonic (the usual uvcvideo case);
-- ``fps``: a file without PTS: wall-clock origin at the first frame + index / frame rate;
-- ``host``: the realtime clock right after ``grab()`` (``retrieve()``/decode come afterwards, so
-  decode time is not in the stamp): image folders without timestamps, and any source whose driver
-  stamp is missing or implausible (> 2 s from the host clock for live sources).
-
-Pacing (``--rate``) applies to files and folders only; live sources are paced by the camera:
-``auto`` (default) = real time from the recorded stamps / PTS / the file's fps (``--default-fps`` for
-a folder without timestamps), a number = that many frames per second, ``0`` = as fast as possible.
-``--loop`` replays a file source forever (stamps keep increasing across laps).
-
-Joint replays: a recording holds several streams (frames + a MAVLink tlog) on one clock. Replayed by
-separate services that each map "now at my start" to "my first record", they would drift apart by the
-difference of their start times. ``--replay-shift-us D`` (the same D for every replay of one recording,
-``EONAV_REPLAY_SHIFT_US``; ``eonav run`` sets it) instead stamps each record at recorded + D and publishes
-it when the host clock reaches that stamp, so all replays stay aligned to the microsecond.
-
-Output: ``--encoding mono8`` (default; the locators work on grey) or ``bgr8``; 16-bit input is
-scaled to 8 bit (/257). Corrupt or unreadable frames are counted (``corrupt_frames``), logged and
-skipped; frames whose size differs from ``--width``/``--height`` (when given) are counted
-(``wrong_size``) and skipped. ``seq`` counts published frames, so a gap downstream means a drop on the
-bus. The publisher is an image publisher (CongestionControl.DROP): a slow consumer never grows a queue.
-End of a file source: clean exit 0 (unless ``--loop``). A live source that stops delivering frames for
-``--live-timeout`` seconds makes the service exit 1, so the supervisor restarts it.
-
-The capture loop :func:`capture_loop` is a function over an injected source iterator, sink and
-metrics object, testable without zenoh or a camera.
+:func:`capture_loop` runs over an injected source, sink and metrics object, testable without zenoh or a camera.
 """
 from __future__ import annotations
 
@@ -124,7 +89,8 @@ class Pacer:
         else:
             self.fps = float(rate)
             if self.fps < 0 or not np.isfinite(self.fps):
-                raise InputError(f"--rate {rate!r}: expected 'auto', 0 (as fast as possible) or frames per second > 0")
+                raise InputError(f"--rate-hz {rate!r}: expected 'auto', 0 (as fast as possible) "
+                                 f"or frames per second > 0")
             self.mode = "none" if self.fps == 0 else "fixed"
         self._t0 = None
         self._m0 = None
@@ -289,8 +255,8 @@ def open_capture(source: str, kind: str, args=None):
     else:
         if kind == "stream" and args is not None and getattr(args, "open_timeout", None):
             cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG, [
-                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(args.open_timeout * 1000),
-                cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(args.open_timeout * 1000)])
+                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(args.open_timeout_s * 1000),
+                cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(args.open_timeout_s * 1000)])
         else:
             cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG)
     if not cap.isOpened():
@@ -448,12 +414,13 @@ class CaptureStats:
 def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, camera_id: str,
                  encoding: str = "mono8", width: int | None = None, height: int | None = None,
                  metrics=None, stop: threading.Event | None = None,
-                 monotonic: Callable[[], float] = time.monotonic) -> CaptureStats:
+                 monotonic: Callable[[], float] = time.monotonic, correct: Callable | None = None) -> CaptureStats:
     """Turn source frames into schema "frame" fields and hand them to ``sink``.
 
     Skips (and counts) unreadable frames (``corrupt_frames``) and, when ``width``/``height`` are given,
-    frames of another size (``wrong_size``). ``seq`` numbers published frames from 0. Returns when
-    ``frames`` is exhausted or ``stop`` is set."""
+    frames of another size (``wrong_size``). ``correct(image, stamp_us) -> (image, stamp_us)`` (a
+    ``eonav.io.calibration.FrameCorrection``) undistorts and re-stamps each kept frame. ``seq`` numbers published
+    frames from 0. Returns when ``frames`` is exhausted or ``stop`` is set."""
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding {encoding!r}: expected one of {ENCODINGS}")
     m = metrics or NullMetrics()
@@ -482,15 +449,18 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
             m.log_limited("size", logging.WARNING, "skipped frame %d %s: %dx%d, expected %sx%s",
                           f.index, f.name, w, h, width or "*", height or "*")
             continue
-        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": int(f.stamp_us),
+        stamp_us = int(f.stamp_us)
+        if correct is not None:
+            img, stamp_us = correct(img, stamp_us)
+        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": stamp_us,
               "stamp_source": f.stamp_source, "encoding": encoding, "image": img,
               "source_pts_us": int(f.source_pts_us)})
         m.latency("grab_to_put", monotonic() - f.grab_mono)
         m.tick("frames")
-        if st.last_stamp_us >= 0 and f.stamp_us <= st.last_stamp_us:
+        if st.last_stamp_us >= 0 and stamp_us <= st.last_stamp_us:
             m.count("nonincreasing_stamps")
         st.published += 1
-        st.last_stamp_us = int(f.stamp_us)
+        st.last_stamp_us = stamp_us
     return st
 
 
@@ -503,9 +473,9 @@ def _rate(s: str):
     try:
         v = float(s)
     except ValueError:
-        raise ValueError(f"--rate {s!r}: expected auto, 0 or frames per second") from None
+        raise ValueError(f"--rate-hz {s!r}: expected auto, 0 or frames per second") from None
     if v < 0:
-        raise ValueError("--rate must be >= 0")
+        raise ValueError("--rate-hz must be >= 0")
     return v
 
 
@@ -518,8 +488,9 @@ def add_arguments(p) -> None:
     add_flag(g, "--source", env="EONAV_CAMERA_SOURCE", default=None,
              help="video file, image folder, V4L2 device (/dev/videoN or N), or rtsp:// / http:// URL")
     add_flag(g, "--camera-id", env="EONAV_CAMERA_ID", default="nose", help="camera id in the frame key and messages")
-    add_flag(g, "--rate", env="EONAV_CAMERA_RATE", default="auto", type=_rate,
-             help="file pacing: auto = real time from stamps/PTS/fps, N = N fps, 0 = as fast as possible")
+    add_flag(g, "--rate-hz", env="EONAV_CAMERA_RATE_HZ", default="auto", type=_rate, metavar="auto|HZ",
+             help="file pacing: auto = real time from stamps/PTS/fps, N = N frames per second, 0 = as fast as possible",
+             aliases="--rate", old_env="EONAV_CAMERA_RATE")
     add_flag(g, "--loop", env="EONAV_CAMERA_LOOP", action="store_true", help="replay a file source forever")
     add_flag(g, "--encoding", env="EONAV_CAMERA_ENCODING", default="mono8", choices=ENCODINGS,
              help="published pixel format")
@@ -537,17 +508,45 @@ def add_arguments(p) -> None:
              help="publish recorded stamps as they are instead of mapping them onto the current clock")
     add_flag(g, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default=None, type=int, metavar="D",
              help="joint replay: stamp recorded + D and release at that host time (same D for every replay)")
-    add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float,
+    add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float, metavar="FPS",
              help="frame rate assumed for folders without timestamps / files without fps (pacing in auto mode)")
-    add_flag(g, "--wait-subscribers", env="EONAV_CAMERA_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
-             help="file sources: wait up to S s for a subscriber before the first frame (declaration race)")
+    add_flag(g, "--wait-subscribers-s", env="EONAV_CAMERA_WAIT_SUBSCRIBERS_S", default=2.0, type=float, metavar="S",
+             help="file sources: wait up to S s for a subscriber before the first frame (declaration race)",
+             aliases="--wait-subscribers", old_env="EONAV_CAMERA_WAIT_SUBSCRIBERS")
+    add_flag(g, "--cameras", env="EONAV_CAMERA_CAMERAS", default=None, metavar="FILE",
+             help="cameras file (as the sync's): this camera's lens model (frames undistorted) and time_offset_s")
+    add_flag(g, "--exposure-us", env="EONAV_CAMERA_EXPOSURE_US", default=None, type=float, metavar="US",
+             help="known exposure time: stamps move by half of it to the middle of the exposure")
     add_flag(g, "--fourcc", env="EONAV_CAMERA_FOURCC", default=None, help="V4L2 pixel format, e.g. MJPG")
-    add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, help="V4L2 frame rate to request")
+    add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, metavar="FPS",
+             help="V4L2 frame rate to request")
     add_flag(g, "--buffer-size", env="EONAV_CAMERA_BUFFER_SIZE", default=2, type=int, help="V4L2 buffers (small = low latency)")
-    add_flag(g, "--live-timeout", env="EONAV_CAMERA_LIVE_TIMEOUT", default=5.0, type=float, metavar="S",
-             help="live sources: exit 1 (for a restart) after S s without a frame")
-    add_flag(g, "--open-timeout", env="EONAV_CAMERA_OPEN_TIMEOUT", default=10.0, type=float, metavar="S",
-             help="network streams: open/read timeout")
+    add_flag(g, "--live-timeout-s", env="EONAV_CAMERA_LIVE_TIMEOUT_S", default=5.0, type=float, metavar="S",
+             help="live sources: exit 1 (for a restart) after S s without a frame",
+             aliases="--live-timeout", old_env="EONAV_CAMERA_LIVE_TIMEOUT")
+    add_flag(g, "--open-timeout-s", env="EONAV_CAMERA_OPEN_TIMEOUT_S", default=10.0, type=float, metavar="S",
+             help="network streams: open/read timeout", aliases="--open-timeout", old_env="EONAV_CAMERA_OPEN_TIMEOUT")
+
+
+def camera_correction(args):
+    """The ``FrameCorrection`` of ``--cameras`` / ``--exposure-us`` (None when neither is given). The camera's
+    calibrated size becomes ``--width``/``--height`` (requested from V4L2; other sizes are skipped)."""
+    from eonav.io.calibration import frame_correction
+    exposure_s = None if args.exposure_us is None else args.exposure_us / 1e6
+    if not args.cameras:
+        return None if exposure_s is None else frame_correction(None, 0.0, exposure_s)
+    from eonav.io.pairfile import load_camera_models
+    models = load_camera_models(args.cameras, "--cameras")
+    if args.camera_id not in models:
+        raise InputError(f"--cameras {args.cameras}: no camera {args.camera_id!r} (has {sorted(models)})")
+    m = models[args.camera_id]
+    for flag, want in (("width", m.camera.width), ("height", m.camera.height)):
+        if getattr(args, flag) is None:
+            setattr(args, flag, want)
+        elif getattr(args, flag) != want:
+            raise InputError(f"--{flag} {getattr(args, flag)}: camera {args.camera_id!r} in --cameras is "
+                             f"{m.camera.width}x{m.camera.height}")
+    return frame_correction(m.undistort, m.time_offset_s, exposure_s)
 
 
 def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | None = None) -> Iterator[RawFrame]:
@@ -556,7 +555,7 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
         raise InputError("--source is required (or EONAV_CAMERA_SOURCE)")
     kind = classify_source(args.source)
     clock = clock or Clock()
-    pacer = Pacer(args.rate, clock, stop) if kind in ("folder", "file") else None
+    pacer = Pacer(args.rate_hz, clock, stop) if kind in ("folder", "file") else None
     if kind == "folder":
         return folder_frames(args.source, timestamps=args.timestamps, unit=args.timestamps_unit,
                              keep_stamps=args.keep_stamps, loop=args.loop, pacer=pacer, clock=clock,
@@ -567,27 +566,31 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
         raise InputError("--timestamps applies to image folders only")
     open_capture(args.source, kind, args).release()  # fail early, as a configuration error
     return capture_frames(lambda: open_capture(args.source, kind, args), kind, loop=args.loop, pacer=pacer,
-                          clock=clock, stop=stop, live_timeout_s=args.live_timeout, default_fps=args.default_fps)
+                          clock=clock, stop=stop, live_timeout_s=args.live_timeout_s, default_fps=args.default_fps)
 
 
 def body(node: Node, args) -> None:
     K.check_chunk(args.camera_id, "--camera-id")
     kind = classify_source(args.source) if args.source else None
+    correct = camera_correction(args)
     frames = make_frames(args, stop=node.stop_event)
     key = K.frame(node.vehicle, args.camera_id)
     pub = node.publisher(key, image=True)
     node.log.info("camera %s: %s source %s -> %s (%s, rate %s)", args.camera_id, kind, args.source, key,
-                  args.encoding, args.rate)
+                  args.encoding, args.rate_hz)
+    if correct is not None:
+        node.log.info("camera %s: %s, stamps %+d us", args.camera_id,
+                      "undistorted" if correct.undistort is not None else "pinhole", correct.shift_us)
 
     def sink(fields):
         node.put(pub, "frame", **fields)
 
     def run():
-        if kind in ("folder", "file") and args.wait_subscribers > 0:
-            if not node.wait_matching(pub, args.wait_subscribers):
-                node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers)
+        if kind in ("folder", "file") and args.wait_subscribers_s > 0:
+            if not node.wait_matching(pub, args.wait_subscribers_s):
+                node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers_s)
         st = capture_loop(frames, sink, camera_id=args.camera_id, encoding=args.encoding, width=args.width,
-                          height=args.height, metrics=node, stop=node.stop_event)
+                          height=args.height, metrics=node, stop=node.stop_event, correct=correct)
         if node.stop_event.is_set():
             return
         if st.published == 0 and st.corrupt + st.wrong_size > 0:
@@ -606,4 +609,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    service_main("camera", add_arguments, body)
+    service_main("camera", add_arguments, body, module="camera_ingest")

@@ -1,54 +1,16 @@
-"""Locator: posed frames -> range maps with confidence.
+"""Locator: posed frames -> range maps with confidence (docs/bus.md, "Locator").
 
-Subscribes ``keys.posed_frames_all(vehicle)`` (or one camera with ``--camera``) through a RingChannel: the
-newest frames win, so a locator slower than the camera skips frames instead of growing a queue (skipped
-frames show as ``frames_skipped`` from the ``seq`` gaps). A small history per camera feeds
-``eonav.ranging.pair_policy`` (parallax at a reference range, max age, max rotation, stereo rig); for every pair it
-runs ``eonav.locate.locate(view_a, view_b, method=--method)`` and publishes schema ``range_map`` on
-``keys.range_map(vehicle, camera_id)`` with the reference (newest) frame's stamp, camera and pose.
+In: schema ``posed_frame`` on ``keys.posed_frames_all(vehicle)`` (or one camera). Out: schema ``range_map`` on
+``keys.range_map(vehicle, camera_id)`` with the reference frame's stamp, pose and camera. A small history per camera
+feeds ``eonav.ranging.pair_policy``; each pair goes through ``eonav.ranging.locate.locate``.
 
-Scheduling: latest frame wins. After each locate the worker drains the ring and ranges only the newest frame of each
-camera; the older ones are decoded (malformed input is still counted) and only remembered as pair partners
-(``PairPolicy.remember``, counted ``frames_superseded``): a frame that arrived while locate ran never waits behind a
-stale one. The latency a frame can see is therefore at most one locate call (the one running when it arrived) plus its
-own.
+Two decisions a reader must know:
 
-Message: ``range_m`` float32, ``confidence`` float16, ``flags`` uint8, ``inv_range_std_per_m`` float16 (``--range-std
-f16``, the default: the obstacle service gates and sizes ground clearance with it), float32 (``f32``) or not sent
-(``off``); 7-9 bytes per pixel instead of 13.
-
-Scale: ``--scale auto`` (the default) chooses, per camera and per pair, the largest rung of the ladder 1, 0.5, ...
-``--min-scale`` whose compute time fits a budget (``--budget-ms``, default 60 % of the camera's measured frame
-interval, clamped to [20, 200] ms): ``eonav.scale_control.ScaleController`` steps down when the recent median compute
-time exceeds the budget and back up only when the predicted cost one rung up stays below 70 % of it for 5 pairs in a
-row. Warm-up (``--warmup``, on by default): at a camera's first frame (which cannot make a pair yet) the locator times
-one locate call per rung on a synthetic pair made of that frame (``calibrate_camera``) and hands the timings to the
-controller, whose first pairs then run warm and at the largest rung whose calibrated cost fits the budget, instead of
-at full scale until ``min_samples`` pairs over the budget (frames dropped in the first seconds at 15 fps 640x480).
-Both frames of a pair use the pair's scale: the history keeps the full-resolution grey images and each pair
-resizes on use (kept in the frame's payload, so a partner is resized once per scale). Each change is logged with its
-reason and counted (``scale_changes``, ``scale_changes.up|down``); the counter ``scale_pct.<camera>`` is the camera's
-current scale in percent (a gauge kept by deltas) and ``pairs_computed.scale_<pct>`` counts the pairs per scale.
-``--scale S`` (a number) always locates at S: on the grey images resized by S (cv2.INTER_AREA; the camera's intrinsics scaled
-with pixel centres kept: fx' = S fx, cx' = S (cx + 0.5) - 0.5: ``eonav.camera.scaled_camera``); the message says
-``scale``. The pair policy still judges parallax on the full-resolution camera.
-
-Grid of the published map (``--publish-grid``, env EONAV_LOCATOR_PUBLISH_GRID): ``locate`` (the default) publishes the
-maps on the grid they were computed on, with the camera model OF THAT GRID (the scaled camera) in the message's
-``camera`` and the frame's size in ``frame_width`` / ``frame_height``; every reader takes the geometry from the
-message's own camera (the obstacle service passes the frame size to ``eonav.obstacles.analyse`` so its pixel counts
-stay in frame pixels). ``frame`` upsamples the maps to the frame's grid by nearest neighbour (pixel u takes the scaled
-pixel floor((u + 0.5) S): ``to_full_grid``) and sends the frame's camera, as before. Why ``locate``: measured at
-640x480 and scale 0.5 the upsampling cost the locator 2.3 ms per pair, the message was 2.77 MB instead of 0.69 MB
-(encode 1.3 ms, decode 0.4 ms, the copies on the bus) and the obstacle analysis 15.1 ms instead of 10.4 ms, for the same
-obstacles (the upsampled pixels carry no information the scaled ones do not). 0.5 costs roughly a quarter of the
-locate time; what it costs in accuracy is measured on the simulator in ``eonav bench pipeline --accuracy`` (range
-error and coverage vs truth).
-
-Health: counters ``pairs_computed``, ``scale_changes``, ``scale_pct.<camera>`` (above), ``skipped.<reason>`` (pair policy reason codes), ``bad_frames``,
-``locate_errors``, ``warmup_errors``, ``frames_skipped``, ``frames_superseded``; latencies ``warmup`` (per camera), ``capture_to_published`` (frame capture stamp
--> range map put, the pipeline's figure), ``capture_to_received``, ``compute`` (the locate call) and ``overhead``
-(everything else this service does per ranged frame: decode, camera/pose, grey image, scaling, encode, put).
+- latest frame wins: the subscriber is a RingChannel and, after each locate, only the newest frame of each camera
+  is ranged (older ones become pair partners), so a slow locator skips frames instead of queueing them;
+- the locate scale is adaptive by default (``eonav.ranging.scale_control``: the largest scale whose compute time
+  fits a budget, calibrated on a synthetic pair at a camera's first frame), and the map is published on the grid
+  it was computed on, with that grid's (scaled) camera in the message.
 """
 from __future__ import annotations
 
@@ -69,22 +31,25 @@ MAX_SEQ_GAP = 10_000          # a larger jump of a camera's seq is a restart (or
 
 
 def add_arguments(p):
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    d = PairPolicyConfig()                       # the pair policy's defaults are the library's
     add_flag(p, "--method", env="EONAV_LOCATOR_METHOD", default="dense",
-             help="range estimator (eonav.locate.METHODS): dense (default), paper, dis")
+             help="range estimator (eonav.ranging.locate.METHODS): dense (default), paper, dis")
     p.add_argument("--method-param", action="append", default=[], metavar="NAME=VALUE",
                    help="extra keyword for the method, e.g. search_window=7 (repeatable; numbers parsed)")
     add_flag(p, "--cv-threads", env="EONAV_CV_THREADS", default=-1, type=int, metavar="N",
              help="cv2.setNumThreads(N); -1 keeps OpenCV's default, 0 disables its threading")
-    add_flag(p, "--camera", env="EONAV_LOCATOR_CAMERA", default=None,
-             help="only this camera id (default: every camera of the vehicle)")
+    add_flag(p, "--camera-id", env="EONAV_LOCATOR_CAMERA_ID", default=None,
+             help="only this camera id (default: every camera of the vehicle)",
+             aliases="--camera", old_env="EONAV_LOCATOR_CAMERA")
     add_flag(p, "--ring", env="EONAV_LOCATOR_RING", default=2, type=int,
              help="RingChannel depth of the posed-frame subscriber (newest N kept)")
-    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|S",
+    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|FACTOR",
              help="auto: per camera and pair, the largest scale of the ladder (1, 0.5, ... --min-scale) whose "
-                  "compute time fits --budget-ms (eonav.ranging.scale_control); a number S in (0, 1]: always locate on images "
-                  "resized by S (0.5 = half resolution, ~4x less work). See --publish-grid")
-    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="S",
-             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (S itself is the last rung)")
+                  "compute time fits --budget-ms (eonav.ranging.scale_control); a number FACTOR in (0, 1]: always "
+                  "locate on images resized by FACTOR (0.5 = half resolution, ~4x less work). See --publish-grid")
+    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="FACTOR",
+             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (FACTOR itself is the last rung)")
     add_flag(p, "--budget-ms", env="EONAV_LOCATOR_BUDGET_MS", default=None, type=float, metavar="MS",
              help="--scale auto: compute-time budget per pair; default 60 %% of the camera's measured frame interval, "
                   "clamped to [20, 200] ms")
@@ -96,24 +61,31 @@ def add_arguments(p):
     add_flag(p, "--publish-grid", env="EONAV_LOCATOR_PUBLISH_GRID", default="locate", choices=("locate", "frame"),
              help="locate (default): publish the range map on the grid it was computed on, with that grid's (scaled) "
                   "camera and the frame size in the message; frame: upsample it to the frame's grid (nearest)")
+    add_flag(p, "--fusion", env="EONAV_LOCATOR_FUSION", default="auto", choices=("auto", "on", "off"),
+             help="fuse every camera's measurements over time into one inverse-range state per camera and publish "
+                  "the fused map (eonav.fusion); auto: on with the dense method, off with the others")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.ranging.pair_policy)")
-    add_flag(g, "--min-disparity", env="EONAV_PAIR_MIN_DISPARITY", default=2.0, type=float, metavar="PX",
-             help="median translational disparity of a point at --ref-range needed for a pair")
-    add_flag(g, "--ref-range", env="EONAV_PAIR_REF_RANGE", default=50.0, type=float, metavar="M",
-             help="range at which parallax is judged")
-    add_flag(g, "--min-baseline", env="EONAV_PAIR_MIN_BASELINE", default=0.0, type=float, metavar="M",
-             help="a baseline of at least this also qualifies (0: off)")
-    add_flag(g, "--max-age", env="EONAV_PAIR_MAX_AGE", default=1.0, type=float, metavar="S",
-             help="oldest earlier frame used")
-    add_flag(g, "--max-rotation", env="EONAV_PAIR_MAX_ROTATION", default=10.0, type=float, metavar="DEG",
-             help="largest rotation between the two frames of a motion pair")
-    add_flag(g, "--history", env="EONAV_PAIR_HISTORY", default=8, type=int, help="frames kept per camera")
+    add_flag(g, "--min-disparity-px", env="EONAV_PAIR_MIN_DISPARITY_PX", default=d.min_disparity_px, type=float,
+             metavar="PX", help="median translational disparity of a point at --ref-range-m needed for a pair",
+             aliases="--min-disparity", old_env="EONAV_PAIR_MIN_DISPARITY")
+    add_flag(g, "--ref-range-m", env="EONAV_PAIR_REF_RANGE_M", default=d.ref_range_m, type=float, metavar="M",
+             help="range at which parallax is judged", aliases="--ref-range", old_env="EONAV_PAIR_REF_RANGE")
+    add_flag(g, "--min-baseline-m", env="EONAV_PAIR_MIN_BASELINE_M", default=d.min_baseline_m, type=float, metavar="M",
+             help="a baseline of at least this also qualifies (0: off)",
+             aliases="--min-baseline", old_env="EONAV_PAIR_MIN_BASELINE")
+    add_flag(g, "--max-age-s", env="EONAV_PAIR_MAX_AGE_S", default=d.max_age_s, type=float, metavar="S",
+             help="oldest earlier frame used", aliases="--max-age", old_env="EONAV_PAIR_MAX_AGE")
+    add_flag(g, "--max-rotation-deg", env="EONAV_PAIR_MAX_ROTATION_DEG", default=d.max_rotation_deg, type=float,
+             metavar="DEG", help="largest rotation between the two frames of a motion pair",
+             aliases="--max-rotation", old_env="EONAV_PAIR_MAX_ROTATION")
+    add_flag(g, "--history", env="EONAV_PAIR_HISTORY", default=d.history, type=int, help="frames kept per camera")
     add_flag(g, "--stereo", env="EONAV_PAIR_STEREO", default=None, metavar="REF,PARTNER",
              help="stereo rig: two camera ids, the first is the reference")
-    add_flag(g, "--max-stereo-dt", env="EONAV_PAIR_MAX_STEREO_DT", default=0.002, type=float, metavar="S",
-             help="largest stamp difference within a stereo pair")
+    add_flag(g, "--max-stereo-dt-s", env="EONAV_PAIR_MAX_STEREO_DT_S", default=d.max_stereo_dt_s, type=float,
+             metavar="S", help="largest stamp difference within a stereo pair",
+             aliases="--max-stereo-dt", old_env="EONAV_PAIR_MAX_STEREO_DT")
 
 
 def parse_params(items) -> dict:
@@ -140,10 +112,10 @@ def policy_config(args):
         rig = tuple(s.strip() for s in args.stereo.split(","))
         for c in rig:
             K.check_chunk(c, "--stereo camera id")
-    return PairPolicyConfig(min_disparity_px=args.min_disparity, ref_range_m=args.ref_range,
-                            min_baseline_m=args.min_baseline, max_age_s=args.max_age,
-                            max_rotation_deg=args.max_rotation, history=args.history, stereo_rig=rig,
-                            max_stereo_dt_s=args.max_stereo_dt)
+    return PairPolicyConfig(min_disparity_px=args.min_disparity_px, ref_range_m=args.ref_range_m,
+                            min_baseline_m=args.min_baseline_m, max_age_s=args.max_age_s,
+                            max_rotation_deg=args.max_rotation_deg, history=args.history, stereo_rig=rig,
+                            max_stereo_dt_s=args.max_stereo_dt_s)
 
 
 def grey_image(msg: dict) -> np.ndarray:
@@ -257,9 +229,8 @@ def scaled_view(f, scale: float, cameras: CameraCache):
 def to_full_grid(a, cam):
     """A map computed at the locate scale back on the frame's grid (nearest neighbour); None stays None.
 
-    Two ``take`` calls (rows, then columns) rather than one ``a[np.ix_(rows, cols)]``: the same pixels, but 0.55 ms
-    instead of 2.0 ms per 640 x 480 map from 320 x 240 on the bench machine, and the locator upsamples four maps per
-    pair (range, confidence, std, flags: 8.5 ms -> 2.3 ms of its per-pair overhead at scale 0.5)."""
+    Two ``take`` calls (rows, then columns) rather than one ``a[np.ix_(rows, cols)]``: the same pixels in about a
+    quarter of the time (four maps per pair: range, confidence, std, flags)."""
     if a is None or a.shape == (cam.height, cam.width):
         return a
     a = np.asarray(a)
@@ -310,13 +281,35 @@ def body(node: Node, args) -> None:
         raise InputError(f"--ring must be >= 1, got {args.ring}")
     new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
-    key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
+    runner = fusion_runner(args, params)
+    key = K.posed_frame(node.vehicle, args.camera_id) if args.camera_id else K.posed_frames_all(node.vehicle)
     sub = node.subscribe(key, ring=args.ring)
     node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, args.warmup,
-                args.publish_grid, name="locate")
-    node.log.info("locator: method %s, scale %s (ladder %s, budget %s), publish grid %s, %s, policy %s", args.method,
-                  args.scale, new_controller().ladder, "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms",
-                  args.publish_grid, key, policy.config)
+                args.publish_grid, runner, name="locate")
+    node.log.info("locator: method %s, fusion %s, scale %s (ladder %s, budget %s), publish grid %s, %s, policy %s",
+                  args.method, "on" if runner else "off", args.scale, new_controller().ladder,
+                  "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms", args.publish_grid, key,
+                  policy.config)
+
+
+def fusion_runner(args, params: dict):
+    """The locator's ``eonav.fusion`` runner (None with fusion off): the pair policy's judgement schedules the
+    measurements, each one the configured method without its own fill (the fused map fills once)."""
+    if args.fusion == "off" or (args.fusion == "auto" and args.method != "dense"):
+        return None
+    if args.method != "dense":
+        raise InputError(f"--fusion on needs a method with a calibrated sigma (dense), not {args.method!r}")
+    from dataclasses import replace
+
+    from eonav.fusion.schedule import ScheduleConfig
+    from eonav.fusion.sequence import FusionConfig, FusionRunner
+    from eonav.ranging.locate import locate
+    pol = policy_config(args)
+    schedule = ScheduleConfig(policy=replace(pol, stereo_rig=None), stereo_rig=pol.stereo_rig,
+                              max_stereo_dt_s=pol.max_stereo_dt_s)
+    measure_params = dict(params, fill=False)
+    return FusionRunner(FusionConfig(schedule=schedule),
+                        measure=lambda va, vb: locate(va, vb, method=args.method, **measure_params))
 
 
 def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
@@ -360,8 +353,7 @@ def synthetic_partner(f):
 
 def calibrate_camera(f, controller, method: str, params: dict, cameras: CameraCache, locate) -> dict:
     """Warm-up at a camera's first frame: one untimed locate call at the lowest rung (the process's first call pays
-    imports, OpenCV and work-buffer set-up: 71 ms instead of 44 ms for a 640x480 dense pair on the bench machine),
-    then one timed call per rung of ``controller``'s ladder on ``synthetic_partner(f)``. Returns {scale: seconds}
+    imports, OpenCV and work-buffer set-up), then one timed call per rung of ``controller``'s ladder on ``synthetic_partner(f)``. Returns {scale: seconds}
     for ``controller.calibrate``, so the camera's first real pairs run warm and at a rung that fits the budget.
     Raises what locate raises."""
     b = synthetic_partner(f)
@@ -378,7 +370,7 @@ def calibrate_camera(f, controller, method: str, params: dict, cameras: CameraCa
 
 def warm_up_camera(node: Node, f, controller, method: str, params: dict, cameras: CameraCache, locate) -> None:
     """``calibrate_camera`` and hand the timings to the controller; a failure is counted (``warmup_errors``) and
-    logged, and the camera then starts uncalibrated at full scale as before."""
+    logged, and the camera then starts uncalibrated at full scale."""
     t0 = time.perf_counter()
     try:
         costs = calibrate_camera(f, controller, method, params, cameras, locate)
@@ -404,10 +396,11 @@ def show_scale(node: Node, camera_id: str, controller, shown: dict) -> None:
 
 
 def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controller=None,
-                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate") -> None:
+                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate", runner=None) -> None:
     """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1);
     ``warmup``: ``warm_up_camera`` at each camera's first frame; ``publish_grid``: ``locate`` or ``frame`` (module
-    docstring)."""
+    docstring); ``runner``: an ``eonav.fusion`` FusionRunner (``fusion_runner``), which then schedules the pairs and
+    whose fused maps are published, instead of one pair's map per frame."""
     if publish_grid not in ("locate", "frame"):
         raise InputError(f"publish grid must be 'locate' or 'frame', got {publish_grid!r}")
     from eonav.ranging.locate import locate
@@ -418,6 +411,8 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     shown: dict = {}                            # camera -> scale_pct gauge value reported so far
     cameras = CameraCache(1.0)                  # the history keeps full-resolution grey images; pairs resize on use
     errors_in_row = 0
+    reported_fusion: dict = {}                  # runner counts reported to the health counters so far
+    sources: dict = {}                          # (camera, seq) -> posed frame, for the fused maps
 
     def one(sample, newest) -> None:
         nonlocal errors_in_row
@@ -442,7 +437,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
         last_seq[f.camera_id] = f.seq
         if f.camera_id not in pubs:      # declared at the camera's first frame, not its first map, and before
             # the warm-up: a put right after the declaration can miss subscribers the route to which is not set
-            # up yet (ECOSYSTEM 1.5); with the declaration after the warm-up, a second frame already waiting was
+            # up yet (docs/zenoh.md, the declaration race); with the declaration after the warm-up, a second frame already waiting was
             # ranged and put ~10 ms after it, and its map was lost now and then
             pubs[f.camera_id] = node.publisher(K.range_map(node.vehicle, f.camera_id), image=True)
         sc = scalers.get(f.camera_id)
@@ -456,8 +451,14 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
         sc.observe_frame(f.seq, f.stamp_us)          # (a calibrated start may move with the budget: gauge it)
         show_scale(node, f.camera_id, sc, shown)
         if not newest:                   # a newer frame of this camera is already waiting: partner only
-            policy.remember(f)
+            if runner is not None:
+                runner.remember(fusion_frame(f, sc.scale, cameras))
+            else:
+                policy.remember(f)
             node.count("frames_superseded")
+            return
+        if runner is not None:
+            fuse_frame(node, runner, f, sc, pubs, range_std, t_rx0, cameras, publish_grid, reported_fusion, sources)
             return
         d = policy.offer(f)
         node.count(f"pairs.{d.reason}")
@@ -484,6 +485,67 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     for first in sub:
         for sample, newest in drain_latest(first, sub):
             node.guarded("posed_frame", one, sample, newest)
+
+def fusion_frame(f, scale: float, cameras: CameraCache):
+    """The fusion runner's frame of posed frame ``f`` at the locate ``scale``."""
+    from eonav.fusion.sequence import frame
+    return frame(f.camera_id, scaled_view(f, scale, cameras), f.stamp_us, f.seq)
+
+
+def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: float, cameras: CameraCache,
+               publish_grid: str, reported: dict, sources: dict) -> None:
+    """Push posed frame ``f`` through the fusion runner and publish the fused maps it returns (normally one: ``f``'s
+    camera; a stereo partner's frame returns the rig reference's). The compute time (measurements + fusion) drives
+    the camera's scale controller as a single pair's would."""
+    scale = sc.scale
+    t0 = time.perf_counter()
+    sources[(f.camera_id, f.seq)] = f            # the posed frame behind a fused map (its quaternion, camera map)
+    while len(sources) > 64:
+        sources.pop(next(iter(sources)))
+    try:
+        maps = runner.push(fusion_frame(f, scale, cameras))
+    except Exception as e:  # one bad frame must not stop the locator: forget the camera's state, start afresh
+        node.count("locate_errors")
+        node.count("fusion.resets_on_error")
+        runner.reset(f.camera_id)
+        node.log_limited("fusion_error", logging.ERROR, "fusion of %s/%d failed (state reset): %s: %s",
+                         f.camera_id, f.seq, type(e).__name__, e)
+        return
+    for name, v in runner.counts.items():
+        d = v - reported.get(name, 0)
+        if d:
+            node.count(f"fusion.{name}", d)
+            reported[name] = v
+    for m in maps:
+        a = sources.get((m.frame.camera_id, m.frame.seq))
+        if a is None:
+            node.count("fusion.map_without_frame")
+            continue
+        ms = m.measurements[-1] if m.measurements else {}
+        compute_s = m.locate_s + m.fusion_s
+        fields = map_fields(m.result, a, m.frame.camera, range_std, publish_grid)
+        n = np.minimum(np.asarray(m.n_fused), 255).astype(np.uint8)
+        if fields["range_m"].shape != n.shape:
+            n = to_full_grid(n, a.camera)
+        node.put(pubs[a.camera_id], "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
+                 other_camera_id=ms.get("other_camera_id", ""), other_seq=ms.get("other_seq", -1),
+                 method=m.result.method, position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"],
+                 baseline_m=ms.get("baseline_m", float("nan")), compute_s=compute_s, scale=float(scale),
+                 overhead_s=(t0 - t_rx0), n_fused=n, **fields)
+        node.count("pairs_computed", len(m.measurements))
+        node.count("maps_fused")
+        node.tick("pairs_computed")
+        node.latency("compute", compute_s)
+        node.latency("fusion", m.fusion_s)
+        node.latency("capture_to_published", (now_us() - a.stamp_us) * 1e-6)
+        if m.measurements:
+            change = sc.observe_compute(scale, compute_s)
+            if change is not None:
+                node.count("scale_changes")
+                node.count(f"scale_changes.{change.direction}")
+                node.log.info("camera %s: locate scale %g -> %g: %s", a.camera_id, change.old, change.new,
+                              change.reason)
+
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
                errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate") -> tuple:

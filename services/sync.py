@@ -1,30 +1,14 @@
 """Time-sync pairing: frames + navigation states -> posed frames.
 
-In: schema ``frame`` on ``keys.frames_all(vehicle)`` (RingChannel: the newest frames win) and
-``nav_state`` on ``keys.nav_state(vehicle)`` (FifoChannel: must not be lost).
-Out: schema ``posed_frame`` on ``keys.posed_frame(vehicle, camera_id)`` (image publisher): the frame,
-its camera (intrinsics + mount from ``--cameras``), and the vehicle pose interpolated at the frame's
-capture stamp by :class:`eonav.timesync.NavBuffer` (slerp attitude; linear or velocity-aided Hermite
-position), with ``nav_gap_us`` (largest bracketing gap) and ``quality_flags`` (eonav.nav.timesync QF_*).
+In: schema ``frame`` on ``keys.frames_all(vehicle)`` (RingChannel: the newest frames win) and ``nav_state`` on
+``keys.nav_state(vehicle)`` (FifoChannel: must not be lost). Out: schema ``posed_frame`` on
+``keys.posed_frame(vehicle, camera_id)``: the frame, its camera (``--cameras``: the pair file's "cameras" section,
+or a whole pair file) and the vehicle pose interpolated at the capture stamp by ``eonav.nav.timesync.NavBuffer``,
+with ``nav_gap_us`` and ``quality_flags``.
 
-Watermark policy per pending frame (see eonav.nav.timesync): posed as soon as attitude and position
-bracket its stamp; dropped at once when it can never be (``older_than_buffer``, ``before_first_nav``,
-``gap``); if it is still waiting after ``--max-wait-ms`` of wall time (nav late or stopped), posed by
-extrapolation up to ``--max-extrapolation-ms`` past the newest nav sample (flag QF_EXTRAPOLATED), else
-dropped as ``extrapolation_limit``. Every drop is counted as ``dropped.<reason>``; frames of a camera
-not in ``--cameras`` as ``unknown_camera``.
-
-``--cameras FILE``: JSON, either the pair file's "cameras" section (``{name: {width, height, fx, fy,
-cx, cy, mount: {l_m, eps_deg}}}``) or a whole pair file (its "cameras" key is used).
-
-Latency it adds (measured: nav and frames paced in real time on loopback, ATTITUDE 50 Hz, position + velocity 25 Hz,
-frames 15 fps at random phase): frame -> posed p50 23 ms, p99 42 ms, i.e. the wait for the first position sample
-after the stamp (<= 40 ms at 25 Hz) plus transport; the release is driven by each nav arrival (and a 20 ms tick),
-never by ``--max-wait-ms`` while nav flows. ``--position-lead-ms 20`` releases as soon as attitude brackets the stamp
-and position is at most 20 ms behind (linear extrapolation of the last bracket, flagged QF_EXTRAPOLATED): p50 13 ms,
-p99 21 ms, bounded by the attitude period. Default 0 (wait for bracketing position). With the recorded demo (frame stamps on nav sample instants) it adds p50 5 ms, p99 32 ms.
-
-The pairing logic is :class:`Pairer`, a pure object over injected times, tested without zenoh.
+A frame is posed as soon as navigation brackets its stamp, dropped at once when it never can be, and posed by
+bounded extrapolation (flagged) when navigation is still late after a wall-time limit; every drop is counted by
+reason (docs/bus.md, "Sync"). The logic is :class:`Pairer`, a pure object over injected times.
 """
 from __future__ import annotations
 

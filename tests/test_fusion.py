@@ -484,3 +484,35 @@ def test_wide_partner_metrics_of_the_whole_history_equal_the_pair_policys():
         assert disp[i] == pytest.approx(m.disparity_px, rel=1e-9, abs=1e-9)
         assert base[i] == pytest.approx(m.baseline_m, rel=1e-12)
     assert 0 < disp[-1] and rot[-1] > 90
+
+
+def test_a_custom_measurement_is_left_alone_unless_declared_fresh():
+    # the fused map is written into the measurement's arrays only when nobody else holds them: the default dense
+    # measurement, or a custom one declared fresh_measurements=True; a custom one that keeps its results is not touched
+    from eonav.ranging.rangemap import RangeResult
+    c = cam(32, 24)
+    kept = []
+
+    def plane(va, vb):
+        sh = (c.height, c.width)
+        r = RangeResult(range_m=np.full(sh, 20.0, np.float32), confidence=np.full(sh, 20.0, np.float32),
+                        method="test", inv_range_per_m=np.full(sh, 0.05, np.float32),
+                        inv_range_std_per_m=np.full(sh, 1e-3, np.float32), flags=np.full(sh, VALID, np.uint8),
+                        info={})
+        kept.append(r)
+        return r
+
+    views = [View(c, pose(east=5.0 * k, t=0.1 * k), np.zeros((24, 32), np.float32)) for k in range(3)]
+    for fresh in (None, True):
+        kept.clear()
+        runner = FusionRunner(FusionConfig(), measure=plane, fresh_measurements=fresh)
+        maps = []
+        for k, v in enumerate(views):
+            maps += runner.push(frame("c", v, int(round(v.state.t_s * 1e6)), k))
+        assert len(maps) == 2 and len(kept) == 2
+        shared = [m.result.inv_range_std_per_m is r.inv_range_std_per_m for m, r in zip(maps, kept)]
+        if fresh:
+            assert all(shared)
+        else:
+            assert not any(shared)
+            assert all(np.all(r.inv_range_std_per_m == 1e-3) and np.all(r.range_m == 20.0) for r in kept)

@@ -191,7 +191,7 @@ def test_far_future_nav_stamp_is_refused_and_does_not_blind_the_sync():
 @contextlib.contextmanager
 def _services():
     from tests.test_locator_service import locator_and_obstacles
-    with locator_and_obstacles() as ctx:
+    with locator_and_obstacles(("--fusion", "off")) as ctx:
         yield ctx
 
 

@@ -66,10 +66,10 @@ def locator_and_obstacles(locator_args=(), obstacles_args=()):
         with router_process() as ep, client_session(ep) as s:
             subs = [s.declare_subscriber(key, zenoh.handlers.FifoChannel(n)) for key, n in
                     ((K.range_maps_all(VEHICLE), 64), (K.obstacles(VEHICLE), 64), (K.health_all(VEHICLE), 1024))]
-            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.2"]
+            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period-s", "0.2"]
             procs["locator"] = start_service(["-m", "eonav.services.locator", *common, "--cv-threads", "1",
                                               *locator_args])
-            procs["obstacles"] = start_service(["-m", "eonav.services.obstacles", *common, "--ground-down", "0",
+            procs["obstacles"] = start_service(["-m", "eonav.services.obstacles", *common, "--ground-down-m", "0",
                                                 *obstacles_args])
             yield (s, procs, *subs)
     except BaseException:
@@ -97,7 +97,7 @@ def test_locator_and_obstacles_services(flight_frames):
     udp = free_port()
     rx = mu.mavlink_connection(f"udpin:127.0.0.1:{udp}")
     try:
-        with locator_and_obstacles((), ("--mavlink-out", f"udpout:127.0.0.1:{udp}")) as (
+        with locator_and_obstacles(("--fusion", "off"), ("--mavlink-out", f"udpout:127.0.0.1:{udp}")) as (
                 s, procs, maps_sub, obs_sub, health_sub):
             pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
             health = []
@@ -186,10 +186,10 @@ def test_locator_and_obstacles_services(flight_frames):
             assert fresh, "no fresh OBSTACLE_DISTANCE received"
             last_fresh = fresh[-1]
             assert last_fresh.frame == 12 and last_fresh.get_srcComponent() == 191
-            assert (last_fresh.increment_f, last_fresh.angle_offset) == (5.0, 0.0)
+            assert (last_fresh.increment_f, last_fresh.angle_offset) == (5.0, -20.0)
             last_pos = sent[N_FRAMES - 1][1].state.position_ned_m
             c = np.asarray(boxes["truck"].center_ned_m) - last_pos
-            j = round(math.degrees(math.atan2(c[1], c[0])) / 5.0) % 72     # element j is centred on 5 j deg
+            j = round((math.degrees(math.atan2(c[1], c[0])) + 20.0) / 5.0) % 72   # element j: -20 + 5 j deg
             near = min(last_fresh.distances[j - 1:j + 2])   # bins at the truck's centre bearing
             truck_h = box_distance(boxes["truck"], [*last_pos[:2], -1.5])
             assert near / 100 == pytest.approx(truck_h, rel=0.1)
@@ -197,8 +197,13 @@ def test_locator_and_obstacles_services(flight_frames):
             assert sum(set(m.distances) == {65535} for _, m in od) == 1
             assert rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.7) is None   # ... then silence
 
-            # -- health --------------------------------------------------------------------------------
+            # -- health: degraded while the autopilot is not heard on the output link, ok once it is ----------
             time.sleep(0.5)
+            obs = latest_health(drain(health_sub, health))["obstacles"]
+            assert obs["state"] == "degraded" and "no MAVLink" in obs["detail"], obs
+            rx.mav.heartbeat_send(2, 3, 0, 0, 4)                        # the autopilot's HEARTBEAT back
+            wait_until(lambda: latest_health(drain(health_sub, health))["obstacles"]["state"] == "ok", timeout=5,
+                       what="obstacles ok once the autopilot is heard")
             h = latest_health(drain(health_sub, health))
             loc, obs = h["locator"], h["obstacles"]
             assert loc["state"] == "ok" and obs["state"] == "ok"
@@ -243,8 +248,8 @@ def test_locator_rejects_bad_configuration():
             code, err = run_to_exit(["-m", "eonav.services.locator", "--vehicle", VEHICLE, "--connect", ep, *bad])
             assert code == 2 and text in err, (bad, code, err[-2000:])
         code, err = run_to_exit(["-m", "eonav.services.obstacles", "--vehicle", VEHICLE, "--connect", ep,
-                                 "--ground-down", "x"])
-        assert code == 2 and "--ground-down 'x'" in err
+                                 "--ground-down-m", "x"])
+        assert code == 2 and "--ground-down-m 'x'" in err
 
 def test_scaled_view_matches_frame_info_at_that_scale(flight_frames):
     """The history keeps full-resolution frames; a pair at 0.5 resizes them on use, exactly as a fixed --scale 0.5
@@ -326,7 +331,7 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
     takes an older locator's full-grid map without frame size."""
     from eonav.geometry.camera import scaled_camera
     frames, fl = flight_frames
-    with locator_and_obstacles(("--scale", "0.5")) as (s, procs, maps_sub, obs_sub, health_sub):
+    with locator_and_obstacles(("--scale", "0.5", "--fusion", "off")) as (s, procs, maps_sub, obs_sub, health_sub):
         pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
         map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"))
         health = []
@@ -429,3 +434,52 @@ def test_map_fields_on_either_grid(flight_frames):
     assert d["inv_range_std_per_m"][0, :4].tolist()[:2] == [np.inf, 65504.0]
     assert np.isnan(d["inv_range_std_per_m"][0, 2]) and d["inv_range_std_per_m"][0, 3] == 3.0
     assert np.all(d["confidence"] == np.inf)
+
+
+def test_locator_publishes_fused_maps(flight_frames):
+    """Fusion on (the default with the dense method): every frame after the first gets a fused map of its own camera,
+    with the per-pixel count of measurements growing frame by frame, its VALID ranges close to the renderer's truth,
+    and the obstacle service analysing it."""
+    frames, _ = flight_frames
+    with locator_and_obstacles() as (s, procs, maps_sub, obs_sub, health_sub):
+        pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
+        health = []
+        wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
+                   timeout=30, what="both services' first health message")
+        wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
+        time.sleep(0.3)
+
+        def counters():
+            return latest_health(drain(health_sub, health)).get("locator", {}).get("counters", {})
+        maps, obstacles, sent = [], [], {}
+        for i, (t_s, view, truth) in enumerate(frames):
+            stamp = time.time_ns() // 1000
+            sent[i] = (stamp, view, truth)
+            pub.put(posed_frame_payload(i, stamp, view))
+            if i == 0:
+                wait_until(lambda: counters().get("fusion.policy.first_frame") == 1, timeout=10,
+                           what="frame 0 taken as the first frame")
+            else:
+                wait_until(lambda: len(drain(maps_sub, maps)) >= i, timeout=20, what=f"fused map {i}")
+                wait_until(lambda: len(drain(obs_sub, obstacles)) >= i, timeout=20, what=f"obstacle list {i}")
+            time.sleep(max(0.0, stamp / 1e6 + 2.0 / RATE_HZ - time.time()))
+        peaks, errs = [], []
+        for smp in maps:
+            m = schema.decode(smp.payload.to_bytes(), expect="range_map")
+            stamp, view, truth = sent[m["seq"]]
+            assert m["method"] == "fused" and m["stamp_us"] == stamp
+            n = m["n_fused"]
+            assert n is not None and n.dtype == np.uint8 and n.shape == m["range_m"].shape
+            peaks.append(int(np.percentile(n[n > 0], 90)))
+            gt = on_grid(truth.range_m, m["range_m"].shape[1], m["range_m"].shape[0])
+            ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
+            errs.append(float(np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok])))
+        assert peaks[0] == 1 and peaks[-1] >= 3 and peaks == sorted(peaks), peaks   # evidence accumulates
+        assert max(errs) < 0.05, errs
+        c = counters()
+        assert c["maps_fused"] == N_FRAMES - 1 and c.get("locate_errors", 0) == 0
+        wait_until(lambda: latest_health(drain(health_sub, health))["obstacles"]["counters"].get("maps_processed")
+                   == N_FRAMES - 1, timeout=5, what="the obstacle service's health counting every fused map")
+        for name in ("locator", "obstacles"):
+            code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
+            assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"

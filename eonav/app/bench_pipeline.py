@@ -1,20 +1,12 @@
 """``eonav bench pipeline``: frame capture -> range map published -> obstacles published, over the real bus.
 
 Starts the embedded router and the locator and obstacle services as processes, then plays posed frames of a
-simulated flight (rendered once per image size, cycled with fresh stamps) at a fixed rate straight onto the
-posed-frame key (camera ingest and sync are not in the loop: their cost is a copy each, measured in their own
-benches). A frame's ``stamp_us`` is the moment it is put ("capture"); the bench's subscriber stamps the arrival of
-the range map and of the obstacle list carrying that ``stamp_us`` on the same host clock. Reported per case:
-latency p50/p99 of capture -> range map and capture -> obstacles, throughput, drops (frames without a range map:
-the locator's RingChannel keeps the newest frames, so a slow locator skips frames instead of queueing them),
-the locator's own compute time, and whether payloads arrived through zenoh shared memory.
-
-``run_bench(cases, seconds=...)`` is the pipeline function; ``add_arguments``/``run`` are the CLI hooks that
-``eonav bench pipeline`` delegates to. ``--scale`` passes the locator's ``--scale`` (default ``auto``: the adaptive
-scale; a number fixes it, e.g. 0.5 = half-resolution locate); each line reports the scales the range maps came at;
-``--publish-grid`` passes the locator's ``--publish-grid`` (default ``locate``: maps on the grid they were computed
-on; ``frame``: upsampled to the frame's grid); ``--accuracy`` instead measures, in process, what a scale costs
-against the simulator's truth (``accuracy``).
+simulated flight at a fixed rate straight onto the posed-frame key (camera ingest and sync are not in the loop). A
+frame's ``stamp_us`` is the moment it is put; the bench's subscriber stamps the arrival of the range map and of the
+obstacle list carrying that stamp on the same host clock. Per case it prints latency p50/p99 (capture -> range map,
+capture -> obstacles), throughput, drops, the locator's compute time and the scales the maps came at.
+``--accuracy`` instead measures, in process, what a locate scale costs against the simulator's truth.
+``run_bench(cases, seconds=...)`` is the pipeline function under the command.
 """
 from __future__ import annotations
 
@@ -58,10 +50,10 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
     from eonav.bus import schema
     from eonav.bus.session import client_session
     from eonav.app.processes import start_service, stop_service, wait_until
-    common = ["--vehicle", vehicle, "--connect", ep, "--health-period", "1", "--log-level", "warning"]
+    common = ["--vehicle", vehicle, "--connect", ep, "--health-period-s", "1", "--log-level", "warning"]
     procs = [start_service(["-m", "eonav.services.locator", *common, "--method", method, "--cv-threads", str(cv_threads),
                             "--scale", str(scale), "--publish-grid", publish_grid]),
-             start_service(["-m", "eonav.services.obstacles", *common, "--ground-down", "0"])]
+             start_service(["-m", "eonav.services.obstacles", *common, "--ground-down-m", "0"])]
     res = {"fps": fps, "width": width, "height": height, "method": method, "scale": scale,
            "publish_grid": publish_grid}
     try:
@@ -258,7 +250,8 @@ def add_arguments(p) -> None:
     p.add_argument("--methods", default="dense,dis",
                    help="locator methods, each over every case in the same run (default dense,dis: DIS is the "
                         "OpenCV optical-flow baseline)")
-    p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
+    p.add_argument("--cv-threads", type=int, default=1, metavar="N",
+                   help="the locator's OpenCV threads (its --cv-threads; default 1: one core)")
     p.add_argument("--scale", default="auto",
                    help="locator --scale: auto (default, adaptive) or a number (1: full, 0.5: half-resolution locate)")
     p.add_argument("--publish-grid", default="locate", choices=("locate", "frame"),

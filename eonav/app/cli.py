@@ -9,12 +9,14 @@ import logging
 import sys
 
 COMMANDS = {
-    "locate": ("eonav.app.commands.locate", "range map from a pair file (DESIGN.md §4)"),
+    "locate": ("eonav.app.commands.locate", "range map from a pair file (docs/pair-file.md)"),
     "fuse": ("eonav.app.commands.fuse", "fused range maps of a sequence of posed frames (docs/pair-file.md)"),
     "sim": ("eonav.sim.command", "render simulated scenes and flights with ground truth"),
     "bench": ("eonav.app.commands.bench", "benchmarks that print figures (locate, pipeline)"),
     "run": ("eonav.app.commands.run", "start the whole pipeline (embedded router + all services)"),
     "service": ("eonav.app.commands.service", "start one service in the foreground"),
+    "record": ("eonav.app.commands.record", "record the bus into an MCAP file (raw + Foxglove channels)"),
+    "replay": ("eonav.app.commands.replay", "put the raw channels of MCAP recordings back on the bus"),
 }
 
 

@@ -1,24 +1,13 @@
 """``eonav run`` with no source: the newcomer's end-to-end demo on one machine.
 
-1. Record a simulated flight (``eonav.sim.record.record_flight``: frames + timestamps, MAVLink tlog, cameras,
-   ground truth), cached in the system temp directory so the second run starts at once.
-2. Start the whole pipeline through ``eonav.launcher.run_pipeline`` (embedded router, then camera ingest
-   replaying the frames, MAVLink ingest replaying the tlog, sync, locator, obstacles: each its own process).
-3. A monitor on the bus subscribes frames, range maps, obstacle lists and health, and compares them with the
-   recording's ground truth as they arrive.
-4. When the replay has ended and the pipeline has drained, stop everything, print a summary (frames, range
-   maps, median relative range error on confident pixels, coverage, obstacles vs the true nearest box, latency
-   p50/p99 capture->range and capture->obstacles, drops) and write a colour-mapped PNG of the last range map.
+Records a simulated flight (``eonav.sim.record``: frames, MAVLink tlog, cameras, ground truth; cached in the system
+temp directory), runs the whole pipeline on it through ``eonav.app.launcher.run_pipeline``, scores what arrives on
+the bus against the truth (:class:`Monitor`, :class:`Truth`, reused by ``tests/test_pipeline_e2e.py``), prints a
+summary (range error, coverage, obstacles against the true nearest box, latency, drops) and writes a picture of the
+last range map beside its truth (``last_range.png`` in the recording's folder unless ``png`` says otherwise).
 
-Replay clocks: the recording holds frames and navigation on one clock. Both replays get the same
-``--replay-shift-us D`` (D = now + a start-up lead - the recording's first stamp): every record is stamped
-recorded + D and released when the host clock reaches that stamp, so the camera and the navigation stay aligned
-to the microsecond (mapping each replay onto "now at its own start" would shift them by the difference of the
-two start times: metres of pose error at 20 m/s) and the services' own latency figures (now - stamp) are real.
-The monitor also measures latency on its own clock: from the moment a frame appears on the bus to the moment
-the range map / obstacle list for that frame (same ``stamp_us``) arrives.
-
-The monitor (:class:`Monitor`) and truth (:class:`Truth`) are reused by ``tests/test_pipeline_e2e.py``.
+Both replays get the same ``--replay-shift-us`` (now + a start-up lead - the recording's first stamp), so camera
+and navigation stay aligned to the microsecond and the services' latency figures (now - stamp) are real.
 """
 from __future__ import annotations
 
@@ -290,7 +279,7 @@ def range_picture(msg: dict, truth_range=None, max_range_m: float = 150.0) -> np
     colour scale from 5 m (red) to ``max_range_m`` (blue)."""
     import cv2
     from eonav.ranging.rangemap import VALID
-    from eonav.app.viz import inverse_range_colours
+    from eonav.io.viz import inverse_range_colours
 
     r = np.asarray(msg["range_m"], np.float32)
     valid = np.isfinite(r) & (r > 0) & (r < max_range_m)
@@ -330,8 +319,8 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
     rec = Path(rec_dir).resolve()
     man = json.loads((rec / "manifest.json").read_text())
     shift_us = str(int(shift_us))
-    obst = ["--ground-down", "0",                       # local NED origin at the take-off (ground) level
-            "--max-obstacle-distance", "150"]
+    obst = ["--ground-down-m", "0",                     # local NED origin at the take-off (ground) level
+            "--max-obstacle-distance-m", "150"]
     if mavlink_out:
         obst += ["--mavlink-out", mavlink_out]
     return {"services": [
@@ -352,7 +341,7 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
 def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, rate_hz: float = DEFAULT_RATE_HZ,
              size: int = DEFAULT_SIZE, seed: int = 0, cache_dir=None, png=None, vehicle: str = "demo",
              method: str = "dense", mavlink_out: str | None = None, timeout_s: float = 180.0,
-             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None) -> dict:
+             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None, record=None) -> dict:
     """Record (cached), run the pipeline, score it; returns the summary dict (``summary["exit_code"]``)."""
     from eonav.app.processes import free_port
     from eonav.app.launcher import run_pipeline
@@ -384,7 +373,7 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     def pipeline():
         result["code"] = run_pipeline(pipeline_spec(rec, shift_us, method=method, mavlink_out=mavlink_out), vehicle=vehicle,
                                       port=port, on_status=on_status, stop_event=stop, quiet=quiet,
-                                      log_dir=log_dir)
+                                      log_dir=log_dir, record=record)
 
     th = threading.Thread(target=pipeline, name="pipeline")
     th.start()
@@ -503,7 +492,7 @@ def run(args) -> int:
                  rate_hz=getattr(args, "fps", DEFAULT_RATE_HZ), size=getattr(args, "size", DEFAULT_SIZE),
                  method=getattr(args, "method", "dense"), png=getattr(args, "png", None),
                  cache_dir=getattr(args, "cache_dir", None), vehicle=getattr(args, "vehicle", "demo") or "demo",
-                 quiet=getattr(args, "quiet", False), log_dir=log_dir)
+                 quiet=getattr(args, "quiet", False), log_dir=log_dir, record=getattr(args, "record", None))
     print(format_summary(s))
     if getattr(args, "json", False):
         print(json.dumps(s, default=str))

@@ -1,40 +1,12 @@
 """``eonav run``: the whole pipeline on one machine, with an embedded zenoh router.
 
-It starts ``python -m eonav.bus.router`` on a free (or given) loopback port, then every service of a
-pipeline spec as its own OS process (``sys.executable -m eonav.services.<module> ...``: spawn, never fork a
-process holding a zenoh session), all with ``--connect`` to the router and the same ``--vehicle``.
-It supervises them, shows a one-line status on stderr about once a second from the health topic,
-and stops everything cleanly on Ctrl-C / SIGTERM.
-
-Pipeline spec (a Python dict, or JSON via ``--pipeline FILE``)::
-
-    {"services": [
-        {"name": "camera_nose",            # instance name (health/alive/config keys); required
-         "module": "camera_ingest",        # eonav.services.<module>, or a dotted module path; default: name
-         "args": ["--source", "{spec_dir}/flight.mp4", "--camera-id", "nose"],
-         "env": {"EONAV_LOG_LEVEL": "info"},
-         "restart": true,                  # restart on a crash (default true)
-         "max_restarts": 5,                # then give up (default 5)
-         "enabled": true}                  # false: listed but not started
-    ]}
-
-In ``args`` and ``env`` values, ``{spec_dir}`` (directory of the spec file, else the working
-directory), ``{vehicle}``, ``{port}`` and ``{router}`` (the router endpoint) are substituted.
-A service whose module does not exist (yet) is reported as ``missing`` and the rest run.
-
-Supervision: exit 0 = the service finished (e.g. a replay reached its end): not restarted. Exit 2 =
-configuration error (bad flags/config): reported, not restarted (a restart would not help). Any
-other exit (crash, signal) = restarted after an exponential back-off (0.5 s, 1 s, 2 s ... 10 s), at
-most ``max_restarts`` times; the count resets after 30 s of stable running.
-
-Stopping: Ctrl-C or SIGTERM, ``--duration S``, ``--exit-when-done SERVICE`` (that service exited 0),
-or nothing left running (an empty pipeline, e.g. ``--watch``, only watches the health topic: services
-started elsewhere show up as ``remote``, until stopped). Services get SIGINT (they run in their own process groups, so a terminal
-Ctrl-C reaches only the launcher, which forwards it once), ``--grace`` seconds, then SIGKILL; the
-router last. Exit code 0 after a clean stop; 1 if a service failed for good (gave up restarting,
-config error) or the ``--exit-when-done`` service failed; 2 if the router could not start.
-
-For the integration engineer: :func:`run_pipeline` is the pipeline function this command calls.
+:func:`run_pipeline` (the function under the command) starts ``python -m eonav.bus.router`` on a loopback port, then
+every service of a pipeline spec as its own OS process (``sys.executable -m eonav.services.<module>``: spawned, never
+forked from a process holding a zenoh session), all connected to the router with the same ``--vehicle``. It
+supervises them (exit 0 = finished, exit 2 = configuration error: neither restarted; anything else restarted with
+back-off), shows a status line from the health topic and stops everything cleanly on Ctrl-C or SIGTERM (SIGINT to
+each service, then SIGKILL after a grace period; the router last). The spec format and the exit codes: docs/bus.md,
+"Running".
 """
 from __future__ import annotations
 
@@ -64,7 +36,7 @@ STABLE_RESET_S = 30.0
 DEFAULT_MAX_RESTARTS = 5
 EXIT_CONFIG = 2
 
-# The default pipeline (DESIGN §3). Services whose modules do not exist yet are reported as missing.
+# The default pipeline. Services whose modules do not exist yet are reported as missing.
 DEFAULT_SERVICES = [
     {"name": "mavlink", "module": "mavlink_ingest"},
     {"name": "sync", "module": "sync"},
@@ -438,7 +410,7 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                  on_status: Callable[[dict], None] | None = None, exit_when_done: str | None = None,
                  router: str | None = None, grace_s: float = 5.0, stop_event: threading.Event | None = None,
                  status_stream=None, quiet: bool = False, log_dir: str | None = None,
-                 router_config: str | None = None, extra_env: dict | None = None) -> int:
+                 router_config: str | None = None, extra_env: dict | None = None, record: str | None = None) -> int:
     """Run a pipeline until stopped; returns the exit code (see the module docstring).
 
     ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
@@ -446,13 +418,17 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
     after that many seconds. ``on_status(status_dict)``: called about once a second with
     {service: {state, pid, restarts, exit_code, alive, health}}. ``stop_event``: set it to stop
     (SIGINT/SIGTERM also stop when called from the main thread). ``log_dir``: one log file per
-    service instead of inheriting stderr. ``extra_env``: added to every service's environment."""
+    service instead of inheriting stderr. ``extra_env``: added to every service's environment. ``record``: also run
+    the recorder (``eonav.recording.recorder``) writing this MCAP file."""
     from eonav.bus.keys import check_chunk
     check_chunk(vehicle, "--vehicle")
     spec_dir = None
     if isinstance(spec, (str, Path)):
         spec_dir = str(Path(spec).resolve().parent)
     services = parse_spec(spec, spec_dir)
+    if record:
+        from eonav.recording.recorder import recorder_service
+        services += parse_spec([recorder_service(record)])
     if exit_when_done and exit_when_done not in {s.name for s in services}:
         raise InputError(f"--exit-when-done {exit_when_done!r}: no such service in the pipeline "
                          f"({', '.join(s.name for s in services)})")

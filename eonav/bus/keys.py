@@ -1,18 +1,10 @@
-"""Every zenoh key expression eonav uses, built in one place.
+"""Every zenoh key expression eonav uses, built in one place: ``eonav/<vehicle>/<subject>...``.
 
-Layout: ``eonav/<vehicle>/<subject>...`` so that several vehicles can share one network:
-
-    eonav/<vehicle>/camera/<camera_id>/frame      camera ingest -> sync        (Frame)
-    eonav/<vehicle>/nav/state                     MAVLink ingest -> sync, obstacles (NavState)
-    eonav/<vehicle>/nav/clock                     MAVLink ingest clock-offset estimate (ClockOffset)
-    eonav/<vehicle>/posed/<camera_id>/frame       sync -> locator              (PosedFrame)
-    eonav/<vehicle>/range/<camera_id>             locator -> obstacles         (RangeMap)
-    eonav/<vehicle>/obstacles                     obstacle publisher -> guidance (ObstacleList)
-    eonav/<vehicle>/health/<service>              every service, ~1 Hz         (Health)
-    eonav/<vehicle>/alive/<service>               liveliness token per service process
-    eonav/<vehicle>/config/<service>              queryable: the service's effective configuration
-
-Plain strings, no zenoh import: the math and the schema never load the transport.
+One function per key (``frame(vehicle, camera_id)``, ``nav_state(vehicle)``, ``range_map(vehicle, camera_id)``,
+``obstacles(vehicle)``, ``health``, ``alive``, ``config``, ...) and a wildcard form for subscribers
+(``frames_all``, ``range_maps_all``, ...); the table of keys, producers and messages is in docs/bus.md. Names must be
+one plain key chunk (``check_chunk``). Plain strings, no zenoh import: the math and the schema never load the
+transport.
 """
 from __future__ import annotations
 
@@ -69,6 +61,10 @@ def range_maps_all(vehicle: str) -> str:
 
 def obstacles(vehicle: str) -> str:
     return f"{_v(vehicle)}/obstacles"
+
+
+def obstacle_tracks(vehicle: str) -> str:
+    return f"{_v(vehicle)}/obstacles/tracks"
 
 
 def health(vehicle: str, service: str) -> str:

@@ -14,25 +14,11 @@ A service module looks like this::
     if __name__ == "__main__":
         service_main("camera", add_arguments, body)
 
-Lifecycle (STYLE §3, ECOSYSTEM §1.5):
-
-1. configure: parse flags (env defaults), set up logging;
-2. open the zenoh session (context manager, so it is always closed);
-3. declare: liveliness token ``keys.alive``, config queryable ``keys.config``, health publisher
-   ``keys.health``; then ``body(node, args)`` declares the service's own publishers, subscribers and
-   worker threads and returns;
-4. run: the main thread waits for ``node.stop_event``, set by SIGINT/SIGTERM, by ``node.stop()``
-   (e.g. a file replay reached its end) or by a worker that raised;
-5. shut down: undeclare subscribers and the queryable (this ends every ``for s in sub:`` loop) ->
-   join workers -> publish a last health message -> undeclare the token -> close the session.
-
-Exit codes: 0 after a clean stop; 1 when a worker or ``body`` raised (state "error": a supervisor
-restarts the service); 2 for a configuration error (``EonavError`` from ``body``, bad flags), which a
-restart would not fix. A second SIGINT/SIGTERM while shutting down forces the exit (code 1).
-
-Threads never block in zenoh callbacks: subscribers are channels (``RingChannel`` for images,
-``FifoChannel`` for small must-not-lose streams) consumed by worker threads that are joined before
-the interpreter exits.
+``service_main`` runs the lifecycle (configure, open the session, declare the liveliness token, config queryable
+and health publisher, call ``body``, wait for a stop, shut down) and maps the outcome to the exit code: 0 clean
+stop, 1 a worker or ``body`` raised, 2 a configuration error. Subscribers are channels (``RingChannel`` for images,
+``FifoChannel`` for small must-not-lose streams) read by worker threads that are joined before the session closes:
+nothing runs in a zenoh callback (docs/bus.md, docs/zenoh.md "Pitfalls").
 """
 from __future__ import annotations
 
@@ -227,8 +213,7 @@ class Node:
     def watch_gc(self) -> None:
         """Time every collection of the interpreter's cyclic garbage collector into the latencies ``gc.gen<N>``
         (collections of generation 1 and 2 only: generation 0 is frequent and short). A collection stops every
-        thread of the service: a full one over the ~42,000 objects a service holds after its imports (numpy,
-        OpenCV, scipy, zenoh) took 20-35 ms on the bench machine, as long as a locate call."""
+        thread of the service, so its pauses belong in the latency figures (docs/bus.md)."""
         import gc
 
         def cb(phase, info):
@@ -303,7 +288,7 @@ class Node:
     def wait_matching(self, publisher, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` until ``publisher`` has a matching subscriber (then 50 ms more, so the route is
         set up on every hop): a put right after a declaration can miss subscribers whose route is not there yet
-        (ECOSYSTEM 1.5). Returns whether one matched (False also on shutdown)."""
+        (docs/zenoh.md, the declaration race). Returns whether one matched (False also on shutdown)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not self.stop_event.is_set():
             try:
@@ -470,7 +455,7 @@ class Node:
                     raise
 
         def publish_health():
-            period = float(self.args.health_period)
+            period = float(self.args.health_period_s)
             while True:
                 self.publish_health()
                 if self.stop_event.wait(period):
@@ -527,15 +512,17 @@ def add_common_arguments(p: argparse.ArgumentParser, default_name: str) -> None:
     add_flag(g, "--vehicle", env="EONAV_VEHICLE", default="demo", help="vehicle name (key prefix eonav/<vehicle>)")
     add_flag(g, "--name", env="EONAV_SERVICE_NAME", default=default_name,
              help="service instance name in health/alive/config keys (several instances need distinct names)")
-    add_flag(g, "--health-period", env="EONAV_HEALTH_PERIOD", default=1.0, type=float, metavar="S",
-             help="seconds between health messages")
+    add_flag(g, "--health-period-s", env="EONAV_HEALTH_PERIOD_S", default=1.0, type=float, metavar="S",
+             help="seconds between health messages", aliases="--health-period", old_env="EONAV_HEALTH_PERIOD")
     add_flag(g, "--log-level", env="EONAV_LOG_LEVEL", default="info",
              choices=["debug", "info", "warning", "error"], help="logging level")
     add_session_arguments(p)
 
 
-def build_parser(name: str, add_arguments: Callable | None) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=f"eonav service {name}",
+def build_parser(name: str, add_arguments: Callable | None, module: str | None = None) -> argparse.ArgumentParser:
+    """The service's parser: its own flags, then the common ones. ``module``: the service's module name under
+    eonav.services (what ``eonav service MODULE`` takes; default ``name``), for the usage line."""
+    p = argparse.ArgumentParser(prog=f"eonav service {module or name}",
                                 description=f"eonav {name} service")
     if add_arguments is not None:
         add_arguments(p)
@@ -629,23 +616,25 @@ def run_node(name: str, args, body: Callable, freeze_gc: bool = False) -> int:
 
 def freeze_startup_objects() -> None:
     """``gc.freeze()`` once ``body`` has declared everything and imported its modules: the objects made so far
-    (modules, functions, classes: ~42,000 in the locator) move to the permanent generation, and later full collections
-    scan only what the service allocated since (0.0 ms instead of 20-35 ms for ``gc.collect()`` in a process with the
-    locator's imports, on the bench machine). Nothing is leaked: frozen objects are the ones a service keeps for its
+    (modules, functions, classes) move to the permanent generation, so later full collections scan only what the
+    service allocated since (docs/bus.md). Nothing is leaked: frozen objects are the ones a service keeps for its
     life anyway."""
     import gc
     gc.collect()
     gc.freeze()
 
 
-def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None) -> None:
-    """Parse flags, run the node, ``sys.exit`` with its code. ``argv`` defaults to ``sys.argv[1:]``."""
-    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True))
+def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None, *,
+                 module: str | None = None) -> None:
+    """Parse flags, run the node, ``sys.exit`` with its code. ``name``: the default instance name (``--name``);
+    ``module``: see :func:`build_parser`. ``argv`` defaults to ``sys.argv[1:]``."""
+    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True, module=module))
 
 
-def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False) -> int:
+def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False,
+         module: str | None = None) -> int:
     """Like :func:`service_main` but returns the exit code (for ``eonav service`` and tests)."""
-    parser = build_parser(name, add_arguments)
+    parser = build_parser(name, add_arguments, module)
     args = parser.parse_args(argv)
     _setup_logging(args.log_level, args.name)
     try:

@@ -4,8 +4,8 @@
 
 It is what ``eonav run`` starts for a newcomer on one machine, so no separate ``zenohd`` install is
 needed. On a vehicle prefer ``zenohd`` under systemd (deploy/README.md); the configuration is the same
-JSON5 (``--zenoh-config deploy/zenoh-router.json5``). A Python router enforces zenoh's ACL
-(ECOSYSTEM §6) but loads no plugins (no REST, no storages).
+JSON5 (``--zenoh-config deploy/zenoh/router.json5``). A Python router enforces zenoh's access control
+(docs/zenoh.md) but loads no plugins (no REST, no storages).
 
 Once its listeners are bound it prints one line on stdout, ``EONAV_ROUTER READY <zid> <endpoint>...``,
 and logs the same, so a parent process can wait for it. Multicast scouting is off unless ``--multicast``.

@@ -2,19 +2,11 @@
 
     {"kind": "frame", "v": 1, "camera_id": "nose", "seq": 12, "stamp_us": ..., "image": {array}, ...}
 
-Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian).
-``range_map`` sends ``range_m`` as float32, ``confidence`` and ``inv_range_std_per_m`` as float16 (3 significant
-digits: plenty for a gate; half the bytes) and ``flags`` as uint8 (``eonav.ranging.rangemap``: VALID = measured, FILLED =
-inferred from the measured pixels around, both with a finite ``range_m``); readers must not assume float32 (numpy promotes
-float16 in arithmetic; ``np.asarray(a, np.float32)`` where a float32 copy is wanted). float16 was added to the
-allowed dtypes without a version bump: an older build rejects such a message (counted decode error), it never
-misreads it.
-``decode`` rejects anything malformed or hostile (wrong kind, unknown version, missing or mistyped
-field, array whose byte count does not match dtype x shape, absurd sizes) with ``SchemaError`` naming
-the problem; services count those and keep running. New fields are appended with defaults, so a
-reader of version 1 accepts version-1 messages carrying extra fields.
-
-No zenoh import here: the schema is pure data.
+Arrays travel as ``{"dtype": "float32", "shape": [h, w], "data": <raw bytes>}`` (C order, little endian); a range
+map's ``confidence`` and ``inv_range_std_per_m`` are float16, so readers must not assume float32. ``encode`` builds a
+message of a kind; ``decode`` rejects anything malformed or hostile with ``SchemaError`` naming the problem
+(services count those and keep running). New fields are appended with defaults, so a version-1 reader accepts
+version-1 messages with extra fields. The kinds and keys: docs/bus.md. Pure data: no zenoh import.
 """
 from __future__ import annotations
 
@@ -97,6 +89,9 @@ FIELDS = {
         # frame's; a map published at the locate scale (services/locator.py --publish-grid locate) carries the
         # scaled camera (eonav.camera.scaled_camera) and the frame's size here, so readers can count in frame pixels
         "frame_width": ("int", 0), "frame_height": ("int", 0),
+        # appended: a fused map's number of measurements fused per pixel (uint8, saturating at 255); absent on a
+        # single pair's map
+        "n_fused": ("array", None),
     },
     "obstacle_list": {
         "stamp_us": ("int", REQUIRED), "camera_id": ("str", ""), "obstacles": ("list", REQUIRED),
@@ -307,7 +302,7 @@ def _check_map_arrays(kind, msg):
     cam = msg["camera"]
     hw = (cam["height"], cam["width"])
     for name, dtypes in (("range_m", FLOAT_DTYPES), ("confidence", FLOAT_DTYPES),
-                         ("inv_range_std_per_m", FLOAT_DTYPES), ("flags", ("uint8",))):
+                         ("inv_range_std_per_m", FLOAT_DTYPES), ("flags", ("uint8",)), ("n_fused", ("uint8",))):
         a = msg.get(name)
         if a is None:
             continue

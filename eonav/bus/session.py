@@ -1,27 +1,14 @@
-"""zenoh configuration from the shared command-line flags (defined once, here).
+"""zenoh configuration from the shared command-line flags (defined once, here), and session helpers.
 
-Order of precedence, lowest first:
+Precedence, lowest first: zenoh's defaults; ``--zenoh-config FILE`` (``EONAV_ZENOH_CONFIG``, overrides only); the
+flags ``--mode``, ``--connect``, ``--listen``, ``--multicast``, ``--shm``. Two decisions (docs/zenoh.md):
 
-1. zenoh's built-in defaults;
-2. ``--zenoh-config FILE`` (``EONAV_ZENOH_CONFIG``): a zenoh JSON5/YAML file holding only overrides;
-3. the flags: ``--mode``, ``--connect``, ``--listen``, ``--multicast``.
+- multicast scouting is off unless ``--multicast``: every deployment names its endpoints, and a peer given
+  ``--connect`` but no ``--listen`` (and no file) listens on ``tcp/127.0.0.1:0`` (the router-per-host pattern);
+- shared memory is off unless ``--shm`` (with a config file and neither flag, the file decides): with it on, range
+  maps were lost between same-host services.
 
-Multicast scouting is **off** unless ``--multicast`` is given (ECOSYSTEM §1.3: containers and CI drop
-multicast, discovery can take minutes), so every deployment names its endpoints explicitly.
-A peer that was given ``--connect`` but no ``--listen`` (and no config file) listens on
-``tcp/127.0.0.1:0``: the rmw_zenoh pattern, where same-host peers find each other through the
-router's gossip and talk directly (and over shared memory), while the router carries the legs
-between hosts.
-
-Shared memory (``--shm`` / ``--no-shm``, ``EONAV_ZENOH_SHM``): zenoh 1.10 moves same-host payloads over
-3 KB through SHM by default. eonav turns it **off** unless asked: with SHM on, the locator -> obstacles leg
-lost every range map of a run in 3 of 4 repeated runs of tests/test_pipeline_e2e.py followed by
-tests/test_locator_service.py (the test's own subscriber, through the router, received them), and 0 of 4 with
-SHM off. Public reports of the same family: ros2/rmw_zenoh#977 (no data through a router with SHM on),
-#220, #616. Over loopback TCP a 2.8 MB range map costs a few ms more; correctness first. With a config
-file and neither flag, the file's setting stands.
-
-No heavy import at module level: ``zenoh`` is imported inside :func:`build_config`.
+``zenoh`` is imported inside the functions only.
 """
 from __future__ import annotations
 
@@ -35,30 +22,44 @@ MODES = ("peer", "client", "router")
 _TRUE = ("1", "true", "yes", "on")
 
 
-def env_default(var: str, default=None):
-    """The value of environment variable ``var`` if set and non-empty, else ``default``."""
-    val = os.environ.get(var)
-    return default if val is None or val == "" else val
+def env_default(var: str, default=None, old_env=()):
+    """The value of environment variable ``var`` if set and non-empty, else of the first set one of ``old_env``
+    (names a variable had before it was renamed), else ``default``."""
+    for name in (var, *old_env):
+        val = os.environ.get(name)
+        if val is not None and val != "":
+            return val
+    return default
 
 
-def env_flag(var: str, default: bool = False) -> bool:
-    val = os.environ.get(var)
-    if val is None or val == "":
+def env_flag(var: str, default: bool = False, old_env=()) -> bool:
+    val = env_default(var, None, old_env)
+    if val is None:
         return default
     return val.strip().lower() in _TRUE
 
 
-def add_flag(p, *names, env: str, default=None, help: str = "", **kw):
+def add_flag(p, *names, env: str, default=None, help: str = "", aliases=(), old_env=(), **kw):
     """``p.add_argument`` whose default comes from environment variable ``env`` (then ``default``).
 
     For ``action="store_true"`` the variable is read as a boolean (1/true/yes/on). argparse applies
-    ``type`` to string defaults, so ``type=float`` works with an environment string too."""
+    ``type`` to string defaults, so ``type=float`` works with an environment string too.
+    ``aliases``: old spellings of the flag, still accepted (same destination) but not shown in ``--help``;
+    ``old_env``: old names of the variable, read when ``env`` is not set. Both keep deployed env files and
+    pipeline specs working after a rename."""
+    aliases = (aliases,) if isinstance(aliases, str) else tuple(aliases)
+    old_env = (old_env,) if isinstance(old_env, str) else tuple(old_env)
     if kw.get("action") == "store_true":
-        dflt = env_flag(env, bool(default))
+        dflt = env_flag(env, bool(default), old_env)
     else:
-        dflt = env_default(env, default)
+        dflt = env_default(env, default, old_env)
     suffix = f" (env {env}; default {dflt!r})"
-    return p.add_argument(*names, default=dflt, help=(help + suffix).strip(), **kw)
+    action = p.add_argument(*names, default=dflt, help=(help + suffix).strip(), **kw)
+    action.env, action.old_env = env, old_env          # (for --help readers and tests)
+    if aliases:
+        kw = {k: v for k, v in kw.items() if k not in ("dest", "required")}
+        p.add_argument(*aliases, dest=action.dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS, **kw)
+    return action
 
 
 def close_subscribers(subs, threads, session, join_timeout_s: float) -> None:

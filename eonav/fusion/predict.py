@@ -2,8 +2,8 @@
 
 Every occupied cell's point (pixel plus its sub-pixel offset, at inverse range rho) is moved into the new camera
 frame exactly: with m = [1, x_p/fx, y_p/fy] of the point in the old frame and X_new = R X_old + t
-(``eonav.geometry.relative_pose``, DESIGN.md §2), X_new / x_c,old = R m + t rho, so (eqs. 24-26 in the general form
-of ``PairGeometry.map_to_b``)
+(``eonav.geometry.frames.relative_pose``, docs/conventions.md "Two views"), X_new / x_c,old = R m + t rho, so
+(eqs. 24-26 in the general form of ``PairGeometry.map_to_b``)
 
     den = (R m)_0 + t_0 rho,   rho_new = rho / den,
     u_new = cx + fx ((R m)_1 + t_1 rho) / den,   v_new = cy + fy ((R m)_2 + t_2 rho) / den.

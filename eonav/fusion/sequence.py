@@ -76,9 +76,12 @@ class FusedMap:
 class FusionRunner:
     """Per-camera inverse-range states fed by a stream of posed frames (module docstring). One thread."""
 
-    def __init__(self, config: FusionConfig = FusionConfig(), measure=None):
+    def __init__(self, config: FusionConfig = FusionConfig(), measure=None, fresh_measurements: bool | None = None):
+        """fresh_measurements: ``measure`` returns results nobody else holds, so their arrays may become the fused
+        map's (no fresh memory per frame); None: True for the default measurement only."""
         self.config = config
         self.measure = measure or dense_measurement
+        self.fresh = (self.measure is dense_measurement) if fresh_measurements is None else bool(fresh_measurements)
         self.scheduler = Scheduler(config.schedule)
         self.states: dict[str, InverseRangeState] = {}
         self.frames: dict[str, PosedFrameInfo] = {}          # the frame each state is on
@@ -141,9 +144,9 @@ class FusionRunner:
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
             args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
             if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
-                # the default measurement's arrays (nobody else holds them) become the map's
+                # a fresh measurement's arrays (nobody else holds them) become the map's
                 counts, maps[ref] = update_and_map(*args, self.config.output, rho_far=rho_far,
-                                                   reuse=res if self.measure is dense_measurement else None)
+                                                   reuse=res if self.fresh else None)
             else:
                 counts = update(*args, rho_far=rho_far)
             fusion_s += time.perf_counter() - t2

@@ -151,7 +151,7 @@ class PairGeometry:
 
 
 def pair_geometry(view_a: View, view_b: View) -> PairGeometry:
-    """Relative pose between two views (DESIGN.md §2), for one camera over time or two cameras at once."""
+    """Relative pose between two views (docs/conventions.md, "Two views"), for one camera over time or two cameras at once."""
     ca, cb = view_a.camera, view_b.camera
     R, t = relative_pose(ca.T_cam_body, view_a.state.T_body_ned, view_a.state.position_ned_m, ca.l_body_m,
                          cb.T_cam_body, view_b.state.T_body_ned, view_b.state.position_ned_m, cb.l_body_m)

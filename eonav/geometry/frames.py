@@ -125,7 +125,7 @@ def relative_pose(T_cam_body_a, T_body_ned_a, pos_ned_a_m, l_body_a_m,
                   T_cam_body_b, T_body_ned_b, pos_ned_b_m, l_body_b_m):
     """Pose of camera frame a in camera frame b: X_b = R_ba X_a + t_ba_m.
 
-    From eqs. (12), (15) and (33) for camera a at state a and camera b at state b (DESIGN.md §2):
+    From eqs. (12), (15) and (33) for camera a at state a and camera b at state b (docs/conventions.md, "Two views"):
         R = T1b T2b T2a^T T1a^T
         t = T1b (T2b (x_va - x_vb) + T2b T2a^T l_a - l_b)
     One camera at two instants (motion pair) or two cameras at one instant (stereo) alike.

@@ -1,78 +1,12 @@
-"""MAVLink navigation messages -> navigation samples in the autopilot clock, and the autopilot -> companion clock offset.
+"""MAVLink navigation messages -> navigation samples, and the autopilot -> companion clock offset.
 
-Pure: works on pymavlink message objects (anything with ``get_type()``, ``get_srcSystem()``,
-``get_srcComponent()`` and the message fields); no zenoh. ``NavIngest`` is the pipeline object the
-MAVLink ingest service drives; tests drive it with lists of messages and injected receive times.
-
-Decoded messages (units at the edge, SI inside)
------------------------------------------------
-=====================  ===============================  =============================================
-message                time                             gives
-=====================  ===============================  =============================================
-ATTITUDE (30)          time_boot_ms                     q_wxyz from roll/pitch/yaw (ZYX, eq. 14), rates
-ATTITUDE_QUATERNION    time_boot_ms                     q_wxyz = q1..q4 (body -> NED), rates
-LOCAL_POSITION_NED     time_boot_ms                     position_ned_m (EKF origin), velocity_ned_mps
-GLOBAL_POSITION_INT    time_boot_ms                     position_ned_m about ``origin_lla`` (see below),
-                                                        velocity_ned_mps = vx,vy,vz cm/s / 100
-ODOMETRY (331)         time_usec (boot, or UNIX by      position (frame MAV_FRAME_LOCAL_NED only), q_wxyz,
-                       magnitude)                       velocity (child frame BODY_FRD rotated to NED)
-SYSTEM_TIME (2)        time_unix_usec + time_boot_ms    a clock-offset sample (ignored while unix = 0)
-TIMESYNC (111)         tc1, ts1 ns                      a clock-offset exchange (replies to our requests)
-=====================  ===============================  =============================================
-
-Every message type is its own stream: a ``NavSample`` carries only what its message had (attitude,
-position, or both for ODOMETRY), each with its own stamp, so the sync stage interpolates attitude and
-position independently and never pairs a fresh attitude with a stale position.
-
-Position sources: LOCAL_POSITION_NED (EKF origin) and GLOBAL_POSITION_INT (our origin) are different
-frames, so one is used: ``position_source="auto"`` locks onto the first type that yields a valid
-position (counted rejections ``position_source_not_selected`` for the other), or name it explicitly.
-
-GLOBAL_POSITION_INT -> local NED: the origin is ``origin_lla`` (lat deg, lon deg, alt m AMSL) or the
-first valid fix (lat = lon = 0 means "no fix" and is rejected). North/east are the exact WGS-84
-local-tangent-plane coordinates (geodetic -> ECEF -> NED rotation at the origin); down is the altitude
-difference ``-(alt - alt0)`` (alt mm AMSL), which is what autopilots report as local z and differs
-from the tangent-plane down only by the earth's curvature (7.8 cm at 1 km). ArduPilot (seen in the
-real ArduCopter tlog) reports ``alt`` = ``relative_alt`` until its EKF origin is set and AMSL after:
-an altitude step larger than ``alt_jump_m + max_vertical_speed_mps * dt`` is a datum change, counted
-as ``global_alt_datum_jump`` and absorbed by re-anchoring alt0 (the sample is kept).
-
-Validation (rejections counted in ``NavDecoder.rejected`` by reason, nothing emitted):
-``attitude_nonfinite``, ``attitude_out_of_range`` (|roll|,|yaw| > pi, |pitch| > pi/2),
-``quat_not_unit`` (| |q| - 1 | > ``quat_norm_tol``; accepted ones are renormalised), ``position_nonfinite``,
-``global_no_fix``, ``global_out_of_range``, ``odometry_frame_unsupported``, ``time_backwards`` and
-``duplicate_time`` (per stream = system, component, message type), ``wrong_system``.
-
-Autopilot reboot: ``time_boot_ms`` jumping back by more than ``reboot_jump_us`` (2 s) on
-``reboot_confirm`` (2) consecutive autopilot messages is a reboot: the boot epoch increments, the
-per-stream clocks and the clock-offset estimators restart (``reboots`` counts them). A lone message
-jumping back is ``time_backwards``.
-
-Clock offset (``offset_us``: companion_us = autopilot_us + offset_us)
----------------------------------------------------------------------
-Three estimators, best first (``ClockMapper.prefer``):
-
-1. TIMESYNC (live links): the companion sends ``TIMESYNC(tc1=0, ts1=now_ns)``; the autopilot answers
-   with ``tc1`` = its time (ArduPilot: ns since boot, the ``time_boot_ms`` clock) and ``ts1`` echoed.
-   With ``t_rx`` the receive time, ``rtt = t_rx - ts1`` and, assuming a symmetric link,
-   ``offset = (ts1 + t_rx)/2 - tc1`` (the negative of mavlink.io's autopilot-minus-companion form).
-   Replies to requests we did not send (another GCS's) are ignored; RTT above ``max_rtt_us`` rejected.
-   Estimate: median offset of the lowest-RTT quarter of the last ``window`` exchanges (min-RTT filter
-   plus a median against outliers).
-2. SYSTEM_TIME (fallback): ``time_unix_usec - time_boot_ms*1000``; valid only if the autopilot has GPS
-   time (unix = 0 before a fix is ignored) and the companion clock is disciplined to UTC (chrony/PTP).
-   Both fields are sampled together on the autopilot, so only time_boot_ms truncation (< 1 ms) and
-   autopilot-side delay add: the minimum over a sliding window (``window_us``, 20 s) is the estimate.
-3. Receive time (tlogs, and any link as last resort): the companion receive time of each timed
-   message (a tlog's record header, 8-byte big-endian UNIX us, remapped onto the current clock for
-   replay) minus its autopilot time. Link latency only adds, so the minimum over a sliding window of
-   ``window_us`` is the estimate (on a 57k radio the floor wanders by +-60 ms; over USB ~1 ms).
-
-``ClockMapper`` is "locked" once the best estimator has seen ``lock_span_us`` (2 s) of autopilot time
-(or 3 TIMESYNC exchanges). ``NavIngest`` holds samples until then (bounded), then maps them with the
-locked offset. Afterwards increases of the estimate are applied at once and decreases slewed at
-``slew`` (0.1 s/s), so mapped stamps stay monotonic; a sample whose mapped stamp would still not
-advance its stream is dropped as ``stamp_backwards_after_offset``.
+In: pymavlink message objects (anything with ``get_type()``, ``get_srcSystem()``, ``get_srcComponent()`` and the
+fields), from a live link or a tlog (``TlogReader``). Out: ``NavSample`` per accepted ATTITUDE,
+ATTITUDE_QUATERNION, LOCAL_POSITION_NED, GLOBAL_POSITION_INT or ODOMETRY (SI units, ``q_wxyz``, local NED), each
+message type its own stream with its own stamps, mapped onto the companion clock by ``ClockMapper`` (TIMESYNC, else
+SYSTEM_TIME, else receive time). Rejected messages are counted by reason, never emitted. ``NavIngest`` is the
+pipeline object the MAVLink ingest service drives; tests drive it with lists of messages and injected receive times.
+The messages, units, clock estimators and pitfalls: docs/mavlink.md.
 """
 from __future__ import annotations
 
@@ -107,7 +41,7 @@ WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 def mavutil_v2():
     """pymavlink's mavutil with the MAVLink 2 parser (which also reads MAVLink 1 packets).
 
-    ``MAVLINK20`` must be set before mavutil picks a dialect (ECOSYSTEM.md 2.4)."""
+    ``MAVLINK20`` must be set before mavutil picks a dialect (docs/mavlink.md, pymavlink pitfalls)."""
     os.environ.setdefault("MAVLINK20", "1")
     from pymavlink import mavutil
     return mavutil

@@ -2,32 +2,14 @@
 
 Pure numpy; stamps are integer microseconds on the companion clock (``stamp_us``).
 
-- ``match_stamps(a_us, b_us, max_diff_us, offset_us=0)``: one-to-one nearest-neighbour association
-  of two stamp lists (evo / TUM ``associate.py`` style): candidate pairs with
-  ``|a - (b + offset)| <= max_diff_us`` are accepted greedily from the closest, each index used once.
-- ``NavBuffer``: attitude and position kept as separate sorted, bounded streams (they arrive in
-  separate MAVLink messages with their own stamps). ``pose_at(t)`` interpolates each at the frame
-  time: attitude by slerp (shortest path, so +-180 deg yaw wraps correctly), position linearly, or
-  by cubic Hermite when both bracketing samples carry a velocity. ``decide(t)`` is the watermark
-  logic for a pending frame:
-
-  ====== ==================================================================================
-  ready  every needed stream brackets t (or t is within ``max_extrapolation_us`` before the
-         first sample), and the bracket gap is at most ``max_gap_us``
-  wait   some stream's newest sample is older than t (the watermark has not passed t yet)
-  never  ``older_than_buffer`` (t precedes samples already evicted), ``before_first_nav``
-         (t earlier than the first sample by more than the extrapolation limit), or ``gap``
-         (the watermark passed t but the bracketing samples are more than ``max_gap_us`` apart)
-  ====== ==================================================================================
-
-  A frame still waiting when the caller's latency budget runs out may be posed with
-  ``pose_at(t, allow_extrapolation=True)``: forward extrapolation up to ``max_extrapolation_us``
-  past the newest sample (flag ``QF_EXTRAPOLATED``), else no pose with reason ``extrapolation_limit``.
-
-Quality flags (``PoseResult.quality_flags``, the posed_frame ``quality_flags`` field):
-``QF_EXTRAPOLATED`` 1, ``QF_GAP`` 2 (bracket gap above ``gap_warn_us``), ``QF_JITTER`` 4 (bracket gap
-more than 1.5x the stream's median spacing), ``QF_VELOCITY_AIDED`` 8 (Hermite position),
-``QF_NO_VELOCITY`` 16 (no velocity to report).
+- ``match_stamps(a_us, b_us, max_diff_us, offset_us=0)``: one-to-one nearest-neighbour association of two stamp
+  lists, accepted greedily from the closest pair within ``max_diff_us``, each index used once.
+- ``NavBuffer``: attitude and position as separate sorted, bounded streams (they arrive in separate messages with
+  their own stamps). ``pose_at(t)`` interpolates each at the frame time: attitude by slerp (shortest path, so yaw
+  wraps at +-180 deg), position linearly or by cubic Hermite when both samples carry a velocity. ``decide(t)`` is
+  the watermark test for a pending frame: ``ready``, ``wait`` (the newest sample is still older than t) or
+  ``never`` with a reason; bounded forward extrapolation is allowed only on request and flagged.
+  ``PoseResult.quality_flags`` holds the ``QF_*`` bits (docs/bus.md, "Sync").
 """
 from __future__ import annotations
 

@@ -1,44 +1,13 @@
 """From a range map to what guidance and the autopilot consume: OBSTACLE_DISTANCE sectors and an obstacle list.
 
-Pure numpy/scipy: no transport, no MAVLink (``eonav.nav.mavlink_out`` packs the sectors).
-
-Every pixel with a confident range becomes a point. With the camera model and the pose of the frame:
-    camera frame   x_c = r [1, (u - cx)/fx, (v - cy)/fy]            (inverse of eqs. 8-9; r = x_c)
-    NED            x   = x_v + T2^T (T1^T x_c + l)                  (eq. 33, ``geometry.ned_from_camera``)
-Distances and bearings are measured from the vehicle origin x_v (where the autopilot puts a proximity
-sensor), not from the lens: with a nose camera 7.6 m ahead of the origin the difference matters up close.
-
-Points on or near the ground below the vehicle are not obstacles: a point whose down coordinate is within
-``ground_clearance_m`` plus ``ground_sigma_k`` standard deviations of its down coordinate (range std times the
-ray's down slope) of the ground estimate, or below it, is ground. The ground estimate is
-``ground_down_m`` when configured (local NED origin at home: 0 m for a take-off from the ground), else the
-90th percentile of the down coordinate of the confident points below the vehicle (ground points are the
-lowest dense surface in view), else 0 m. Points beyond ``max_distance_m`` are not obstacles either; they
-(and pixels at infinity) are evidence that a sector is clear.
-
-(a) Sectors, as MAVLink OBSTACLE_DISTANCE (docs/autopilot.md): the autopilots' own layout, 72 bins of 5 degrees
-    round the vehicle (``increment_deg`` 5, ``angle_offset_deg`` 0: element k is CENTRED on the body-relative bearing
-    5k degrees, clockwise from the nose, and covers 5k +- 2.5 deg). PX4 keeps exactly this 72 x 5-degree map and
-    misreads finer increments (it reads past its array); ArduPilot keeps the nearest reading per 45-degree sector.
-    A point falls in the bin of its horizontal bearing from the vehicle origin, relative to the heading. A bin is
-      - the ``percentile`` (robust minimum) of the horizontal distances of its obstacle points, when it has at
-        least ``min_sector_pixels`` of them, clamped to [min, max] distance;
-      - clear (``max_distance_cm + 1``) when it has no obstacle, lies wholly inside the camera's horizontal view
-        and has at least ``min_clear_pixels`` pixels of evidence (confident ground, beyond max distance, or at
-        infinity): a bin the camera sees only in part is never called clear;
-      - unknown (``UINT16_MAX``) otherwise, and always outside the camera's view.
-Resolution: obstacles do not need every pixel. A map wider than ``max_width_px`` (160) is analysed on k x k blocks
-(k = ceil(width / max_width_px): 4 for 640 or 512 px) and each block with confident pixels is represented by one of its
-own pixels, the ``pool_percentile`` (10 %) of its confident pixels by range: a robust minimum, so a block straddling a
-near object and its background keeps the near range and a single mismatched pixel does not win. That pixel keeps its
-exact position and range (exact geometry); pixel-count thresholds and ``pixel_count`` stay in full-resolution pixels
-(each point weighs the confident pixels of its block). On a 640 x 480 dense map this takes the analysis from ~100 ms
-to ~10-15 ms; the boxes of the simulator stay at their true distance (tests/test_obstacles.py).
-
-(b) Obstacle list: 4-connected components (scipy.ndimage.label) of obstacle pixels within
-    ``max_obstacle_distance_m``, after cutting the mask at range discontinuities (neighbours whose ranges differ by
-    more than ``max_rel_jump``; the farther pixel of the pair is cut, so a near object keeps its outline and is not
-    merged with what is behind it). Components smaller than ``min_obstacle_pixels`` are dropped.
+Pure numpy/scipy: no transport, no MAVLink (``eonav.nav.mavlink_out`` packs the sectors). ``analyse(range map,
+camera, pose, config)`` turns every confident pixel into a NED point (inverse of eqs. 8-9, then eq. 33), removes
+the ground, and gives (a) 72 sectors of 5 degrees round the vehicle in the autopilots' own layout (element k centred
+on the body-relative bearing 5k deg; nearest obstacle, clear, or unknown) and (b) the obstacle list (connected
+components cut at range discontinuities). Decisions a reader must know: distances and bearings are measured from
+the vehicle origin, not the lens (where the autopilot puts a proximity sensor); a bin is clear only when it lies
+wholly inside the camera's view with enough evidence; wide maps are analysed on blocks, each represented by a
+robust minimum of its own pixels. The rules and thresholds: docs/methods.md, "Obstacles".
 """
 from __future__ import annotations
 
@@ -55,6 +24,10 @@ from eonav.ranging.rangemap import AT_INFINITY, VALID
 UINT16_MAX = 65535
 N_SECTORS = 72
 SECTOR_INCREMENT_DEG = 360.0 / N_SECTORS     # 5 degrees: the autopilots' own bins
+# element 0 is centred 20 deg left of the nose, so the array starts at the left edge of ArduPilot's ahead sector
+# (-22.5 .. 22.5 deg) instead of wrapping through it: ArduPilot stores a sector each time a run of elements leaves it,
+# so with element 0 on the nose the elements left of it (68 .. 71) overwrote a nearer obstacle right of it (0 .. 4)
+SECTOR_ANGLE_OFFSET_DEG = -20.0
 
 
 @dataclass(frozen=True)
@@ -64,7 +37,7 @@ class ObstacleConfig:
                                        # (the dense method's own VALID threshold; its sigma is calibrated on truth)
     min_distance_m: float = 0.5        # OBSTACLE_DISTANCE min_distance
     max_distance_m: float = 150.0      # OBSTACLE_DISTANCE max_distance; farther points are "clear" evidence
-    ground_down_m: float | None = None  # NED down of the ground; None: estimate from the points (see module doc)
+    ground_down_m: float | None = None  # NED down of the ground; None: estimate from the points (docs/methods.md)
     ground_clearance_m: float = 0.6    # points within this of the ground (or below it) are ground ...
     ground_sigma_k: float = 3.0        # ... plus this many 1-sigma of the point's down coordinate (from the range std)
     max_height_above_m: float = 200.0  # points higher than this above the vehicle are ignored (top of the band)
@@ -283,8 +256,7 @@ def pool_confident(range_m, conf_mask, k: int, pool_percentile: float = 10.0):
 def _pool_nearest(rr, k: int, W: int, grid: tuple):
     """``pool_confident`` when every block's rank is 0 (k <= 3 at the default 10 %: the nearest confident pixel): the
     same picks from the k * k strided sub-grids with element-wise minimum and compare, instead of an argsort of every
-    k * k block (measured on a 320 x 240 locate-grid map of the approach flight, k = 2, on the loaded 2-core bench
-    machine, best of 5 x 20 calls: the argsort path 3.0-5.2 ms, this 1.4-2.5 ms). Ties (equal ranges in one block) go to the first pixel of the block in
+    k * k block (about half the time). Ties (equal ranges in one block) go to the first pixel of the block in
     row-major order, which a stable sort would pick (numpy's default argsort breaks ties by platform: SIMD sorts
     are not stable)."""
     gh, gw = grid
@@ -346,17 +318,18 @@ def camera_hfov_deg(camera: Camera) -> tuple:
 
 
 def sector_geometry(camera: Camera) -> tuple:
-    """(increment_deg, angle_offset_deg) of the sectors: the fixed 72 x 5-degree layout, element 0 centred on the nose.
+    """(increment_deg, angle_offset_deg) of the sectors: the fixed 72 x 5-degree layout, element k centred on bearing
+    -20 + 5k deg (``SECTOR_ANGLE_OFFSET_DEG``).
 
     The layout does not depend on the camera: every camera's sectors index the same bins, so the sectors of several
     cameras merge bin by bin into one message (``merge_sectors``)."""
-    return SECTOR_INCREMENT_DEG, 0.0
+    return SECTOR_INCREMENT_DEG, SECTOR_ANGLE_OFFSET_DEG
 
 
 def bins_in_view(camera: Camera) -> tuple:
     """Masks over the 72 bins: (wholly inside the camera's horizontal view, touched by it)."""
     left, right = camera_hfov_deg(camera)
-    centre = np.arange(N_SECTORS) * SECTOR_INCREMENT_DEG
+    centre = SECTOR_ANGLE_OFFSET_DEG + np.arange(N_SECTORS) * SECTOR_INCREMENT_DEG
     half = SECTOR_INCREMENT_DEG / 2
     # the bins' edges relative to the view's middle, wrapped to (-180, 180]
     mid = 0.5 * (left + right)
@@ -407,7 +380,7 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     pixel per block. Pixel counts (sector and component thresholds, ``pixel_count``) stay in full-resolution pixels.
 
     ``camera`` is the camera of the map's own grid. A map computed at a locate scale (``camera`` =
-    ``eonav.camera.scaled_camera`` of the frame's) is analysed on that grid with ``frame_size`` = the frame's (width,
+    ``eonav.geometry.camera.scaled_camera`` of the frame's) is analysed on that grid with ``frame_size`` = the frame's (width,
     height): each map pixel then counts as the frame pixels it stands for, so the thresholds, ``pixel_count``,
     ``n_confident`` and ``bbox_px`` stay in frame pixels and the result matches that of the same map upsampled to the
     frame (tests/test_obstacles.py), for a quarter of the pixels at scale 0.5."""

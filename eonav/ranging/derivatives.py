@@ -1,46 +1,20 @@
 """Causal recursive irradiance and partial-derivative estimators, eqs. (34)-(42) of the paper.
 
-The image is factored as E = e1(x_p) e2(y_p) (eq. 34). A linear dynamic process runs along each
-scan line (eqs. 36-37) with the measured irradiance as input; its first output r1 = e2 * e1_hat
-(the smoothed irradiance) drives a second process along each column (eqs. 38-39). The outputs r, s
-combine by eq. (40) into E_hat, dE/dx_p, dE/dy_p (and the second derivatives for order 2).
+The image is factored as E = e1(x_p) e2(y_p) (eq. 34): a linear process runs along each scan line (eqs. 36-37) with
+the measured irradiance as input, its smoothed output r1 drives a second process along each column (eqs. 38-39), and
+the outputs combine by eq. (40) into E_hat, dE/dx_p, dE/dy_p. With a = ``bandwidth_per_px`` (the paper's 5.0 has no
+stated units):
 
-Estimators (continuous, in pixels; a = ``bandwidth_per_px``):
+- order 1, eqs. (41)-(42): dp/dx = -a p + a E, r = [1, -a]^T p + [0, a]^T E (eq. 42 prints ``-5.0 p`` where it
+  means ``-5.0 q``: a transcription slip);
+- order 2, a critically damped pair, so that the second derivative is an output of the dynamics and stays smooth.
 
-- order 1, eqs. (41)-(42) (the paper used a = 5.0, units unstated):
-      dp/dx = -a p + a E,      r = [1, -a]^T p + [0, a]^T E      (r1 = p, r2 = dp/dx)
-  (eq. 42 prints ``-5.0 p`` where it means ``-5.0 q``: a transcription slip; q is used here.)
-- order 2, a critically damped pair (n = 2, so that the second derivative is an output of the
-  dynamics and stays smooth, as the paper asks):
-      p = [p1, p1'],  p1'' = -2a p1' - a^2 p1 + a^2 E,  r = [p1, p1', p1'']
-
-Both have unit gain at zero frequency, so r1 is a smoothed irradiance and r2, r3 its exact first and
-second derivatives.
-
-Discretisation (pixel step 1): the continuous system is discretised EXACTLY under a first-order hold
-(``"foh"``, the default): the input is taken as the linear interpolation of the pixel samples, which is
-what a continuous scan of a band-limited image looks like, and the outputs are exact samples of the
-continuous outputs at the pixel centres. The hold itself is zero-phase, so the only delay is the
-estimator's own. ``"zoh"`` (input held constant over a pixel: half a pixel more delay and, at large a,
-a derivative that overshoots on ramps by a/(1 - exp(-a))) and ``"bilinear"`` (Tustin: the pole goes
-negative for a > 2, ringing at Nyquist) are available for comparison; see tests/test_paper_method.py
-and the module docs for the measured errors.
-
-Delay: a causal low-pass delays the signal. At low spatial frequency the order-1 estimator delays by
-1/a pixels and the order-2 one by 2/a, along x (scan pass) and along y (column pass) alike, for the
-irradiance and for its derivatives. The estimate stored at pixel (u, v) therefore describes the image at
-(u - delay_px, v - delay_px). Applying the SAME estimator to both images makes the delay common to
-E1_hat, E2_hat and all derivatives; the locator (eonav.ranging.methods.paper) evaluates the geometry at the
-delayed coordinate and re-registers its output map (see ``Derivatives.delay_px``).
-
-Bias (note under eq. 40): ``bias`` is added to the input so that r1 never reaches zero and is removed
-from E_hat. For a truly separable image eq. (40) is exact whatever the bias; for a real image the ratio
-s1/r1 in dE/dx = s1 r2 / r1 depends on it (a large bias makes dE/dx ~ r2, the x-derivative without the
-column smoothing). ``combine="linear"`` instead runs the column process on r2 as well, which is the exact
-x-derivative of E_hat for any image; it is offered for comparison and is not the paper's eq. (40).
-
-The recursions are run with scipy.signal.lfilter (vectorised over rows/columns), each line starting at
-the steady state of its first sample (no start-up transient at the image border).
+Decisions: the continuous system is discretised exactly under a first-order hold (``"foh"``, the default; ``"zoh"``
+and ``"bilinear"`` for comparison), so the outputs are exact samples of the continuous ones at the pixel centres. A
+causal low-pass delays by 1/a (order 1) or 2/a (order 2) pixels along x and y: the SAME estimator on both images
+makes the delay common, and ``Derivatives.delay_px`` lets the caller evaluate the geometry at the delayed
+coordinate. ``bias`` (note under eq. 40) keeps r1 away from zero; ``combine="linear"`` (not the paper's) is the exact
+x-derivative for non-separable images. Runs with ``scipy.signal.lfilter``, each line started at steady state.
 """
 from __future__ import annotations
 

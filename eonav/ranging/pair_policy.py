@@ -1,33 +1,19 @@
 """Which two posed frames the locator ranges: a pure, tested policy over a stream of frames.
 
-For every new frame the locator calls ``PairPolicy.offer(frame)`` and gets a ``PairDecision``:
-either a pair ``(a, b)`` with a reason code, or no pair with a reason code. Reason codes are plain
-strings so the locator can count them in its health message (``skipped_<reason>``).
+``PairPolicy.offer(frame)`` returns a ``PairDecision``: a pair ``(a, b)`` or none, with a reason code (a plain string
+the locator counts in its health message). ``remember(frame)`` keeps a frame as a partner only.
 
-Motion pairs (one camera over time). The new frame is the reference ``a`` (its ranges are the freshest;
-and an earlier frame ``b`` taken further back sees every point that ``a`` sees, so nothing of ``a`` leaves
-``b``'s image in forward flight). ``b`` is the newest earlier frame of the same camera that
-- is not older than ``max_age_s``,
-- is not rotated by more than ``max_rotation_deg`` relative to ``a`` (angle of ``R_ba``),
-- gives enough parallax: the translational disparity of a point at ``ref_range_m``, taken as the median
-  over a 5 x 5 grid of probe pixels of ``a``, is at least ``min_disparity_px``; or, when ``min_baseline_m``
-  is set, the baseline is at least that many metres.
-The newest sufficient frame wins: the shortest time gap keeps appearance changes and pose errors small.
+- Motion pairs: the new frame is the reference ``a`` (its ranges are the freshest, and an earlier frame sees what the
+  newer one sees in forward flight). ``b`` is the newest earlier frame of the same camera that is not older than
+  ``max_age_s``, not rotated by more than ``max_rotation_deg``, and gives enough parallax: the median over a 5 x 5
+  probe grid of the translational disparity of a point at ``ref_range_m`` (exact, eqs. 25-26; the median because it
+  is zero at the focus of expansion) is at least ``min_disparity_px``, or the baseline is at least
+  ``min_baseline_m``. The newest sufficient frame wins: the shortest gap keeps appearance changes and pose errors small.
+- Stereo pairs (``stereo_rig=(ref, partner)``, two cameras at one instant, the paper's multicamera case): a pair
+  forms when the second frame within ``max_stereo_dt_s`` arrives; while the partner is alive an unmatched rig frame
+  waits for it, and when it is silent the rig camera falls back to motion pairs.
 
-The disparity is exact perspective (eqs. 25-26 in the general form of ``PairGeometry.map_to_b``): the
-image shift of the probe pixel between inverse range ``1/ref_range_m`` and 0 (a point at infinity moves by
-the rotation only). In pure forward flight it is zero at the focus of expansion and grows towards the image
-edges, which is why the median over the probe grid is used rather than the centre pixel.
-
-Stereo pairs (two cameras at one instant, the paper's "multicamera" case). With ``stereo_rig=("left",
-"right")`` the frame of the rig's first camera is the reference; a stereo pair is formed when the second
-frame of a matching pair arrives (``|stamp difference| <= max_stereo_dt_s``), whichever camera arrives
-second; each reference frame is used for stereo once. While the partner camera is alive (it produced a frame
-within ``max_age_s``) an unmatched rig frame returns ``awaiting_stereo_partner``; when the partner is silent
-the rig camera falls back to motion pairs. The rotation limit does not apply to stereo (the mount is rigid
-and known); the parallax test does.
-
-No zenoh, no images touched: frames carry an opaque ``payload`` (the image or the whole message).
+No zenoh, no images touched: frames carry an opaque ``payload``.
 """
 from __future__ import annotations
 

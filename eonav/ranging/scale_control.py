@@ -1,38 +1,14 @@
 """Adaptive locate scale: a pure controller choosing, per camera and per pair, the scale the locator ranges at.
 
-The locator can range a pair on images resized by a scale from a ladder (1.0, 0.5, ... down to ``min_scale``) and
-map the result back to the full grid. Guidance needs bounded latency more than pixel detail, but a fixed half scale
-throws accuracy away when the machine has headroom; ``ScaleController`` picks the largest rung whose measured
-compute time fits a latency budget.
-
-Budget: ``budget_s`` when given; else ``budget_fraction`` (0.6) of the camera's measured frame interval (median of
-the recent stamp differences per frame, a seq gap divides the stamp difference), clamped to ``budget_bounds_s``
-([0.02, 0.2] s). Until an interval is known the budget is the upper bound.
-
-Cost of a rung: the median of its recent compute times (``window`` pairs). The next rung up is predicted from the
-current rung's recent median times the cost ratio of the two rungs: area-proportional ((hi / lo)^2, x4 per halving)
-until measured, then learnt at each change between them from the old rung's median just before the change and the new
-rung's median over its first ``min_samples`` pairs (adjacent in time, so under the same load). The prediction thus
-follows today's load instead of a stale measurement taken when the machine was busier.
-
-Decision after each computed pair (``observe_compute``), with hysteresis:
-- step down one rung when the current rung's recent median (at least ``min_samples`` pairs) exceeds the budget;
-- step up one rung when the predicted cost there is below ``up_margin`` (0.7) of the budget for ``up_after``
-  consecutive pairs (the count restarts on any pair that does not qualify and after every change);
-- a rung's window restarts when it is entered: a step never judges the new rung by old or other rungs' times.
-Between ``up_margin * budget`` (predicted one rung up) and ``budget`` (measured) nothing changes: a cost at the
-boundary does not oscillate. A fixed scale (``fixed=S``) never changes.
-
-Calibrated start (``calibrate``): the locator times one locate call per rung on a synthetic pair of the camera's size
-before it ranges that camera's first pair. Until the first pair is computed, the rung is the largest whose calibrated
-cost fits the budget (re-chosen at every frame, as the frame-interval estimate and so the budget settle), and the
-calibrated cost ratios seed the prediction one rung up. Without it the controller starts at full scale and needs
-``min_samples`` pairs over the budget before it steps down: the first pairs of a 640x480 camera at 15 fps then took
-~45 ms each against a 40 ms budget, and frames were dropped in the first seconds. The steady-state hysteresis is
-unchanged: a calibration is a measurement made before any frame, not a reaction to one slow pair, and it never
-moves the rung once a pair has been computed.
-
-No zenoh, no images: the locator owns one controller per camera and reports changes (health counter, log line).
+``ScaleController`` picks the largest rung of a ladder (1.0, 0.5, ... ``min_scale``) whose measured compute time fits a
+latency budget: ``budget_s``, else ``budget_fraction`` (0.6) of the camera's measured frame interval, clamped to
+``budget_bounds_s``. Guidance needs bounded latency more than pixel detail, but a fixed half scale throws accuracy
+away when the machine has headroom. After each pair (``observe_compute``) it steps down one rung when the current
+rung's recent median exceeds the budget, and up one rung only when the predicted cost there (the current median times
+the learnt cost ratio of the two rungs, area-proportional until measured) stays below ``up_margin`` (0.7) of the
+budget for ``up_after`` pairs in a row: between the two nothing changes, so a cost at the boundary does not
+oscillate. ``calibrate`` takes one timed locate per rung, made before the camera's first pair, to choose the starting
+rung and seed the cost ratios. No zenoh, no images: the locator owns one controller per camera.
 """
 from __future__ import annotations
 

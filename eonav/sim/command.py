@@ -1,5 +1,5 @@
 """``eonav sim PRESET --out DIR [--size N] [--seed S] [--noise SIGMA]``: render a preset pair and write it
-(frame PNGs, pair.json per DESIGN.md §4, truth.npz, objects.json)."""
+(frame PNGs, pair.json per docs/pair-file.md, truth.npz, objects.json)."""
 from __future__ import annotations
 
 PRESET_NAMES = ("paper", "fast", "turning", "climbing", "stereo", "hover")

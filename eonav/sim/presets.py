@@ -1,5 +1,5 @@
 """Named two-view scenes with ground truth: ``make_pair(name)`` renders them, ``write_pair`` saves them as a
-pair file (DESIGN.md §4) plus ground truth.
+pair file (docs/pair-file.md) plus ground truth.
 
 Presets (reference view first):
 - "paper":    replica of the paper's CH-47B sequence (Table I): 512x512, ~40 deg FOV nose camera, 12 ft over a
@@ -205,7 +205,7 @@ def make_pair(name: str, *, seed: int = 0, size=None, supersample: int = 3, nois
 
 
 def write_pair(sim_pair: SimPair, out_dir) -> Path:
-    """Write frame PNGs (8-bit), pair.json (DESIGN.md §4), truth.npz (range_m, object_id of the reference frame)
+    """Write frame PNGs (8-bit), pair.json (docs/pair-file.md), truth.npz (range_m, object_id of the reference frame)
     and objects.json (id -> name, plus meta). Returns the pair.json path."""
     import json
 

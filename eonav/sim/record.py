@@ -1,32 +1,10 @@
-"""Write a simulated flight as a recording the services replay (DESIGN.md §5).
+"""Write a simulated flight as a recording the services replay: frames, timestamps, a MAVLink tlog, cameras, truth.
 
-``record_flight(out_dir, name="approach", n_frames=20, rate_hz=10.0, size=(160, 120), seed=0)`` writes::
-
-    out_dir/
-      frames/000000.png ...      8-bit grey PNG frames (the camera ingest's image-folder source)
-      frames/timestamps.txt      one stamp per line, UNIX seconds with microsecond decimals, matching the
-                                 sorted file names
-      flight.tlog                MAVLink 2 tlog (8-byte big-endian UNIX us receive header + packet):
-                                 ATTITUDE 50 Hz; ATTITUDE_QUATERNION, LOCAL_POSITION_NED,
-                                 GLOBAL_POSITION_INT 25 Hz; SYSTEM_TIME 1 Hz; HEARTBEAT 1 Hz
-      cameras.json               the pair file's "cameras" section: {camera_id: {width, height, fx, ...}}
-      truth.npz                  per frame: stamp_us (int64), t_s, range_m (float16, +inf sky),
-                                 object_id (int16), position_ned_m, q_wxyz; plus nav_t_s
-      manifest.json              what is where, the clocks and rates
-
-Clocks (all integer microseconds):
-- flight time ``t_s`` (the simulator's, >= 0) maps to UNIX time ``start_unix_us + t_s * 1e6``;
-- the autopilot boot clock is UNIX time minus ``boot_offset_us`` (manifest), i.e. the autopilot
-  booted ``boot_at_start_s`` before the flight started: ``time_boot_ms = (unix_us - boot_offset_us)//1000``;
-- each tlog record header is the send time plus a simulated link latency, uniform in
-  ``latency_us`` = (min, max) (seeded), so a receive-time clock estimate converges to
-  ``boot_offset_us + min latency`` (documented, and what the tests allow for);
-- frame stamps are exact capture times (no latency).
-
-Truth attitude and position come from ``eonav.sim.flight.flight_states`` (closed form); body rates and
-NED velocities in the messages are central differences of it (h = 1 ms). GLOBAL_POSITION_INT is the
-NED position about ``origin_lla`` (manifest) through eonav.nav.mavlink_in's local-tangent conversion,
-quantised to degE7 / mm / cm/s as on the wire.
+``record_flight(out_dir, name=, n_frames=, rate_hz=, size=, seed=)`` renders the flight (``eonav.sim.flight``) and
+writes the image folder with its ``timestamps.txt`` (the camera ingest's source), ``flight.tlog`` (the MAVLink
+ingest's source: the navigation messages from the flight's closed form, on a simulated autopilot boot clock with a
+seeded link latency in the record headers), ``cameras.json``, ``truth.npz`` and ``manifest.json`` (the clocks and
+rates). The layout and the clocks: docs/architecture.md, "Recordings".
 """
 from __future__ import annotations
 

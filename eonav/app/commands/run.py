@@ -23,17 +23,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="default pipeline: add a camera ingest for SOURCE (repeatable)")
     add_flag(p, "--mavlink", env="EONAV_MAVLINK_SOURCE", default=None, metavar="SOURCE",
              help="default pipeline: MAVLink ingest --source (udpin:..., file.tlog)")
-    add_flag(p, "--duration", env="EONAV_DURATION", default=None, type=float, metavar="S", help="stop after S seconds")
+    add_flag(p, "--duration-s", env="EONAV_DURATION_S", default=None, type=float, metavar="S", help="stop after S seconds",
+             aliases="--duration", old_env="EONAV_DURATION")
     add_flag(p, "--exit-when-done", env="EONAV_EXIT_WHEN_DONE", default=None, metavar="SERVICE",
              help="stop when SERVICE exits 0 (e.g. a replay reached its end)")
-    add_flag(p, "--grace", env="EONAV_GRACE", default=5.0, type=float, metavar="S",
-             help="seconds between SIGINT and SIGKILL when stopping")
+    add_flag(p, "--grace-s", env="EONAV_GRACE_S", default=5.0, type=float, metavar="S",
+             help="seconds between SIGINT and SIGKILL when stopping", aliases="--grace", old_env="EONAV_GRACE")
     add_flag(p, "--log-dir", env="EONAV_LOG_DIR", default=None, metavar="DIR",
              help="one log file per service here (default: services log to this terminal)")
     add_flag(p, "--quiet", env="EONAV_QUIET", action="store_true", help="no status line")
     p.add_argument("--watch", action="store_true",
                    help="start nothing: show the status of the services already on the bus (use with --router)")
     p.add_argument("--print-spec", action="store_true", help="print the effective pipeline spec as JSON and exit")
+    add_flag(p, "--record", env="EONAV_RECORD", default=None, metavar="FILE.mcap",
+             help="also record everything on the bus into this MCAP file (eonav record; the demo too)")
 
 
 def run(args) -> int:
@@ -51,6 +54,7 @@ def run(args) -> int:
         doc = json.loads(Path(spec).read_text()) if isinstance(spec, str) else spec
         print(json.dumps(doc, indent=2))
         return 0
-    return run_pipeline(spec, vehicle=args.vehicle, port=args.port, duration=args.duration,
-                        exit_when_done=args.exit_when_done, router=args.router, grace_s=args.grace,
-                        quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config)
+    return run_pipeline(spec, vehicle=args.vehicle, port=args.port, duration=args.duration_s,
+                        exit_when_done=args.exit_when_done, router=args.router, grace_s=args.grace_s,
+                        quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config,
+                        record=args.record)

@@ -1,40 +1,23 @@
-"""The paper's locator, faithfully: method "paper".
+"""The paper's locator, faithfully: method "paper" (Menon, Chatterji & Sridhar 1993).
 
-Menon, Chatterji & Sridhar (1993). Per pixel of the reference image E1 (view a):
+Per pixel of the reference image E1 (view a):
 
-1. E_hat, dE/dx_p, dE/dy_p of both images from the causal recursive estimators of eqs. (34)-(42)
-   (eonav.ranging.derivatives), the SAME estimator on both so that its delay is common.
-2. k0..k5 of eq. (24) from the relative pose of the pair (eonav.geometry.k_coefficients):
-   [k0, k1, k2] = (R - I)[1, x_p/f, y_p/f], [k3, k4, k5] = t; for one camera over time this is eq. (23)
-   (tests/test_geometry_paper.py shows the reduction).
-3. a1, b1 (eqs. 29-30), c1 and the closed form eq. (28) for x_c.
+1. E_hat, dE/dx_p, dE/dy_p of both images from the causal recursive estimators, eqs. (34)-(42)
+   (``eonav.ranging.derivatives``), the same estimator on both so that its delay is common;
+2. k0..k5 of eq. (24) from the relative pose of the pair (``eonav.geometry.frames.k_coefficients``; eq. (23) for
+   one camera over time, tests/test_geometry_paper.py);
+3. a1, b1 (eqs. 29-30), c1 and the closed form eq. (28) for x_c, with c1 = E1 - E2: substituting (25)-(26) into
+   (27) gives (28) exactly with that sign, so the printed (31), E2 - E1, is a transcription slip
+   (tests/test_paper_method.py::test_c1_sign decides it on a synthetic scene);
+4. only where the inter-frame change |c1| and the gradient |(a1, b1)| are significant; elsewhere NaN with
+   LOW_TEXTURE (the paper assigned a "maximum scene depth"; we do not);
+5. the eq. (7) truncation test at the estimated range (flag TRUNCATION: range kept, VALID cleared);
+6. inv_range_std_per_m by first-order propagation of white image noise through the estimators and eq. (28)
+   (linear in rho = 1/x_c); confidence = rho / std(rho).
 
-   Sign of c1. Eq. (27) reads E1 - E2 = a1 dx_p + b1 dy_p, with d the displacement of a point from
-   image 1 to image 2 (eq. 1: E1(x) = E2(x + d), and eqs. 25-26 are that displacement). Substituting
-   eqs. (25)-(26) into (27) and solving for x_c gives exactly eq. (28) with c1 = E1 - E2, so the printed
-   eq. (31), c1 = E2 - E1, is a transcription slip. tests/test_paper_method.py::test_c1_sign decides it
-   on a synthetic scene: c1 = E1 - E2 recovers the true range, E2 - E1 does not.
-
-4. Only where the inter-frame change |c1| and the gradient |(a1, b1)| are significant (as the paper);
-   elsewhere range is NaN with the LOW_TEXTURE flag (the paper assigned a "maximum scene depth"; we do not).
-5. Eq. (7) truncation test: t7 = [g2 - g1]^T d + 1/2 d^T [H1 + H2] d at d = eqs. (25)-(26) of the estimated
-   range, relative to the first-order term 1/2 [g1 + g2]^T d of eq. (6); |t7| / |first| > truncation_tol
-   sets the TRUNCATION flag (range kept, VALID cleared, confidence 0).
-6. Eq. (28) is linear in rho = 1/x_c: rho * num = den. First-order propagation of white image noise
-   (sigma ``noise_sigma`` grey levels) through the estimators and eq. (28):
-       F = rho*G - (c1 (1 + k0) - a1 Nx - b1 Ny) = 0,   G = a1 Mx + b1 My - c1 k3 = -num
-       d rho = Dn (d c1 - dx d a1 - dy d b1) / G,        Dn = 1 + k0 + k3 rho (depth ratio x_c,b/x_c,a)
-   gives inv_range_std_per_m; confidence = rho / std(rho), the inverse of the relative range error.
-
-Geometry on the delayed grid: the estimate stored at pixel (u, v) describes the image at
-(u - delay, v - delay) (eonav.ranging.derivatives), so x_p, y_p in eqs. (24)-(28) are evaluated there and the
-output maps are shifted back by round(delay) pixels; the sub-pixel remainder (< 0.5 px) stays.
-
-Intrinsics: eqs. (25)-(28) assume one focal length f and the same image grid in both views. With
-fx != fy, the x-rows of (25), (28) use fx and the y-rows fy (k0..k2 from m = [1, x_p/fx, y_p/fy]).
-If view b's camera has different intrinsics, image b is first resampled (bilinear, exact for a pinhole,
-no depth dependence) onto a virtual camera with view a's intrinsics at view b's pose; pixels of that
-virtual image that fall outside image b are flagged OUT_OF_VIEW.
+The geometry is evaluated on the estimators' delayed grid and the maps shifted back by round(delay) pixels. With
+fx != fy the x-rows use fx and the y-rows fy; a view b with other intrinsics is first resampled onto a virtual camera
+with view a's intrinsics at view b's pose (pixels outside image b: OUT_OF_VIEW).
 """
 from __future__ import annotations
 
@@ -177,7 +160,9 @@ def locate_paper(view_a: View, view_b: View, *, bandwidth: float = 0.25, order: 
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         rho = den / num
         dx, dy, Dn = disparity(k, xp, yp, fx, fy, rho)                   # eqs. (25)-(26)
-        # noise propagation (module docstring, item 6)
+        # noise propagation: eq. (28) is linear in rho, F = rho*G - (c1 (1 + k0) - a1 Nx - b1 Ny) = 0 with
+        # G = a1 Mx + b1 My - c1 k3 = -num, so d rho = Dn (d c1 - dx d a1 - dy d b1) / G (Dn = 1 + k0 + k3 rho, the
+        # depth ratio x_c,b / x_c,a), with white image noise of noise_sigma grey levels through the estimators
         gE, gdx, gdy = noise_gains(bandwidth, order, discretisation)
         var_c = 2.0 * (noise_sigma * gE) ** 2
         var_a = 0.5 * (noise_sigma * gdx) ** 2

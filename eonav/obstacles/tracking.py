@@ -1,0 +1,636 @@
+"""Obstacle tracks in NED from the obstacle lists of successive range maps, and what guidance needs from them.
+
+Pure numpy/scipy: no transport, no wall clock (every time is a ``stamp_us`` given by the caller).
+
+Measurement (one obstacle of ``eonav.obstacles.analyse``): its median NED point ``z`` with a covariance built from
+the camera geometry. A point seen at pixel (u, v) and range x_c is x_cam = x_c [1, (u - cx)/fx, (v - cy)/fy]
+(inverse of eqs. 8-9); linearised in (x_c, u, v),
+    J = [[1, 0, 0], [a, x_c/fx, 0], [b, 0, x_c/fy]],  a = (u - cx)/fx, b = (v - cy)/fy,
+    R_cam = J diag(s_x^2, s_u^2, s_v^2) J^T,          R = R_ned_cam R_cam R_ned_cam^T + s_nav^2 I   (eq. 33)
+with s_x the range 1-sigma (the obstacle's ``range_std_m``, plus ``extent_fraction`` of its depth along the axis),
+s_u, s_v the pixel 1-sigma of the median point (``pixel_sigma_px``, ``extent_fraction`` of the box's pixel width /
+height: the median moves as more or less of the object is seen, and the attitude error ``attitude_sigma_rad`` x f).
+Error along the ray is the range sigma, across it the pixel extent at that range. Obstacles of one list whose boxes
+come within ``merge_gap_m`` of each other are merged first (``merge_fragments``: the list cuts a thin pole at its
+range noise into stacked pieces; one object, one measurement).
+
+Filter: one constant-velocity Kalman filter per track, state [position_ned_m, velocity_ned_mps], white-noise
+acceleration of spectral density ``accel_sigma_mps2^2`` (F = [[I, dt I], [0, I]], Q = q [[dt^3/3 I, dt^2/2 I],
+[dt^2/2 I, dt I]]), Joseph-form update.
+
+Association per range map: every track is predicted to the map's stamp; a track and a measurement may pair when the
+squared Mahalanobis distance of the innovation, d^2 = y^T S^-1 y with S = P_pos + R, is within ``gate_chi2`` (3
+degrees of freedom); the pairs minimise sum(d^2 + ln det S) (``scipy.optimize.linear_sum_assignment``). Unpaired
+measurements start tentative tracks (new ids, never reused). A track that is not paired is classified with the
+map's ``FieldOfView``: in view and unobstructed = a miss; out of view (behind, outside the image, beyond the listed
+distance), occluded (the map sees something nearer at its pixel) or without data there = coasting (prediction
+only: the covariance grows, no miss counted).
+
+Life cycle: tentative -> confirmed after ``confirm_hits`` hits; a tentative track dies at its first miss or when not
+confirmed within ``confirm_window_s``; a confirmed track dies after ``max_misses`` consecutive misses, after
+``max_coast_s`` without a hit, or when its position 1-sigma exceeds ``max_position_sigma_m``.
+
+Guidance (``assess``): for each track predicted to the current time, the distance and the bearing in body FRD of the
+current pose, and the collision cone along the current velocity. The obstacle is a box in NED centred on the track
+position with the track's extent, inflated on each axis by ``vehicle_radius_m + k_sigma * sigma_axis`` (sigma_axis
+the track's position 1-sigma on that axis): the relative motion w = v_vehicle - v_obstacle (v_obstacle = 0 unless
+the track is ``moving``) puts it in the cone when the ray t -> w t from the vehicle hits that box within
+``horizon_s``; the time to contact is the ray's entry time (0 when already inside). See docs/guidance.md.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from eonav import InputError
+from eonav.geometry.camera import Camera, VehicleState
+from eonav.geometry.frames import camera_from_ned
+
+# visibility of a predicted track in one range map
+VISIBLE, OUT_OF_VIEW, OCCLUDED, NO_DATA = "visible", "out_of_view", "occluded", "no_data"
+TENTATIVE, CONFIRMED, COASTING = "tentative", "confirmed", "coasting"
+CHI2_3_999 = 16.266                  # 3-dof chi-square, 99.9 %
+CHI2_3_99 = 11.345                   # 3-dof chi-square, 99 %
+
+
+def _positive(name, v, allow_zero=False):
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v >= 0 if allow_zero
+                                                                                           else v > 0)
+    if not ok:
+        raise InputError(f"tracker config: {name} must be a finite number {'>= 0' if allow_zero else '> 0'}, "
+                         f"got {v!r}")
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    accel_sigma_mps2: float = 1.0          # white-noise acceleration of the constant-velocity model
+    initial_speed_sigma_mps: float = 10.0  # velocity 1-sigma of a new track (velocity starts at 0)
+    gate_chi2: float = CHI2_3_999          # association gate on d^2 (3 dof)
+    confirm_hits: int = 3                  # N: hits that confirm a tentative track
+    confirm_window_s: float = 1.0          # a tentative track not confirmed this long after birth dies
+    max_misses: int = 6                    # M: consecutive in-view misses that delete a confirmed track
+    max_coast_s: float = 5.0               # no hit this long (coasting out of view or occluded): deleted
+    max_position_sigma_m: float = 25.0     # largest position 1-sigma (any axis) a track may reach
+    confidence_window: int = 10            # confidence = hits / in-view maps over this many last in-view maps
+    moving_chi2: float = CHI2_3_99         # v^T P_v^-1 v above this: the track is moving
+    extent_smoothing: float = 0.3          # weight of a new measurement's extent (exponential average)
+    # measurement model (module docstring)
+    pixel_sigma_px: float = 1.0            # frame pixels
+    extent_fraction: float = 0.15          # of the box's pixel width / height (across) and depth (along)
+    attitude_sigma_rad: float = math.radians(0.2)
+    nav_sigma_m: float = 0.2
+    min_range_rel_sigma: float = 0.002     # floor of the range 1-sigma, relative to range
+    merge_gap_m: float = 0.5               # obstacles of one list whose boxes come this close are one (0: off)
+    # visibility
+    edge_margin_px: float = 1.0            # map pixels: a track projected this close to the edge is out of view
+    occlusion_rel: float = 0.08            # nearer than (1 - this) x_c (and 3 sigma, and the depth extent): the
+                                           # range jump that separates two objects (ObstacleConfig.max_rel_jump)
+    occlusion_window_px: int = 1           # half-size of the map window looked at around the projected pixel
+
+    def __post_init__(self):
+        for name in ("accel_sigma_mps2", "initial_speed_sigma_mps", "gate_chi2", "confirm_window_s", "max_coast_s",
+                     "max_position_sigma_m", "moving_chi2", "pixel_sigma_px", "occlusion_rel"):
+            _positive(name, getattr(self, name))
+        for name in ("extent_fraction", "attitude_sigma_rad", "nav_sigma_m", "min_range_rel_sigma",
+                     "edge_margin_px", "merge_gap_m"):
+            _positive(name, getattr(self, name), allow_zero=True)
+        for name in ("confirm_hits", "max_misses", "confidence_window"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise InputError(f"tracker config: {name} must be an integer >= 1, got {v!r}")
+        if not (isinstance(self.occlusion_window_px, int) and self.occlusion_window_px >= 0):
+            raise InputError(f"tracker config: occlusion_window_px must be an integer >= 0, "
+                             f"got {self.occlusion_window_px!r}")
+        if not 0 < self.extent_smoothing <= 1:
+            raise InputError(f"tracker config: extent_smoothing must be in (0, 1], got {self.extent_smoothing!r}")
+
+
+def _vec(name, v, n=3):
+    a = np.asarray(v, float)
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise InputError(f"{name}: expected {n} finite numbers, got {np.asarray(v).tolist()!r}")
+    return a
+
+
+def _stamp(stamp_us, what="stamp_us") -> int:
+    if isinstance(stamp_us, bool) or not isinstance(stamp_us, (int, np.integer)):
+        raise InputError(f"{what}: expected integer microseconds, got {type(stamp_us).__name__} {stamp_us!r}")
+    return int(stamp_us)
+
+
+@dataclass
+class Measurement:
+    """One detected obstacle: its NED point with covariance, and what the detector said about it."""
+    position_ned_m: np.ndarray
+    cov_ned_m2: np.ndarray
+    extent_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))   # 5..95 % extent along N, E, D
+    pixel_count: int = 0                    # supporting pixels (frame pixels)
+    confidence: float = 1.0                 # the estimator's median confidence over those pixels
+    camera_id: str = ""
+
+    def __post_init__(self):
+        self.position_ned_m = _vec("measurement position_ned_m", self.position_ned_m)
+        self.extent_ned_m = _vec("measurement extent_ned_m", self.extent_ned_m)
+        c = np.asarray(self.cov_ned_m2, float)
+        if c.shape != (3, 3) or not np.all(np.isfinite(c)) or not np.allclose(c, c.T, rtol=1e-9, atol=1e-12):
+            raise InputError("measurement cov_ned_m2: expected a finite symmetric 3 x 3 matrix")
+        if np.linalg.eigvalsh(c).min() <= 0:
+            raise InputError("measurement cov_ned_m2: must be positive definite")
+        self.cov_ned_m2 = 0.5 * (c + c.T)
+        if np.any(self.extent_ned_m < 0):
+            raise InputError("measurement extent_ned_m: must be >= 0")
+
+
+def merge_fragments(measurements, gap_m: float) -> list:
+    """Measurements whose extent boxes (position +- extent / 2, NED) come within ``gap_m`` of each other on every
+    axis, directly or through others, become one: the union box, the pixel-weighted mean position, the weighted mean
+    covariance plus the weighted spread of the positions, the summed pixels. The obstacle list splits a thin pole or a
+    mast into pieces at its range noise; one object, one track."""
+    meas = list(measurements)
+    if gap_m <= 0 or len(meas) < 2:
+        return meas
+    from scipy.sparse.csgraph import connected_components
+    p = np.stack([m.position_ned_m for m in meas])
+    half = 0.5 * np.stack([m.extent_ned_m for m in meas])
+    lo, hi = p - half, p + half
+    touch = np.all((lo[:, None] <= hi[None] + gap_m) & (lo[None] <= hi[:, None] + gap_m), axis=-1)
+    n, labels = connected_components(touch, directed=False)
+    if n == len(meas):
+        return meas
+    out = []
+    for k in range(n):
+        idx = np.flatnonzero(labels == k)
+        if idx.size == 1:
+            out.append(meas[idx[0]])
+            continue
+        w = np.array([max(meas[i].pixel_count, 1) for i in idx], float)
+        w /= w.sum()
+        pos = w @ p[idx]
+        d = p[idx] - pos
+        cov = np.einsum("i,ijk->jk", w, np.stack([meas[i].cov_ned_m2 for i in idx])) + (d * w[:, None]).T @ d
+        out.append(Measurement(pos, cov, hi[idx].max(0) - lo[idx].min(0), int(sum(meas[i].pixel_count for i in idx)),
+                               float(w @ [meas[i].confidence for i in idx]), meas[idx[0]].camera_id))
+    return out
+
+
+def R_ned_cam(camera: Camera, state: VehicleState) -> np.ndarray:
+    """Rotation camera -> NED: T2^T T1^T (eq. 33)."""
+    return state.T_body_ned.T @ camera.T_cam_body.T
+
+
+def lens_ned_m(camera: Camera, state: VehicleState) -> np.ndarray:
+    """NED position of the lens centre: x_v + T2^T l (eq. 33 at x_c = 0)."""
+    return state.position_ned_m + state.T_body_ned.T @ camera.l_body_m
+
+
+def camera_covariance(point_ned_m, camera: Camera, state: VehicleState, sigma_range_m: float, sigma_u_px: float,
+                      sigma_v_px: float) -> np.ndarray:
+    """NED covariance of a point seen by ``camera`` at ``state`` with 1-sigma errors in range x_c (metres) and in its
+    pixel (u, v) (pixels of ``camera``): J diag(s_x^2, s_u^2, s_v^2) J^T rotated into NED (module docstring)."""
+    p_cam = camera_from_ned(np.asarray(point_ned_m, float), camera.T_cam_body, state.T_body_ned,
+                            state.position_ned_m, camera.l_body_m)
+    x_c = float(p_cam[0])
+    if not x_c > 0:
+        raise InputError(f"camera_covariance: point is behind the camera (x_c = {x_c:.3f} m)")
+    a, b = p_cam[1] / x_c, p_cam[2] / x_c
+    J = np.array([[1.0, 0.0, 0.0], [a, x_c / camera.fx, 0.0], [b, 0.0, x_c / camera.fy]])
+    cov_cam = J @ np.diag([sigma_range_m ** 2, sigma_u_px ** 2, sigma_v_px ** 2]) @ J.T
+    R = R_ned_cam(camera, state)
+    return R @ cov_cam @ R.T
+
+
+def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, cfg: TrackerConfig = TrackerConfig(),
+                                frame_size=None, camera_id: str = "") -> list:
+    """``Measurement`` of each ``eonav.obstacles.Obstacle`` of one range map, fragments of one object merged
+    (``merge_fragments`` with ``cfg.merge_gap_m``). ``camera`` / ``state`` / ``frame_size`` are those given to
+    ``analyse`` (the map's grid camera, the capture pose, the frame's (width, height) or None): ``bbox_px`` and the
+    pixel sigma are in frame pixels."""
+    fw, fh = (camera.width, camera.height) if not frame_size or not any(frame_size) else map(int, frame_size)
+    fx, fy = camera.fx * fw / camera.width, camera.fy * fh / camera.height       # focal lengths in frame pixels
+    R = R_ned_cam(camera, state)
+    out = []
+    for o in obstacles:
+        p = _vec(f"obstacle {o.id} position_ned_m", o.position_ned_m)
+        ext = np.abs(_vec(f"obstacle {o.id} extent_ned_m", o.extent_ned_m))
+        x_c = float(camera_from_ned(p, camera.T_cam_body, state.T_body_ned, state.position_ned_m,
+                                    camera.l_body_m)[0])
+        if not x_c > 0:
+            continue                                  # cannot happen for a point of this map; nothing to track
+        depth_ext = float(np.linalg.norm(R[:, 0] * ext))     # extent along the optical axis
+        s_range = math.hypot(float(o.range_std_m) if math.isfinite(o.range_std_m) else 0.0,
+                             cfg.extent_fraction * depth_ext)
+        s_range = max(s_range, cfg.min_range_rel_sigma * x_c)
+        u0, v0, u1, v1 = o.bbox_px
+        s_u = math.sqrt(cfg.pixel_sigma_px ** 2 + (cfg.extent_fraction * (u1 - u0 + 1)) ** 2
+                        + (cfg.attitude_sigma_rad * fx) ** 2)
+        s_v = math.sqrt(cfg.pixel_sigma_px ** 2 + (cfg.extent_fraction * (v1 - v0 + 1)) ** 2
+                        + (cfg.attitude_sigma_rad * fy) ** 2)
+        # camera_covariance takes pixels of ``camera``: convert the frame-pixel sigmas
+        cov = camera_covariance(p, camera, state, s_range, s_u * camera.width / fw, s_v * camera.height / fh)
+        cov = cov + cfg.nav_sigma_m ** 2 * np.eye(3)
+        out.append(Measurement(p, cov, ext, int(o.pixel_count), float(o.confidence), camera_id))
+    return merge_fragments(out, cfg.merge_gap_m)
+
+
+@dataclass
+class FieldOfView:
+    """What one range map could see: its camera (the map's grid), capture pose, the listed distance band and,
+    optionally, the map itself (``range_m`` with ``data_mask`` = pixels with a usable range: confident or at
+    infinity) to tell an occluded or unmeasured track from a missed one."""
+    camera: Camera
+    state: VehicleState
+    max_distance_m: float = math.inf
+    min_distance_m: float = 0.0
+    range_m: np.ndarray | None = None
+    data_mask: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.range_m is not None:
+            r = np.asarray(self.range_m)
+            if r.shape != (self.camera.height, self.camera.width):
+                raise InputError(f"field of view: range_m is {r.shape} but camera {self.camera.name!r} is "
+                                 f"{self.camera.height} x {self.camera.width}")
+            if self.data_mask is not None and np.shape(self.data_mask) != r.shape:
+                raise InputError(f"field of view: data_mask has shape {np.shape(self.data_mask)}, expected {r.shape}")
+
+    def classify(self, position_ned_m, sigma_range_m: float = 0.0, depth_extent_m: float = 0.0,
+                 cfg: TrackerConfig = TrackerConfig()) -> str:
+        """VISIBLE, OUT_OF_VIEW, OCCLUDED or NO_DATA for one NED point."""
+        cam, st = self.camera, self.state
+        p = np.asarray(position_ned_m, float)
+        dist = float(np.linalg.norm(p - st.position_ned_m))
+        if not self.min_distance_m <= dist <= self.max_distance_m:
+            return OUT_OF_VIEW
+        pc = camera_from_ned(p, cam.T_cam_body, st.T_body_ned, st.position_ned_m, cam.l_body_m)
+        if pc[0] <= 0:
+            return OUT_OF_VIEW
+        u = cam.cx + cam.fx * pc[1] / pc[0]                     # eq. (8)
+        v = cam.cy + cam.fy * pc[2] / pc[0]                     # eq. (9)
+        m = cfg.edge_margin_px
+        if not (m - 0.5 <= u <= cam.width - 0.5 - m and m - 0.5 <= v <= cam.height - 0.5 - m):
+            return OUT_OF_VIEW
+        if self.range_m is None:
+            return VISIBLE
+        k = cfg.occlusion_window_px
+        iu, iv = int(round(u)), int(round(v))
+        u0, u1 = max(0, iu - k), min(cam.width, iu + k + 1)
+        v0, v1 = max(0, iv - k), min(cam.height, iv + k + 1)
+        r = np.asarray(self.range_m[v0:v1, u0:u1], float)
+        if self.data_mask is not None:
+            ok = np.asarray(self.data_mask[v0:v1, u0:u1], bool)
+        else:
+            with np.errstate(invalid="ignore"):
+                ok = np.isposinf(r) | (np.isfinite(r) & (r > 0))
+        if not ok.any():
+            return NO_DATA
+        seen = float(np.median(r[ok]))
+        margin = max(cfg.occlusion_rel * pc[0], 3.0 * sigma_range_m, depth_extent_m)
+        return OCCLUDED if seen < pc[0] - margin else VISIBLE
+
+
+def _F(dt):
+    F = np.eye(6)
+    F[:3, 3:] = dt * np.eye(3)
+    return F
+
+
+def _Q(dt, q):
+    I3 = np.eye(3)
+    return q * np.block([[dt ** 3 / 3 * I3, dt ** 2 / 2 * I3], [dt ** 2 / 2 * I3, dt * I3]])
+
+
+def predict_state(x, P, dt_s: float, cfg: TrackerConfig):
+    """Constant-velocity prediction over dt_s >= 0 seconds."""
+    F = _F(dt_s)
+    return F @ x, F @ P @ F.T + _Q(dt_s, cfg.accel_sigma_mps2 ** 2)
+
+
+@dataclass
+class Track:
+    """One tracked obstacle. ``x`` = [position_ned_m, velocity_ned_mps] and ``P`` at ``stamp_us``."""
+    id: int
+    x: np.ndarray
+    P: np.ndarray
+    stamp_us: int
+    born_us: int
+    last_hit_us: int
+    hits: int = 1
+    misses: int = 0                        # consecutive in-view misses
+    confirmed: bool = False
+    last_outcome: str = "hit"              # hit, or the visibility of the last map that did not detect it
+    extent_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    pixel_count: int = 0
+    measurement_confidence: float = 0.0
+    camera_id: str = ""
+    seen: deque = field(default_factory=deque)      # True/False per in-view map (newest last)
+
+    @property
+    def state(self) -> str:
+        if not self.confirmed:
+            return TENTATIVE
+        return COASTING if self.last_outcome in (OUT_OF_VIEW, OCCLUDED, NO_DATA) else CONFIRMED
+
+    @property
+    def confidence(self) -> float:
+        """Fraction of the last ``confidence_window`` in-view maps in which it was detected."""
+        return float(np.mean(self.seen)) if self.seen else 0.0
+
+    def position_sigma_m(self) -> float:
+        return float(math.sqrt(max(np.diag(self.P)[:3].max(), 0.0)))
+
+
+class Tracker:
+    """Kalman tracks of obstacles across range maps (module docstring). Feed every range map, also those without
+    obstacles, in stamp order: ``update(measurements, stamp_us, view)``."""
+
+    def __init__(self, cfg: TrackerConfig = TrackerConfig()):
+        self.cfg = cfg
+        self._tracks: list[Track] = []
+        self._next_id = 1
+        self.last_stamp_us: int | None = None      # stamp of the newest map fed in
+
+    @property
+    def tracks(self) -> list:
+        return list(self._tracks)
+
+    def confirmed(self) -> list:
+        return [t for t in self._tracks if t.confirmed]
+
+    def update(self, measurements, stamp_us: int, view: FieldOfView | None = None) -> list:
+        """One range map's measurements at capture ``stamp_us``. ``view`` (None: every unpaired track counts as a
+        miss) says which unpaired tracks the map could have seen. Returns the tracks after the update."""
+        stamp_us = _stamp(stamp_us)
+        if self.last_stamp_us is not None and stamp_us < self.last_stamp_us:
+            raise InputError(f"tracker: map stamp {stamp_us} us is older than the last one {self.last_stamp_us} us; "
+                             f"feed maps in stamp order")
+        meas = list(measurements)
+        for m in meas:
+            if not isinstance(m, Measurement):
+                raise InputError(f"tracker: expected Measurement objects, got {type(m).__name__}")
+        cfg = self.cfg
+        for t in self._tracks:
+            t.x, t.P = predict_state(t.x, t.P, (stamp_us - t.stamp_us) * 1e-6, cfg)
+            t.stamp_us = stamp_us
+        pairs = self._associate(meas)
+        paired_t = {i for i, _ in pairs}
+        paired_m = {j for _, j in pairs}
+        for i, j in pairs:
+            self._correct(self._tracks[i], meas[j], stamp_us)
+        for i, t in enumerate(self._tracks):
+            if i in paired_t:
+                continue
+            outcome = VISIBLE if view is None else self._visibility(t, view)
+            if outcome == VISIBLE:
+                t.misses += 1
+                t.last_outcome = "miss"
+                self._seen(t, False)
+            else:
+                t.last_outcome = outcome
+        self._tracks = [t for t in self._tracks if not self._dead(t, stamp_us)]
+        for j, m in enumerate(meas):
+            if j not in paired_m:
+                self._tracks.append(self._new_track(m, stamp_us))
+        self.last_stamp_us = stamp_us
+        return self.tracks
+
+    def label(self, measurements) -> list:
+        """The id of the live track each measurement supports (inside its gate, nearest by Mahalanobis distance),
+        0 where none does: the stable id an obstacle list's detections carry after ``update``."""
+        out = []
+        for m in measurements:
+            best, best_d2 = 0, self.cfg.gate_chi2
+            for t in self._tracks:
+                y = m.position_ned_m - t.x[:3]
+                d2 = float(y @ np.linalg.solve(t.P[:3, :3] + m.cov_ned_m2, y))
+                if d2 <= best_d2:
+                    best, best_d2 = t.id, d2
+            out.append(best)
+        return out
+
+    def _associate(self, meas) -> list:
+        if not self._tracks or not meas:
+            return []
+        xs = np.stack([t.x[:3] for t in self._tracks])                     # (nt, 3)
+        Ps = np.stack([t.P[:3, :3] for t in self._tracks])                 # (nt, 3, 3)
+        zs = np.stack([m.position_ned_m for m in meas])                    # (nm, 3)
+        Rs = np.stack([m.cov_ned_m2 for m in meas])                        # (nm, 3, 3)
+        S = Ps[:, None] + Rs[None]                                         # (nt, nm, 3, 3)
+        y = zs[None] - xs[:, None]                                         # (nt, nm, 3)
+        d2 = np.einsum("ijk,ijk->ij", y, np.linalg.solve(S, y[..., None])[..., 0])
+        cost = d2 + np.linalg.slogdet(S)[1]
+        inside = d2 <= self.cfg.gate_chi2
+        big = 1e6 + np.abs(cost[inside]).max() if inside.any() else 1e6
+        rows, cols = linear_sum_assignment(np.where(inside, cost, big))
+        return [(int(i), int(j)) for i, j in zip(rows, cols) if inside[i, j]]
+
+    def _correct(self, t: Track, m: Measurement, stamp_us: int) -> None:
+        cfg = self.cfg
+        H = np.hstack([np.eye(3), np.zeros((3, 3))])
+        S = t.P[:3, :3] + m.cov_ned_m2
+        K = t.P[:, :3] @ np.linalg.inv(S)
+        t.x = t.x + K @ (m.position_ned_m - t.x[:3])
+        IKH = np.eye(6) - K @ H
+        t.P = IKH @ t.P @ IKH.T + K @ m.cov_ned_m2 @ K.T              # Joseph form: stays symmetric, PSD
+        t.P = 0.5 * (t.P + t.P.T)
+        t.hits += 1
+        t.misses = 0
+        t.last_hit_us = stamp_us
+        t.last_outcome = "hit"
+        a = cfg.extent_smoothing
+        t.extent_ned_m = (1 - a) * t.extent_ned_m + a * m.extent_ned_m
+        t.pixel_count, t.measurement_confidence, t.camera_id = m.pixel_count, m.confidence, m.camera_id
+        self._seen(t, True)
+        if t.hits >= cfg.confirm_hits:
+            t.confirmed = True
+
+    def _seen(self, t: Track, hit: bool) -> None:
+        t.seen.append(bool(hit))
+        while len(t.seen) > self.cfg.confidence_window:
+            t.seen.popleft()
+
+    def _visibility(self, t: Track, view: FieldOfView) -> str:
+        cam, st = view.camera, view.state
+        Xc = R_ned_cam(cam, st)[:, 0]                                     # optical axis in NED
+        sigma = float(math.sqrt(max(Xc @ t.P[:3, :3] @ Xc, 0.0)))
+        depth_ext = float(np.linalg.norm(Xc * t.extent_ned_m))
+        return view.classify(t.x[:3], sigma, depth_ext, self.cfg)
+
+    def _dead(self, t: Track, stamp_us: int) -> bool:
+        cfg = self.cfg
+        if t.position_sigma_m() > cfg.max_position_sigma_m:
+            return True
+        if (stamp_us - t.last_hit_us) * 1e-6 > cfg.max_coast_s:
+            return True
+        if not t.confirmed:
+            return t.misses >= 1 or (stamp_us - t.born_us) * 1e-6 > cfg.confirm_window_s
+        return t.misses >= cfg.max_misses
+
+    def _new_track(self, m: Measurement, stamp_us: int) -> Track:
+        cfg = self.cfg
+        P = np.zeros((6, 6))
+        P[:3, :3] = m.cov_ned_m2
+        P[3:, 3:] = cfg.initial_speed_sigma_mps ** 2 * np.eye(3)
+        t = Track(self._next_id, np.concatenate([m.position_ned_m, np.zeros(3)]), P, stamp_us, stamp_us, stamp_us,
+                  extent_ned_m=m.extent_ned_m.copy(), pixel_count=m.pixel_count,
+                  measurement_confidence=m.confidence, camera_id=m.camera_id)
+        self._next_id += 1
+        self._seen(t, True)
+        if cfg.confirm_hits <= 1:
+            t.confirmed = True
+        return t
+
+    def snapshot(self, stamp_us: int) -> list:
+        """(track, x, P) of every live track predicted to ``stamp_us`` (>= the last map's stamp), without changing
+        the tracker; tracks that would have coasted past ``max_coast_s`` or ``max_position_sigma_m`` by then are
+        left out (what a stalled pipeline reports)."""
+        stamp_us = _stamp(stamp_us)
+        out = []
+        for t in self._tracks:
+            dt = max(0, stamp_us - t.stamp_us) * 1e-6
+            x, P = predict_state(t.x, t.P, dt, self.cfg)
+            if (stamp_us - t.last_hit_us) * 1e-6 > self.cfg.max_coast_s:
+                continue
+            if math.sqrt(max(np.diag(P)[:3].max(), 0.0)) > self.cfg.max_position_sigma_m:
+                continue
+            out.append((t, x, P))
+        return out
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# guidance quantities
+
+@dataclass(frozen=True)
+class ConeConfig:
+    vehicle_radius_m: float = 1.0     # the vehicle as a sphere of this radius about its origin
+    k_sigma: float = 2.0              # the obstacle box grows by this many position 1-sigma per axis
+    horizon_s: float = 30.0           # contacts later than this are not threats
+    min_speed_mps: float = 0.1        # relative speed below this: no direction, only "already inside" counts
+
+    def __post_init__(self):
+        _positive("vehicle_radius_m", self.vehicle_radius_m, allow_zero=True)
+        _positive("k_sigma", self.k_sigma, allow_zero=True)
+        _positive("horizon_s", self.horizon_s)
+        _positive("min_speed_mps", self.min_speed_mps)
+
+
+@dataclass(frozen=True)
+class Ownship:
+    """The vehicle now: pose (body origin in NED, T2) and velocity (NaN: unknown) at ``stamp_us``."""
+    position_ned_m: np.ndarray
+    T_body_ned: np.ndarray
+    velocity_ned_mps: np.ndarray
+    stamp_us: int = -1
+
+    def __post_init__(self):
+        st = VehicleState(self.position_ned_m, self.T_body_ned)      # validates position and rotation
+        v = np.asarray(self.velocity_ned_mps, float).reshape(3)
+        object.__setattr__(self, "position_ned_m", st.position_ned_m)
+        object.__setattr__(self, "T_body_ned", st.T_body_ned)
+        object.__setattr__(self, "velocity_ned_mps", v)
+
+    @classmethod
+    def from_state(cls, state: VehicleState, velocity_ned_mps=(math.nan,) * 3, stamp_us: int = -1) -> "Ownship":
+        return cls(state.position_ned_m, state.T_body_ned, velocity_ned_mps, stamp_us)
+
+    @property
+    def velocity_known(self) -> bool:
+        return bool(np.all(np.isfinite(self.velocity_ned_mps)))
+
+
+@dataclass
+class TrackView:
+    """One track as guidance sees it at one time: predicted state and its relation to the vehicle."""
+    track: Track
+    position_ned_m: np.ndarray
+    velocity_ned_mps: np.ndarray
+    P: np.ndarray
+    age_s: float
+    time_since_update_s: float
+    moving: bool
+    distance_m: float                 # vehicle origin -> track position
+    surface_distance_m: float         # vehicle origin -> the track's extent box (0 inside)
+    azimuth_frd_rad: float            # body FRD: atan2(y_b, x_b), 0 = nose, positive to starboard
+    elevation_frd_rad: float          # body FRD: atan2(-z_b, hypot(x_b, y_b)), positive up
+    in_cone: bool
+    time_to_contact_s: float          # NaN when not in the cone
+    closing_speed_mps: float          # rate at which the distance shrinks (positive = approaching)
+
+
+def box_entry_time(c, h, w):
+    """Entry time t >= 0 of the ray s(t) = w t into the box |s - c| <= h (per axis), or None if it never enters
+    (slab method). 0 when the origin is inside."""
+    t_lo, t_hi = -math.inf, math.inf
+    for ci, hi, wi in zip(c, h, w):
+        lo_b, hi_b = ci - hi, ci + hi
+        if abs(wi) < 1e-12:
+            if not lo_b <= 0.0 <= hi_b:
+                return None
+            continue
+        t1, t2 = lo_b / wi, hi_b / wi
+        t_lo, t_hi = max(t_lo, min(t1, t2)), min(t_hi, max(t1, t2))
+    if t_hi < max(t_lo, 0.0):
+        return None
+    return max(t_lo, 0.0)
+
+
+def is_moving(x, P, cfg: TrackerConfig) -> bool:
+    """Velocity significantly non-zero: v^T P_v^-1 v > ``moving_chi2``."""
+    v = x[3:]
+    try:
+        return float(v @ np.linalg.solve(P[3:, 3:], v)) > cfg.moving_chi2
+    except np.linalg.LinAlgError:
+        return False
+
+
+def ownship_at(own: Ownship, now_us: int, max_extrapolate_s: float = 1.0) -> np.ndarray:
+    """The vehicle origin at ``now_us``: the state's position moved on by its velocity over the state's age (0 to
+    ``max_extrapolate_s``; not moved when the velocity is unknown or the stamp is not set)."""
+    dt = (int(now_us) - own.stamp_us) * 1e-6
+    if own.stamp_us < 0 or not own.velocity_known or not 0 < dt <= max_extrapolate_s:
+        return own.position_ned_m
+    return own.position_ned_m + own.velocity_ned_mps * dt
+
+
+def assess(snapshot, own: Ownship, now_us: int, cone: ConeConfig = ConeConfig(),
+           cfg: TrackerConfig = TrackerConfig()) -> list:
+    """Guidance quantities of ``Tracker.snapshot(now_us)`` for the vehicle ``own`` (its position carried to
+    ``now_us``, ``ownship_at``): one ``TrackView`` per track, in snapshot order. See the module docstring for the
+    collision cone."""
+    now_us = _stamp(now_us, "now_us")
+    pos = ownship_at(own, now_us)
+    views = []
+    for t, x, P in snapshot:
+        p, v = x[:3], x[3:]
+        moving = is_moving(x, P, cfg)
+        rel = p - pos
+        b = own.T_body_ned @ rel                                           # eq. (15): body FRD
+        dist = float(np.linalg.norm(rel))
+        half = 0.5 * t.extent_ned_m
+        surf = float(np.linalg.norm(np.maximum(np.abs(rel) - half, 0.0)))
+        ttc, closing = math.nan, math.nan
+        in_cone = False
+        if own.velocity_known:
+            w = own.velocity_ned_mps - (v if moving else 0.0)
+            closing = float(w @ rel / dist) if dist > 0 else 0.0
+            h = half + cone.vehicle_radius_m + cone.k_sigma * np.sqrt(np.maximum(np.diag(P)[:3], 0.0))
+            if float(np.linalg.norm(w)) < cone.min_speed_mps:
+                w = np.zeros(3)
+            te = box_entry_time(rel, h, w)
+            if te is not None and te <= cone.horizon_s:
+                in_cone, ttc = True, float(te)
+        views.append(TrackView(
+            t, p.copy(), v.copy(), P, (now_us - t.born_us) * 1e-6, (now_us - t.last_hit_us) * 1e-6, moving, dist,
+            surf, float(math.atan2(b[1], b[0])), float(math.atan2(-b[2], math.hypot(b[0], b[1]))), in_cone, ttc,
+            closing))
+    return views
+
+
+def nearest_threat(views, confirmed_only: bool = True):
+    """The ``TrackView`` in the collision cone with the smallest time to contact (ties: the nearer surface), or
+    None."""
+    threats = [tv for tv in views if tv.in_cone and (tv.track.confirmed or not confirmed_only)]
+    return min(threats, key=lambda tv: (tv.time_to_contact_s, tv.surface_distance_m)) if threats else None

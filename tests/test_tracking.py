@@ -1,0 +1,583 @@
+"""Obstacle tracker, guidance quantities and the obstacle_tracks message, on hand-made measurements with known truth:
+points seen by a known camera at known poses, noise drawn from the covariance the camera geometry gives."""
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from eonav import InputError
+from eonav.bus import guidance_msg as G
+from eonav.obstacles import guidance as GP
+from eonav.obstacles import tracking as T
+from eonav.geometry.camera import Camera, VehicleState
+from eonav.geometry.frames import camera_from_ned, ned_from_camera
+from eonav.obstacles.detect import Obstacle
+from eonav.bus.schema import SchemaError
+
+RATE_HZ = 15.0
+F_PX = 0.5 * 320 / math.tan(math.radians(20.0))          # 40 deg horizontal field of view over 320 px
+CAM = Camera("nose", 320, 240, F_PX, F_PX, 159.5, 119.5)
+HOVER = VehicleState.from_ypr([0.0, 0.0, -10.0], [0.0, 0.0, 0.0])
+
+
+def us(t_s):
+    return int(round(t_s * 1e6))
+
+
+def x_c(p, st, cam=CAM):
+    return float(camera_from_ned(np.asarray(p, float), cam.T_cam_body, st.T_body_ned, st.position_ned_m,
+                                 cam.l_body_m)[0])
+
+
+def observe(p, st, rng, rel_sigma=0.01, px_sigma=1.0, extent=(0.3, 0.3, 3.0), cam=CAM):
+    """A measurement of the true point p: noise drawn from the camera-geometry covariance it carries."""
+    p = np.asarray(p, float)
+    C = T.camera_covariance(p, cam, st, rel_sigma * x_c(p, st, cam), px_sigma, px_sigma)
+    return T.Measurement(rng.multivariate_normal(p, C), C, np.asarray(extent, float))
+
+
+def fov(st, cam=CAM, **kw):
+    return T.FieldOfView(cam, st, max_distance_m=100.0, **kw)
+
+
+def box_map(st, boxes, cam=CAM):
+    """Range map of boxes (center, half extents) in front of a sky: each box's projected corner box at the x_c of
+    its centre (enough for the occlusion test: something nearer covers the pixels)."""
+    r = np.full((cam.height, cam.width), np.inf, np.float32)
+    for c, h in sorted(boxes, key=lambda b: -x_c(b[0], st, cam)):          # far first, near overwrites
+        corners = np.array([[c[0] + sx * h[0], c[1] + sy * h[1], c[2] + sz * h[2]]
+                            for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        pc = camera_from_ned(corners, cam.T_cam_body, st.T_body_ned, st.position_ned_m, cam.l_body_m)
+        u = cam.cx + cam.fx * pc[:, 1] / pc[:, 0]
+        v = cam.cy + cam.fy * pc[:, 2] / pc[:, 0]
+        u0, u1 = int(max(0, np.floor(u.min()))), int(min(cam.width - 1, np.ceil(u.max())))
+        v0, v1 = int(max(0, np.floor(v.min()))), int(min(cam.height - 1, np.ceil(v.max())))
+        if u1 >= u0 and v1 >= v0:
+            r[v0:v1 + 1, u0:u1 + 1] = x_c(c, st, cam)
+    return r
+
+
+# -- measurement model -------------------------------------------------------------------------------------------
+def test_camera_covariance_on_axis_is_hand_derived():
+    # level camera looking north: Xc = N, Yc = E, Zc = D; on the axis J = diag(1, x_c/fx, x_c/fy)
+    p = [50.0, 0.0, -10.0]
+    C = T.camera_covariance(p, CAM, HOVER, 0.5, 2.0, 3.0)
+    want = np.diag([0.5 ** 2, (50.0 * 2.0 / F_PX) ** 2, (50.0 * 3.0 / F_PX) ** 2])
+    np.testing.assert_allclose(C, want, rtol=1e-9, atol=1e-12)
+
+
+def test_camera_covariance_off_axis_matches_sampling_through_the_geometry():
+    # a yawed, pitched, rolled vehicle and a mounted, tilted camera; a point off the axis at the image corner
+    cam = Camera("side", 320, 240, F_PX, F_PX, 159.5, 119.5, l_body_m=[2.0, 0.5, 0.3],
+                 eps_rad=np.deg2rad([25.0, -8.0, 3.0]))
+    st = VehicleState.from_ypr([10.0, -5.0, -30.0], np.deg2rad([40.0, 5.0, -10.0]))
+    u, v, xc = 290.0, 30.0, 60.0
+    m = np.array([1.0, (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy])
+    p = ned_from_camera(xc * m, cam.T_cam_body, st.T_body_ned, st.position_ned_m, cam.l_body_m)
+    s_x, s_u, s_v = 0.6, 1.5, 2.5
+    C = T.camera_covariance(p, cam, st, s_x, s_u, s_v)
+    rng = np.random.default_rng(7)
+    n = 200_000
+    xs = xc + s_x * rng.standard_normal(n)
+    us_ = u + s_u * rng.standard_normal(n)
+    vs = v + s_v * rng.standard_normal(n)
+    pts = np.stack([xs, xs * (us_ - cam.cx) / cam.fx, xs * (vs - cam.cy) / cam.fy], 1)
+    ned = ned_from_camera(pts, cam.T_cam_body, st.T_body_ned, st.position_ned_m, cam.l_body_m)
+    emp = np.cov(ned.T)
+    np.testing.assert_allclose(C, emp, atol=0.02 * np.abs(emp).max())
+    # along the ray the spread is the range sigma times |m|, across it x_c / f times the pixel sigma
+    ray = (p - T.lens_ned_m(cam, st)) / np.linalg.norm(p - T.lens_ned_m(cam, st))
+    assert math.sqrt(ray @ C @ ray) == pytest.approx(s_x * np.linalg.norm(m), rel=0.02)
+
+
+def _obstacle(p, bbox, range_std=0.4, ext=(0.5, 0.5, 4.0)):
+    return Obstacle(id=1, distance_m=0.0, distance_median_m=0.0, horizontal_distance_m=0.0, bearing_deg=0.0,
+                    elevation_deg=0.0, range_std_m=range_std, position_ned_m=list(p), extent_ned_m=list(ext),
+                    width_m=0.5, height_m=4.0, pixel_count=80, confidence=0.9, bbox_px=list(bbox))
+
+
+def test_measurement_from_obstacle_hand_derived_and_grid_independent():
+    cfg = T.TrackerConfig(nav_sigma_m=0.0, attitude_sigma_rad=0.0)
+    p = [40.0, 0.0, -10.0]                          # on the axis: N along the ray, E and D across
+    o = _obstacle(p, bbox=[155, 90, 164, 149])       # 10 x 60 frame pixels
+    m, = T.measurements_from_obstacles([o], CAM, HOVER, cfg)
+    s_x = math.hypot(0.4, 0.15 * 0.5)               # range sigma and 15 % of the depth extent (N extent 0.5 m)
+    s_u = math.sqrt(1.0 + (0.15 * 10) ** 2)
+    s_v = math.sqrt(1.0 + (0.15 * 60) ** 2)
+    want = np.diag([s_x ** 2, (40.0 * s_u / F_PX) ** 2, (40.0 * s_v / F_PX) ** 2])
+    np.testing.assert_allclose(m.cov_ned_m2, want, rtol=1e-9, atol=1e-12)
+    assert m.pixel_count == 80 and m.confidence == 0.9
+    # the same obstacle from a map at half scale (bbox still in frame pixels): the same covariance
+    from eonav.geometry.camera import scaled_camera
+    half = scaled_camera(CAM, 0.5)
+    m2, = T.measurements_from_obstacles([o], half, HOVER, cfg, frame_size=(320, 240))
+    np.testing.assert_allclose(m2.cov_ned_m2, want, rtol=1e-3)
+    # navigation sigma adds isotropically
+    m3, = T.measurements_from_obstacles([o], CAM, HOVER, T.TrackerConfig(nav_sigma_m=0.5, attitude_sigma_rad=0.0))
+    np.testing.assert_allclose(m3.cov_ned_m2, want + 0.25 * np.eye(3), rtol=1e-9)
+
+
+def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
+    cov = np.diag([0.25, 0.01, 0.01])
+    # a pole (0.3 m wide) listed as three stacked pieces 0.2 m apart, and a second pole 2 m to the east
+    parts = [T.Measurement([60.0, 0.0, -1.0], cov, [0.3, 0.3, 2.0], 100),
+             T.Measurement([60.2, 0.0, -3.2], cov, [0.3, 0.3, 2.0], 300),
+             T.Measurement([60.0, 0.1, -5.4], cov, [0.3, 0.3, 2.0], 100)]
+    other = T.Measurement([60.0, 2.0, -3.0], cov, [0.3, 0.3, 6.0], 50)
+    out = T.merge_fragments(parts + [other], gap_m=0.5)
+    assert len(out) == 2 and out[1] is other
+    m = out[0]
+    w = np.array([0.2, 0.6, 0.2])
+    want = w @ np.array([p.position_ned_m for p in parts])
+    np.testing.assert_allclose(m.position_ned_m, want)
+    np.testing.assert_allclose(m.extent_ned_m, [0.5, 0.4, 6.4])           # union of the three boxes
+    spread = sum(wi * np.outer(p.position_ned_m - want, p.position_ned_m - want) for wi, p in zip(w, parts))
+    np.testing.assert_allclose(m.cov_ned_m2, cov + spread, atol=1e-12)
+    assert m.pixel_count == 500
+    # pieces 0.6 m apart (beyond the 0.5 m gap) stay apart
+    apart = [parts[0], T.Measurement([60.0, 0.0, -3.6], cov, [0.3, 0.3, 2.0], 300)]
+    assert len(T.merge_fragments(apart, gap_m=0.5)) == 2
+    assert len(T.merge_fragments(apart, gap_m=0.7)) == 1
+
+
+def test_bad_measurements_and_config_are_named():
+    with pytest.raises(InputError, match="positive definite"):
+        T.Measurement([1, 2, 3], np.diag([1.0, 0.0, 1.0]))
+    with pytest.raises(InputError, match="symmetric 3 x 3"):
+        T.Measurement([1, 2, 3], np.eye(2))
+    with pytest.raises(InputError, match="position_ned_m"):
+        T.Measurement([1, np.nan, 3], np.eye(3))
+    with pytest.raises(InputError, match="confirm_hits"):
+        T.TrackerConfig(confirm_hits=0)
+    with pytest.raises(InputError, match="gate_chi2"):
+        T.TrackerConfig(gate_chi2=-1.0)
+    with pytest.raises(InputError, match="behind the camera"):
+        T.camera_covariance([-5.0, 0.0, -10.0], CAM, HOVER, 1.0, 1.0, 1.0)
+    tr = T.Tracker()
+    tr.update([], us(1.0))
+    with pytest.raises(InputError, match="older than the last"):
+        tr.update([], us(0.5))
+    with pytest.raises(InputError, match="integer microseconds"):
+        tr.update([], 2.5)
+    with pytest.raises(InputError, match="Measurement objects"):
+        tr.update([[50.0, 0.0, 0.0]], us(2.0))
+
+
+# -- track life cycle --------------------------------------------------------------------------------------------
+def test_confirmed_after_n_hits_and_clutter_never_confirms():
+    rng = np.random.default_rng(11)
+    tr = T.Tracker()                                  # N = 3
+    p = [60.0, 3.0, -8.0]
+    for k in range(2):                                # a point seen twice, then gone: never confirmed
+        tr.update([observe(p, HOVER, rng)], us(k / RATE_HZ), fov(HOVER))
+        assert tr.confirmed() == []
+    tr.update([], us(2 / RATE_HZ), fov(HOVER))        # in view, not detected: the tentative track dies
+    assert tr.tracks == []
+    for k in range(3, 6):                             # seen three times in a row: confirmed at the third
+        tr.update([observe(p, HOVER, rng)], us(k / RATE_HZ), fov(HOVER))
+        assert len(tr.confirmed()) == (1 if k == 5 else 0)
+    # 20 s of clutter: one to three spurious points a map, anywhere in a 10..95 m deep block ahead
+    tr = T.Tracker()
+    n_clutter = 0
+    for k in range(int(20 * RATE_HZ)):
+        pts = [[rng.uniform(10, 95), rng.uniform(-15, 15), rng.uniform(-25, 0)] for _ in range(rng.integers(1, 4))]
+        n_clutter += len(pts)
+        tr.update([observe(q, HOVER, rng) for q in pts], us(k / RATE_HZ), fov(HOVER))
+        assert tr.confirmed() == [], k
+    assert n_clutter > 500
+
+
+def test_confirmed_track_survives_m_minus_one_misses_and_dies_at_m():
+    rng = np.random.default_rng(12)
+    p = [50.0, -2.0, -6.0]
+    for gap, survives in ((5, True), (6, False)):     # M = 6 consecutive in-view misses
+        tr = T.Tracker()
+        k = 0
+        for _ in range(5):
+            tr.update([observe(p, HOVER, rng)], us(k / RATE_HZ), fov(HOVER))
+            k += 1
+        first = tr.confirmed()[0].id
+        for _ in range(gap):
+            tr.update([], us(k / RATE_HZ), fov(HOVER))
+            k += 1
+        assert (len(tr.tracks) == 1) is survives
+        tr.update([observe(p, HOVER, rng)], us(k / RATE_HZ), fov(HOVER))
+        assert (tr.tracks[0].id == first) is survives
+        assert tr.tracks[0].confirmed is survives
+
+
+def test_two_close_obstacles_keep_two_stable_ids():
+    # two poles 2 m apart across the line of sight at 60 m (15 sigma of the across-ray noise), 3 s of maps
+    rng = np.random.default_rng(13)
+    truth = {"left": np.array([60.0, -1.0, -6.0]), "right": np.array([60.0, 1.0, -6.0])}
+    tr = T.Tracker()
+    ids = {}
+    for k in range(int(3 * RATE_HZ)):
+        meas = [observe(p, HOVER, rng) for p in truth.values()]
+        tr.update(meas[::(-1) ** k], us(k / RATE_HZ), fov(HOVER))       # list order alternates
+        conf = tr.confirmed()
+        if k >= 2:
+            assert len(conf) == 2 and len(tr.tracks) == 2, k
+            for name, p in truth.items():
+                t = min(conf, key=lambda t: np.linalg.norm(t.x[:3] - p))
+                e = t.x[:3] - p
+                assert e @ np.linalg.solve(t.P[:3, :3], e) < T.CHI2_3_999          # consistent with its covariance
+                assert math.hypot(e[1], e[2]) < 0.5                                # not drawn to the other pole
+                assert ids.setdefault(name, t.id) == t.id, (k, name)
+    assert ids["left"] != ids["right"]
+
+
+def _crossing(tr, rng, use_map):
+    """A (north 48 m) and B (north 55 m, behind A: 13 % farther) cross at 6 m/s each way; while they overlap in the
+    image only A is measured. Returns (ids of A and B per frame after confirmation, B's states during the overlap)."""
+    seen, b_states = [], []
+    for k in range(int(5 * RATE_HZ)):
+        t = k / RATE_HZ
+        a = np.array([48.0, -15.0 + 6.0 * t, -6.0])
+        b = np.array([55.0, 15.0 - 6.0 * t, -6.0])
+        overlap = abs(a[1] * 55.0 / 48.0 - b[1]) < 1.3          # B's centre behind A's 2 x 1.2 m outline
+        meas = [observe(a, HOVER, rng, extent=(1.0, 2.4, 3.0))]
+        if not overlap:
+            meas.append(observe(b, HOVER, rng, extent=(1.0, 2.4, 3.0)))
+        rmap = box_map(HOVER, [(a, [0.5, 1.2, 1.5]), (b, [0.5, 1.2, 1.5])]) if use_map else None
+        tr.update(meas, us(t), fov(HOVER, range_m=rmap))
+        if k >= 3:
+            def nearest(p):
+                return min(tr.tracks, key=lambda tt: np.linalg.norm(tt.x[:3] - p))
+            seen.append((nearest(a).id, nearest(b).id))
+            if overlap:
+                b_states.append(nearest(b).state)
+    return seen, b_states
+
+
+def test_crossing_obstacles_keep_their_ids_through_the_overlap():
+    rng = np.random.default_rng(14)
+    seen, b_states = _crossing(T.Tracker(), rng, use_map=True)
+    assert len(set(seen)) == 1 and seen[0][0] != seen[0][1]
+    assert b_states and set(b_states) == {"coasting"}           # B hidden by A: coasting, no misses
+
+
+def test_occluded_obstacle_coasts_and_keeps_its_id():
+    # B stands at 80 m; a near wall (30 m) covers it from t = 1 s to 2.5 s (22 maps, far more than M = 6 misses)
+    rng = np.random.default_rng(15)
+    b = np.array([80.0, 0.0, -8.0])
+    wall = (np.array([30.0, 0.0, -8.0]), [0.5, 4.0, 4.0])
+    for use_map in (True, False):
+        tr = T.Tracker()
+        ids, sig = [], []
+        for k in range(int(4 * RATE_HZ)):
+            t = k / RATE_HZ
+            hidden = 1.0 <= t < 2.5
+            meas = [] if hidden else [observe(b, HOVER, rng)]
+            rmap = box_map(HOVER, [wall] if hidden else [(b, [0.5, 0.5, 3.0])])
+            tr.update(meas, us(t), fov(HOVER, range_m=rmap) if use_map else fov(HOVER))
+            bt = [tt for tt in tr.tracks if np.linalg.norm(tt.x[:3] - b) < 5.0]
+            ids.append(bt[0].id if bt else None)
+            if hidden and bt and use_map:
+                assert bt[0].state == "coasting" and bt[0].misses == 0
+                sig.append(bt[0].position_sigma_m())
+            elif hidden and bt:
+                assert bt[0].last_outcome == "miss" and bt[0].misses >= 1
+        if use_map:
+            assert None not in ids[3:] and len(set(ids[3:])) == 1         # one id before, during and after
+            assert np.all(np.diff(sig) > 0)                                # covariance grows while coasting
+        else:
+            # without the map to explain the gap, every hidden map is a miss: deleted, a new id afterwards
+            assert None in ids[int(1.5 * RATE_HZ):int(2.5 * RATE_HZ)]
+            assert ids[-1] is not None and ids[-1] != ids[10]
+
+
+def test_obstacle_leaving_view_coasts_then_is_deleted_and_returns_with_its_id_in_time():
+    rng = np.random.default_rng(16)
+    p = np.array([50.0, 0.0, -8.0])
+    cfg = T.TrackerConfig(max_coast_s=2.0)
+
+    def run(away_s):
+        tr = T.Tracker(cfg)
+        k, ids = 0, []
+        t = 0.0
+        while t < 1.0 + away_s + 1.0:
+            t = k / RATE_HZ
+            away = 1.0 <= t < 1.0 + away_s
+            yaw = math.radians(60.0) if away else 0.0            # vehicle looks 60 deg to the right
+            st = VehicleState.from_ypr(HOVER.position_ned_m, [yaw, 0.0, 0.0])
+            assert fov(st).classify(p) == (T.OUT_OF_VIEW if away else T.VISIBLE)
+            tr.update([] if away else [observe(p, st, rng)], us(t), fov(st))
+            if away and tr.tracks:
+                assert tr.tracks[0].state == "coasting" and tr.tracks[0].misses == 0
+            ids.append(tr.tracks[0].id if tr.tracks else None)
+            k += 1
+        return ids
+
+    ids = run(1.5)                                   # back within max_coast_s: the same id throughout
+    assert None not in ids[2:] and len(set(ids[2:])) == 1
+    ids = run(2.6)                                   # longer: deleted while away, a new track afterwards
+    assert None in ids and ids[-1] is not None and ids[-1] != ids[5]
+
+
+def test_field_of_view_classification():
+    v = fov(HOVER)
+    assert v.classify([50.0, 0.0, -10.0]) == T.VISIBLE
+    assert v.classify([-50.0, 0.0, -10.0]) == T.OUT_OF_VIEW                 # behind
+    assert v.classify([50.0, 50.0 * math.tan(math.radians(21.0)), -10.0]) == T.OUT_OF_VIEW   # beyond 20 deg
+    assert v.classify([50.0, 50.0 * math.tan(math.radians(19.0)), -10.0]) == T.VISIBLE
+    assert v.classify([101.0, 0.0, -10.0]) == T.OUT_OF_VIEW                 # beyond the listed distance
+    r = np.full((240, 320), np.nan, np.float32)
+    assert fov(HOVER, range_m=r).classify([50.0, 0.0, -10.0]) == T.NO_DATA
+    r[:] = 40.0                                                              # 10 m nearer: occluded (10 % = 5 m)
+    assert fov(HOVER, range_m=r).classify([50.0, 0.0, -10.0]) == T.OCCLUDED
+    r[:] = 46.0                                                              # 4 m nearer: within the margin
+    assert fov(HOVER, range_m=r).classify([50.0, 0.0, -10.0]) == T.VISIBLE
+    r[:] = np.inf                                                            # sky where it should be: visible
+    assert fov(HOVER, range_m=r).classify([50.0, 0.0, -10.0]) == T.VISIBLE
+    with pytest.raises(InputError, match="range_m is"):
+        fov(HOVER, range_m=np.zeros((10, 10)))
+
+
+# -- velocity and time to contact ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("name, p0, v", [("crossing", [50.0, -12.0, -6.0], [0.0, 8.0, 0.0]),
+                                         ("receding", [40.0, 3.0, -6.0], [8.0, 0.0, 0.0]),
+                                         ("diagonal", [60.0, 10.0, -6.0], [-4.0, -4.0, 0.0])])
+def test_moving_obstacle_velocity_within_20_percent(name, p0, v):
+    rng = np.random.default_rng(17)
+    tr = T.Tracker()
+    v = np.asarray(v)
+    errs = []
+    for k in range(int(4 * RATE_HZ)):
+        t = k / RATE_HZ
+        st = VehicleState.from_ypr([10.0 * t, 0.0, -10.0], [0.0, 0.0, 0.0])     # the vehicle flies north too
+        tr.update([observe(np.asarray(p0) + v * t, st, rng)], us(t), fov(st))
+        if t >= 1.5:
+            trk, = tr.confirmed()
+            errs.append(np.linalg.norm(trk.x[3:] - v) / np.linalg.norm(v))
+            assert T.is_moving(trk.x, trk.P, tr.cfg), (name, t)
+    assert max(errs) < 0.2, (name, max(errs))
+
+
+def test_static_obstacle_is_mostly_not_moving():
+    rng = np.random.default_rng(18)
+    tr = T.Tracker()
+    flags = []
+    p = np.array([0.0, 4.0, -6.0])
+    for k in range(int(7 * RATE_HZ)):                 # flying past it at 20 m/s, from 150 m to 10 m
+        t = k / RATE_HZ
+        st = VehicleState.from_ypr([20.0 * t - 150.0, 0.0, -10.0], [0.0, 0.0, 0.0])
+        seen = fov(st).classify(p) == T.VISIBLE
+        tr.update([observe(p, st, rng)] if seen else [], us(t), fov(st))
+        c = tr.confirmed()
+        if c and k > 5:
+            flags.append(T.is_moving(c[0].x, c[0].P, tr.cfg))
+    assert len(flags) > 50 and np.mean(flags) < 0.05
+
+
+def _head_on(rng, speed=20.0, wall_n=100.0):
+    """Vehicle flying north at ``speed`` towards a wall face at north ``wall_n`` (10 m wide, 10 m tall).
+    Yields (true time to contact of the 1 m vehicle sphere with the face, nearest threat or None)."""
+    tr = T.Tracker()
+    cone = T.ConeConfig(vehicle_radius_m=1.0)
+    t = 0.0
+    k = 0
+    while True:
+        t = k / RATE_HZ
+        n = -20.0 + speed * t
+        true_ttc = (wall_n - 1.0 - n) / speed
+        if true_ttc < 0.3:
+            return
+        st = VehicleState.from_ypr([n, 0.0, -6.0], [0.0, 0.0, 0.0])
+        face = np.array([wall_n, 0.5, -5.0])                   # median point of the face seen
+        if x_c(face, st) <= 100.0:
+            tr.update([observe(face, st, rng, extent=(0.2, 10.0, 10.0))], us(t), fov(st))
+        own = T.Ownship.from_state(st, [speed, 0.0, 0.0], us(t))
+        yield true_ttc, T.nearest_threat(T.assess(tr.snapshot(us(t)), own, us(t), cone))
+        k += 1
+
+
+def test_head_on_time_to_contact_within_10_percent_from_3_s():
+    rng = np.random.default_rng(19)
+    n = 0
+    for true_ttc, threat in _head_on(rng):
+        if true_ttc <= 3.0:
+            assert threat is not None
+            assert threat.time_to_contact_s == pytest.approx(true_ttc, rel=0.10), true_ttc
+            n += 1
+    assert n >= 40
+
+
+def test_collision_cone_edges_and_bearings_hand_derived():
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    cov = np.diag([0.04, 0.04, 0.04])                       # 0.2 m 1-sigma on every axis
+    # vehicle at the origin heading east (yaw 90 deg), flying east at 10 m/s
+    st = VehicleState.from_ypr([0.0, 0.0, -10.0], [math.radians(90.0), 0.0, 0.0])
+    cone = T.ConeConfig(vehicle_radius_m=1.0, k_sigma=2.0)
+    h = 1.0 + 0.5 * 2.0 + 2.0 * 0.2                          # inflated half width across: radius + ext/2 + k sigma
+    inside = np.array([0.0, 50.0, -10.0 + h - 0.05])        # 2.35 m below the path's line: in the cone
+    outside = np.array([5.0, 50.0, -10.0 - h - 0.05])       # above by more than h, and 5 m to the north
+    north = np.array([30.0, 0.0, -10.0])                    # abeam to port
+    tr.update([T.Measurement(p, cov, np.array([2.0, 2.0, 2.0])) for p in (inside, outside, north)], us(0.0))
+    own = T.Ownship.from_state(st, [0.0, 10.0, 0.0], us(0.0))
+    views = T.assess(tr.snapshot(us(0.0)), own, us(0.0), cone)
+    vi, vo, vn = views
+    assert vi.in_cone and not vo.in_cone and not vn.in_cone
+    # entry into the box [50 - 2.4, 50 + 2.4] east at 10 m/s
+    assert vi.time_to_contact_s == pytest.approx((50.0 - h) / 10.0, rel=1e-9)
+    assert vi.closing_speed_mps == pytest.approx(10.0 * 50.0 / np.linalg.norm(inside - st.position_ned_m))
+    # bearings in body FRD: the vehicle faces east, so north is 90 deg to port; "outside" is up and left
+    assert vn.azimuth_frd_rad == pytest.approx(-math.pi / 2) and vn.elevation_frd_rad == pytest.approx(0.0, abs=1e-12)
+    assert vo.azimuth_frd_rad == pytest.approx(-math.atan2(5.0, 50.0))
+    assert vo.elevation_frd_rad == pytest.approx(math.atan2(h + 0.05, math.hypot(5.0, 50.0)))
+    assert vn.distance_m == pytest.approx(30.0) and vn.surface_distance_m == pytest.approx(29.0)
+    assert T.nearest_threat(views) is vi
+    # the velocity unknown: nothing in the cone; hovering: nothing either (no direction), unless inside
+    unknown = T.Ownship.from_state(st, [math.nan] * 3, us(0.0))
+    assert not any(v.in_cone for v in T.assess(tr.snapshot(us(0.0)), unknown, us(0.0), cone))
+    hover = T.Ownship.from_state(VehicleState.from_ypr(inside + [0.0, 0.5, 0.0], [0.0, 0.0, 0.0]), [0, 0, 0], 0)
+    hv = T.assess(tr.snapshot(us(0.0)), hover, us(0.0), cone)
+    assert hv[0].in_cone and hv[0].time_to_contact_s == 0.0 and not hv[2].in_cone
+    # beyond the horizon: not a threat
+    far = T.assess(tr.snapshot(us(0.0)), own, us(0.0), T.ConeConfig(horizon_s=4.0))
+    assert not far[0].in_cone
+
+
+def test_box_entry_time_slabs():
+    assert T.box_entry_time([10.0, 0.0, 0.0], [1.0, 1.0, 1.0], [2.0, 0.0, 0.0]) == pytest.approx(4.5)
+    assert T.box_entry_time([10.0, 0.0, 0.0], [1.0, 1.0, 1.0], [-2.0, 0.0, 0.0]) is None       # moving away
+    assert T.box_entry_time([10.0, 1.5, 0.0], [1.0, 1.0, 1.0], [2.0, 0.0, 0.0]) is None        # passes beside
+    assert T.box_entry_time([10.0, 10.0, 0.0], [1.0, 1.0, 1.0], [1.0, 1.0, 0.0]) == pytest.approx(9.0)
+    assert T.box_entry_time([0.5, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]) == 0.0          # inside
+
+
+def test_moving_obstacle_coming_at_a_hovering_vehicle_is_a_threat():
+    rng = np.random.default_rng(20)
+    tr = T.Tracker()
+    for k in range(int(3 * RATE_HZ)):
+        t = k / RATE_HZ
+        tr.update([observe([80.0 - 10.0 * t, 0.0, -10.0], HOVER, rng, extent=(1.0, 1.0, 1.0))], us(t), fov(HOVER))
+    own = T.Ownship.from_state(HOVER, [0.0, 0.0, 0.0], us(t))
+    th = T.nearest_threat(T.assess(tr.snapshot(us(t)), own, us(t)))
+    true_ttc = (80.0 - 10.0 * t - 0.5 - 1.0) / 10.0
+    assert th is not None and th.time_to_contact_s == pytest.approx(true_ttc, rel=0.1)
+
+
+# -- message and publisher ----------------------------------------------------------------------------------------
+def _tracker_with_tracks():
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
+    cov = np.diag([0.25, 0.04, 0.04])
+    for k in range(2):
+        tr.update([T.Measurement([40.0 + k, 0.0, -10.0], cov, [0.5, 2.0, 2.0], 120, 0.8, "nose"),
+                   T.Measurement([60.0, 20.0, -10.0], cov, [1.0, 1.0, 5.0], 40, 0.7, "nose")], us(k * 0.1))
+    tr.update([T.Measurement([90.0, -5.0, -3.0], cov)], us(0.2))            # tentative
+    return tr
+
+
+def _own(t_s=0.2, v=(10.0, 0.0, 0.0)):
+    return T.Ownship.from_state(HOVER, v, us(t_s))
+
+
+def test_message_round_trip_and_contents():
+    tr = _tracker_with_tracks()
+    msg = GP.build(tr, _own(), us(0.25), seq=7, trigger="timer", stale_after_s=0.5)
+    back = G.decode(G.encode(msg))
+    assert back["kind"] == "obstacle_tracks" and back["v"] == 1 and back["seq"] == 7
+    assert back["status"] == "ok" and back["map_age_s"] == pytest.approx(0.05)
+    assert back["map_stamp_us"] == us(0.2) and back["n_tentative"] == 1
+    assert len(back["tracks"]) == 2                      # the tentative one is counted, not published
+    near = min(back["tracks"], key=lambda t: t["distance_m"])
+    snap = {t.id: (x, P) for t, x, P in tr.snapshot(us(0.25))}
+    x, P = snap[near["id"]]
+    np.testing.assert_allclose(near["position_ned_m"], x[:3])
+    np.testing.assert_allclose(near["position_cov_ned_m2"], P[:3, :3])
+    np.testing.assert_allclose(near["velocity_cov_ned_m2_per_s2"], P[3:, 3:])
+    # the vehicle is carried to now by its velocity: 10 m/s x 0.05 s
+    np.testing.assert_allclose(back["position_ned_m"], HOVER.position_ned_m + [0.5, 0.0, 0.0])
+    assert near["distance_m"] == pytest.approx(np.linalg.norm(x[:3] - back["position_ned_m"]))
+    assert near["camera_id"] == "nose" and near["pixel_count"] == 120 and near["state"] == "confirmed"
+    th = back["nearest_threat"]
+    assert th["id"] == near["id"] and near["in_cone"]
+    assert th["time_to_contact_s"] == pytest.approx(near["time_to_contact_s"])
+    np.testing.assert_allclose(back["q_wxyz"], [1.0, 0.0, 0.0, 0.0], atol=1e-12)
+
+
+def test_message_registers_in_the_project_schema(monkeypatch):
+    from eonav.bus import schema
+    monkeypatch.setitem(schema.FIELDS, G.KIND, G.FIELDS)
+    msg = GP.build(_tracker_with_tracks(), _own(), us(0.25), seq=1, trigger="map", stale_after_s=0.5)
+    top = schema.decode(G.encode(msg), expect=G.KIND)
+    assert top["seq"] == 1 and len(top["tracks"]) == 2
+    fields = {k: v for k, v in msg.items() if k not in ("kind", "v")}
+    assert G.decode(schema.encode(G.KIND, **G._plain(fields)))["tracks"][0]["id"] == msg["tracks"][0]["id"]
+
+
+def test_message_validation_errors_name_the_field():
+    good = G._plain({"kind": G.KIND, "v": G.SCHEMA_VERSION,
+                     **GP.build(_tracker_with_tracks(), _own(), us(0.25), seq=1, trigger="map", stale_after_s=0.5)})
+    G.validate(good)
+
+    def bad(change, match):
+        import copy
+        m = copy.deepcopy(good)
+        change(m)
+        with pytest.raises(SchemaError, match=match):
+            G.decode(G.msgpack.packb(m, use_bin_type=True))
+
+    bad(lambda m: m.pop("map_age_s"), r"obstacle_tracks\.map_age_s: missing")
+    bad(lambda m: m.update(seq="1"), r"obstacle_tracks\.seq: expected an integer")
+    bad(lambda m: m.update(status="fine"), r"status: expected one of")
+    bad(lambda m: m.update(trigger="poll"), r"trigger: expected one of")
+    bad(lambda m: m.update(v=2), "unsupported schema version 2")
+    bad(lambda m: m.update(kind="obstacle_list"), "expected a obstacle_tracks message")
+    bad(lambda m: m.update(position_ned_m=[1.0, 2.0]), r"position_ned_m: expected a list of 3 numbers")
+    bad(lambda m: m["tracks"][0].pop("velocity_ned_mps"), r"tracks\[0\]\.velocity_ned_mps: missing")
+    bad(lambda m: m["tracks"][0].update(position_cov_ned_m2=[1.0] * 9), r"tracks\[0\]\.position_cov_ned_m2: "
+                                                                          r"expected a 3 x 3")
+    bad(lambda m: m["tracks"][0].update(state="tentative"), r"tracks\[0\]\.state: expected one of")
+    bad(lambda m: m["tracks"][0].update(moving=1), r"tracks\[0\]\.moving: expected true or false")
+    bad(lambda m: m["tracks"][1].update(position_ned_m=[math.nan, 0.0, 0.0]), r"tracks\[1\]\.position_ned_m: "
+                                                                               r"expected finite")
+    bad(lambda m: m["tracks"][1].update(id=m["tracks"][0]["id"]), "ids must be unique")
+    bad(lambda m: m["nearest_threat"].update(id=999), "nearest_threat.id 999 is not one of the tracks")
+    bad(lambda m: m.update(map_age_s=-0.1), "map_age_s: expected >= 0")
+    with pytest.raises(SchemaError, match="not msgpack"):
+        G.decode(b"\xc1\xc1")
+    with pytest.raises(SchemaError, match="unknown field"):
+        G.encode({**good, "speed": 3.0})
+    with pytest.raises(SchemaError, match="missing required"):
+        G.encode({k: v for k, v in good.items() if k != "tracks"})
+
+
+def test_publisher_timer_grid_map_trigger_and_stall():
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    pub = GP.GuidancePublisher(tr, rate_hz=10.0, stale_after_s=0.5)
+    own = _own(0.0, (0.0, 0.0, 0.0))
+    t0 = us(100.0)
+    m = pub.on_tick(t0, own)                                         # first call starts the grid
+    assert m["trigger"] == "timer" and m["status"] == "no_map" and math.isinf(m["map_age_s"])
+    assert m["map_stamp_us"] == -1 and m["tracks"] == []
+    assert pub.on_tick(t0 + 99_999, own) is None and pub.wait_s(t0 + 99_999) == pytest.approx(1e-6)
+    assert pub.on_tick(t0 + 100_000, own)["seq"] == 1
+    # a map (captured 30 ms ago) arrives between ticks: published at once, the grid is unchanged
+    tr.update([T.Measurement([40.0, 0.0, -10.0], np.eye(3) * 0.1, [1.0, 1.0, 1.0])], t0 + 120_000)
+    m = pub.on_map(t0 + 150_000, own)
+    assert m["trigger"] == "map" and m["status"] == "ok" and m["map_age_s"] == pytest.approx(0.03)
+    assert [t["id"] for t in m["tracks"]] == [1] and m["seq"] == 2
+    assert pub.on_tick(t0 + 199_000, own) is None
+    assert pub.on_tick(t0 + 200_000, own)["trigger"] == "timer"
+    # a late caller gets one message and the next tick stays on the grid
+    m = pub.on_tick(t0 + 470_000, own)
+    assert m is not None and pub.next_tick_us == t0 + 500_000
+    # the stall: no map after t0 + 120 ms; ok up to 0.5 s of age, stale after, tracks kept while coasting
+    assert pub.on_tick(t0 + 600_000, own)["status"] == "ok"            # age 0.48 s
+    m = pub.on_tick(t0 + 700_000, own)
+    assert m["status"] == "stale" and m["map_age_s"] == pytest.approx(0.58) and len(m["tracks"]) == 1
+    # past max_coast_s without a map the tracks are gone from the message, the status still says stale
+    m = pub.on_tick(t0 + 120_000 + us(tr.cfg.max_coast_s) + 1, own)
+    assert m["status"] == "stale" and m["tracks"] == []
+    with pytest.raises(InputError, match="rate_hz"):
+        GP.GuidancePublisher(tr, rate_hz=0.0)
+
+
+def test_tracking_and_message_modules_import_no_transport():
+    code = "import eonav.obstacles.tracking, eonav.bus.guidance_msg, sys; print('zenoh' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
