@@ -180,19 +180,18 @@ class Guidance:
         self.node.count("out.obstacle_tracks")
         self.node.tick("out.obstacle_tracks")
 
-    def on_map(self, res, msg, cam, state, cfg, ob) -> list:
+    def on_map(self, res, msg, cam, state, cfg) -> list:
         """Track the map's obstacles; publish the tracks; the track id each listed obstacle supports (0: none)."""
         from dataclasses import replace
 
-        from eonav.obstacles.tracking import FieldOfView, measurements_from_obstacles
+        from eonav.obstacles.tracking import FieldOfView, measurements_from_obstacles, merge_fragments
         frame_size = (msg.get("frame_width", 0), msg.get("frame_height", 0))
-        meas = measurements_from_obstacles(res.obstacles, cam, state, self.tracker.cfg, frame_size=frame_size,
-                                           camera_id=msg["camera_id"])
+        # one measurement per listed obstacle (the labels), merged into one per object (the tracker's input)
         single = measurements_from_obstacles(res.obstacles, cam, state, replace(self.tracker.cfg, merge_gap_m=0.0),
                                              frame_size=frame_size, camera_id=msg["camera_id"])
-        seen = ob.confident_mask(msg["range_m"], msg["confidence"], msg["flags"], msg["inv_range_std_per_m"], cfg) \
-            | ob.infinity_mask(msg["range_m"], msg["flags"])
-        view = FieldOfView(cam, state, cfg.max_obstacle_distance_m, cfg.min_distance_m, msg["range_m"], seen)
+        meas = merge_fragments(single, self.tracker.cfg.merge_gap_m)
+        view = FieldOfView(cam, state, cfg.max_obstacle_distance_m, cfg.min_distance_m, msg["range_m"],
+                           res.data_mask)
         with self.lock:
             try:
                 self.tracker.update(meas, msg["stamp_us"], view)
@@ -374,7 +373,7 @@ def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav
         return
     if not screen(node, gate, msg["camera_id"], msg["stamp_us"], "publish"):   # stale by now: no list, no tracks
         return
-    for o, track_id in zip(res.obstacles, guidance.on_map(res, msg, cam, state, cfg, ob)):
+    for o, track_id in zip(res.obstacles, guidance.on_map(res, msg, cam, state, cfg)):
         o.id = track_id
     node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
              obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),

@@ -142,6 +142,21 @@ def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
     assert len(T.merge_fragments(apart, gap_m=0.7)) == 1
 
 
+def test_label_names_the_nearest_track_inside_the_gate():
+    cov = 0.04 * np.eye(3)                                                  # 0.2 m 1-sigma
+    tr = T.Tracker(T.TrackerConfig(gate_chi2=9.0))
+    tr.update([T.Measurement([50.0, 0.0, -5.0], cov), T.Measurement([50.0, 1.0, -5.0], cov)], us(0.0))
+    a, b = (t.id for t in tr.tracks)
+    # S = P + R = 2 x 0.04 I at the track's birth stamp: d^2 = |y|^2 / 0.08; the gate 9 is |y| = 0.8485 m
+    near_a = T.Measurement([50.0, 0.4, -5.0], cov)                          # d^2 2.0 to a, 4.5 to b
+    near_b = T.Measurement([50.0, 0.7, -5.0], cov)                          # d^2 1.1 to b, 6.1 to a
+    outside = T.Measurement([50.0, 0.0, -5.85], cov)                        # d^2 9.03 to a
+    inside = T.Measurement([50.0, 0.0, -5.84], cov)                         # d^2 8.82 to a
+    assert tr.label([near_a, near_b, outside, inside]) == [a, b, 0, a]
+    assert tr.label([]) == []
+    assert T.Tracker().label([near_a]) == [0]                               # no tracks
+
+
 def test_bad_measurements_and_config_are_named():
     with pytest.raises(InputError, match="positive definite"):
         T.Measurement([1, 2, 3], np.diag([1.0, 0.0, 1.0]))
@@ -149,6 +164,14 @@ def test_bad_measurements_and_config_are_named():
         T.Measurement([1, 2, 3], np.eye(2))
     with pytest.raises(InputError, match="position_ned_m"):
         T.Measurement([1, np.nan, 3], np.eye(3))
+    # symmetric within rtol 1e-9 (of the mirrored element) + atol 1e-12: either side of that tolerance
+    skew = np.eye(3)
+    skew[0, 1] = 0.5
+    skew[1, 0] = 0.5 * (1 + 5e-10)
+    T.Measurement([1, 2, 3], skew)
+    skew[1, 0] = 0.5 * (1 + 5e-9)
+    with pytest.raises(InputError, match="symmetric 3 x 3"):
+        T.Measurement([1, 2, 3], skew)
     with pytest.raises(InputError, match="confirm_hits"):
         T.TrackerConfig(confirm_hits=0)
     with pytest.raises(InputError, match="gate_chi2"):

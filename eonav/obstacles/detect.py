@@ -12,7 +12,7 @@ robust minimum of its own pixels. The rules and thresholds: docs/methods.md, "Ob
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -140,7 +140,14 @@ class Obstacle:
     bbox_px: list                  # [u_min, v_min, u_max, v_max]
 
     def to_msg(self) -> dict:
-        return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in asdict(self).items()}
+        # shallow (the fields are numbers and flat lists): dataclasses.asdict's deep copy costs more than the rest
+        return {f.name: _msg_value(getattr(self, f.name)) for f in fields(self)}
+
+
+def _msg_value(v):
+    if isinstance(v, (float, np.floating)):
+        return float(v)
+    return list(v) if isinstance(v, list) else v
 
 
 @dataclass
@@ -371,6 +378,7 @@ class ObstacleResult:
     n_confident: int
     n_obstacle_px: int
     sectors_now: Sectors | None = None      # sectors relative to ``now_state`` when one was given
+    data_mask: np.ndarray | None = None     # pixels with a usable range: confident (as analysed) or at infinity
 
 
 def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags=None, inv_range_std_per_m=None,
@@ -401,7 +409,8 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
         weight = weight * area
     pts = pixel_points(range_m, camera, state, None, confidence, inv_range_std_per_m, idx=idx)
     pts.weight, pts.cell = weight, cell
-    inf_cols = np.count_nonzero(infinity_mask(range_m, flags), axis=0)     # pixels at infinity per image column
+    inf_m = infinity_mask(range_m, flags)
+    inf_cols = np.count_nonzero(inf_m, axis=0)                              # pixels at infinity per image column
     if area != 1.0:
         inf_cols = inf_cols * area
     ground = estimate_ground_down_m(pts, state, cfg)
@@ -429,7 +438,7 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
         sectors_now = _sectors(moved, kept & (moved.hdist_m <= cfg.max_distance_m),
                                in_band & (moved.hdist_m > cfg.max_distance_m) | ~in_band, camera, inf_cols, cfg)
     return ObstacleResult(sectors, obstacles, ground, int(round(np.count_nonzero(conf_m) * area)),
-                          int(round(weight[kept].sum())), sectors_now)
+                          int(round(weight[kept].sum())), sectors_now, conf_m | inf_m)
 
 
 def relative_to(pts: Points, state: VehicleState) -> Points:

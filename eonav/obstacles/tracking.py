@@ -136,7 +136,8 @@ class Measurement:
         self.position_ned_m = _vec("measurement position_ned_m", self.position_ned_m)
         self.extent_ned_m = _vec("measurement extent_ned_m", self.extent_ned_m)
         c = np.asarray(self.cov_ned_m2, float)
-        if c.shape != (3, 3) or not np.all(np.isfinite(c)) or not np.allclose(c, c.T, rtol=1e-9, atol=1e-12):
+        # symmetric as np.allclose(c, c.T, rtol=1e-9, atol=1e-12) would say, without its per-call overhead
+        if c.shape != (3, 3) or not np.isfinite(c).all() or not (np.abs(c - c.T) <= 1e-12 + 1e-9 * np.abs(c.T)).all():
             raise InputError("measurement cov_ned_m2: expected a finite symmetric 3 x 3 matrix")
         if np.linalg.eigvalsh(c).min() <= 0:
             raise InputError("measurement cov_ned_m2: must be positive definite")
@@ -153,12 +154,11 @@ def merge_fragments(measurements, gap_m: float) -> list:
     meas = list(measurements)
     if gap_m <= 0 or len(meas) < 2:
         return meas
-    from scipy.sparse.csgraph import connected_components
     p = np.stack([m.position_ned_m for m in meas])
     half = 0.5 * np.stack([m.extent_ned_m for m in meas])
     lo, hi = p - half, p + half
     touch = np.all((lo[:, None] <= hi[None] + gap_m) & (lo[None] <= hi[:, None] + gap_m), axis=-1)
-    n, labels = connected_components(touch, directed=False)
+    n, labels = _components_of(touch)
     if n == len(meas):
         return meas
     out = []
@@ -175,6 +175,25 @@ def merge_fragments(measurements, gap_m: float) -> list:
         out.append(Measurement(pos, cov, hi[idx].max(0) - lo[idx].min(0), int(sum(meas[i].pixel_count for i in idx)),
                                float(w @ [meas[i].confidence for i in idx]), meas[idx[0]].camera_id))
     return out
+
+
+def _components_of(touch: np.ndarray) -> tuple:
+    """(count, label per node) of the connected components of a small symmetric adjacency matrix, numbered in the
+    order of their lowest node (as scipy.sparse.csgraph.connected_components, without its sparse-graph set-up,
+    which costs more than the search on the few obstacles of one list)."""
+    labels = np.full(len(touch), -1, np.int64)
+    n = 0
+    for start in range(len(touch)):
+        if labels[start] >= 0:
+            continue
+        labels[start] = n
+        todo = [start]
+        while todo:
+            for j in np.flatnonzero(touch[todo.pop()] & (labels < 0)):
+                labels[j] = n
+                todo.append(j)
+        n += 1
+    return n, labels
 
 
 def R_ned_cam(camera: Camera, state: VehicleState) -> np.ndarray:
@@ -292,15 +311,24 @@ class FieldOfView:
         return OCCLUDED if seen < pc[0] - margin else VISIBLE
 
 
+_I6 = np.eye(6)
+_DIAG3 = (np.arange(3), np.arange(3))
+
+
 def _F(dt):
-    F = np.eye(6)
-    F[:3, 3:] = dt * np.eye(3)
+    F = _I6.copy()
+    F[_DIAG3[0], _DIAG3[1] + 3] = dt
     return F
 
 
 def _Q(dt, q):
-    I3 = np.eye(3)
-    return q * np.block([[dt ** 3 / 3 * I3, dt ** 2 / 2 * I3], [dt ** 2 / 2 * I3, dt * I3]])
+    """q [[dt^3/3 I, dt^2/2 I], [dt^2/2 I, dt I]], filled in place (np.block costs more than the filter step)."""
+    Q = np.zeros((6, 6))
+    i = _DIAG3[0]
+    Q[i, i] = q * (dt ** 3 / 3)
+    Q[i, i + 3] = Q[i + 3, i] = q * (dt ** 2 / 2)
+    Q[i + 3, i + 3] = q * dt
+    return Q
 
 
 def predict_state(x, P, dt_s: float, cfg: TrackerConfig):
@@ -400,15 +428,21 @@ class Tracker:
     def label(self, measurements) -> list:
         """The id of the live track each measurement supports (inside its gate, nearest by Mahalanobis distance),
         0 where none does: the stable id an obstacle list's detections carry after ``update``."""
+        meas = list(measurements)
+        if not meas or not self._tracks:
+            return [0] * len(meas)
+        xs = np.stack([t.x[:3] for t in self._tracks])                     # (nt, 3)
+        Ps = np.stack([t.P[:3, :3] for t in self._tracks])                 # (nt, 3, 3)
+        zs = np.stack([m.position_ned_m for m in meas])                    # (nm, 3)
+        Rs = np.stack([m.cov_ned_m2 for m in meas])                        # (nm, 3, 3)
+        y = zs[:, None] - xs[None]                                         # (nm, nt, 3)
+        d2 = np.einsum("ijk,ijk->ij", y, np.linalg.solve(Rs[:, None] + Ps[None], y[..., None])[..., 0])
+        ids = np.array([t.id for t in self._tracks])
         out = []
-        for m in measurements:
-            best, best_d2 = 0, self.cfg.gate_chi2
-            for t in self._tracks:
-                y = m.position_ned_m - t.x[:3]
-                d2 = float(y @ np.linalg.solve(t.P[:3, :3] + m.cov_ned_m2, y))
-                if d2 <= best_d2:
-                    best, best_d2 = t.id, d2
-            out.append(best)
+        for row in d2:
+            inside = np.flatnonzero(row <= self.cfg.gate_chi2)
+            # the nearest; of equal distances the last track (as a scan keeping every d2 <= the best so far)
+            out.append(int(ids[inside[::-1][np.argmin(row[inside][::-1])]]) if inside.size else 0)
         return out
 
     def _associate(self, meas) -> list:
