@@ -176,15 +176,18 @@ def _check(kind: str, name: str, typ: str, val):
     raise AssertionError(typ)
 
 
+_SCALARS = (int, float, str, bool, type(None))
+
+
 def _plain(v):
     if isinstance(v, np.ndarray):
         return v.tolist()
     if isinstance(v, np.generic):
         return v.item()
     if isinstance(v, dict):
-        return {k: _plain(x) for k, x in v.items()}
+        return {k: x if type(x) in _SCALARS else _plain(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
+        return [x if type(x) in _SCALARS else _plain(x) for x in v]    # no call per number (72 sector bins)
     return v
 
 
