@@ -89,7 +89,8 @@ class Pacer:
         else:
             self.fps = float(rate)
             if self.fps < 0 or not np.isfinite(self.fps):
-                raise InputError(f"--rate {rate!r}: expected 'auto', 0 (as fast as possible) or frames per second > 0")
+                raise InputError(f"--rate-hz {rate!r}: expected 'auto', 0 (as fast as possible) "
+                                 f"or frames per second > 0")
             self.mode = "none" if self.fps == 0 else "fixed"
         self._t0 = None
         self._m0 = None
@@ -254,8 +255,8 @@ def open_capture(source: str, kind: str, args=None):
     else:
         if kind == "stream" and args is not None and getattr(args, "open_timeout", None):
             cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG, [
-                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(args.open_timeout * 1000),
-                cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(args.open_timeout * 1000)])
+                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(args.open_timeout_s * 1000),
+                cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(args.open_timeout_s * 1000)])
         else:
             cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG)
     if not cap.isOpened():
@@ -527,9 +528,9 @@ def _rate(s: str):
     try:
         v = float(s)
     except ValueError:
-        raise ValueError(f"--rate {s!r}: expected auto, 0 or frames per second") from None
+        raise ValueError(f"--rate-hz {s!r}: expected auto, 0 or frames per second") from None
     if v < 0:
-        raise ValueError("--rate must be >= 0")
+        raise ValueError("--rate-hz must be >= 0")
     return v
 
 
@@ -542,8 +543,9 @@ def add_arguments(p) -> None:
     add_flag(g, "--source", env="EONAV_CAMERA_SOURCE", default=None,
              help="video file, image folder, V4L2 device (/dev/videoN or N), or rtsp:// / http:// URL")
     add_flag(g, "--camera-id", env="EONAV_CAMERA_ID", default="nose", help="camera id in the frame key and messages")
-    add_flag(g, "--rate", env="EONAV_CAMERA_RATE", default="auto", type=_rate,
-             help="file pacing: auto = real time from stamps/PTS/fps, N = N fps, 0 = as fast as possible")
+    add_flag(g, "--rate-hz", env="EONAV_CAMERA_RATE_HZ", default="auto", type=_rate, metavar="auto|HZ",
+             help="file pacing: auto = real time from stamps/PTS/fps, N = N frames per second, 0 = as fast as possible",
+             aliases="--rate", old_env="EONAV_CAMERA_RATE")
     add_flag(g, "--loop", env="EONAV_CAMERA_LOOP", action="store_true", help="replay a file source forever")
     add_flag(g, "--encoding", env="EONAV_CAMERA_ENCODING", default="mono8", choices=ENCODINGS,
              help="published pixel format")
@@ -562,21 +564,24 @@ def add_arguments(p) -> None:
              help="publish recorded stamps as they are instead of mapping them onto the current clock")
     add_flag(g, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default=None, type=int, metavar="D",
              help="joint replay: stamp recorded + D and release at that host time (same D for every replay)")
-    add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float,
+    add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float, metavar="FPS",
              help="frame rate assumed for folders without timestamps / files without fps (pacing in auto mode)")
-    add_flag(g, "--wait-subscribers", env="EONAV_CAMERA_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
-             help="file sources: wait up to S s for a subscriber before the first frame (declaration race)")
+    add_flag(g, "--wait-subscribers-s", env="EONAV_CAMERA_WAIT_SUBSCRIBERS_S", default=2.0, type=float, metavar="S",
+             help="file sources: wait up to S s for a subscriber before the first frame (declaration race)",
+             aliases="--wait-subscribers", old_env="EONAV_CAMERA_WAIT_SUBSCRIBERS")
     add_flag(g, "--cameras", env="EONAV_CAMERA_CAMERAS", default=None, metavar="FILE",
              help="cameras file (as the sync's): this camera's lens model (frames undistorted) and time_offset_s")
-    add_flag(g, "--exposure-us", env="EONAV_CAMERA_EXPOSURE_US", default=None, type=float,
+    add_flag(g, "--exposure-us", env="EONAV_CAMERA_EXPOSURE_US", default=None, type=float, metavar="US",
              help="known exposure time: stamps move by half of it to the middle of the exposure")
     add_flag(g, "--fourcc", env="EONAV_CAMERA_FOURCC", default=None, help="V4L2 pixel format, e.g. MJPG")
-    add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, help="V4L2 frame rate to request")
+    add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, metavar="FPS",
+             help="V4L2 frame rate to request")
     add_flag(g, "--buffer-size", env="EONAV_CAMERA_BUFFER_SIZE", default=2, type=int, help="V4L2 buffers (small = low latency)")
-    add_flag(g, "--live-timeout", env="EONAV_CAMERA_LIVE_TIMEOUT", default=5.0, type=float, metavar="S",
-             help="live sources: exit 1 (for a restart) after S s without a frame")
-    add_flag(g, "--open-timeout", env="EONAV_CAMERA_OPEN_TIMEOUT", default=10.0, type=float, metavar="S",
-             help="network streams: open/read timeout")
+    add_flag(g, "--live-timeout-s", env="EONAV_CAMERA_LIVE_TIMEOUT_S", default=5.0, type=float, metavar="S",
+             help="live sources: exit 1 (for a restart) after S s without a frame",
+             aliases="--live-timeout", old_env="EONAV_CAMERA_LIVE_TIMEOUT")
+    add_flag(g, "--open-timeout-s", env="EONAV_CAMERA_OPEN_TIMEOUT_S", default=10.0, type=float, metavar="S",
+             help="network streams: open/read timeout", aliases="--open-timeout", old_env="EONAV_CAMERA_OPEN_TIMEOUT")
 
 
 def camera_correction(args):
@@ -606,7 +611,7 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
         raise InputError("--source is required (or EONAV_CAMERA_SOURCE)")
     kind = classify_source(args.source)
     clock = clock or Clock()
-    pacer = Pacer(args.rate, clock, stop) if kind in ("folder", "file") else None
+    pacer = Pacer(args.rate_hz, clock, stop) if kind in ("folder", "file") else None
     if kind == "folder":
         return folder_frames(args.source, timestamps=args.timestamps, unit=args.timestamps_unit,
                              keep_stamps=args.keep_stamps, loop=args.loop, pacer=pacer, clock=clock,
@@ -620,7 +625,7 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
     open_capture(args.source, kind, args).release()  # fail early, as a configuration error
     frames = capture_frames(lambda: open_capture(args.source, kind, args), kind, loop=args.loop,
                             pacer=None if args.replay_shift_us is not None else pacer, clock=clock, stop=stop,
-                            live_timeout_s=args.live_timeout, default_fps=args.default_fps)
+                            live_timeout_s=args.live_timeout_s, default_fps=args.default_fps)
     if stamps is None:
         return frames
     return recorded_video_frames(frames, stamps, keep_stamps=args.keep_stamps, replay_shift_us=args.replay_shift_us,
@@ -635,7 +640,7 @@ def body(node: Node, args) -> None:
     key = K.frame(node.vehicle, args.camera_id)
     pub = node.publisher(key, image=True)
     node.log.info("camera %s: %s source %s -> %s (%s, rate %s)", args.camera_id, kind, args.source, key,
-                  args.encoding, args.rate)
+                  args.encoding, args.rate_hz)
     if correct is not None:
         node.log.info("camera %s: %s, stamps %+d us", args.camera_id,
                       "undistorted" if correct.undistort is not None else "pinhole", correct.shift_us)
@@ -644,9 +649,9 @@ def body(node: Node, args) -> None:
         node.put(pub, "frame", **fields)
 
     def run():
-        if kind in ("folder", "file") and args.wait_subscribers > 0:
-            if not node.wait_matching(pub, args.wait_subscribers):
-                node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers)
+        if kind in ("folder", "file") and args.wait_subscribers_s > 0:
+            if not node.wait_matching(pub, args.wait_subscribers_s):
+                node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers_s)
         st = capture_loop(frames, sink, camera_id=args.camera_id, encoding=args.encoding, width=args.width,
                           height=args.height, metrics=node, stop=node.stop_event, correct=correct)
         if node.stop_event.is_set():
@@ -667,4 +672,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    service_main("camera", add_arguments, body)
+    service_main("camera", add_arguments, body, module="camera_ingest")

@@ -31,22 +31,25 @@ MAX_SEQ_GAP = 10_000          # a larger jump of a camera's seq is a restart (or
 
 
 def add_arguments(p):
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    d = PairPolicyConfig()                       # the pair policy's defaults are the library's
     add_flag(p, "--method", env="EONAV_LOCATOR_METHOD", default="dense",
-             help="range estimator (eonav.locate.METHODS): dense (default), paper, dis")
+             help="range estimator (eonav.ranging.locate.METHODS): dense (default), paper, dis")
     p.add_argument("--method-param", action="append", default=[], metavar="NAME=VALUE",
                    help="extra keyword for the method, e.g. search_window=7 (repeatable; numbers parsed)")
     add_flag(p, "--cv-threads", env="EONAV_CV_THREADS", default=-1, type=int, metavar="N",
              help="cv2.setNumThreads(N); -1 keeps OpenCV's default, 0 disables its threading")
-    add_flag(p, "--camera", env="EONAV_LOCATOR_CAMERA", default=None,
-             help="only this camera id (default: every camera of the vehicle)")
+    add_flag(p, "--camera-id", env="EONAV_LOCATOR_CAMERA_ID", default=None,
+             help="only this camera id (default: every camera of the vehicle)",
+             aliases="--camera", old_env="EONAV_LOCATOR_CAMERA")
     add_flag(p, "--ring", env="EONAV_LOCATOR_RING", default=2, type=int,
              help="RingChannel depth of the posed-frame subscriber (newest N kept)")
-    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|S",
+    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|FACTOR",
              help="auto: per camera and pair, the largest scale of the ladder (1, 0.5, ... --min-scale) whose "
-                  "compute time fits --budget-ms (eonav.ranging.scale_control); a number S in (0, 1]: always locate on images "
-                  "resized by S (0.5 = half resolution, ~4x less work). See --publish-grid")
-    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="S",
-             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (S itself is the last rung)")
+                  "compute time fits --budget-ms (eonav.ranging.scale_control); a number FACTOR in (0, 1]: always "
+                  "locate on images resized by FACTOR (0.5 = half resolution, ~4x less work). See --publish-grid")
+    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="FACTOR",
+             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (FACTOR itself is the last rung)")
     add_flag(p, "--budget-ms", env="EONAV_LOCATOR_BUDGET_MS", default=None, type=float, metavar="MS",
              help="--scale auto: compute-time budget per pair; default 60 %% of the camera's measured frame interval, "
                   "clamped to [20, 200] ms")
@@ -64,21 +67,25 @@ def add_arguments(p):
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.ranging.pair_policy)")
-    add_flag(g, "--min-disparity", env="EONAV_PAIR_MIN_DISPARITY", default=2.0, type=float, metavar="PX",
-             help="median translational disparity of a point at --ref-range needed for a pair")
-    add_flag(g, "--ref-range", env="EONAV_PAIR_REF_RANGE", default=50.0, type=float, metavar="M",
-             help="range at which parallax is judged")
-    add_flag(g, "--min-baseline", env="EONAV_PAIR_MIN_BASELINE", default=0.0, type=float, metavar="M",
-             help="a baseline of at least this also qualifies (0: off)")
-    add_flag(g, "--max-age", env="EONAV_PAIR_MAX_AGE", default=1.0, type=float, metavar="S",
-             help="oldest earlier frame used")
-    add_flag(g, "--max-rotation", env="EONAV_PAIR_MAX_ROTATION", default=10.0, type=float, metavar="DEG",
-             help="largest rotation between the two frames of a motion pair")
-    add_flag(g, "--history", env="EONAV_PAIR_HISTORY", default=8, type=int, help="frames kept per camera")
+    add_flag(g, "--min-disparity-px", env="EONAV_PAIR_MIN_DISPARITY_PX", default=d.min_disparity_px, type=float,
+             metavar="PX", help="median translational disparity of a point at --ref-range-m needed for a pair",
+             aliases="--min-disparity", old_env="EONAV_PAIR_MIN_DISPARITY")
+    add_flag(g, "--ref-range-m", env="EONAV_PAIR_REF_RANGE_M", default=d.ref_range_m, type=float, metavar="M",
+             help="range at which parallax is judged", aliases="--ref-range", old_env="EONAV_PAIR_REF_RANGE")
+    add_flag(g, "--min-baseline-m", env="EONAV_PAIR_MIN_BASELINE_M", default=d.min_baseline_m, type=float, metavar="M",
+             help="a baseline of at least this also qualifies (0: off)",
+             aliases="--min-baseline", old_env="EONAV_PAIR_MIN_BASELINE")
+    add_flag(g, "--max-age-s", env="EONAV_PAIR_MAX_AGE_S", default=d.max_age_s, type=float, metavar="S",
+             help="oldest earlier frame used", aliases="--max-age", old_env="EONAV_PAIR_MAX_AGE")
+    add_flag(g, "--max-rotation-deg", env="EONAV_PAIR_MAX_ROTATION_DEG", default=d.max_rotation_deg, type=float,
+             metavar="DEG", help="largest rotation between the two frames of a motion pair",
+             aliases="--max-rotation", old_env="EONAV_PAIR_MAX_ROTATION")
+    add_flag(g, "--history", env="EONAV_PAIR_HISTORY", default=d.history, type=int, help="frames kept per camera")
     add_flag(g, "--stereo", env="EONAV_PAIR_STEREO", default=None, metavar="REF,PARTNER",
              help="stereo rig: two camera ids, the first is the reference")
-    add_flag(g, "--max-stereo-dt", env="EONAV_PAIR_MAX_STEREO_DT", default=0.002, type=float, metavar="S",
-             help="largest stamp difference within a stereo pair")
+    add_flag(g, "--max-stereo-dt-s", env="EONAV_PAIR_MAX_STEREO_DT_S", default=d.max_stereo_dt_s, type=float,
+             metavar="S", help="largest stamp difference within a stereo pair",
+             aliases="--max-stereo-dt", old_env="EONAV_PAIR_MAX_STEREO_DT")
 
 
 def parse_params(items) -> dict:
@@ -105,10 +112,10 @@ def policy_config(args):
         rig = tuple(s.strip() for s in args.stereo.split(","))
         for c in rig:
             K.check_chunk(c, "--stereo camera id")
-    return PairPolicyConfig(min_disparity_px=args.min_disparity, ref_range_m=args.ref_range,
-                            min_baseline_m=args.min_baseline, max_age_s=args.max_age,
-                            max_rotation_deg=args.max_rotation, history=args.history, stereo_rig=rig,
-                            max_stereo_dt_s=args.max_stereo_dt)
+    return PairPolicyConfig(min_disparity_px=args.min_disparity_px, ref_range_m=args.ref_range_m,
+                            min_baseline_m=args.min_baseline_m, max_age_s=args.max_age_s,
+                            max_rotation_deg=args.max_rotation_deg, history=args.history, stereo_rig=rig,
+                            max_stereo_dt_s=args.max_stereo_dt_s)
 
 
 def grey_image(msg: dict) -> np.ndarray:
@@ -275,7 +282,7 @@ def body(node: Node, args) -> None:
     new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
     runner = fusion_runner(args, params)
-    key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
+    key = K.posed_frame(node.vehicle, args.camera_id) if args.camera_id else K.posed_frames_all(node.vehicle)
     sub = node.subscribe(key, ring=args.ring)
     node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, args.warmup,
                 args.publish_grid, runner, name="locate")

@@ -66,7 +66,7 @@ def parse_clock(s: str, tlog: bool):
 def make_ingest(args, tlog: bool) -> NavIngest:
     dec = NavDecoder(system_id=args.system_id, origin_lla=parse_origin(args.origin),
                      position_source=args.position_source)
-    mapper = ClockMapper(prefer=parse_clock(args.clock, tlog), window_us=int(args.clock_window * 1e6),
+    mapper = ClockMapper(prefer=parse_clock(args.clock, tlog), window_us=int(args.clock_window_s * 1e6),
                          max_rtt_us=int(args.max_rtt_ms * 1000))
     return NavIngest(dec, mapper)
 
@@ -124,16 +124,16 @@ class Publisher:
                 self._reported[k] = v
 
 
-def replay_tlog(path, feed, *, rate: float, stop: threading.Event, keep_stamps: bool = False,
+def replay_tlog(path, feed, *, speed: float, stop: threading.Event, keep_stamps: bool = False,
                 clock=now_us, sleep=None, shift_us: int | None = None) -> TlogReader:
     """Replay a tlog into ``feed(msg, rx_us)``: header times shifted onto the current clock, paced at
-    ``rate`` x real time (0 = as fast as possible). With ``shift_us`` (joint replays, see the camera
+    ``speed`` x real time (0 = as fast as possible). With ``shift_us`` (joint replays, see the camera
     ingest), each record is stamped header + shift_us and released when the clock reaches that stamp.
     Returns the reader (its ``stats``)."""
     sleep = sleep or (lambda s: stop.wait(s))
     if shift_us is not None:
-        if keep_stamps or rate != 1.0:
-            raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --rate != 1")
+        if keep_stamps or speed != 1.0:
+            raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --speed != 1")
         with TlogReader(path) as reader:
             for header_us, msg in reader:
                 if stop.is_set():
@@ -154,8 +154,8 @@ def replay_tlog(path, feed, *, rate: float, stop: threading.Event, keep_stamps: 
             if first is None:
                 first = header_us
                 shift = 0 if keep_stamps else clock() - header_us
-            if rate > 0:
-                due = t_start_mono + (header_us - first) / 1e6 / rate
+            if speed > 0:
+                due = t_start_mono + (header_us - first) / 1e6 / speed
                 wait = due - time.monotonic()
                 if wait > 0.001:
                     sleep(wait)
@@ -168,8 +168,9 @@ def add_arguments(p) -> None:
     add_flag(g, "--source", env="EONAV_MAVLINK_SOURCE", default=None, required=False,
              help="pymavlink connection string (udpin:0.0.0.0:14550, tcp:host:port, /dev/ttyACM0) or a .tlog path")
     add_flag(g, "--baud", env="EONAV_MAVLINK_BAUD", default=57600, type=int, help="serial baud rate")
-    add_flag(g, "--rate", env="EONAV_MAVLINK_RATE", default=1.0, type=float,
-             help="tlog replay speed factor (1 = real time, 0 = as fast as possible)")
+    add_flag(g, "--speed", env="EONAV_MAVLINK_SPEED", default=1.0, type=float, metavar="FACTOR",
+             help="tlog replay speed factor (1 = real time, 2 = twice as fast, 0 = as fast as possible)",
+             aliases="--rate", old_env="EONAV_MAVLINK_RATE")
     add_flag(g, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default=None, type=int, metavar="D",
              help="tlog joint replay: stamp header + D and release at that host time (same D for every replay)")
     add_flag(g, "--keep-stamps", env="EONAV_MAVLINK_KEEP_STAMPS", default=False, action="store_true",
@@ -186,18 +187,20 @@ def add_arguments(p) -> None:
     add_flag(g, "--clock", env="EONAV_MAVLINK_CLOCK", default="auto",
              help="clock-offset methods in preference order: auto (tlog: receive; live: "
                   "timesync,system_time,receive) or a comma list")
-    add_flag(g, "--clock-window", env="EONAV_MAVLINK_CLOCK_WINDOW", default=20.0, type=float, metavar="S",
-             help="sliding window of the min-filter offset estimators (s of autopilot time)")
-    add_flag(g, "--max-rtt-ms", env="EONAV_MAVLINK_MAX_RTT_MS", default=10.0, type=float,
+    add_flag(g, "--clock-window-s", env="EONAV_MAVLINK_CLOCK_WINDOW_S", default=20.0, type=float, metavar="S",
+             help="sliding window of the min-filter offset estimators (s of autopilot time)",
+             aliases="--clock-window", old_env="EONAV_MAVLINK_CLOCK_WINDOW")
+    add_flag(g, "--max-rtt-ms", env="EONAV_MAVLINK_MAX_RTT_MS", default=10.0, type=float, metavar="MS",
              help="TIMESYNC exchanges with a longer round trip are ignored")
-    add_flag(g, "--timesync-hz", env="EONAV_MAVLINK_TIMESYNC_HZ", default=5.0, type=float,
+    add_flag(g, "--timesync-hz", env="EONAV_MAVLINK_TIMESYNC_HZ", default=5.0, type=float, metavar="HZ",
              help="live links: TIMESYNC request rate (0 = off)")
     add_flag(g, "--request-streams", env="EONAV_MAVLINK_REQUEST_STREAMS", default=False, action="store_true",
              help="live links: MAV_CMD_SET_MESSAGE_INTERVAL for the nav messages")
-    add_flag(g, "--stream-hz", env="EONAV_MAVLINK_STREAM_HZ", default=50.0, type=float,
+    add_flag(g, "--stream-hz", env="EONAV_MAVLINK_STREAM_HZ", default=50.0, type=float, metavar="HZ",
              help="rate requested with --request-streams")
-    add_flag(g, "--wait-subscribers", env="EONAV_MAVLINK_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
-             help="tlog: wait up to S s for a nav_state subscriber before replaying (declaration race)")
+    add_flag(g, "--wait-subscribers-s", env="EONAV_MAVLINK_WAIT_SUBSCRIBERS_S", default=2.0, type=float, metavar="S",
+             help="tlog: wait up to S s for a nav_state subscriber before replaying (declaration race)",
+             aliases="--wait-subscribers", old_env="EONAV_MAVLINK_WAIT_SUBSCRIBERS")
 
 
 def body(node: Node, args) -> None:
@@ -206,10 +209,10 @@ def body(node: Node, args) -> None:
     tlog = is_tlog(args.source)
     if tlog and not Path(args.source).is_file():
         raise InputError(f"--source {args.source}: no such tlog file")
-    if args.rate < 0:
-        raise InputError(f"--rate {args.rate}: expected >= 0 (0 = as fast as possible)")
-    if args.replay_shift_us is not None and (args.keep_stamps or args.rate != 1.0):
-        raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --rate != 1")
+    if args.speed < 0:
+        raise InputError(f"--speed {args.speed}: expected >= 0 (0 = as fast as possible)")
+    if args.replay_shift_us is not None and (args.keep_stamps or args.speed != 1.0):
+        raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --speed != 1")
     ingest = make_ingest(args, tlog)
     pub = Publisher(node, ingest)
     node.log.info("mavlink %s source %s -> %s", "tlog" if tlog else "live", args.source,
@@ -221,9 +224,9 @@ def body(node: Node, args) -> None:
 
 
 def _run_tlog(node: Node, args, pub: Publisher) -> None:
-    if args.wait_subscribers > 0:
-        node.wait_matching(pub.nav_pub, args.wait_subscribers)
-    reader = replay_tlog(args.source, pub.feed, rate=args.rate, stop=node.stop_event, keep_stamps=args.keep_stamps,
+    if args.wait_subscribers_s > 0:
+        node.wait_matching(pub.nav_pub, args.wait_subscribers_s)
+    reader = replay_tlog(args.source, pub.feed, speed=args.speed, stop=node.stop_event, keep_stamps=args.keep_stamps,
                          shift_us=args.replay_shift_us)
     if node.stop_event.is_set():
         return
@@ -302,4 +305,4 @@ def _start_live(node: Node, args, pub: Publisher) -> None:
 
 
 if __name__ == "__main__":
-    service_main("mavlink", add_arguments, body)
+    service_main("mavlink", add_arguments, body, module="mavlink_ingest")

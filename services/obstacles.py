@@ -30,51 +30,70 @@ NAV_MAX_AHEAD_S = 1.0        # a nav state newer than the map by more than this 
 
 
 def add_arguments(p):
+    from eonav.obstacles.detect import ObstacleConfig
+    d = ObstacleConfig()                         # the extraction defaults are the library's
     add_flag(p, "--mavlink-out", env="EONAV_OBSTACLES_MAVLINK_OUT", default=None, metavar="CONNECTION",
              help="send OBSTACLE_DISTANCE on this pymavlink connection, e.g. udpout:127.0.0.1:14560")
-    add_flag(p, "--mavlink-sysid", env="EONAV_OBSTACLES_MAVLINK_SYSID", default=1, type=int,
-             help="MAVLink system id (the autopilot's); component is 191 (onboard computer)")
-    add_flag(p, "--mavlink-rate", env="EONAV_OBSTACLES_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
-             help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)")
-    add_flag(p, "--stale", env="EONAV_OBSTACLES_STALE", default=0.3, type=float, metavar="S",
+    add_flag(p, "--mavlink-source-system", env="EONAV_OBSTACLES_MAVLINK_SOURCE_SYSTEM", default=1, type=int,
+             help="our MAVLink system id (the vehicle's, as mavlink_ingest --source-system); component is 191 "
+                  "(onboard computer)", aliases="--mavlink-sysid", old_env="EONAV_OBSTACLES_MAVLINK_SYSID")
+    add_flag(p, "--mavlink-rate-hz", env="EONAV_OBSTACLES_MAVLINK_RATE_HZ", default=10.0, type=float, metavar="HZ",
+             help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)",
+             aliases="--mavlink-rate", old_env="EONAV_OBSTACLES_MAVLINK_RATE")
+    add_flag(p, "--stale-s", env="EONAV_OBSTACLES_STALE_S", default=0.3, type=float, metavar="S",
              help="after this long without a new range map, send one all-unknown OBSTACLE_DISTANCE and then none "
-                  "until maps flow again (the autopilot then reports No Data)")
-    add_flag(p, "--tracks-rate-hz", env="EONAV_OBSTACLES_TRACKS_RATE_HZ", default=10.0, type=float,
+                  "until maps flow again (the autopilot then reports No Data)",
+             aliases="--stale", old_env="EONAV_OBSTACLES_STALE")
+    add_flag(p, "--tracks-rate-hz", env="EONAV_OBSTACLES_TRACKS_RATE_HZ", default=10.0, type=float, metavar="HZ",
              help="obstacle-track topic (guidance's input): a message on every map and on this fixed timer")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
              help="do not re-reference MAVLink sectors to the latest navigation pose")
     g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
-    add_flag(g, "--min-distance", env="EONAV_OBST_MIN_DISTANCE", default=0.5, type=float, metavar="M")
-    add_flag(g, "--max-distance", env="EONAV_OBST_MAX_DISTANCE", default=150.0, type=float, metavar="M",
-             help="OBSTACLE_DISTANCE max_distance; farther is 'clear'")
-    add_flag(g, "--max-obstacle-distance", env="EONAV_OBST_MAX_LIST_DISTANCE", default=100.0, type=float,
-             metavar="M", help="obstacle list: only objects nearer than this")
-    add_flag(g, "--ground-down", env="EONAV_OBST_GROUND_DOWN", default="auto", metavar="M|auto",
-             help="NED down coordinate of the ground (0 = home level), or auto (estimated from the points)")
-    add_flag(g, "--ground-clearance", env="EONAV_OBST_GROUND_CLEARANCE", default=0.6, type=float, metavar="M")
-    add_flag(g, "--min-confidence", env="EONAV_OBST_MIN_CONFIDENCE", default=0.0, type=float)
-    add_flag(g, "--max-rel-std", env="EONAV_OBST_MAX_REL_STD", default=0.25, type=float,
-             help="ignore pixels whose relative range 1-sigma exceeds this")
-    add_flag(g, "--min-obstacle-pixels", env="EONAV_OBST_MIN_PIXELS", default=12, type=int)
-    add_flag(g, "--max-width", env="EONAV_OBST_MAX_WIDTH", default=160, type=int, metavar="PX",
+    add_flag(g, "--min-distance-m", env="EONAV_OBST_MIN_DISTANCE_M", default=d.min_distance_m, type=float,
+             metavar="M", help="OBSTACLE_DISTANCE min_distance (>= 0.01): nearer obstacles are reported at this "
+                               "distance",
+             aliases="--min-distance", old_env="EONAV_OBST_MIN_DISTANCE")
+    add_flag(g, "--max-distance-m", env="EONAV_OBST_MAX_DISTANCE_M", default=d.max_distance_m, type=float,
+             metavar="M", help="OBSTACLE_DISTANCE max_distance; farther is 'clear'",
+             aliases="--max-distance", old_env="EONAV_OBST_MAX_DISTANCE")
+    add_flag(g, "--max-obstacle-distance-m", env="EONAV_OBST_MAX_OBSTACLE_DISTANCE_M",
+             default=d.max_obstacle_distance_m, type=float, metavar="M",
+             help="obstacle list: only objects nearer than this",
+             aliases="--max-obstacle-distance", old_env="EONAV_OBST_MAX_LIST_DISTANCE")
+    add_flag(g, "--ground-down-m", env="EONAV_OBST_GROUND_DOWN_M", default="auto", metavar="M|auto",
+             help="NED down coordinate of the ground (0 = home level), or auto (estimated from the points)",
+             aliases="--ground-down", old_env="EONAV_OBST_GROUND_DOWN")
+    add_flag(g, "--ground-clearance-m", env="EONAV_OBST_GROUND_CLEARANCE_M", default=d.ground_clearance_m, type=float,
+             metavar="M", help=f"points less than this above the ground (plus {d.ground_sigma_k:g} sigma of their "
+                               f"height) or below it are ground, not obstacles",
+             aliases="--ground-clearance", old_env="EONAV_OBST_GROUND_CLEARANCE")
+    add_flag(g, "--min-confidence", env="EONAV_OBST_MIN_CONFIDENCE", default=d.min_confidence, type=float,
+             help="ignore pixels whose confidence (inverse range / its 1-sigma: the inverse of the relative range "
+                  "error) is below this (0: off)")
+    add_flag(g, "--max-rel-std", env="EONAV_OBST_MAX_REL_STD", default=d.max_rel_std, type=float,
+             help="ignore pixels whose relative range 1-sigma exceeds this (the dense method's VALID threshold)")
+    add_flag(g, "--min-obstacle-pixels", env="EONAV_OBST_MIN_OBSTACLE_PIXELS", default=d.min_obstacle_pixels, type=int,
+             help="smallest connected component kept as an obstacle (list and sectors), in analysed pixels",
+             old_env="EONAV_OBST_MIN_PIXELS")
+    add_flag(g, "--max-width-px", env="EONAV_OBST_MAX_WIDTH_PX", default=d.max_width_px, type=int, metavar="PX",
              help="analyse the range map pooled to at most this many columns (robust minimum per block; "
-                  "0: full resolution)")
+                  "0: full resolution)", aliases="--max-width", old_env="EONAV_OBST_MAX_WIDTH")
 
 
 def obstacle_config(args):
     from eonav.obstacles.detect import ObstacleConfig
-    if str(args.ground_down).lower() == "auto":
+    if str(args.ground_down_m).lower() == "auto":
         ground = None
     else:
         try:
-            ground = float(args.ground_down)
+            ground = float(args.ground_down_m)
         except ValueError:
-            raise InputError(f"--ground-down {args.ground_down!r}: expected metres or 'auto'") from None
+            raise InputError(f"--ground-down-m {args.ground_down_m!r}: expected metres or 'auto'") from None
     return ObstacleConfig(min_confidence=args.min_confidence, max_rel_std=args.max_rel_std,
-                          min_distance_m=args.min_distance, max_distance_m=args.max_distance,
-                          ground_down_m=ground, ground_clearance_m=args.ground_clearance,
-                          max_obstacle_distance_m=args.max_obstacle_distance,
-                          min_obstacle_pixels=args.min_obstacle_pixels, max_width_px=args.max_width)
+                          min_distance_m=args.min_distance_m, max_distance_m=args.max_distance_m,
+                          ground_down_m=ground, ground_clearance_m=args.ground_clearance_m,
+                          max_obstacle_distance_m=args.max_obstacle_distance_m,
+                          min_obstacle_pixels=args.min_obstacle_pixels, max_width_px=args.max_width_px)
 
 
 class LatestNav:
@@ -173,18 +192,18 @@ def body(node: Node, args) -> None:
     sender = None
     if args.mavlink_out:
         from eonav.nav.mavlink_out import ObstacleDistanceSender
-        if args.mavlink_rate < 10.0:
-            node.log.warning("--mavlink-rate %.1f Hz is below the 10 Hz the autopilots are tuned for",
-                             args.mavlink_rate)
-        sender = ObstacleDistanceSender(args.mavlink_out, system_id=args.mavlink_sysid, rate_hz=args.mavlink_rate,
-                                        stale_s=args.stale)
+        if args.mavlink_rate_hz < 10.0:
+            node.log.warning("--mavlink-rate-hz %.1f is below the 10 Hz the autopilots are tuned for",
+                             args.mavlink_rate_hz)
+        sender = ObstacleDistanceSender(args.mavlink_out, system_id=args.mavlink_source_system,
+                                        rate_hz=args.mavlink_rate_hz, stale_s=args.stale_s)
     pub = node.publisher(K.obstacles(node.vehicle))          # reliable, small, express
     maps = node.subscribe(K.range_maps_all(node.vehicle), ring=2)
     nav = LatestNav()
     if not args.no_nav:
         navsub = node.subscribe(K.nav_state(node.vehicle), ring=1)
         node.worker(nav_loop, node, navsub, nav, name="nav")
-    guidance = Guidance(node, nav, args.tracks_rate_hz, args.stale)
+    guidance = Guidance(node, nav, args.tracks_rate_hz, args.stale_s)
     node.worker(obstacle_loop, node, maps, pub, cfg, guidance, nav, sender, args, name="obstacles")
     node.worker(guidance.timer_loop, name="tracks")
     if sender is not None:
@@ -204,7 +223,7 @@ def body(node: Node, args) -> None:
                 sender.close()
         node.worker(send_loop, name="mavlink")
         node.log.info("OBSTACLE_DISTANCE to %s at %.0f Hz (stale after %.2f s)", args.mavlink_out,
-                      args.mavlink_rate, args.stale)
+                      args.mavlink_rate_hz, args.stale_s)
 
 
 def mirror_counters(node: Node, sender) -> None:

@@ -462,8 +462,8 @@ def test_camera_ingest_service_undistorts_and_stamps_mid_exposure(tmp_path):
     with listener_session(port) as s:
         sub = s.declare_subscriber(K.frame("t1", "nose"), zenoh.handlers.FifoChannel(100))
         proc = start_service(["-m", "eonav.services.camera_ingest", "--source", str(d), "--camera-id", "nose",
-                              "--cameras", str(cams), "--exposure-us", "8000", "--keep-stamps", "--rate", "0",
-                              "--vehicle", "t1", "--connect", endpoint(port), "--wait-subscribers", "10"])
+                              "--cameras", str(cams), "--exposure-us", "8000", "--keep-stamps", "--rate-hz", "0",
+                              "--vehicle", "t1", "--connect", endpoint(port), "--wait-subscribers-s", "10"])
         try:
             code = proc.wait(30)
         finally:

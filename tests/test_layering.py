@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ALLOWED = {
     "geometry": set(),
     "io": {"geometry"},
-    "ranging": {"geometry", "sim"},
+    "ranging": {"geometry"},
     "fusion": {"geometry", "ranging"},
     "obstacles": {"geometry", "ranging"},
     "nav": {"geometry", "obstacles"},

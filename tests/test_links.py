@@ -270,7 +270,7 @@ def _service(source, vehicle, port):
     from eonav.app.processes import start_service
     from eonav.bus.session import endpoint
     return start_service(["-m", "eonav.services.mavlink_ingest", "--source", source, "--vehicle", vehicle,
-                          "--connect", endpoint(port), "--health-period", "0.1", "--clock", "receive",
+                          "--connect", endpoint(port), "--health-period-s", "0.1", "--clock", "receive",
                           "--timesync-hz", "0"])
 
 
@@ -394,7 +394,7 @@ def test_obstacles_service_degraded_until_its_tcp_autopilot_is_up():
     with listener_session(port) as s:
         hsub = s.declare_subscriber(K.health("lk4", "obstacles"), zenoh.handlers.FifoChannel(10000))
         proc = start_service(["-m", "eonav.services.obstacles", "--vehicle", "lk4", "--connect", endpoint(port),
-                              "--health-period", "0.1", "--mavlink-out", f"tcp:127.0.0.1:{ap_port}"])
+                              "--health-period-s", "0.1", "--mavlink-out", f"tcp:127.0.0.1:{ap_port}"])
         ap = None
         try:
             def seen(pred):

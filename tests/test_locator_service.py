@@ -66,10 +66,10 @@ def locator_and_obstacles(locator_args=(), obstacles_args=()):
         with router_process() as ep, client_session(ep) as s:
             subs = [s.declare_subscriber(key, zenoh.handlers.FifoChannel(n)) for key, n in
                     ((K.range_maps_all(VEHICLE), 64), (K.obstacles(VEHICLE), 64), (K.health_all(VEHICLE), 1024))]
-            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period", "0.2"]
+            common = ["--vehicle", VEHICLE, "--connect", ep, "--health-period-s", "0.2"]
             procs["locator"] = start_service(["-m", "eonav.services.locator", *common, "--cv-threads", "1",
                                               *locator_args])
-            procs["obstacles"] = start_service(["-m", "eonav.services.obstacles", *common, "--ground-down", "0",
+            procs["obstacles"] = start_service(["-m", "eonav.services.obstacles", *common, "--ground-down-m", "0",
                                                 *obstacles_args])
             yield (s, procs, *subs)
     except BaseException:
@@ -248,8 +248,8 @@ def test_locator_rejects_bad_configuration():
             code, err = run_to_exit(["-m", "eonav.services.locator", "--vehicle", VEHICLE, "--connect", ep, *bad])
             assert code == 2 and text in err, (bad, code, err[-2000:])
         code, err = run_to_exit(["-m", "eonav.services.obstacles", "--vehicle", VEHICLE, "--connect", ep,
-                                 "--ground-down", "x"])
-        assert code == 2 and "--ground-down 'x'" in err
+                                 "--ground-down-m", "x"])
+        assert code == 2 and "--ground-down-m 'x'" in err
 
 def test_scaled_view_matches_frame_info_at_that_scale(flight_frames):
     """The history keeps full-resolution frames; a pair at 0.5 resizes them on use, exactly as a fixed --scale 0.5

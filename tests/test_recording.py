@@ -72,7 +72,7 @@ def test_record_then_replay_gives_identical_payloads_in_order(tmp_path):
     with router_process() as ep, client_session(ep) as s:
         health = s.declare_subscriber(K.health(veh, "recorder"), zenoh.handlers.FifoChannel(256))
         rec = start_service(["-m", "eonav.recording.recorder", str(out), "--vehicle", veh, "--connect", ep,
-                             "--images", "raw", "--health-period", "0.2", "--exclude", f"eonav/{veh}/excluded/**"])
+                             "--images", "raw", "--health-period-s", "0.2", "--exclude", f"eonav/{veh}/excluded/**"])
         pubs = {k: s.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k, *_ in sent}
         wait_until(lambda: all(p.matching_status.matching for p in pubs.values()), 30, what="recorder subscribed")
         time.sleep(0.1)
@@ -366,7 +366,7 @@ def replay_with_late_subscriber(ep, path, wait_timeout: float, late_s: float) ->
     with client_session(ep) as s:
         health = s.declare_subscriber(K.health("w", "replay"), zenoh.handlers.FifoChannel(64))
         rp = start_service(["-m", "eonav.recording.replayer", str(path), "--vehicle", "w", "--connect", ep,
-                            "--wait-timeout", str(wait_timeout)])
+                            "--wait-timeout-s", str(wait_timeout)])
         try:
             wait_until(lambda: health.try_recv() is not None, 30, what="replay up")
             time.sleep(late_s)

@@ -91,7 +91,7 @@ def test_sources_first_stamps_and_the_joint_shift(rec, tmp_path):
 def test_default_pipeline_gets_the_cameras_file_and_one_shift(rec):
     cams = rec / "cameras.json"
     args = _run_args("--camera", f"nose={rec / 'frames'}", "--mavlink", rec / "flight.tlog", "--cameras", cams,
-                     "--replay-start-in", "3")
+                     "--replay-start-in-s", "3")
     spec, subs = default_pipeline(args)
     by = {s["name"]: s for s in spec["services"]}
     cam, mav, sync = by["camera_nose"]["args"], by["mavlink"]["args"], by["sync"]["args"]

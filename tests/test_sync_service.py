@@ -95,7 +95,7 @@ def test_service_poses_frames_against_truth(tmp_path):
         tail_pub = s.declare_publisher(K.frame("t4", "tail"))
         try:
             proc = start_service(["-m", "eonav.services.sync", "--cameras", str(cams_path), "--vehicle", "t4",
-                                  "--connect", endpoint(port), "--health-period", "0.2", "--max-wait-ms", "300"])
+                                  "--connect", endpoint(port), "--health-period-s", "0.2", "--max-wait-ms", "300"])
             wait_until(lambda: nav_pub.matching_status.matching and frame_pub.matching_status.matching, 15,
                        what="the sync service's subscribers")
             time.sleep(0.2)

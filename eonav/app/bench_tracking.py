@@ -17,7 +17,7 @@ Per box of the scene (ground truth: the renderer's object ids and the solid box)
 - a confirmed track that never came near any box is false; false confirmed tracks per minute of flight.
 The "clear" flight is the approach flight's trajectory and textured ground with every box removed.
 
-    python -m eonav.app.bench_tracking [--seconds-approach 8] [--seconds-clear 30] [--rate 15] [--size 320x240]
+    python -m eonav.app.bench_tracking [--approach-s 8] [--clear-s 30] [--rate-hz 15] [--size 320x240]
 """
 from __future__ import annotations
 
@@ -151,19 +151,28 @@ def _size(s: str):
     return w, h
 
 
+def add_arguments(p) -> None:
+    p.add_argument("--approach-s", type=float, default=8.0, metavar="S",
+                   help="seconds of the approach flight towards the boxes (0: skip it)")
+    p.add_argument("--clear-s", type=float, default=30.0, metavar="S",
+                   help="seconds of the same flight with every box removed, for false tracks (0: skip it)")
+    p.add_argument("--rate-hz", type=float, default=15.0, metavar="HZ", help="frame rate")
+    p.add_argument("--size", type=_size, default=(320, 240), help="image size in pixels, WxH")
+    p.add_argument("--maps", choices=("dense", "truth", "both"), default="both",
+                   help="range maps from the dense locator, from the truth with 1 %% noise, or both")
+    for old, new in (("--seconds-approach", "approach_s"), ("--seconds-clear", "clear_s"), ("--rate", "rate_hz")):
+        p.add_argument(old, dest=new, type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seconds-approach", type=float, default=8.0)
-    p.add_argument("--seconds-clear", type=float, default=30.0)
-    p.add_argument("--rate", type=float, default=15.0, help="frame rate, Hz")
-    p.add_argument("--size", type=_size, default=(320, 240), help="WxH")
-    p.add_argument("--maps", choices=("dense", "truth", "both"), default="both")
+    add_arguments(p)
     args = p.parse_args(argv)
     sources = ("truth", "dense") if args.maps == "both" else (args.maps,)
     for maps in sources:
-        for name, secs, clear in (("approach", args.seconds_approach, False), ("approach", args.seconds_clear, True)):
+        for name, secs, clear in (("approach", args.approach_s, False), ("approach", args.clear_s, True)):
             if secs > 0:
-                report(name, secs, args.rate, args.size, clear, maps)
+                report(name, secs, args.rate_hz, args.size, clear, maps)
     return 0
 
 

@@ -319,8 +319,8 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
     rec = Path(rec_dir).resolve()
     man = json.loads((rec / "manifest.json").read_text())
     shift_us = str(int(shift_us))
-    obst = ["--ground-down", "0",                       # local NED origin at the take-off (ground) level
-            "--max-obstacle-distance", "150"]
+    obst = ["--ground-down-m", "0",                     # local NED origin at the take-off (ground) level
+            "--max-obstacle-distance-m", "150"]
     if mavlink_out:
         obst += ["--mavlink-out", mavlink_out]
     return {"services": [

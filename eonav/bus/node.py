@@ -459,7 +459,7 @@ class Node:
                     raise
 
         def publish_health():
-            period = float(self.args.health_period)
+            period = float(self.args.health_period_s)
             while True:
                 self.publish_health()
                 if self.stop_event.wait(period):
@@ -516,15 +516,17 @@ def add_common_arguments(p: argparse.ArgumentParser, default_name: str) -> None:
     add_flag(g, "--vehicle", env="EONAV_VEHICLE", default="demo", help="vehicle name (key prefix eonav/<vehicle>)")
     add_flag(g, "--name", env="EONAV_SERVICE_NAME", default=default_name,
              help="service instance name in health/alive/config keys (several instances need distinct names)")
-    add_flag(g, "--health-period", env="EONAV_HEALTH_PERIOD", default=1.0, type=float, metavar="S",
-             help="seconds between health messages")
+    add_flag(g, "--health-period-s", env="EONAV_HEALTH_PERIOD_S", default=1.0, type=float, metavar="S",
+             help="seconds between health messages", aliases="--health-period", old_env="EONAV_HEALTH_PERIOD")
     add_flag(g, "--log-level", env="EONAV_LOG_LEVEL", default="info",
              choices=["debug", "info", "warning", "error"], help="logging level")
     add_session_arguments(p)
 
 
-def build_parser(name: str, add_arguments: Callable | None) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=f"eonav service {name}",
+def build_parser(name: str, add_arguments: Callable | None, module: str | None = None) -> argparse.ArgumentParser:
+    """The service's parser: its own flags, then the common ones. ``module``: the service's module name under
+    eonav.services (what ``eonav service MODULE`` takes; default ``name``), for the usage line."""
+    p = argparse.ArgumentParser(prog=f"eonav service {module or name}",
                                 description=f"eonav {name} service")
     if add_arguments is not None:
         add_arguments(p)
@@ -627,14 +629,17 @@ def freeze_startup_objects() -> None:
     gc.freeze()
 
 
-def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None) -> None:
-    """Parse flags, run the node, ``sys.exit`` with its code. ``argv`` defaults to ``sys.argv[1:]``."""
-    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True))
+def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None, *,
+                 module: str | None = None) -> None:
+    """Parse flags, run the node, ``sys.exit`` with its code. ``name``: the default instance name (``--name``);
+    ``module``: see :func:`build_parser`. ``argv`` defaults to ``sys.argv[1:]``."""
+    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True, module=module))
 
 
-def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False) -> int:
+def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False,
+         module: str | None = None) -> int:
     """Like :func:`service_main` but returns the exit code (for ``eonav service`` and tests)."""
-    parser = build_parser(name, add_arguments)
+    parser = build_parser(name, add_arguments, module)
     args = parser.parse_args(argv)
     _setup_logging(args.log_level, args.name)
     try:

@@ -1,6 +1,6 @@
 """Recorder service: every sample under ``eonav/<vehicle>/**`` into an MCAP file, plus Foxglove channels.
 
-    eonav record OUT.mcap [--vehicle V] [--connect tcp/127.0.0.1:7447] [--split-size 512M] [--split-duration 600]
+    eonav record OUT.mcap [--vehicle V] [--connect tcp/127.0.0.1:7447] [--split-size 512M] [--split-duration-s 600]
     python -m eonav.recording.recorder OUT.mcap ...          (the same, as ``eonav run --record`` starts it)
 
 Raw channels (what ``eonav replay`` puts back): topic = the zenoh key, data = the payload bytes exactly as received,
@@ -20,7 +20,7 @@ publish time as the sample they were made from.
 
 ``--attach FILE`` stores a file the recording needs (e.g. the cameras file of sync) as an MCAP attachment record.
 
-Rotation: ``--split-size`` (bytes, with K/M/G suffixes) and ``--split-duration`` (seconds of log time) write
+Rotation: ``--split-size`` (bytes, with K/M/G suffixes) and ``--split-duration-s`` (seconds of log time) write
 ``OUT_000.mcap``, ``OUT_001.mcap``, ... each complete on its own (``eonav.recording.writer``). An existing file is
 never replaced unless ``--overwrite``. On SIGINT/SIGTERM the subscriber is closed, what it had queued is written, and
 the file is finished (summary and index): exit 0.
@@ -172,8 +172,9 @@ def add_arguments(p) -> None:
     g = p.add_argument_group("recording")
     add_flag(g, "--split-size", env="EONAV_RECORD_SPLIT_SIZE", default=None, metavar="BYTES",
              help="start a new file after this many bytes (suffix K, M, G)")
-    add_flag(g, "--split-duration", env="EONAV_RECORD_SPLIT_DURATION", default=None, type=float, metavar="S",
-             help="start a new file after this many seconds")
+    add_flag(g, "--split-duration-s", env="EONAV_RECORD_SPLIT_DURATION_S", default=None, type=float, metavar="S",
+             help="start a new file after this many seconds", aliases="--split-duration",
+             old_env="EONAV_RECORD_SPLIT_DURATION")
     add_flag(g, "--compression", env="EONAV_RECORD_COMPRESSION", default="lz4", choices=("lz4", "zstd", "none"),
              help="chunk compression: lz4 (least CPU), zstd (smallest files)")
     add_flag(g, "--overwrite", env="EONAV_RECORD_OVERWRITE", default=False, action="store_true",
@@ -184,10 +185,12 @@ def add_arguments(p) -> None:
              help="Foxglove images: RawImage (raw) or CompressedImage (jpeg, png)")
     add_flag(g, "--max-points", env="EONAV_RECORD_MAX_POINTS", default=DEFAULT_MAX_POINTS, type=int,
              help="largest point cloud per range map (the map is subsampled to fit)")
-    add_flag(g, "--range-near", env="EONAV_RECORD_RANGE_NEAR", default=5.0, type=float, metavar="M",
-             help="range colour scale: this range and nearer are red")
-    add_flag(g, "--range-far", env="EONAV_RECORD_RANGE_FAR", default=150.0, type=float, metavar="M",
-             help="range colour scale: this range and farther are blue")
+    add_flag(g, "--range-near-m", env="EONAV_RECORD_RANGE_NEAR_M", default=5.0, type=float, metavar="M",
+             help="range colour scale: this range and nearer are red", aliases="--range-near",
+             old_env="EONAV_RECORD_RANGE_NEAR")
+    add_flag(g, "--range-far-m", env="EONAV_RECORD_RANGE_FAR_M", default=150.0, type=float, metavar="M",
+             help="range colour scale: this range and farther are blue", aliases="--range-far",
+             old_env="EONAV_RECORD_RANGE_FAR")
     add_flag(g, "--queue", env="EONAV_RECORD_QUEUE", default=256, type=int,
              help="samples the subscriber queues while the writer is busy")
     add_flag(g, "--nice", env="EONAV_RECORD_NICE", default=10, type=int, metavar="N",
@@ -202,7 +205,7 @@ def make_recorder(args, node: Node | None, vehicle: str) -> Recorder:
     from eonav.recording.foxglove import FoxgloveConverter
     from eonav.recording.writer import RecordingWriter
     out = Path(args.output).expanduser().resolve()
-    writer = RecordingWriter(out, split_bytes=parse_size(args.split_size), split_s=args.split_duration,
+    writer = RecordingWriter(out, split_bytes=parse_size(args.split_size), split_s=args.split_duration_s,
                              overwrite=args.overwrite, compression=args.compression)
     writer.add_metadata("eonav.recording", {"vehicle": vehicle, "key_expr": K.vehicle_all(vehicle),
                                             "schema_version": str(schema.SCHEMA_VERSION),
@@ -213,7 +216,7 @@ def make_recorder(args, node: Node | None, vehicle: str) -> Recorder:
             raise InputError(f"--attach {a}: no such file")
         writer.add_attachment(p.name, "application/json" if p.suffix == ".json" else "application/octet-stream",
                               p.read_bytes())
-    conv = None if args.no_foxglove else FoxgloveConverter(args.images, near_m=args.range_near, far_m=args.range_far,
+    conv = None if args.no_foxglove else FoxgloveConverter(args.images, near_m=args.range_near_m, far_m=args.range_far_m,
                                                            max_points=args.max_points)
     return Recorder(writer, conv, node)
 

@@ -16,8 +16,8 @@ ring channel keeps the newest samples only) is that consumer's choice.
 
 First messages are never lost to a subscriber that is still connecting: all publishers are declared first, then the
 replay waits until each key selected by ``--wait-for`` (default: every replayed key) has a matching subscriber
-(``publisher.matching_status.matching``), at most ``--wait-timeout`` seconds; keys still without a subscriber then are
-logged and replayed anyway (nobody listens to them). ``--wait-timeout 0`` starts at once.
+(``publisher.matching_status.matching``), at most ``--wait-timeout-s`` seconds; keys still without a subscriber then are
+logged and replayed anyway (nobody listens to them). ``--wait-timeout-s 0`` starts at once.
 
 All keys are put with one priority (DATA), so samples of different keys cannot overtake each other on the way.
 End of the recordings: exit 0 (``eonav run --exit-when-done``). Health counters: ``messages``, ``bytes``.
@@ -150,8 +150,8 @@ def add_arguments(p) -> None:
     p.add_argument("inputs", nargs="+", metavar="IN.mcap", help="recordings, replayed one after the other")
     g = p.add_argument_group("replay")
     pace = g.add_mutually_exclusive_group()
-    add_flag(pace, "--speed", env="EONAV_REPLAY_SPEED", default=1.0, type=float, metavar="N",
-             help="N times real time")
+    add_flag(pace, "--speed", env="EONAV_REPLAY_SPEED", default=1.0, type=float, metavar="FACTOR",
+             help="FACTOR times real time")
     pace.add_argument("--as-fast-as-possible", action="store_true", help="no pacing (the bus still never drops)")
     g.add_argument("--include", action="append", default=None, metavar="KEYEXPR",
                    help="replay only keys matching this (repeatable)")
@@ -160,8 +160,9 @@ def add_arguments(p) -> None:
     g.add_argument("--as-vehicle", default=None, metavar="V", help="replay under eonav/V/ instead of the recorded vehicle")
     g.add_argument("--wait-for", action="append", default=None, metavar="KEYEXPR",
                    help="keys that must have a subscriber before the first message (repeatable; default: all)")
-    add_flag(g, "--wait-timeout", env="EONAV_REPLAY_WAIT_TIMEOUT", default=10.0, type=float, metavar="S",
-             help="longest wait for subscribers before the first message")
+    add_flag(g, "--wait-timeout-s", env="EONAV_REPLAY_WAIT_TIMEOUT_S", default=10.0, type=float, metavar="S",
+             help="longest wait for subscribers before the first message", aliases="--wait-timeout",
+             old_env="EONAV_REPLAY_WAIT_TIMEOUT")
 
 
 def body(node: Node, args) -> None:
@@ -183,11 +184,11 @@ def body(node: Node, args) -> None:
     speed = None if args.as_fast_as_possible else float(args.speed)
 
     def replay():
-        missing = wait_for_subscribers(pubs, args.wait_for, args.wait_timeout, node.stop_event)
+        missing = wait_for_subscribers(pubs, args.wait_for, args.wait_timeout_s, node.stop_event)
         if node.stop_event.is_set():
             return
         if missing:
-            node.log.warning("no subscriber after %.1f s for %s; replaying anyway", args.wait_timeout,
+            node.log.warning("no subscriber after %.1f s for %s; replaying anyway", args.wait_timeout_s,
                              ", ".join(missing))
         n, t0_wall, t0_log = 0, None, None
         encodings: dict[str, zenoh.Encoding] = {}

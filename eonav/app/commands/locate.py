@@ -15,10 +15,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--truth", help="ground-truth .npz with range_m (e.g. from 'eonav sim'): print an accuracy summary")
     p.add_argument("--timing", action="store_true", help="time the estimator; last stdout line is JSON")
     p.add_argument("--repeat", type=int, default=5, help="runs for --timing (median after one warm-up)")
-    p.add_argument("--threads", type=int, default=0, help="OpenCV threads (0 = OpenCV default)")
+    p.add_argument("--cv-threads", type=int, default=-1, metavar="N",
+                   help="cv2.setNumThreads(N); -1 (default) keeps OpenCV's default, 0 disables its threading")
+    p.add_argument("--threads", dest="cv_threads", type=int, action=_OldThreads, default=argparse.SUPPRESS,
+                   help=argparse.SUPPRESS)
     p.add_argument("--measured-only", action="store_true",
                    help="dense: no FILLED pixels (ranges the pair could not measure, inferred from their neighbours); "
                         "range_m is then finite on VALID pixels only")
+
+
+class _OldThreads(argparse.Action):
+    """``--threads N``, the old spelling of ``--cv-threads``, where 0 meant OpenCV's default (now -1)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, -1 if values == 0 else values)
 
 
 def accuracy_summary(range_m, truth_m, confidence=None) -> dict:
@@ -51,9 +61,9 @@ def run(args) -> int:
     from eonav.ranging.locate import get_method
     from eonav.io.pairfile import load_pair_file
 
-    if args.threads:
+    if args.cv_threads >= 0:
         import cv2
-        cv2.setNumThreads(args.threads)
+        cv2.setNumThreads(args.cv_threads)
     pf = load_pair_file(args.pair)
     if not 1 <= args.other < len(pf.frames):
         raise InputError(f"--other {args.other}: the pair file has frames 0..{len(pf.frames) - 1}")

@@ -30,14 +30,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_flag(p, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default="auto", type=_shift, metavar="D|auto",
              help="default pipeline: the shift every replay gets (recorded stamp + D); auto = when all sources are "
                   "recordings (image folder / video file with stamps + tlog), computed when the replays start")
-    add_flag(p, "--replay-start-in", env="EONAV_REPLAY_START_IN", default=DEFAULT_START_IN_S, type=float, metavar="S",
+    add_flag(p, "--replay-start-in-s", env="EONAV_REPLAY_START_IN_S", default=DEFAULT_START_IN_S, type=float,
+             metavar="S",
              help="default pipeline: seconds from the replays' start (once the other services are alive) to the "
                   "recording's first record (--replay-shift-us auto)")
-    add_flag(p, "--duration", env="EONAV_DURATION", default=None, type=float, metavar="S", help="stop after S seconds")
+    add_flag(p, "--duration-s", env="EONAV_DURATION_S", default=None, type=float, metavar="S", help="stop after S seconds",
+             aliases="--duration", old_env="EONAV_DURATION")
     add_flag(p, "--exit-when-done", env="EONAV_EXIT_WHEN_DONE", default=None, metavar="SERVICE",
              help="stop when SERVICE exits 0 (e.g. a replay reached its end)")
-    add_flag(p, "--grace", env="EONAV_GRACE", default=5.0, type=float, metavar="S",
-             help="seconds between SIGINT and SIGKILL when stopping")
+    add_flag(p, "--grace-s", env="EONAV_GRACE_S", default=5.0, type=float, metavar="S",
+             help="seconds between SIGINT and SIGKILL when stopping", aliases="--grace", old_env="EONAV_GRACE")
     add_flag(p, "--log-dir", env="EONAV_LOG_DIR", default=None, metavar="DIR",
              help="one log file per service here (default: services log to this terminal)")
     add_flag(p, "--quiet", env="EONAV_QUIET", action="store_true", help="no status line")
@@ -79,16 +81,16 @@ def default_pipeline(args) -> tuple[dict, dict]:
         starts = [S.camera_start(f"--camera {cid}={src}", src) for cid, src in cams]
         if args.mavlink:
             starts.append(S.mavlink_start(f"--mavlink {args.mavlink}", args.mavlink))
-        shift = S.joint_replay_shift_us(starts, args.replay_start_in)      # None, or checks the recordings
+        shift = S.joint_replay_shift_us(starts, args.replay_start_in_s)      # None, or checks the recordings
         if shift is None and any(s.recorded for s in starts) and not all(s.recorded for s in starts):
             log.warning("recorded and live sources mixed (%s): each replay is mapped onto the current clock by "
                         "itself, not in step with the live ones",
                         ", ".join(f"{s.what}: {s.kind}" for s in starts))
         if shift is not None:
             def shift_now():
-                d = S.joint_replay_shift_us(starts, args.replay_start_in)
+                d = S.joint_replay_shift_us(starts, args.replay_start_in_s)
                 log.info("recorded sources replayed in step: --replay-shift-us %d (first record in %.1f s)", d,
-                         args.replay_start_in)
+                         args.replay_start_in_s)
                 return d
             shift, subs = "{replay_shift_us}", {"replay_shift_us": shift_now}
     return default_spec(args.camera, args.mavlink, args.cameras, shift), subs
@@ -119,7 +121,7 @@ def run(args) -> int:
         doc = json.loads(Path(spec).read_text()) if isinstance(spec, str) else spec
         print(json.dumps(doc, indent=2))
         return 0
-    return run_pipeline(spec, vehicle=args.vehicle, port=args.port, duration=args.duration,
-                        exit_when_done=args.exit_when_done, router=args.router, grace_s=args.grace,
+    return run_pipeline(spec, vehicle=args.vehicle, port=args.port, duration=args.duration_s,
+                        exit_when_done=args.exit_when_done, router=args.router, grace_s=args.grace_s,
                         quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config,
                         record=args.record, substitutions=subs)
