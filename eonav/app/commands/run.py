@@ -46,6 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--watch", action="store_true",
                    help="start nothing: show the status of the services already on the bus (use with --router)")
     p.add_argument("--print-spec", action="store_true", help="print the effective pipeline spec as JSON and exit")
+    add_flag(p, "--out", env="EONAV_DEMO_OUT", default=None, metavar="DIR",
+             help="the demo (no pipeline, no source): where its run folder eonav-demo-<date>-<time> (picture, "
+                  "summary, logs) goes; default the working directory")
     add_flag(p, "--record", env="EONAV_RECORD", default=None, metavar="FILE.mcap",
              help="also record everything on the bus into this MCAP file (eonav record; the demo too)")
 
