@@ -83,10 +83,13 @@ def test_demo_range_picture_boxes_the_obstacles_on_the_messages_grid():
     r, valid, truth, ob = _scene()
     msg = {"range_m": r, "flags": np.where(valid, VALID, 0).astype(np.uint8), "frame_width": 128,
            "frame_height": 128}
-    pic = D.range_picture(msg, truth, obstacles=[ob])
+    far = [dict(ob, id=10 + i, distance_m=60.0 + i, bbox_px=[2 * i, 100, 2 * i + 1, 101]) for i in range(8)]
+    pic = D.range_picture(msg, truth, obstacles=far + [ob], max_boxes=3)
     k, top = 6, 20
-    assert (pic[top + 12 * k, 20 * k:36 * k] == V.BOX_BGR).all()
-    assert not pic[top + 52 * k, 10].any()                               # flags: no estimate in the hole
+    assert (pic[top + 12 * k, 20 * k:36 * k] == V.BOX_BGR).all()        # the nearest obstacle is boxed
+    boxed = [(pic[top + 50 * k, i * k] == V.BOX_BGR).all() for i in range(8)]
+    assert boxed == [True, True] + [False] * 6                           # and the next two nearest only
+    assert not pic[top + 52 * k, 10 * k + 3].any()                       # flags: no estimate in the hole
 
 
 # ---- verdict ----------------------------------------------------------------------------------------------

@@ -43,6 +43,7 @@ NAV_LEAD_S = 3.0
 # The verdict: a run is "degraded" when fewer than this fraction of the recorded frames reached the bus, or of the
 # frames that can have a range map (all but the first: it has no earlier frame to pair with) got one.
 MIN_FRACTION = 0.8
+PICTURE_BOXES = 6             # the picture boxes the nearest obstacles of the list (all of them clutter it)
 
 
 def default_cache_dir() -> Path:
@@ -317,10 +318,10 @@ def _yaw_deg(q_wxyz) -> float:
 
 
 def range_picture(msg: dict, truth_range=None, obstacles=(), near_m: float = 5.0,
-                  max_range_m: float = 150.0) -> np.ndarray:
+                  max_range_m: float = 150.0, max_boxes: int = PICTURE_BOXES) -> np.ndarray:
     """BGR picture of range map message ``msg``: the estimate (VALID pixels; black = no estimate) and the truth beside
-    it on one colour scale from ``near_m`` (red) to ``max_range_m`` (blue), a colour bar in metres, and
-    ``obstacles`` (an obstacle list's, ``bbox_px`` in frame pixels) boxed with their distance
+    it on one colour scale from ``near_m`` (red) to ``max_range_m`` (blue), a colour bar in metres, and the
+    ``max_boxes`` nearest ``obstacles`` (an obstacle list's, ``bbox_px`` in frame pixels) boxed with their distance
     (``eonav.io.viz.estimate_truth_picture``)."""
     from eonav.ranging.rangemap import VALID
     from eonav.io.viz import estimate_truth_picture
@@ -331,7 +332,8 @@ def range_picture(msg: dict, truth_range=None, obstacles=(), near_m: float = 5.0
         valid &= (msg["flags"] & VALID) != 0
     fw, fh = int(msg.get("frame_width") or 0), int(msg.get("frame_height") or 0)
     frame_size = (fw, fh) if fw > 0 and fh > 0 else None
-    pic, _ = estimate_truth_picture(r, valid, truth_range, obstacles=obstacles, frame_size=frame_size,
+    nearest = sorted(obstacles, key=lambda o: float(o["distance_m"]))[:max_boxes]
+    pic, _ = estimate_truth_picture(r, valid, truth_range, obstacles=nearest, frame_size=frame_size,
                                     near_m=near_m, far_m=max_range_m)
     return pic
 
@@ -502,7 +504,7 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         pic = range_picture(m, on_grid(truth.range_m[i], m["range_m"].shape[1], m["range_m"].shape[0])
                             .astype(np.float32) if i is not None else None, obstacles=boxes)
         cv2.imwrite(str(png), pic)
-        summary.update(png=str(png), png_obstacles=len(boxes))
+        summary.update(png=str(png), png_obstacles=min(len(boxes), PICTURE_BOXES), obstacles_in_list=len(boxes))
     summary.update(outcome(summary, result["code"], reason))
     return summary
 
@@ -541,7 +543,9 @@ def format_summary(s: dict) -> str:
     ]
     if "png" in s:
         lines.append(f"  range picture        {s['png']} (left: estimate, right: truth, colour bar in metres; "
-                     f"{s.get('png_obstacles', 0)} obstacles boxed with their distance; black = no estimate)")
+                     f"the {s.get('png_obstacles', 0)} nearest of the map's {s.get('obstacles_in_list', 0)} obstacles "
+                     f"boxed with their distance from the vehicle origin, the colours range from the camera; "
+                     f"black = no estimate)")
     if "verdict" in s:
         why = f": {'; '.join(s['verdict_reasons'])}" if s["verdict_reasons"] else (
             f" (at least {MIN_FRACTION:.0%} of the frames seen and ranged)")

@@ -113,7 +113,7 @@ def draw_obstacles(img: np.ndarray, obstacles, scale_x: float, scale_y: float) -
         p1 = (int(round((u1 + 1) * scale_x)) - 1, int(round((v1 + 1) * scale_y)) - 1)
         cv2.rectangle(img, p0, p1, BOX_BGR, 1)
         label = f"{float(o['distance_m']):.1f} m"
-        y = p0[1] - 3 if p0[1] >= 12 else p1[1] + 12
+        y = p0[1] - 3 if p0[1] >= 12 else p0[1] + 12          # above the box, or inside it at the top edge
         cv2.putText(img, label, (p0[0], y), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(img, label, (p0[0], y), cv2.FONT_HERSHEY_SIMPLEX, 0.4, TEXT_BGR, 1, cv2.LINE_AA)
     return img
