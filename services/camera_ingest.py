@@ -28,7 +28,7 @@ import numpy as np
 
 from eonav import EonavError, InputError
 from eonav.bus import keys as K
-from eonav.bus.node import Node, add_flag, service_main
+from eonav.bus.node import Node, add_flag, restart_count, service_main
 
 log = logging.getLogger("eonav.service.camera")
 
@@ -37,6 +37,7 @@ TIMESTAMPS_FILE = "timestamps.txt"
 ENCODINGS = ("mono8", "bgr8")
 US_THRESHOLD = 1e11  # integer stamps at or above this are microseconds (1e11 us = 27.8 h; 1e11 s = year 5138)
 LIVE_PLAUSIBLE_US = 2_000_000
+RESUME_LATE_US = 100_000  # a joint replay (re)starts at its first frame due no more than this long ago
 
 
 # --------------------------------------------------------------------------------------------------
@@ -75,6 +76,7 @@ class RawFrame:
     grab_mono: float = field(default_factory=time.monotonic)
     error: str = ""
     name: str = ""
+    skipped: int = 0          # frames of the recording passed over just before this one (a resumed replay)
 
 
 class Pacer:
@@ -170,7 +172,9 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
                   reader: Callable | None = None, replay_shift_us: int | None = None) -> Iterator[RawFrame]:
     """Frames of an image folder (sorted files), stamped from the timestamps file if there is one.
     With ``replay_shift_us``, each frame is stamped recorded + shift and released when the host clock
-    reaches that stamp (joint replays; the pacer is then not used)."""
+    reaches that stamp (joint replays; the pacer is then not used); frames already due more than
+    ``RESUME_LATE_US`` when the replay starts are passed over unread (``RawFrame.skipped``), so a replay restarted
+    mid-way resumes where the clock says it is and never publishes an old stamp."""
     import cv2
     clock = clock or Clock()
     folder = Path(folder)
@@ -196,6 +200,8 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
     offset_us = None
     lap_shift_us = 0
     index = 0
+    resume_us = None if replay_shift_us is None else clock.now_us() - RESUME_LATE_US
+    skipped = 0
     while True:
         for i, path in enumerate(files):
             if stop is not None and stop.is_set():
@@ -204,6 +210,10 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
                 media_us = rec[i] + lap_shift_us
             else:
                 media_us = (index * period_us)
+            if resume_us is not None and media_us + replay_shift_us < resume_us:
+                skipped += 1
+                index += 1
+                continue
             if pacer:
                 pacer.wait(media_us / 1e6)
             if replay_shift_us is not None:
@@ -228,7 +238,8 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
             except Exception as e:  # permission denied, truncated file, ...
                 img, err = None, f"{type(e).__name__}: {e}"
             yield RawFrame(index=index, image=img, stamp_us=stamp, stamp_source=src, source_pts_us=pts,
-                           grab_mono=t_grab, error=err, name=path.name)
+                           grab_mono=t_grab, error=err, name=path.name, skipped=skipped)
+            skipped = 0
             index += 1
         if not loop:
             return
@@ -368,9 +379,12 @@ def recorded_video_frames(frames: Iterable[RawFrame], stamps_us: list[int], *, k
                           stop: threading.Event | None = None) -> Iterator[RawFrame]:
     """A video file's frames stamped from its recorded stamps (one per decoded frame, in order), as an image
     folder's are: moved onto the current clock with their spacing kept, kept as recorded (``keep_stamps``), or
-    recorded + ``replay_shift_us`` and released when the host clock reaches that stamp (``frames`` then unpaced)."""
+    recorded + ``replay_shift_us`` and released when the host clock reaches that stamp (``frames`` then unpaced;
+    frames due more than ``RESUME_LATE_US`` before the replay started are passed over, as a folder's)."""
     clock = clock or Clock()
     offset_us = None
+    resume_us = None if replay_shift_us is None or keep_stamps else clock.now_us() - RESUME_LATE_US
+    skipped = 0
     for f in frames:
         if f.index >= len(stamps_us):
             raise InputError(f"video frame {f.index + 1}: more frames than the {len(stamps_us)} recorded stamps")
@@ -379,6 +393,9 @@ def recorded_video_frames(frames: Iterable[RawFrame], stamps_us: list[int], *, k
         if keep_stamps:
             stamp, src = rec, "recorded_raw"
         elif replay_shift_us is not None:
+            if rec + replay_shift_us < resume_us:
+                skipped += 1
+                continue
             clock.sleep((rec + replay_shift_us - clock.now_us()) / 1e6, stop)
             if stop is not None and stop.is_set():
                 return
@@ -388,7 +405,8 @@ def recorded_video_frames(frames: Iterable[RawFrame], stamps_us: list[int], *, k
                 offset_us = clock.now_us() - rec
             stamp, src = rec + offset_us, "recorded"
         yield RawFrame(index=f.index, image=f.image, stamp_us=stamp, stamp_source=src, source_pts_us=rec,
-                       grab_mono=grab_mono, error=f.error, name=f.name)
+                       grab_mono=grab_mono, error=f.error, name=f.name, skipped=skipped)
+        skipped = 0
 
 
 def video_stamps(args) -> list[int] | None:
@@ -463,6 +481,7 @@ class CaptureStats:
     published: int = 0
     corrupt: int = 0
     wrong_size: int = 0
+    skipped: int = 0
     last_stamp_us: int = -1
 
 
@@ -475,7 +494,8 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
     Skips (and counts) unreadable frames (``corrupt_frames``) and, when ``width``/``height`` are given,
     frames of another size (``wrong_size``). ``correct(image, stamp_us) -> (image, stamp_us)`` (a
     ``eonav.io.calibration.FrameCorrection``) undistorts and re-stamps each kept frame. ``seq`` numbers published
-    frames from 0. Returns when ``frames`` is exhausted or ``stop`` is set."""
+    frames from 0, plus the frames a resumed replay passed over (``replay_skipped``: downstream sees them as a gap,
+    not a restart). Returns when ``frames`` is exhausted or ``stop`` is set."""
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding {encoding!r}: expected one of {ENCODINGS}")
     m = metrics or NullMetrics()
@@ -484,6 +504,9 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
         if stop is not None and stop.is_set():
             break
         m.count("frames_in")
+        if f.skipped:
+            st.skipped += f.skipped
+            m.count("replay_skipped", f.skipped)
         if f.image is None:
             st.corrupt += 1
             m.count("corrupt_frames")
@@ -507,7 +530,7 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
         stamp_us = int(f.stamp_us)
         if correct is not None:
             img, stamp_us = correct(img, stamp_us)
-        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": stamp_us,
+        sink({"camera_id": camera_id, "seq": st.published + st.skipped, "stamp_us": stamp_us,
               "stamp_source": f.stamp_source, "encoding": encoding, "image": img,
               "source_pts_us": int(f.source_pts_us)})
         m.latency("grab_to_put", monotonic() - f.grab_mono)
@@ -635,6 +658,12 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
 def body(node: Node, args) -> None:
     K.check_chunk(args.camera_id, "--camera-id")
     kind = classify_source(args.source) if args.source else None
+    if kind in ("folder", "file") and args.replay_shift_us is None and restart_count():
+        # no fixed time reference: it would start over with the recording's beginning presented as now
+        node.log.warning("replay of %s restarted without --replay-shift-us: it cannot resume where it was, so it "
+                         "ends here instead of starting over (docs/bus.md, Staleness)", args.source)
+        node.stop("restarted replay cannot resume")
+        return
     correct = camera_correction(args)
     frames = make_frames(args, stop=node.stop_event)
     key = K.frame(node.vehicle, args.camera_id)

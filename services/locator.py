@@ -22,6 +22,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.bus import keys as K
+from eonav.bus.freshness import FreshnessGate, age_ms, screen
 from eonav.bus.node import Node, add_flag, now_us, service_main
 from eonav.bus.session import env_flag
 
@@ -64,6 +65,11 @@ def add_arguments(p):
     add_flag(p, "--fusion", env="EONAV_LOCATOR_FUSION", default="auto", choices=("auto", "on", "off"),
              help="fuse every camera's measurements over time into one inverse-range state per camera and publish "
                   "the fused map (eonav.fusion); auto: on with the dense method, off with the others")
+    add_flag(p, "--max-input-age-ms", env="EONAV_LOCATOR_MAX_INPUT_AGE_MS", default=800.0, type=float,
+             help="drop (count dropped.too_old) a posed frame older than this on arrival, and a range map whose frame "
+                  "is older than this when it would be published (docs/bus.md, Staleness)")
+    add_flag(p, "--input-timeout-ms", env="EONAV_LOCATOR_INPUT_TIMEOUT_MS", default=1000.0, type=float,
+             help="no usable posed frame for this long: state degraded (5 periods of a 5 fps camera)")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.ranging.pair_policy)")
@@ -282,10 +288,14 @@ def body(node: Node, args) -> None:
     new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
     runner = fusion_runner(args, params)
+    if runner is not None:
+        warm_up_fusion(node, runner)
     key = K.posed_frame(node.vehicle, args.camera_id) if args.camera_id else K.posed_frames_all(node.vehicle)
+    gate = FreshnessGate(args.max_input_age_ms / 1000.0)
     sub = node.subscribe(key, ring=args.ring)
+    node.expect_input("posed frames", args.input_timeout_ms / 1000.0)
     node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, args.warmup,
-                args.publish_grid, runner, name="locate")
+                args.publish_grid, runner, gate, name="locate")
     node.log.info("locator: method %s, fusion %s, scale %s (ladder %s, budget %s), publish grid %s, %s, policy %s",
                   args.method, "on" if runner else "off", args.scale, new_controller().ladder,
                   "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms", args.publish_grid, key,
@@ -310,6 +320,28 @@ def fusion_runner(args, params: dict):
     measure_params = dict(params, fill=False)
     return FusionRunner(FusionConfig(schedule=schedule),
                         measure=lambda va, vb: locate(va, vb, method=args.method, **measure_params))
+
+
+def warm_up_fusion(node: Node, runner) -> None:
+    """Run predict, update and the fused map once on a small plane pair, before the first frame: their numba passes
+    load (or compile, on a fresh install) now, not in the first fused map, which would then be too old to publish.
+    A failure is counted (``warmup_errors``) and logged; the real frames then pay the load."""
+    from eonav.fusion.schedule import ScheduleConfig
+    from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+    from eonav.ranging.methods.dense import _plane_pair
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    t0 = time.perf_counter()
+    try:
+        va, vb = _plane_pair(96)
+        probe = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01))),
+                             measure=runner.measure)
+        maps = [m for k, v in enumerate((va, vb, va)) for m in probe.push(frame("warmup", v, 1_000_000 + k * 100_000, k))]
+    except Exception as e:  # noqa: BLE001  (see docstring)
+        node.count("warmup_errors")
+        node.log.warning("fusion warm-up failed: %s: %s", type(e).__name__, e)
+        return
+    node.latency("warmup_fusion", time.perf_counter() - t0)
+    node.log.info("fusion warm-up: %.0f ms, %d fused maps", (time.perf_counter() - t0) * 1e3, len(maps))
 
 
 def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
@@ -396,11 +428,13 @@ def show_scale(node: Node, camera_id: str, controller, shown: dict) -> None:
 
 
 def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controller=None,
-                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate", runner=None) -> None:
+                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate", runner=None,
+                gate: FreshnessGate | None = None) -> None:
     """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1);
     ``warmup``: ``warm_up_camera`` at each camera's first frame; ``publish_grid``: ``locate`` or ``frame`` (module
     docstring); ``runner``: an ``eonav.fusion`` FusionRunner (``fusion_runner``), which then schedules the pairs and
-    whose fused maps are published, instead of one pair's map per frame."""
+    whose fused maps are published, instead of one pair's map per frame; ``gate``: the max-age and stamp-order
+    gate on arrival and before each put (``eonav.bus.freshness``; None: none)."""
     if publish_grid not in ("locate", "frame"):
         raise InputError(f"publish grid must be 'locate' or 'frame', got {publish_grid!r}")
     from eonav.ranging.locate import locate
@@ -417,8 +451,9 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     def one(sample, newest) -> None:
         nonlocal errors_in_row
         msg = node.decode(sample, expect="posed_frame")
-        if msg is None:
+        if msg is None or (gate is not None and not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival")):
             return
+        node.input_seen("posed frames")
         t_rx = now_us()
         t_rx0 = time.perf_counter()
         node.latency("capture_to_received", (t_rx - msg["stamp_us"]) * 1e-6)
@@ -458,7 +493,8 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             node.count("frames_superseded")
             return
         if runner is not None:
-            fuse_frame(node, runner, f, sc, pubs, range_std, t_rx0, cameras, publish_grid, reported_fusion, sources)
+            fuse_frame(node, runner, f, sc, pubs, range_std, t_rx0, cameras, publish_grid, reported_fusion, sources,
+                       gate)
             return
         d = policy.offer(f)
         node.count(f"pairs.{d.reason}")
@@ -472,7 +508,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
         sc = scalers[ref]                   # be the rig frame that arrived before f)
         scale = sc.scale                    # one scale for both frames of the pair
         errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
-                                              t_rx0, cameras, locate, publish_grid)
+                                              t_rx0, cameras, locate, publish_grid, gate)
         if compute_s is not None:
             change = sc.observe_compute(scale, compute_s)
             if change is not None:
@@ -492,8 +528,13 @@ def fusion_frame(f, scale: float, cameras: CameraCache):
     return frame(f.camera_id, scaled_view(f, scale, cameras), f.stamp_us, f.seq)
 
 
+def fresh_to_put(node: Node, gate: FreshnessGate | None, camera_id: str, stamp_us: int) -> bool:
+    """Whether a range map of ``camera_id`` stamped ``stamp_us`` may be put now (``gate`` None: always)."""
+    return gate is None or screen(node, gate, camera_id, stamp_us, "publish")
+
+
 def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: float, cameras: CameraCache,
-               publish_grid: str, reported: dict, sources: dict) -> None:
+               publish_grid: str, reported: dict, sources: dict, gate: FreshnessGate | None = None) -> None:
     """Push posed frame ``f`` through the fusion runner and publish the fused maps it returns (normally one: ``f``'s
     camera; a stereo partner's frame returns the rig reference's). The compute time (measurements + fusion) drives
     the camera's scale controller as a single pair's would."""
@@ -527,11 +568,15 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
         n = np.minimum(np.asarray(m.n_fused), 255).astype(np.uint8)
         if fields["range_m"].shape != n.shape:
             n = to_full_grid(n, a.camera)
+        if not fresh_to_put(node, gate, a.camera_id, a.stamp_us):
+            continue
         node.put(pubs[a.camera_id], "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
                  other_camera_id=ms.get("other_camera_id", ""), other_seq=ms.get("other_seq", -1),
                  method=m.result.method, position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"],
                  baseline_m=ms.get("baseline_m", float("nan")), compute_s=compute_s, scale=float(scale),
-                 overhead_s=(t0 - t_rx0), n_fused=n, **fields)
+                 overhead_s=(t0 - t_rx0), n_fused=n, frame_age_ms=age_ms(a.stamp_us), **fields)
+        if gate is not None:
+            gate.commit(a.camera_id, a.stamp_us)
         node.count("pairs_computed", len(m.measurements))
         node.count("maps_fused")
         node.tick("pairs_computed")
@@ -548,9 +593,11 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
 
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
-               errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate") -> tuple:
-    """Locate one pair at ``scale`` (both frames) and publish its range map on the ``publish_grid`` (``map_fields``);
-    returns (the count of locate errors in a row, the locate call's seconds or None when it failed)."""
+               errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate",
+               gate: FreshnessGate | None = None) -> tuple:
+    """Locate one pair at ``scale`` (both frames) and publish its range map on the ``publish_grid`` (``map_fields``)
+    unless ``gate`` finds it stale; returns (the count of locate errors in a row, the locate call's seconds or None
+    when it failed)."""
     a, b = d.a, d.b
     va, vb = scaled_view(a, scale, cameras), scaled_view(b, scale, cameras)
     t0 = time.perf_counter()
@@ -572,10 +619,15 @@ def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: floa
     fields = map_fields(res, a, va.camera, range_std, publish_grid)
     range_m = fields["range_m"]
     overhead_s = (t0 - t_rx0) + (time.perf_counter() - t1)     # so far; the encode and put follow
+    if not fresh_to_put(node, gate, a.camera_id, a.stamp_us):
+        return 0, compute_s
     node.put(pub, "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
              other_camera_id=b.camera_id, other_seq=b.seq, other_stamp_us=b.stamp_us, method=res.method,
              position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"], baseline_m=d.baseline_m,
-             compute_s=compute_s, scale=float(scale), overhead_s=overhead_s, **fields)
+             compute_s=compute_s, scale=float(scale), overhead_s=overhead_s, frame_age_ms=age_ms(a.stamp_us),
+             **fields)
+    if gate is not None:
+        gate.commit(a.camera_id, a.stamp_us)
     node.count("pairs_computed")
     node.count(f"pairs_computed.{d.reason}")
     node.tick("pairs_computed")

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from eonav import InputError
 from eonav.bus import keys as K
-from eonav.bus.node import Node, add_flag, service_main
+from eonav.bus.node import Node, add_flag, restart_count, service_main
 from eonav.nav.links import MavLink
 from eonav.nav.mavlink_in import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
 
@@ -31,6 +31,7 @@ COMPANION_COMPONENT = 191          # MAV_COMP_ID_ONBOARD_COMPUTER
 STREAM_IDS = {"ATTITUDE": 30, "ATTITUDE_QUATERNION": 31, "LOCAL_POSITION_NED": 32, "GLOBAL_POSITION_INT": 33,
               "SYSTEM_TIME": 2}
 CLOCK_PUBLISH_PERIOD_US = 1_000_000
+RESUME_LATE_US = 100_000     # a joint replay (re)starts at its first record due no more than this long ago
 
 
 def now_us() -> int:
@@ -93,6 +94,14 @@ class Publisher:
             states = self.ingest.feed(msg, rx_us)
         self.publish(states, rx_us)
 
+    def fast_forward(self, msg, rx_us: int) -> None:
+        """Feed a record the replay passes over (already due when it started): the decoder (origin, system id)
+        and the clock estimator see it, nothing is published (``replay_skipped``)."""
+        self.node.count("replay_skipped")
+        if msg.get_type() != "BAD_DATA":
+            with self.lock:
+                self.ingest.feed(msg, rx_us)
+
     def publish(self, states, now: int) -> None:
         for d in states:
             self.node.put(self.nav_pub, "nav_state", **d)
@@ -125,19 +134,25 @@ class Publisher:
 
 
 def replay_tlog(path, feed, *, speed: float, stop: threading.Event, keep_stamps: bool = False,
-                clock=now_us, sleep=None, shift_us: int | None = None) -> TlogReader:
+                clock=now_us, sleep=None, shift_us: int | None = None, skip=None) -> TlogReader:
     """Replay a tlog into ``feed(msg, rx_us)``: header times shifted onto the current clock, paced at
     ``speed`` x real time (0 = as fast as possible). With ``shift_us`` (joint replays, see the camera
-    ingest), each record is stamped header + shift_us and released when the clock reaches that stamp.
-    Returns the reader (its ``stats``)."""
+    ingest), each record is stamped header + shift_us and released when the clock reaches that stamp; records
+    already due more than ``RESUME_LATE_US`` when the replay starts go to ``skip(msg, rx_us)`` instead (default:
+    dropped), so a replay restarted mid-way resumes where the clock says it is. Returns the reader (its ``stats``)."""
     sleep = sleep or (lambda s: stop.wait(s))
     if shift_us is not None:
         if keep_stamps or speed != 1.0:
             raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --speed != 1")
+        resume_us = clock() - RESUME_LATE_US
         with TlogReader(path) as reader:
             for header_us, msg in reader:
                 if stop.is_set():
                     break
+                if header_us + shift_us < resume_us:
+                    if skip is not None:
+                        skip(msg, header_us + shift_us)
+                    continue
                 wait_s = (header_us + shift_us - clock()) / 1e6
                 if wait_s > 0.001:
                     sleep(wait_s)
@@ -209,6 +224,12 @@ def body(node: Node, args) -> None:
     tlog = is_tlog(args.source)
     if tlog and not Path(args.source).is_file():
         raise InputError(f"--source {args.source}: no such tlog file")
+    if tlog and args.replay_shift_us is None and restart_count():
+        # no fixed time reference: it would start over with the recording's beginning presented as now
+        node.log.warning("tlog replay of %s restarted without --replay-shift-us: it cannot resume where it was, so "
+                         "it ends here instead of starting over (docs/bus.md, Staleness)", args.source)
+        node.stop("restarted replay cannot resume")
+        return
     if args.speed < 0:
         raise InputError(f"--speed {args.speed}: expected >= 0 (0 = as fast as possible)")
     if args.replay_shift_us is not None and (args.keep_stamps or args.speed != 1.0):
@@ -227,7 +248,7 @@ def _run_tlog(node: Node, args, pub: Publisher) -> None:
     if args.wait_subscribers_s > 0:
         node.wait_matching(pub.nav_pub, args.wait_subscribers_s)
     reader = replay_tlog(args.source, pub.feed, speed=args.speed, stop=node.stop_event, keep_stamps=args.keep_stamps,
-                         shift_us=args.replay_shift_us)
+                         shift_us=args.replay_shift_us, skip=pub.fast_forward)
     if node.stop_event.is_set():
         return
     with pub.lock:

@@ -22,6 +22,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.bus import keys as K
+from eonav.bus.freshness import FreshnessGate, age_ms, screen
 from eonav.bus.node import Node, add_flag, now_us, service_main
 
 log = logging.getLogger("eonav.service.obstacles")
@@ -48,6 +49,13 @@ def add_arguments(p):
              help="obstacle-track topic (guidance's input): a message on every map and on this fixed timer")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
              help="do not re-reference MAVLink sectors to the latest navigation pose")
+    add_flag(p, "--max-input-age-ms", env="EONAV_OBSTACLES_MAX_INPUT_AGE_MS", default=1000.0, type=float,
+             help="drop (count dropped.too_old) a range map whose frame is older than this on arrival or when its "
+                  "obstacle list would be published (docs/bus.md, Staleness)")
+    add_flag(p, "--input-timeout-ms", env="EONAV_OBSTACLES_INPUT_TIMEOUT_MS", default=1000.0, type=float,
+             help="no usable range map for this long: state degraded (5 periods of a 5 fps camera)")
+    add_flag(p, "--nav-timeout-ms", env="EONAV_OBSTACLES_NAV_TIMEOUT_MS", default=500.0, type=float,
+             help="no nav_state for this long: state degraded (not watched with --no-nav)")
     g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
     add_flag(g, "--min-distance-m", env="EONAV_OBST_MIN_DISTANCE_M", default=d.min_distance_m, type=float,
              metavar="M", help="OBSTACLE_DISTANCE min_distance (>= 0.01): nearer obstacles are reported at this "
@@ -97,7 +105,13 @@ def obstacle_config(args):
 
 
 class LatestNav:
-    """The newest nav_state (pose + stamp), filled by a worker; read by the obstacle loop."""
+    """The vehicle's newest pose, filled by the nav worker, read by the obstacle loop and guidance.
+
+    The MAVLink ingest publishes attitude and position as separate nav_state messages (one autopilot message each),
+    so the newest attitude and the newest position are kept apart and joined when their stamps are within
+    ``MAX_PART_SKEW_US``: the pose then carries the newer stamp."""
+
+    MAX_PART_SKEW_US = 200_000
 
     def __init__(self):
         import threading
@@ -105,13 +119,29 @@ class LatestNav:
         self.state = None
         self.stamp_us = None
         self.velocity_ned_mps = np.full(3, np.nan)
+        self._q = self._p = None             # (stamp_us, value) of the newest attitude / position (+ velocity)
 
-    def set(self, state, stamp_us, velocity_ned_mps=None):
+    def add(self, stamp_us: int, q_wxyz=None, position_ned_m=None, velocity_ned_mps=None) -> bool:
+        """One nav_state's known parts (None or NaN: absent). True when a whole pose could be formed."""
+        from eonav.geometry.camera import VehicleState
+        t = int(stamp_us)
         with self._lock:
-            if self.stamp_us is None or stamp_us >= self.stamp_us:
-                self.state, self.stamp_us = state, stamp_us
-                v = np.asarray(velocity_ned_mps if velocity_ned_mps is not None else [np.nan] * 3, float)
-                self.velocity_ned_mps = v if np.all(np.isfinite(v)) else np.full(3, np.nan)
+            if q_wxyz is not None and np.all(np.isfinite(q_wxyz)) and abs(np.linalg.norm(q_wxyz) - 1) < 1e-3:
+                if self._q is None or t >= self._q[0]:
+                    self._q = (t, np.asarray(q_wxyz, float))
+            if position_ned_m is not None and np.all(np.isfinite(position_ned_m)):
+                if self._p is None or t >= self._p[0]:
+                    v = np.asarray(velocity_ned_mps if velocity_ned_mps is not None else [np.nan] * 3, float)
+                    self._p = (t, np.asarray(position_ned_m, float), v if np.all(np.isfinite(v)) else None)
+            if self._q is None or self._p is None or abs(self._q[0] - self._p[0]) > self.MAX_PART_SKEW_US:
+                return False
+            stamp = max(self._q[0], self._p[0])
+            if self.stamp_us is None or stamp >= self.stamp_us:
+                self.state = VehicleState.from_quat(self._p[1], self._q[1])
+                self.stamp_us = stamp
+                if self._p[2] is not None:
+                    self.velocity_ned_mps = self._p[2]
+            return True
 
     def get(self):
         with self._lock:
@@ -200,8 +230,11 @@ def body(node: Node, args) -> None:
     pub = node.publisher(K.obstacles(node.vehicle))          # reliable, small, express
     maps = node.subscribe(K.range_maps_all(node.vehicle), ring=2)
     nav = LatestNav()
+    args._freshness = FreshnessGate(args.max_input_age_ms / 1000.0)
+    node.expect_input("range maps", args.input_timeout_ms / 1000.0)
     if not args.no_nav:
         navsub = node.subscribe(K.nav_state(node.vehicle), ring=1)
+        node.expect_input("nav", args.nav_timeout_ms / 1000.0)
         node.worker(nav_loop, node, navsub, nav, name="nav")
     guidance = Guidance(node, nav, args.tracks_rate_hz, args.stale_s)
     node.worker(obstacle_loop, node, maps, pub, cfg, guidance, nav, sender, args, name="obstacles")
@@ -236,17 +269,13 @@ def mirror_counters(node: Node, sender) -> None:
 
 
 def nav_loop(node: Node, sub, nav: LatestNav) -> None:
-    from eonav.geometry.camera import VehicleState
-
     def one(sample):
         msg = node.decode(sample, expect="nav_state")
         if msg is None:
             return
-        p, q = np.asarray(msg["position_ned_m"], float), np.asarray(msg["q_wxyz"], float)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
-            node.count("nav_incomplete")
-            return
-        nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]), msg["velocity_ned_mps"])
+        node.input_seen("nav")
+        if not nav.add(msg["stamp_us"], msg["q_wxyz"], msg["position_ned_m"], msg["velocity_ned_mps"]):
+            node.count("nav_incomplete")             # no whole pose yet (or its parts too far apart in time)
 
     for sample in sub:
         node.guarded("nav_state", one, sample)
@@ -274,7 +303,7 @@ def analyse_msg(ob, msg: dict, cam, state, cfg, now_state=None):
     size (0 x 0 from older locators: the map is on the frame's grid) makes the pixel counts frame pixels."""
     return ob.analyse(msg["range_m"], cam, state, confidence=msg["confidence"], flags=msg["flags"],
                       inv_range_std_per_m=msg["inv_range_std_per_m"], cfg=cfg, now_state=now_state,
-                      frame_size=(msg.get("frame_width", 0), msg.get("frame_height", 0)))
+                      frame_size=(msg.get("frame_width", 0), msg.get("frame_height", 0)), n_fused=msg.get("n_fused"))
 
 
 def synthetic_map(width: int = 160, height: int = 120) -> dict:
@@ -324,8 +353,10 @@ def warm_up(node: Node, cfg, ob):
 def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav, sender, args, cameras, ob,
                 VehicleState):
     msg = node.decode(sample, expect="range_map")
-    if msg is None:
+    gate = args._freshness
+    if msg is None or not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival"):
         return
+    node.input_seen("range maps")
     t0 = time.perf_counter()
     try:
         K.check_chunk(msg["camera_id"], "camera id")
@@ -341,11 +372,14 @@ def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav
         node.log_limited("bad_map", logging.WARNING, "range map %s/%s rejected: %s", msg.get("camera_id"),
                          msg.get("seq"), e)
         return
+    if not screen(node, gate, msg["camera_id"], msg["stamp_us"], "publish"):   # stale by now: no list, no tracks
+        return
     for o, track_id in zip(res.obstacles, guidance.on_map(res, msg, cam, state, cfg, ob)):
         o.id = track_id
     node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
              obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
-             position_ned_m=msg["position_ned_m"], q_wxyz=q)
+             position_ned_m=msg["position_ned_m"], q_wxyz=q, frame_age_ms=age_ms(msg["stamp_us"]))
+    gate.commit(msg["camera_id"], msg["stamp_us"])
     compute_s = time.perf_counter() - t0
     node.count("maps_processed")
     node.count("obstacles_published", len(res.obstacles))

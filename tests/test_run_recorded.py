@@ -99,7 +99,7 @@ def test_default_pipeline_gets_the_cameras_file_and_one_shift(rec):
     # the same shift for both replays, computed when they start: after every other service is alive
     assert cam[cam.index("--replay-shift-us") + 1] == mav[mav.index("--replay-shift-us") + 1] == "{replay_shift_us}"
     for name in ("camera_nose", "mavlink"):
-        assert by[name]["after"] == ["sync", "locator", "obstacles"] and by[name]["restart"] is False
+        assert by[name]["after"] == ["sync", "locator", "obstacles"]
     t0 = time.time_ns() // 1000
     shift = subs["replay_shift_us"]()
     first_bus_us = _first_tlog_us(rec / "flight.tlog") + shift       # the tlog starts first (navigation lead)
@@ -155,6 +155,12 @@ def test_video_with_recorded_stamps_replays_at_the_shift(rec, tmp_path):
     assert clock.slept[0] == pytest.approx(1.0) and clock.us == stamps[-1] + shift     # released at each stamp
     first = cv2.imread(str(C.list_images(rec / "frames")[0]), cv2.IMREAD_GRAYSCALE)
     assert np.array_equal(out[0].image[..., 0], first)                                 # lossless, in order
+    # restarted mid-way (frames 0..2 due more than 0.1 s ago): resumes at the first frame still due, never older
+    clock = FakeClock()
+    late = clock.us - (stamps[2] - stamps[0]) - 150_000 - stamps[0]
+    out = list(C.make_frames(_ingest_args("--source", rec / "nose.avi", "--replay-shift-us", late), clock=clock))
+    assert [f.stamp_us for f in out] == [s + late for s in stamps[3:]] and out[0].skipped == 3
+    assert all(f.skipped == 0 for f in out[1:])
     # one stamp per frame; stamps are needed for a shift; a stamped video replays once
     bad = tmp_path / "v.avi"
     bad.write_bytes((rec / "nose.avi").read_bytes())

@@ -23,7 +23,8 @@ UNITS = {"S": "s", "MS": "ms", "US": "us", "M": "m", "HZ": "hz", "PX": "px", "DE
 # float flags without a unit in the name, and why
 NO_UNIT = {"--speed": "a factor of real time", "--min-scale": "a factor of the image size",
            "--min-confidence": "a ratio (inverse range over its sigma)", "--max-rel-std": "a ratio (sigma over range)",
-           "--noise": "grey levels, the image's own unit", "--seconds": "the name is the unit"}
+           "--noise": "grey levels, the image's own unit", "--seconds": "the name is the unit",
+           "--minutes": "the name is the unit"}
 # one name per concept: the parsers that have the concept all spell it so
 CONCEPTS = {
     "--cv-threads": ("service locator", "eonav locate", "eonav bench locate", "eonav bench pipeline"),

@@ -164,6 +164,7 @@ class Monitor:
         self.obst_scores: list[dict] = []
         self.health: dict[str, dict] = {}
         self.health_states: dict[str, set] = {}      # every state each service reported
+        self.health_log: list[tuple] = []            # (monotonic receive time, service, state, detail)
         self.last_range = None
         self.obstacles_at: dict[int, list] = {}      # stamp_us -> obstacles of the latest lists
         self.bad_messages = 0
@@ -266,6 +267,7 @@ class Monitor:
         with self.lock:
             self.health[m["service"]] = m
             self.health_states.setdefault(m["service"], set()).add(m["state"])
+            self.health_log.append((t, m["service"], m["state"], m["detail"]))
 
     # ---- results ------------------------------------------------------------------------------
     def counts(self) -> dict:
@@ -279,6 +281,10 @@ class Monitor:
             lat_r = [self.range_rx[s] - self.frame_rx[s] for s in self.range_rx if s in self.frame_rx]
             lat_o = [self.obst_rx[s] - self.frame_rx[s] for s in self.obst_rx if s in self.frame_rx]
             n_frames = len(self.frame_rx)
+            last_frame = max(self.frame_rx.values(), default=math.inf)
+            # a service may report a silent input once the replay has ended, never while frames still come
+            not_ok_fed = sorted({f"{svc} {state}: {detail}" for t, svc, state, detail in self.health_log
+                                 if state != "ok" and t <= last_frame})
         errs = [s["median_rel_error"] for s in rs if np.isfinite(s.get("median_rel_error", math.nan))]
         cov = [s["coverage"] for s in rs if "coverage" in s]
         with_truth = [s for s in os_ if "truth_box" in s]
@@ -308,6 +314,7 @@ class Monitor:
                       "sync_dropped": {k.split(".", 1)[1]: v for k, v in sync.items() if k.startswith("dropped.")}},
             "health": {k: v["state"] for k, v in h.items()},
             "health_states_seen": {k: sorted(v) for k, v in self.health_states.items()},
+            "health_not_ok_while_fed": not_ok_fed,
             "bad_messages": self.bad_messages,
         }
 
@@ -396,11 +403,13 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
             "--max-obstacle-distance-m", "150"]
     if mavlink_out:
         obst += ["--mavlink-out", mavlink_out]
+    # the replays are restarted like any service: with the shared shift a restarted replay resumes at the record
+    # the clock says is due, so nothing older than that reaches the pipeline (docs/bus.md, Staleness)
     return {"services": [
-        {"name": "camera", "module": "camera_ingest", "restart": False, **after,
+        {"name": "camera", "module": "camera_ingest", **after,
          "args": ["--source", str(rec / man["frames"]), "--camera-id", man["camera_id"],
                   "--replay-shift-us", shift_us]},
-        {"name": "mavlink", "module": "mavlink_ingest", "restart": False, **after,
+        {"name": "mavlink", "module": "mavlink_ingest", **after,
          # --origin: the recording's local NED origin (take-off point on the ground), not the first GPS fix, so that
          # positions match the truth and the ground is at down = 0
          "args": ["--source", str(rec / man["tlog"]), "--replay-shift-us", shift_us,

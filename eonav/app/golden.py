@@ -40,6 +40,8 @@ INPUTS, EXPECTED_NPZ, EXPECTED_JSON = "golden_inputs.mcap", "golden_expected.npz
 CAMERAS_ATTACHMENT = "cameras.json"
 LOCATOR_ARGS = ["--method", "dense", "--cv-threads", "1", "--scale", "1", "--no-warmup"]
 OBSTACLES_ARGS = ["--ground-down-m", "0", "--max-obstacle-distance-m", "150"]
+# the recording's stamps are those of the day it was made: no age limit in the replay (the stamp-order rule holds)
+NO_AGE_LIMIT = ["--max-input-age-ms", "1e12"]
 # What "the same output" means. Range maps: every expected pair (reference stamp, partner stamp) and no other; per map,
 # the VALID masks differ on at most `valid_mismatch` of the pixels, and on the pixels VALID in both the relative range
 # difference has a median <= `median_rel` and a 99th percentile <= `p99_rel`. Obstacle lists: one per expected map
@@ -145,9 +147,10 @@ def run_services(inputs_mcap, work_dir, *, speed: float = 1.0, timeout_s: float 
         threads = [threading.Thread(target=consume, args=(sub,), name="golden-consume") for sub in subs]
         for t in threads:
             t.start()
-        procs = {"sync": start_service(["-m", "eonav.services.sync", *common, "--cameras", str(cams)]),
-                 "locator": start_service(["-m", "eonav.services.locator", *common, *LOCATOR_ARGS]),
-                 "obstacles": start_service(["-m", "eonav.services.obstacles", *common, *OBSTACLES_ARGS])}
+        procs = {"sync": start_service(["-m", "eonav.services.sync", *common, *NO_AGE_LIMIT, "--cameras", str(cams)]),
+                 "locator": start_service(["-m", "eonav.services.locator", *common, *NO_AGE_LIMIT, *LOCATOR_ARGS]),
+                 "obstacles": start_service(["-m", "eonav.services.obstacles", *common, *NO_AGE_LIMIT,
+                                             *OBSTACLES_ARGS])}
         codes = {}
         try:
             # every consumer's subscriber is declared: the locator's (posed frames) and the obstacle service's (range

@@ -36,6 +36,7 @@ STABLE_RESET_S = 30.0
 DEFAULT_MAX_RESTARTS = 5
 AFTER_TIMEOUT_S = 90.0           # a service with "after" starts anyway once its dependencies took this long
 EXIT_CONFIG = 2
+STATUS_DETAIL_CHARS = 40
 
 # The default pipeline. Services whose modules do not exist yet are reported as missing.
 DEFAULT_SERVICES = [
@@ -124,21 +125,18 @@ def default_spec(cameras=(), mavlink: str | None = None, cameras_file: str | Non
     """The default pipeline: camera ingest per ``[ID=]SOURCE`` in ``cameras``, MAVLink ingest (with
     ``--source`` when given), sync, locator, obstacles. ``cameras_file`` goes to the sync and to every camera
     ingest (``--cameras``); ``replay_shift_us`` (a number or ``"{replay_shift_us}"``, substituted when the replays
-    start) to every replay: camera ingests and MAVLink ingest then start after the other services are alive and are
-    not restarted (a replay restarted would release its records late)."""
+    start) to every replay: camera ingests and MAVLink ingest then start after the other services are alive (and,
+    restarted, resume where the clock says they are: docs/bus.md, "Staleness")."""
     replay = [] if replay_shift_us is None else ["--replay-shift-us", str(replay_shift_us)]
     cams = [] if cameras_file is None else ["--cameras", str(cameras_file)]
     services = []
     for cid, src in camera_sources(cameras):
         services.append({"name": f"camera_{cid}", "module": "camera_ingest",
-                         "args": ["--source", src, "--camera-id", cid, *cams, *replay],
-                         **({"restart": False} if replay else {})})
+                         "args": ["--source", src, "--camera-id", cid, *cams, *replay]})
     for s in DEFAULT_SERVICES:
         s = dict(s)
         if s["name"] == "mavlink" and mavlink:
             s["args"] = ["--source", mavlink, *replay]
-            if replay:
-                s["restart"] = False
         if s["name"] == "sync" and cams:
             s["args"] = list(cams)
         services.append(s)
@@ -230,6 +228,7 @@ class Supervisor:
         env.update({k: _subst(v, self.ctx) for k, v in p.spec.env.items()})
         env.setdefault("PYTHONUNBUFFERED", "1")
         env["EONAV_SUPERVISOR_PID"] = str(os.getpid())
+        env["EONAV_RESTART_COUNT"] = str(p.restarts)       # a replay resumes, or ends, rather than start over
         stdout = stderr = None
         if self.log_dir:
             f = open(Path(self.log_dir) / f"{p.name}.log", "ab")
@@ -405,6 +404,8 @@ def _fmt_service(p: Proc, now: float) -> str:
         r = f" r{p.restarts}" if p.restarts else ""
         return f"{p.name} {p.state if p.state != 'running' else 'starting'}{extra}{r}"
     state = h["state"] if now - p.health_mono < 5.0 else "stale"
+    if state in ("degraded", "error") and h.get("detail"):
+        state += f"({h['detail'].split(';')[0][:STATUS_DETAIL_CHARS]})"      # e.g. degraded(no frames for 1.2 s ...)
     parts = [p.name, state]
     rates = h.get("rates_hz") or {}
     if rates:
