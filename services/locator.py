@@ -318,7 +318,8 @@ def fusion_runner(args, params: dict):
     schedule = ScheduleConfig(policy=replace(pol, stereo_rig=None), stereo_rig=pol.stereo_rig,
                               max_stereo_dt_s=pol.max_stereo_dt_s)
     measure_params = dict(params, fill=False)
-    return FusionRunner(FusionConfig(schedule=schedule),
+    # fresh_measurements: the runner may write the fused map into a measurement's arrays (nothing else keeps them)
+    return FusionRunner(FusionConfig(schedule=schedule), fresh_measurements=True,
                         measure=lambda va, vb: locate(va, vb, method=args.method, **measure_params))
 
 
@@ -334,7 +335,7 @@ def warm_up_fusion(node: Node, runner) -> None:
     try:
         va, vb = _plane_pair(96)
         probe = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01))),
-                             measure=runner.measure)
+                             measure=runner.measure, fresh_measurements=True)
         maps = [m for k, v in enumerate((va, vb, va)) for m in probe.push(frame("warmup", v, 1_000_000 + k * 100_000, k))]
     except Exception as e:  # noqa: BLE001  (see docstring)
         node.count("warmup_errors")

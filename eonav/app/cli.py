@@ -17,6 +17,7 @@ COMMANDS = {
     "service": ("eonav.app.commands.service", "start one service in the foreground"),
     "record": ("eonav.app.commands.record", "record the bus into an MCAP file (raw + Foxglove channels)"),
     "replay": ("eonav.app.commands.replay", "put the raw channels of MCAP recordings back on the bus"),
+    "acl": ("eonav.app.commands.acl", "access-control files: users, router and session configs (eonav.bus.acl)"),
 }
 
 

@@ -154,8 +154,10 @@ class Monitor:
 
     Use as a context manager around the pipeline run: ``with Monitor(endpoint, vehicle, truth) as m: ...``."""
 
-    def __init__(self, endpoint: str, vehicle: str, truth: Truth, bearing_tol_deg: float = 3.0):
+    def __init__(self, endpoint: str, vehicle: str, truth: Truth, bearing_tol_deg: float = 3.0,
+                 zenoh_config: str | None = None):
         self.endpoint, self.vehicle, self.truth, self.bearing_tol_deg = endpoint, vehicle, truth, bearing_tol_deg
+        self.zenoh_config = zenoh_config              # a session config (the operator's credentials under ACL)
         self.lock = threading.Lock()
         self.frame_rx: dict[int, float] = {}          # stamp_us -> monotonic receive time
         self.range_rx: dict[int, float] = {}
@@ -175,7 +177,7 @@ class Monitor:
         import zenoh
         from eonav.bus.session import client_session
         from eonav.bus import keys as K
-        self._session = client_session(self.endpoint)
+        self._session = client_session(self.endpoint, self.zenoh_config)
         s = self._session
         for key, handler, fn in ((K.frames_all(self.vehicle), zenoh.handlers.FifoChannel(256), self._on_frame),
                                  (K.range_maps_all(self.vehicle), zenoh.handlers.FifoChannel(64), self._on_range),
@@ -423,8 +425,10 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
 def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, rate_hz: float = DEFAULT_RATE_HZ,
              size: int = DEFAULT_SIZE, seed: int = 0, cache_dir=None, png=None, vehicle: str = "demo",
              method: str = "dense", mavlink_out: str | None = None, timeout_s: float = 180.0,
-             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None, record=None) -> dict:
-    """Record (cached), run the pipeline, score it; returns the summary dict (``summary["exit_code"]``)."""
+             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None, record=None,
+             acl_dir=None) -> dict:
+    """Record (cached), run the pipeline, score it; returns the summary dict (``summary["exit_code"]``).
+    ``acl_dir``: under access control (``run_pipeline``); the monitor connects as the operator."""
     from eonav.app.processes import free_port
     from eonav.app.launcher import run_pipeline
     stream = stream or sys.stdout
@@ -460,7 +464,7 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     def pipeline():
         spec = pipeline_spec(rec, "{replay_shift_us}", method=method, mavlink_out=mavlink_out)
         result["code"] = run_pipeline(spec, vehicle=vehicle, port=port, on_status=on_status, stop_event=stop,
-                                      quiet=quiet, log_dir=log_dir, record=record,
+                                      quiet=quiet, log_dir=log_dir, record=record, acl_dir=acl_dir,
                                       substitutions={"replay_shift_us": shift_now})
 
     th = threading.Thread(target=pipeline, name="pipeline")
@@ -469,7 +473,11 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     reason = ""
     try:
         _wait_port(port, th, timeout_s=30.0)
-        with Monitor(endpoint, vehicle, truth) as mon:
+        monitor_config = None
+        if acl_dir:
+            from eonav.bus.acl import OPERATOR_USER, session_file
+            monitor_config = str(session_file(acl_dir, OPERATOR_USER))
+        with Monitor(endpoint, vehicle, truth, zenoh_config=monitor_config) as mon:
             last_n, last_change = -1, time.monotonic()
             while th.is_alive():
                 time.sleep(0.2)
@@ -592,7 +600,8 @@ def run(args) -> int:
                  rate_hz=getattr(args, "fps", DEFAULT_RATE_HZ), size=getattr(args, "size", DEFAULT_SIZE),
                  method=getattr(args, "method", "dense"), png=getattr(args, "png", None) or run_dir / "range.png",
                  cache_dir=getattr(args, "cache_dir", None), vehicle=getattr(args, "vehicle", "demo") or "demo",
-                 quiet=getattr(args, "quiet", False), log_dir=log_dir, record=getattr(args, "record", None))
+                 quiet=getattr(args, "quiet", False), log_dir=log_dir, record=getattr(args, "record", None),
+                 acl_dir=getattr(args, "acl_dir", None))
     s["run_dir"] = str(run_dir)
     (run_dir / "summary.json").write_text(json.dumps(s, indent=2, default=str))
     print(format_summary(s))

@@ -203,16 +203,20 @@ class Supervisor:
     """Starts, watches, restarts and stops the router and service processes."""
 
     def __init__(self, services: list[ServiceSpec], *, vehicle: str, router: str, ctx: dict,
-                 grace_s: float = 5.0, log_dir: str | None = None, extra_env: dict | None = None):
+                 grace_s: float = 5.0, log_dir: str | None = None, extra_env: dict | None = None,
+                 zenoh_configs: dict | None = None):
         self.vehicle, self.router, self.ctx, self.grace_s = vehicle, router, ctx, grace_s
+        self.zenoh_configs = zenoh_configs or {}      # service name -> session config (its credentials)
         self.procs = [Proc(s) for s in services]
         self.log_dir = log_dir
         self.extra_env = extra_env or {}
         self._lock = threading.Lock()
 
     def argv(self, sp: ServiceSpec) -> list[str]:
+        zc = self.zenoh_configs.get(sp.name)
         return [sys.executable, "-m", sp.module, "--name", sp.name, "--vehicle", self.vehicle,
-                "--connect", self.router, *[_subst(a, self.ctx) for a in sp.args]]
+                "--connect", self.router, *(["--zenoh-config", str(zc)] if zc else []),
+                *[_subst(a, self.ctx) for a in sp.args]]
 
     def check_modules(self) -> None:
         for p in self.procs:
@@ -331,8 +335,8 @@ class Supervisor:
 class HealthMonitor:
     """A client session on the router: latest health message and liveliness per service."""
 
-    def __init__(self, vehicle: str, router: str, procs: list[Proc]):
-        self.vehicle, self.router = vehicle, router
+    def __init__(self, vehicle: str, router: str, procs: list[Proc], zenoh_config: str | None = None):
+        self.vehicle, self.router, self.zenoh_config = vehicle, router, zenoh_config
         self.procs = procs
         self.by_name = {p.name: p for p in procs}
         self._lock = threading.Lock()
@@ -344,7 +348,8 @@ class HealthMonitor:
         import zenoh
         from eonav.bus import keys as K
         from eonav.bus.session import build_config
-        args = argparse.Namespace(mode="client", connect=self.router, listen=None, zenoh_config=None, multicast=False)
+        args = argparse.Namespace(mode="client", connect=self.router, listen=None,
+                                  zenoh_config=str(self.zenoh_config) if self.zenoh_config else None, multicast=False)
         self.session = zenoh.open(build_config(args))
         hs = self.session.declare_subscriber(K.health_all(self.vehicle), zenoh.handlers.FifoChannel(256))
         al = self.session.liveliness().declare_subscriber(K.alive_all(self.vehicle), zenoh.handlers.FifoChannel(256),
@@ -471,12 +476,27 @@ class StatusPrinter:
 # --------------------------------------------------------------------------------------------------
 # the pipeline function
 
+def secure_sessions(acl_dir, services: list[ServiceSpec], write: bool) -> tuple[dict, Path]:
+    """Credentials of a pipeline under access control: (service name -> session config, the operator's config
+    for the status monitor). ``write``: (re)write ``acl_dir`` for these services first (``eonav.bus.acl``)."""
+    from eonav.bus import acl
+    if write:
+        acl.write_acl_dir(acl_dir, {s.name: s.module for s in services if s.enabled})
+    configs = {s.name: acl.session_file(acl_dir, s.name) for s in services if s.enabled}
+    monitor = acl.session_file(acl_dir, acl.OPERATOR_USER)
+    missing = [str(p) for p in (*configs.values(), monitor) if not p.is_file()]
+    if missing:
+        raise InputError(f"access control: no credentials {', '.join(missing)} (eonav acl init {acl_dir} "
+                         "--service NAME=MODULE ...)")
+    return configs, monitor
+
+
 def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, duration: float | None = None,
                  on_status: Callable[[dict], None] | None = None, exit_when_done: str | None = None,
                  router: str | None = None, grace_s: float = 5.0, stop_event: threading.Event | None = None,
                  status_stream=None, quiet: bool = False, log_dir: str | None = None,
                  router_config: str | None = None, extra_env: dict | None = None, record: str | None = None,
-                 substitutions: dict | None = None) -> int:
+                 acl_dir: str | None = None, substitutions: dict | None = None) -> int:
     """Run a pipeline until stopped; returns the exit code (see the module docstring).
 
     ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
@@ -485,8 +505,11 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
     {service: {state, pid, restarts, exit_code, alive, health}}. ``stop_event``: set it to stop
     (SIGINT/SIGTERM also stop when called from the main thread). ``log_dir``: one log file per
     service instead of inheriting stderr. ``extra_env``: added to every service's environment. ``record``: also run
-    the recorder (``eonav.recording.recorder``) writing this MCAP file. ``substitutions``: more ``{name}`` values
-    for args and env (a callable is called when a service first needs it)."""
+    the recorder (``eonav.recording.recorder``) writing this MCAP file. ``acl_dir``: run with access control
+    (``eonav.bus.acl``): the embedded router enforces it and every service and the status monitor connect with
+    their own credentials from ``acl_dir`` (written there for this pipeline, passwords already there kept; with
+    ``router``, only read). ``substitutions``: more ``{name}`` values for args and env (a callable is called when
+    a service first needs it)."""
     from eonav.bus.keys import check_chunk
     check_chunk(vehicle, "--vehicle")
     spec_dir = None
@@ -505,6 +528,14 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                          f"({', '.join(s.name for s in services)})")
     if log_dir:
         Path(log_dir).mkdir(parents=True, exist_ok=True)
+    zenoh_configs, monitor_config = secure_sessions(acl_dir, services, write=router is None) if acl_dir \
+        else ({}, None)
+    if acl_dir and router is None:
+        if router_config:
+            raise InputError("--router-config and access control: the router config is written in the ACL "
+                             "directory; give one of them")
+        from eonav.bus.acl import ROUTER_FILE
+        router_config = str(Path(acl_dir) / ROUTER_FILE)
     stop = stop_event or threading.Event()
     reason = {"why": ""}
     old = {}
@@ -537,12 +568,12 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
         ctx = {"spec_dir": spec_dir or os.getcwd(), "vehicle": vehicle, "router": router,
                "port": router.rsplit(":", 1)[-1], **(substitutions or {})}
         sup = Supervisor(services, vehicle=vehicle, router=router, ctx=ctx, grace_s=grace_s, log_dir=log_dir,
-                         extra_env=extra_env)
+                         extra_env=extra_env, zenoh_configs=zenoh_configs)
         sup.check_modules()
         missing = [p.name for p in sup.procs if p.state == "missing"]
         if missing:
             log.warning("not started (module not found): %s", ", ".join(missing))
-        with HealthMonitor(vehicle, router, sup.procs):
+        with HealthMonitor(vehicle, router, sup.procs, zenoh_config=monitor_config):
             sup.start_all()
             last_status = 0.0
             while not stop.wait(0.1):

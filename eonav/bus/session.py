@@ -170,9 +170,9 @@ def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def _open(mode: str, connect=None, listen=None):
+def _open(mode: str, connect=None, listen=None, zenoh_config=None):
     import zenoh
-    args = argparse.Namespace(mode=mode, connect=connect, listen=listen, zenoh_config=None, multicast=False)
+    args = argparse.Namespace(mode=mode, connect=connect, listen=listen, zenoh_config=zenoh_config, multicast=False)
     return zenoh.open(build_config(args))
 
 
@@ -181,6 +181,7 @@ def listener_session(port: int):
     return _open("peer", listen=endpoint(port))
 
 
-def client_session(ep: str):
-    """A client session connected to a router endpoint (use as a context manager)."""
-    return _open("client", connect=ep)
+def client_session(ep: str, zenoh_config: str | None = None):
+    """A client session connected to a router endpoint (use as a context manager); ``zenoh_config``: a session
+    config file applied first (e.g. a user's credentials, ``eonav.bus.acl``)."""
+    return _open("client", connect=ep, zenoh_config=zenoh_config)

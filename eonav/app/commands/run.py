@@ -43,6 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_flag(p, "--log-dir", env="EONAV_LOG_DIR", default=None, metavar="DIR",
              help="one log file per service here (default: services log to this terminal)")
     add_flag(p, "--quiet", env="EONAV_QUIET", action="store_true", help="no status line")
+    add_flag(p, "--acl", env="EONAV_ACL_DIR", default=None, metavar="DIR",
+             help="access control (docs/zenoh.md): the router enforces the ACL and every service connects with its "
+                  "own user; credentials written to DIR for this pipeline (kept passwords: the operator's "
+                  "DIR/zenoh-operator.json5 works for other tools); with --router, read from DIR")
+    p.add_argument("--secure", action="store_true",
+                   help="access control with fresh credentials in a private temporary directory, removed at exit")
     p.add_argument("--watch", action="store_true",
                    help="start nothing: show the status of the services already on the bus (use with --router)")
     p.add_argument("--print-spec", action="store_true", help="print the effective pipeline spec as JSON and exit")
@@ -100,6 +106,18 @@ def default_pipeline(args) -> tuple[dict, dict]:
 
 
 def run(args) -> int:
+    import shutil
+    import tempfile
+    tmp = tempfile.mkdtemp(prefix="eonav-acl-") if args.secure and not args.acl else None
+    args.acl_dir = tmp or args.acl
+    try:
+        return _run(args)
+    finally:
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _run(args) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if not (args.watch or args.pipeline or args.camera or args.mavlink or args.cameras or args.print_spec):
@@ -127,4 +145,4 @@ def run(args) -> int:
     return run_pipeline(spec, vehicle=args.vehicle, port=args.port, duration=args.duration_s,
                         exit_when_done=args.exit_when_done, router=args.router, grace_s=args.grace_s,
                         quiet=args.quiet, log_dir=args.log_dir, router_config=args.router_config,
-                        record=args.record, substitutions=subs)
+                        record=args.record, acl_dir=args.acl_dir, substitutions=subs)
