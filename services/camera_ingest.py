@@ -1,7 +1,7 @@
 """Camera ingest: one camera, live or recorded -> schema ``frame`` messages on ``keys.frame(vehicle, camera_id)``.
 
-Live or recorded is one flag: ``--source`` takes a video file, an image folder (with an optional timestamps file),
-a V4L2 device or an RTSP/HTTP URL (docs/bus.md, "Camera ingest", lists the forms, the pacing and the stamps).
+Live or recorded is one flag: ``--source`` takes a video file or an image folder (each with an optional timestamps
+file), a V4L2 device or an RTSP/HTTP URL (docs/bus.md, "Camera ingest", lists the forms, the pacing and the stamps).
 Every frame carries ``stamp_us`` (UNIX microseconds of capture on this host's realtime clock) and ``stamp_source``,
 which says where the stamp came from: a recorded stamp, the stream's PTS, the V4L2 buffer time, the file's frame
 rate, or the host clock right after ``grab()`` (decode time kept out of the stamp). Replays of one recording given
@@ -368,6 +368,68 @@ def capture_frames(cap_factory: Callable[[], object], kind: str, *, loop: bool =
             pass
 
 
+def video_timestamps_file(video) -> Path:
+    """Where a video file's recorded stamps are looked for: ``flight.mp4`` -> ``flight.timestamps.txt`` beside it."""
+    p = Path(video)
+    return p.with_name(p.stem + ".timestamps.txt")
+
+
+def recorded_video_frames(frames: Iterable[RawFrame], stamps_us: list[int], *, keep_stamps: bool = False,
+                          replay_shift_us: int | None = None, clock: Clock | None = None,
+                          stop: threading.Event | None = None) -> Iterator[RawFrame]:
+    """A video file's frames stamped from its recorded stamps (one per decoded frame, in order), as an image
+    folder's are: moved onto the current clock with their spacing kept, kept as recorded (``keep_stamps``), or
+    recorded + ``replay_shift_us`` and released when the host clock reaches that stamp (``frames`` then unpaced;
+    frames due more than ``RESUME_LATE_US`` before the replay started are passed over, as a folder's)."""
+    clock = clock or Clock()
+    offset_us = None
+    resume_us = None if replay_shift_us is None or keep_stamps else clock.now_us() - RESUME_LATE_US
+    skipped = 0
+    for f in frames:
+        if f.index >= len(stamps_us):
+            raise InputError(f"video frame {f.index + 1}: more frames than the {len(stamps_us)} recorded stamps")
+        rec = stamps_us[f.index]
+        grab_mono = f.grab_mono
+        if keep_stamps:
+            stamp, src = rec, "recorded_raw"
+        elif replay_shift_us is not None:
+            if rec + replay_shift_us < resume_us:
+                skipped += 1
+                continue
+            clock.sleep((rec + replay_shift_us - clock.now_us()) / 1e6, stop)
+            if stop is not None and stop.is_set():
+                return
+            stamp, src, grab_mono = rec + replay_shift_us, "recorded", clock.monotonic()
+        else:
+            if offset_us is None:
+                offset_us = clock.now_us() - rec
+            stamp, src = rec + offset_us, "recorded"
+        yield RawFrame(index=f.index, image=f.image, stamp_us=stamp, stamp_source=src, source_pts_us=rec,
+                       grab_mono=grab_mono, error=f.error, name=f.name, skipped=skipped)
+        skipped = 0
+
+
+def video_stamps(args) -> list[int] | None:
+    """The recorded stamps of the video file ``args.source`` (``--timestamps`` or ``<name>.timestamps.txt``;
+    None when it has none), checked against the video's frame count when the container states one."""
+    import cv2
+    tpath = Path(args.timestamps) if args.timestamps else video_timestamps_file(args.source)
+    if args.timestamps and not tpath.is_file():
+        raise InputError(f"--timestamps {tpath}: no such file")
+    if not tpath.is_file():
+        return None
+    stamps = parse_timestamps(tpath, args.timestamps_unit)
+    if args.loop:
+        raise InputError(f"--loop: a video with recorded stamps ({tpath}) replays once; loop an image folder instead")
+    cap = open_capture(args.source, "file", args)
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    cap.release()
+    if n > 0 and n != len(stamps):
+        raise InputError(f"{tpath}: {len(stamps)} stamps for {n} frames in {args.source}; "
+                         "expected one stamp per line per frame")
+    return stamps
+
+
 def classify_source(source: str) -> str:
     """``folder``, ``file``, ``v4l2`` or ``stream`` for a ``--source`` string."""
     s = str(source)
@@ -517,7 +579,8 @@ def add_arguments(p) -> None:
     add_flag(g, "--height", env="EONAV_CAMERA_HEIGHT", default=None, type=_opt_int,
              help="expected height in pixels (as --width)")
     add_flag(g, "--timestamps", env="EONAV_CAMERA_TIMESTAMPS", default=None,
-             help=f"timestamps file for an image folder (default <folder>/{TIMESTAMPS_FILE} if present)")
+             help=f"timestamps file for an image folder (default <folder>/{TIMESTAMPS_FILE} if present) or a video "
+                  "file (default <name>.timestamps.txt beside it if present)")
     add_flag(g, "--timestamps-unit", env="EONAV_CAMERA_TIMESTAMPS_UNIT", default="auto", choices=("auto", "s", "us"),
              help="s = seconds, us = integer microseconds, auto = us if all integers >= 1e11 else s")
     add_flag(g, "--keep-stamps", env="EONAV_CAMERA_KEEP_STAMPS", action="store_true",
@@ -576,13 +639,20 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
         return folder_frames(args.source, timestamps=args.timestamps, unit=args.timestamps_unit,
                              keep_stamps=args.keep_stamps, loop=args.loop, pacer=pacer, clock=clock,
                              default_fps=args.default_fps, stop=stop, replay_shift_us=args.replay_shift_us)
-    if args.replay_shift_us is not None:
-        raise InputError("--replay-shift-us applies to image folders with a timestamps file")
-    if args.timestamps:
-        raise InputError("--timestamps applies to image folders only")
+    stamps = video_stamps(args) if kind == "file" else None
+    if args.replay_shift_us is not None and (stamps is None or args.keep_stamps):
+        raise InputError("--replay-shift-us needs recorded stamps (an image folder's timestamps file, a video's "
+                         "<name>.timestamps.txt or --timestamps) and excludes --keep-stamps")
+    if args.timestamps and kind != "file":
+        raise InputError("--timestamps applies to image folders and video files only")
     open_capture(args.source, kind, args).release()  # fail early, as a configuration error
-    return capture_frames(lambda: open_capture(args.source, kind, args), kind, loop=args.loop, pacer=pacer,
-                          clock=clock, stop=stop, live_timeout_s=args.live_timeout_s, default_fps=args.default_fps)
+    frames = capture_frames(lambda: open_capture(args.source, kind, args), kind, loop=args.loop,
+                            pacer=None if args.replay_shift_us is not None else pacer, clock=clock, stop=stop,
+                            live_timeout_s=args.live_timeout_s, default_fps=args.default_fps)
+    if stamps is None:
+        return frames
+    return recorded_video_frames(frames, stamps, keep_stamps=args.keep_stamps, replay_shift_us=args.replay_shift_us,
+                                 clock=clock, stop=stop)
 
 
 def body(node: Node, args) -> None:

@@ -110,7 +110,7 @@ def test_policy_refuses_unknown_modules_and_reserved_names():
 
 
 def test_acl_init_command(tmp_path, capsys):
-    assert cli.main(["acl", "init", str(tmp_path), "--camera", "nose", "--camera", "tail",
+    assert cli.main(["acl", "init", str(tmp_path), "--camera-ids", "nose,tail",
                      "--listen", "tcp/127.0.0.1:7447", "--connect", "tcp/192.0.2.11:7447"]) == 0
     users = acl.read_users(tmp_path)
     assert set(users) == {"camera_nose", "camera_tail", "mavlink", "sync", "locator", "obstacles", "operator",
@@ -125,7 +125,7 @@ def test_acl_init_command(tmp_path, capsys):
     other.mkdir()
     for f in (acl.USERS_FILE, acl.ROUTERS_FILE):
         shutil.copy(tmp_path / f, other / f)
-    assert cli.main(["acl", "init", str(other), "--host", "b", "--camera", "nose", "--camera", "tail"]) == 0
+    assert cli.main(["acl", "init", str(other), "--host", "b", "--camera-ids", "nose,tail"]) == 0
     assert acl.read_users(other) == users
     zids_b = acl.read_users(other, acl.ROUTERS_FILE)
     assert zids_b["a"] == zids["a"] and set(zids_b) == {"a", "b"}

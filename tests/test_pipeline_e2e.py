@@ -17,6 +17,7 @@ def test_pipeline_end_to_end(tmp_path):
                  vehicle="e2e", quiet=True, log_dir=str(tmp_path / "logs"), timeout_s=120.0)
     print(format_summary(s))
     assert s["exit_code"] == 0 and s["pipeline_exit"] == 0, s
+    assert s["verdict"] == "ok", s["verdict_reasons"]
     # every process ran and exited cleanly: the replays at their end (0), the others on the launcher's SIGINT (0)
     assert s["exit_codes"] == {name: 0 for name in SERVICES}, s["exit_codes"]
     assert s["service_states"]["camera"] == "done" and s["service_states"]["mavlink"] == "done"

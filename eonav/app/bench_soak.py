@@ -41,11 +41,12 @@ def lap_period_s() -> float:
 def lap_recording(fps: float = 30.0, size=(320, 240), nav_s: float = 660.0, cache_dir=None) -> Path:
     """A recording (``eonav.sim.record`` layout) of one lap of the turning flight at about ``fps`` (exactly
     N / lap frames per second, N = round(fps x lap), so a looped replay joins without a jump), with a tlog of
-    ``nav_s`` seconds of navigation. Rendered once and cached (system temp directory by default)."""
+    ``nav_s`` seconds of navigation. Rendered once and cached (this user's cache, beside the demo's, by default)."""
     from eonav.sim.record import record_flight, write_tlog
     period = lap_period_s()
     n = int(round(fps * period))
-    base = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / "eonav-soak"
+    from eonav.app.demo import default_cache_dir
+    base = Path(cache_dir) if cache_dir else default_cache_dir().parent / "soak"
     out = base / f"{FLIGHT}_lap{n}_{size[0]}x{size[1]}_nav{nav_s:g}s"
     if (out / "manifest.json").is_file():
         return out

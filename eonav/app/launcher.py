@@ -34,6 +34,7 @@ BACKOFF_INITIAL_S = 0.5
 BACKOFF_MAX_S = 10.0
 STABLE_RESET_S = 30.0
 DEFAULT_MAX_RESTARTS = 5
+AFTER_TIMEOUT_S = 90.0           # a service with "after" starts anyway once its dependencies took this long
 EXIT_CONFIG = 2
 STATUS_DETAIL_CHARS = 40
 
@@ -58,6 +59,7 @@ class ServiceSpec:
     restart: bool = True
     max_restarts: int = DEFAULT_MAX_RESTARTS
     enabled: bool = True
+    after: list = field(default_factory=list)
 
 
 def _module_path(m: str) -> str:
@@ -83,7 +85,7 @@ def parse_spec(spec, spec_dir: str | None = None) -> list[ServiceSpec]:
     for i, it in enumerate(items):
         if not isinstance(it, dict) or "name" not in it:
             raise InputError(f"pipeline spec services[{i}]: expected an object with at least a name")
-        unknown = set(it) - {"name", "module", "args", "env", "restart", "max_restarts", "enabled"}
+        unknown = set(it) - {"name", "module", "args", "env", "restart", "max_restarts", "enabled", "after"}
         if unknown:
             raise InputError(f"pipeline spec services[{i}] ({it['name']}): unknown key(s) {sorted(unknown)}")
         name = check_chunk(str(it["name"]), f"pipeline spec services[{i}].name")
@@ -99,30 +101,60 @@ def parse_spec(spec, spec_dir: str | None = None) -> list[ServiceSpec]:
         mr = it.get("max_restarts", DEFAULT_MAX_RESTARTS)
         if not isinstance(mr, int) or mr < 0:
             raise InputError(f"pipeline spec {name}.max_restarts: expected an integer >= 0")
+        after = it.get("after", [])
+        if not isinstance(after, list) or not all(isinstance(a, str) for a in after):
+            raise InputError(f"pipeline spec {name}.after: expected a list of service names")
         out.append(ServiceSpec(name=name, module=_module_path(str(it.get("module", name))),
                                args=[str(a) for a in args], env={str(k): str(v) for k, v in env.items()},
                                restart=bool(it.get("restart", True)), max_restarts=mr,
-                               enabled=bool(it.get("enabled", True))))
+                               enabled=bool(it.get("enabled", True)), after=list(after)))
+    names = {s.name for s in out}
+    for s in out:
+        bad = [a for a in s.after if a not in names or a == s.name]
+        if bad:
+            raise InputError(f"pipeline spec {s.name}.after: {bad} not other services of the pipeline "
+                             f"({', '.join(sorted(names))})")
     if spec_dir is not None:
         for s in out:
             s.env.setdefault("EONAV_SPEC_DIR", spec_dir)
     return out
 
 
-def default_spec(cameras=(), mavlink: str | None = None) -> dict:
+def default_spec(cameras=(), mavlink: str | None = None, cameras_file: str | None = None,
+                 replay_shift_us: int | None = None) -> dict:
     """The default pipeline: camera ingest per ``[ID=]SOURCE`` in ``cameras``, MAVLink ingest (with
-    ``--source`` when given), sync, locator, obstacles."""
+    ``--source`` when given), sync, locator, obstacles. ``cameras_file`` goes to the sync and to every camera
+    ingest (``--cameras``); ``replay_shift_us`` (a number or ``"{replay_shift_us}"``, substituted when the replays
+    start) to every replay: camera ingests and MAVLink ingest then start after the other services are alive (and,
+    restarted, resume where the clock says they are: docs/bus.md, "Staleness")."""
+    replay = [] if replay_shift_us is None else ["--replay-shift-us", str(replay_shift_us)]
+    cams = [] if cameras_file is None else ["--cameras", str(cameras_file)]
     services = []
-    for i, c in enumerate(cameras):
-        cid, _, src = c.partition("=") if "=" in c and "://" not in c.split("=", 1)[0] else (f"cam{i}", "", c)
+    for cid, src in camera_sources(cameras):
         services.append({"name": f"camera_{cid}", "module": "camera_ingest",
-                         "args": ["--source", src, "--camera-id", cid]})
+                         "args": ["--source", src, "--camera-id", cid, *cams, *replay]})
     for s in DEFAULT_SERVICES:
         s = dict(s)
         if s["name"] == "mavlink" and mavlink:
-            s["args"] = ["--source", mavlink]
+            s["args"] = ["--source", mavlink, *replay]
+        if s["name"] == "sync" and cams:
+            s["args"] = list(cams)
         services.append(s)
+    if replay:
+        consumers = [s["name"] for s in services if "--replay-shift-us" not in s.get("args", [])]
+        for s in services:
+            if "--replay-shift-us" in s.get("args", []):
+                s["after"] = consumers
     return {"services": services}
+
+
+def camera_sources(cameras) -> list[tuple[str, str]]:
+    """``[ID=]SOURCE`` strings -> (camera id, source); without an id the i-th camera is ``cam<i>``."""
+    out = []
+    for i, c in enumerate(cameras):
+        cid, _, src = c.partition("=") if "=" in c and "://" not in c.split("=", 1)[0] else (f"cam{i}", "", c)
+        out.append((cid, src))
+    return out
 
 
 def module_exists(module: str) -> bool:
@@ -138,7 +170,7 @@ def module_exists(module: str) -> bool:
 @dataclass
 class Proc:
     spec: ServiceSpec
-    state: str = "pending"         # pending missing starting running restarting done failed config_error stopped disabled
+    state: str = "pending"     # pending waiting missing running restarting done failed config_error stopped disabled
     popen: subprocess.Popen | None = None
     restarts: int = 0
     started_mono: float = 0.0
@@ -153,9 +185,17 @@ class Proc:
         return self.spec.name
 
 
+SETTLED = ("done", "failed", "config_error", "missing", "disabled", "stopped")
+
+
 def _subst(s: str, ctx: dict) -> str:
-    for k, v in ctx.items():
-        s = s.replace("{" + k + "}", str(v))
+    """``{name}`` -> ``ctx[name]``; a callable value is called at its first use and its result kept."""
+    for k, v in list(ctx.items()):
+        key = "{" + k + "}"
+        if key in s:
+            if callable(v):
+                v = ctx[k] = v()
+            s = s.replace(key, str(v))
     return s
 
 
@@ -215,8 +255,29 @@ class Supervisor:
         log.info("service %s started (pid %d)", p.name, p.popen.pid)
 
     def start_all(self) -> None:
+        """Start every pending service; one with ``after`` waits (state "waiting") for :meth:`start_waiting`."""
         for p in self.procs:
             if p.state == "pending":
+                if p.spec.after:
+                    p.state, p.next_start_mono = "waiting", time.monotonic() + AFTER_TIMEOUT_S
+                else:
+                    self.start(p)
+
+    def start_waiting(self, now: float | None = None) -> None:
+        """Start each waiting service whose ``after`` services are all alive (their liveliness token: subscribed and
+        running) or ended, or that has waited :data:`AFTER_TIMEOUT_S`."""
+        now = time.monotonic() if now is None else now
+        by = {p.name: p for p in self.procs}
+        for p in self.procs:
+            if p.state != "waiting":
+                continue
+            deps = [by[a] for a in p.spec.after]
+            late = [d.name for d in deps if not (d.alive or d.state in SETTLED)]
+            if not late:
+                self.start(p)
+            elif now >= p.next_start_mono:
+                log.warning("service %s: %s not alive after %.0f s; starting anyway", p.name, ", ".join(late),
+                            AFTER_TIMEOUT_S)
                 self.start(p)
 
     def poll(self, now: float | None = None) -> list[Proc]:
@@ -254,12 +315,12 @@ class Supervisor:
         return exited
 
     def active(self) -> bool:
-        return any(p.state in ("running", "restarting", "pending") for p in self.procs)
+        return any(p.state in ("running", "restarting", "pending", "waiting") for p in self.procs)
 
     def stop_all(self) -> None:
         running = [p for p in self.procs if p.popen is not None and p.popen.poll() is None]
         for p in self.procs:
-            if p.state == "restarting":
+            if p.state in ("restarting", "waiting"):
                 p.state = "stopped"
         stop_processes([p.popen for p in running], self.grace_s)
         for p in running:
@@ -435,7 +496,7 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                  router: str | None = None, grace_s: float = 5.0, stop_event: threading.Event | None = None,
                  status_stream=None, quiet: bool = False, log_dir: str | None = None,
                  router_config: str | None = None, extra_env: dict | None = None, record: str | None = None,
-                 acl_dir: str | None = None) -> int:
+                 acl_dir: str | None = None, substitutions: dict | None = None) -> int:
     """Run a pipeline until stopped; returns the exit code (see the module docstring).
 
     ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
@@ -447,7 +508,8 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
     the recorder (``eonav.recording.recorder``) writing this MCAP file. ``acl_dir``: run with access control
     (``eonav.bus.acl``): the embedded router enforces it and every service and the status monitor connect with
     their own credentials from ``acl_dir`` (written there for this pipeline, passwords already there kept; with
-    ``router``, only read)."""
+    ``router``, only read). ``substitutions``: more ``{name}`` values for args and env (a callable is called when
+    a service first needs it)."""
     from eonav.bus.keys import check_chunk
     check_chunk(vehicle, "--vehicle")
     spec_dir = None
@@ -456,7 +518,11 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
     services = parse_spec(spec, spec_dir)
     if record:
         from eonav.recording.recorder import recorder_service
-        services += parse_spec([recorder_service(record)])
+        rec = parse_spec([recorder_service(record)])
+        for s in services:
+            if s.after:                    # replays wait for the recorder too: it keeps their first records
+                s.after.append(rec[0].name)
+        services += rec
     if exit_when_done and exit_when_done not in {s.name for s in services}:
         raise InputError(f"--exit-when-done {exit_when_done!r}: no such service in the pipeline "
                          f"({', '.join(s.name for s in services)})")
@@ -500,7 +566,7 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                         return 2
             log.info("embedded router on %s (pid %d)", router, router_proc.pid)
         ctx = {"spec_dir": spec_dir or os.getcwd(), "vehicle": vehicle, "router": router,
-               "port": router.rsplit(":", 1)[-1]}
+               "port": router.rsplit(":", 1)[-1], **(substitutions or {})}
         sup = Supervisor(services, vehicle=vehicle, router=router, ctx=ctx, grace_s=grace_s, log_dir=log_dir,
                          extra_env=extra_env, zenoh_configs=zenoh_configs)
         sup.check_modules()
@@ -512,6 +578,7 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
             last_status = 0.0
             while not stop.wait(0.1):
                 exited = sup.poll()
+                sup.start_waiting()
                 if router_proc is not None and router_proc.poll() is not None:
                     log.error("embedded router exited (%s); restarting it", router_proc.returncode)
                     try:

@@ -14,8 +14,8 @@ A service module looks like this::
     if __name__ == "__main__":
         service_main("camera", add_arguments, body)
 
-``service_main`` runs the lifecycle (configure, open the session, declare the liveliness token, config queryable
-and health publisher, call ``body``, wait for a stop, shut down) and maps the outcome to the exit code: 0 clean
+``service_main`` runs the lifecycle (configure, open the session, declare the config queryable and health
+publisher, call ``body``, declare the liveliness token, wait for a stop, shut down) and maps the outcome to the exit code: 0 clean
 stop, 1 a worker or ``body`` raised, 2 a configuration error. Subscribers are channels (``RingChannel`` for images,
 ``FifoChannel`` for small must-not-lose streams) read by worker threads that are joined before the session closes:
 nothing runs in a zenoh callback (docs/bus.md, docs/zenoh.md "Pitfalls").
@@ -503,9 +503,13 @@ class Node:
         return json.dumps({"service": self.name, "vehicle": self.vehicle, "pid": os.getpid(), "args": cfg},
                           default=str, sort_keys=True)
 
+    def declare_alive(self) -> None:
+        """The liveliness token, declared once ``body`` has returned: alive = subscribed and running (the launcher
+        starts a pipeline's replays only when their consumers are alive)."""
+        self._token = self.session.liveliness().declare_token(K.alive(self.vehicle, self.name))
+
     def _declare_infrastructure(self) -> None:
         import zenoh
-        self._token = self.session.liveliness().declare_token(K.alive(self.vehicle, self.name))
         self._health_pub = self.session.declare_publisher(
             K.health(self.vehicle, self.name), encoding=zenoh.Encoding("application/msgpack"),
             congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA_LOW)
@@ -681,6 +685,7 @@ def run_node(name: str, args, body: Callable, freeze_gc: bool = False) -> int:
                 node.fail(f"body raised {type(e).__name__}: {e}", exc=True)
                 node._shutdown()
                 return EXIT_ERROR
+            node.declare_alive()
             if freeze_gc:
                 freeze_startup_objects()
             log.info("running (vehicle %s, pid %d)", node.vehicle, os.getpid())

@@ -15,12 +15,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     init.add_argument("--service", action="append", default=[], metavar="NAME=MODULE",
                       help="a service of the vehicle (repeatable; default camera_nose=camera_ingest, "
                            "mavlink=mavlink_ingest, sync=sync, locator=locator, obstacles=obstacles)")
-    init.add_argument("--camera", action="append", default=[], metavar="ID",
-                      help="shorthand for --service camera_ID=camera_ingest (with the other default services)")
-    init.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                      help="router listen endpoints (default tcp/127.0.0.1:7447; add this host's LAN address)")
-    init.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                      help="the other hosts' routers")
+    init.add_argument("--camera-ids", default=None, metavar="IDS",
+                      help="comma-separated camera ids: shorthand for --service camera_ID=camera_ingest each (with the "
+                           "other default services)")
+    init.add_argument("--listen", default=None, metavar="ENDPOINTS",
+                      help="comma-separated router listen endpoints (default tcp/127.0.0.1:7447; add this host's LAN "
+                           "address), as every eonav process's --listen")
+    init.add_argument("--connect", default=None, metavar="ENDPOINTS",
+                      help="comma-separated endpoints of the other hosts' routers, as every eonav process's --connect")
     init.add_argument("--host", default="a", metavar="NAME",
                       help="this host's name (its router's zenoh id is kept in DIR/zenoh-routers.txt)")
     init.add_argument("--other-host", action="append", default=[], metavar="NAME",
@@ -44,10 +46,11 @@ def services_from(args) -> dict | None:
         if not sep or not name or not module:
             raise InputError(f"--service {s!r}: expected NAME=MODULE, e.g. locator=locator")
         out[name] = module
-    if args.camera:
+    cams = [c.strip() for c in (args.camera_ids or '').split(',') if c.strip()]
+    if cams:
         if not out:
             out = {k: v for k, v in DEFAULT_SERVICES.items() if v != "camera_ingest"}
-        out.update({f"camera_{c}": "camera_ingest" for c in args.camera})
+        out.update({f"camera_{c}": "camera_ingest" for c in cams})
     return out or None
 
 
@@ -59,7 +62,9 @@ def run(args) -> int:
         raise InputError("--tls-ca, --tls-cert and --tls-key go together")
     tls = {"ca": args.tls_ca, "cert": args.tls_cert, "key": args.tls_key} if all(tls_parts) else None
     services = services_from(args)
-    acl.write_acl_dir(args.dir, services, listen=args.listen or [acl.DEFAULT_ENDPOINT], connect=args.connect,
+    from eonav.bus.session import split_endpoints
+    acl.write_acl_dir(args.dir, services, listen=split_endpoints(args.listen) or [acl.DEFAULT_ENDPOINT],
+                      connect=split_endpoints(args.connect),
                       session_connect=[args.session_connect], users_file=args.users_file, tls=tls,
                       host=args.host, hosts=args.other_host)
     users = sorted(acl.read_users(args.dir))
