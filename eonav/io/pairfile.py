@@ -18,7 +18,11 @@ import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import Camera, VehicleState, View
-from eonav.io.images import load_grey
+from eonav.io.files import read_regular_file
+from eonav.io.images import ImageSizeError, load_grey
+
+MAX_PAIR_FILE_BYTES = 16 << 20     # a pair file is a few kB per frame: 16 MiB is tens of thousands of frames
+MAX_TOTAL_PIXELS = 1 << 28         # decoded images of one pair file: 1 GiB of float32 grey
 
 
 @dataclass
@@ -26,15 +30,27 @@ class PairFile:
     cameras: dict
     frames: list          # list of dicts with keys: image_path (Path), camera (str), t (float), state (VehicleState)
 
-    def views(self, load_images: bool = True) -> list:
-        """Views in file order (frame 0 first). Images are loaded and checked against the camera size."""
+    def views(self, load_images: bool = True, indices=None) -> list:
+        """Views of the frames ``indices`` (default all, in file order). Images are loaded and checked against the
+        camera size (from the file header, before decoding); at most ``MAX_TOTAL_PIXELS`` are decoded in all."""
+        idx = range(len(self.frames)) if indices is None else list(indices)
+        total = sum(self.cameras[self.frames[i]["camera"]].width * self.cameras[self.frames[i]["camera"]].height
+                    for i in idx)
+        if load_images and total > MAX_TOTAL_PIXELS:
+            raise InputError(f"frames: {len(idx)} images of {total} pixels in all, more than the "
+                             f"{MAX_TOTAL_PIXELS} eonav decodes for one pair file")
         out = []
-        for i, fr in enumerate(self.frames):
+        for i in idx:
+            fr = self.frames[i]
             cam = self.cameras[fr["camera"]]
-            img = load_grey(fr["image_path"]) if load_images else np.zeros((cam.height, cam.width), np.float32)
-            if img.shape != (cam.height, cam.width):
-                raise InputError(f"frames[{i}].image {fr['image_path'].name}: image is {img.shape[1]}x{img.shape[0]} "
-                                 f"but camera {fr['camera']!r} declares {cam.width}x{cam.height}")
+            if not load_images:
+                out.append(View(cam, fr["state"], np.zeros((cam.height, cam.width), np.float32)))
+                continue
+            try:
+                img = load_grey(fr["image_path"], expect_wh=(cam.width, cam.height))
+            except ImageSizeError as e:
+                raise InputError(f"frames[{i}].image {fr['image_path'].name}: image is {e.size[0]}x{e.size[1]} "
+                                 f"but camera {fr['camera']!r} declares {cam.width}x{cam.height}") from None
             out.append(View(cam, fr["state"], img))
         return out
 
@@ -121,13 +137,18 @@ def parse_pair(doc: dict, base: Path) -> PairFile:
 
 
 def read_json(path, what: str = "pair file"):
-    """A JSON document, with errors that say which file (``what``) and why."""
+    """A JSON document (UTF-8, or UTF-16/32 with its byte order), with errors that say which file (``what``) and
+    why. The file must be a regular file of at most ``MAX_PAIR_FILE_BYTES``."""
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{what} not found: {p}")
+    data = read_regular_file(p, what, MAX_PAIR_FILE_BYTES)
     try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as e:
+        return json.loads(data)
+    except UnicodeDecodeError as e:
+        raise InputError(f"{what} {p}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); "
+                         "expected a JSON document in UTF-8") from None
+    except RecursionError:
+        raise InputError(f"{what} {p}: not valid JSON (nested too deeply)") from None
+    except ValueError as e:          # json.JSONDecodeError, and integers of more digits than Python converts
         raise InputError(f"{what} {p}: not valid JSON ({e})") from None
 
 
