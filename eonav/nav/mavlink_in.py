@@ -228,7 +228,7 @@ class NavDecoder:
     def decode(self, msg) -> NavSample | None:
         """A NavSample for a valid navigation message of the selected autopilot, else None."""
         t = msg.get_type()
-        self.seen[t] += 1
+        self.seen["UNKNOWN" if t.startswith("UNKNOWN_") else t] += 1      # one key for every undefined id
         if t not in NAV_TYPES:
             return None
         if not self.is_autopilot(msg):
