@@ -220,11 +220,11 @@ def decode(payload, expect: str | None = None) -> dict:
     if not isinstance(doc, dict):
         raise SchemaError("payload is not a msgpack map", "msgpack")
     kind, v = doc.get("kind"), doc.get("v")
-    if kind not in FIELDS:
+    if not isinstance(kind, str) or kind not in FIELDS:        # (a list or map here is unhashable)
         raise SchemaError(f"unknown message kind {kind!r}", "kind")
     if expect is not None and kind != expect:
         raise SchemaError(f"expected a {expect} message, got {kind}", "kind")
-    if v not in SUPPORTED_VERSIONS:
+    if isinstance(v, bool) or not isinstance(v, int) or v not in SUPPORTED_VERSIONS:     # (True == 1, 1.0 == 1)
         raise SchemaError(f"{kind}: unsupported schema version {v!r}; this build reads {SUPPORTED_VERSIONS}",
                           "version")
     out = {"kind": kind, "v": v}

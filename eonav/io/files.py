@@ -35,6 +35,8 @@ def read_regular_file(path, what: str, max_bytes: int) -> bytes:
         raise InputError(f"{what} not found: {p}") from None
     except OSError as e:
         raise InputError(f"{what} {p}: cannot open ({e.strerror or e})") from None
+    except ValueError as e:                 # a NUL byte in the path
+        raise InputError(f"{what} {str(p)!r}: not a usable path ({e})") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
@@ -66,8 +68,8 @@ def check_output(path, what: str = "--out") -> Path:
         st = os.stat(p)
     except FileNotFoundError:
         st = None
-    except OSError as e:
-        raise InputError(f"{what} {p}: cannot use this path ({e.strerror or e})") from None
+    except (OSError, ValueError) as e:      # (ValueError: a NUL byte in the path)
+        raise InputError(f"{what} {str(p)!r}: cannot use this path ({getattr(e, 'strerror', None) or e})") from None
     if st is not None and not (stat.S_ISREG(st.st_mode) or stat.S_ISCHR(st.st_mode)):   # /dev/null is fine
         raise InputError(f"{what} {p}: is {kind_of(st.st_mode)}, expected a file name (e.g. range.npz)")
     if st is not None and not os.access(p, os.W_OK):

@@ -11,6 +11,7 @@ Every error names the field and what was expected.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,7 +62,11 @@ def _num(obj, key, where, positive=False, integer=False):
     v = obj[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise InputError(f"{where}.{key}: expected a number, got {v!r}")
-    if not np.isfinite(v):
+    try:
+        f = float(v)                                    # (JSON integers have no limit; floats do)
+    except OverflowError:
+        raise InputError(f"{where}.{key}: expected a finite number, got an integer of {v.bit_length()} bits") from None
+    if not math.isfinite(f):
         raise InputError(f"{where}.{key}: expected a finite number, got {v!r}")
     if integer and int(v) != v:
         raise InputError(f"{where}.{key}: expected a whole number, got {v!r}")
@@ -77,7 +82,10 @@ def _vec(obj, key, n, where):
     if (not isinstance(v, (list, tuple)) or len(v) != n
             or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
         raise InputError(f"{where}.{key}: expected a list of {n} numbers, got {v!r}")
-    a = np.asarray(v, float)
+    try:
+        a = np.array([float(x) for x in v])
+    except OverflowError:
+        raise InputError(f"{where}.{key}: expected finite numbers, got an integer beyond the float range") from None
     if not np.all(np.isfinite(a)):
         raise InputError(f"{where}.{key}: expected finite numbers, got {v!r}")
     return a
@@ -109,7 +117,7 @@ def parse_frame(i: int, fr: dict, cameras: dict, base: Path) -> dict:
     if not isinstance(img, str) or not img:
         raise InputError(f"{where}.image: expected a path relative to the pair file, got {img!r}")
     cam = fr.get("camera")
-    if cam not in cameras:
+    if not isinstance(cam, str) or cam not in cameras:
         raise InputError(f"{where}.camera: {cam!r} is not one of the cameras {sorted(cameras)}")
     t = _num(fr, "t", where) if "t" in fr else 0.0
     pos = _vec(fr, "position_ned_m", 3, where)

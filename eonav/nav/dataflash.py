@@ -16,7 +16,10 @@ clock estimate is the log's own GPS clock. Message units and field names: docs/m
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import mmap
+import struct
 from dataclasses import dataclass
 
 from eonav import InputError
@@ -64,6 +67,14 @@ class DataflashStats:
     bad_fields: int = 0       # navigation messages with a field missing or not a number (e.g. POS.Lat NaN)
     resync_bytes: int = 0     # bytes between messages that are not a message (DFReader skips them)
     truncated_bytes: int = 0  # bytes at the end that do not form a whole message
+    reader_warnings: int = 0  # lines DFReader printed about the damage it met (kept off the console)
+
+
+class _Quiet(contextlib.ExitStack):
+    def __init__(self, sink):
+        super().__init__()
+        self.enter_context(contextlib.redirect_stdout(sink))
+        self.enter_context(contextlib.redirect_stderr(sink))
 
 
 def _wrap_pi(a: float) -> float:
@@ -96,6 +107,51 @@ def convert(m, have_origin: bool):
     return None
 
 
+def check_formats(data, where: str) -> int:
+    """Walk the log as DFReader does (a message = A3 95, a type byte defined by an FMT record, then its body; any
+    other byte is skipped) and refuse an FMT record whose length is not its format's size: DFReader trusts it, and a
+    length below 3 makes it read the same bytes forever. Returns the number of FMT records."""
+    from pymavlink.DFReader import FORMAT_TO_STRUCT
+    lengths = {0x80: 89}
+    ofs, n, count = 0, len(data), 0
+    while ofs + 3 <= n:
+        if data[ofs] != 0xA3 or data[ofs + 1] != 0x95 or data[ofs + 2] not in lengths:
+            ofs += 1
+            continue
+        t, length = data[ofs + 2], lengths[data[ofs + 2]]
+        if ofs + length > n:
+            break
+        if t == 0x80:
+            typ, declared = data[ofs + 3], data[ofs + 4]
+            name = data[ofs + 5:ofs + 9].split(b"\0")[0].decode("ascii", "replace")
+            fmt = data[ofs + 9:ofs + 25].split(b"\0")[0].decode("ascii", "replace")
+            bad = sorted(set(c for c in fmt if c not in FORMAT_TO_STRUCT))
+            need = 3 + sum(struct.calcsize(FORMAT_TO_STRUCT[c][0]) for c in fmt if c in FORMAT_TO_STRUCT)
+            if bad or declared != need or (typ == 0x80 and declared != 89):
+                raise InputError(f"dataflash log {where}: the FMT record at byte {ofs} defines type {typ} "
+                                 f"({name!r}) with length {declared}, but its format {fmt!r} "
+                                 + (f"has unknown letters {bad}" if bad else f"needs {need}")
+                                 + " (a corrupt log)")
+            lengths[typ] = declared
+            count += 1
+        ofs += length
+    return count
+
+
+class _Sink:
+    """Where DFReader's prints go (it reports every skipped byte of a damaged log on stdout or stderr)."""
+
+    def __init__(self):
+        self.lines = 0
+
+    def write(self, s):
+        self.lines += s.count("\n")
+        return len(s)
+
+    def flush(self):
+        pass
+
+
 class DataflashReader:
     """Stream a dataflash log as ``(stamp_us, MAVLink-shaped message)`` (see the module docstring).
 
@@ -105,11 +161,23 @@ class DataflashReader:
     def __init__(self, path):
         self.path = str(path)
         self.stats = DataflashStats()
+        self._sink = _Sink()
+        try:
+            with open(self.path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                n_fmt = check_formats(data, self.path)
+        except (OSError, ValueError) as e:        # (ValueError: an empty file cannot be mapped)
+            raise InputError(f"dataflash log {self.path}: cannot read it ({e})") from None
+        if n_fmt == 0:
+            raise InputError(f"dataflash log {self.path}: no FMT record (expected a log starting with A3 95 80)")
         try:
             from pymavlink import DFReader
-            self._r = DFReader.DFReader_binary(self.path, zero_time_base=False)
+            with self._quiet():
+                self._r = DFReader.DFReader_binary(self.path, zero_time_base=False)
         except Exception as e:  # noqa: BLE001  (DFReader raises anything on a malformed file: ValueError, struct..)
             raise InputError(f"dataflash log {self.path}: cannot read it ({type(e).__name__}: {e})") from None
+
+    def _quiet(self):
+        return _Quiet(self._sink)
 
     def close(self):
         try:
@@ -129,12 +197,15 @@ class DataflashReader:
         while True:
             before = r.offset
             try:
-                m = r.recv_msg()
+                with self._quiet():
+                    m = r.recv_msg()
             except Exception as e:  # noqa: BLE001
                 raise InputError(f"dataflash log {self.path}: unreadable at byte {before} "
                                  f"({type(e).__name__}: {e})") from None
             if m is None:
                 break
+            if r.offset <= before:
+                raise InputError(f"dataflash log {self.path}: no progress at byte {before} (a corrupt log)")
             st.records += 1
             st.resync_bytes += max(0, r.offset - before - m.fmt.len)
             t = m.get_type()
@@ -157,3 +228,4 @@ class DataflashReader:
             st.nav += 1
             yield int(round(out._timestamp * 1e6)), out
         st.truncated_bytes = max(0, r.data_len - r.offset)
+        st.reader_warnings = self._sink.lines

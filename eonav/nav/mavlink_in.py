@@ -698,6 +698,12 @@ class TlogReader:
         recording), else replaced. Keeps replay pacing and min-filter clock estimates sane."""
         st, last = self.stats, self._last_header
         if last is None:
+            # the first record has no previous one to be checked against: the next two records (the buffer holds
+            # what follows it) vote; one corrupt first header would otherwise become the time base of the replay
+            nxt = self._next_headers(2)
+            if len(nxt) == 2 and abs(nxt[0] - nxt[1]) <= self.max_step and abs(h - nxt[0]) > self.max_step:
+                st.header_jumps += 1
+                h = nxt[0]
             self._last_header = h
             return h
         if abs(h - last) > self.max_step:
@@ -726,13 +732,35 @@ class TlogReader:
             return 8 + 10 + b[i + 9] + 2 + (13 if b[i + 10] & 1 else 0)
         return None
 
+    def _next_headers(self, k: int) -> list:
+        """Header times of the next ``k`` records in the buffer (from its start), while their packets decode."""
+        out, i = [], 0
+        while len(out) < k and self._fill(i + 11) and self._record_len(i) is not None and self._decodes(i):
+            out.append(int.from_bytes(self._buf[i:i + 8], "big"))
+            i += self._record_len(i)
+        return out
+
+    def _decodes(self, i: int) -> bool:
+        """The record at buffer index i holds a packet that decodes and whose CRC checks out (pymavlink does not
+        check the CRC of an id its dialect does not define: such a packet is no evidence)."""
+        n = self._record_len(i)
+        if n is None or not self._fill(i + n):
+            return False
+        try:
+            msg = self._mav.decode(bytearray(self._buf[i + 8:i + n]))
+        except (self._MAVError, struct.error, IndexError, ValueError, TypeError):
+            return False
+        return not msg.get_type().startswith("UNKNOWN_")
+
     def _plausible(self, i: int) -> bool:
+        """A record may start at buffer index i: a packet marker, and a header time near the last one, or (a header
+        far from it: corrupt, or a corrupt last one) a packet that decodes."""
         if not self._fill(i + 11):
             return False
         h = int.from_bytes(self._buf[i:i + 8], "big")
         if self._buf[i + 8] not in (0xFE, 0xFD):
             return False
-        return self._last_header is None or abs(h - self._last_header) <= self.max_jump
+        return self._last_header is None or abs(h - self._last_header) <= self.max_jump or self._decodes(i)
 
     def __iter__(self):
         st = self.stats
