@@ -116,7 +116,7 @@ def pack_array(a: np.ndarray) -> dict:
 
 
 def unpack_array(d, name: str) -> np.ndarray:
-    if not isinstance(d, dict) or set(d) < {"dtype", "shape", "data"}:
+    if not isinstance(d, dict) or not {"dtype", "shape", "data"} <= set(d):
         raise SchemaError(f"field {name}: expected an array map with dtype, shape, data", "array")
     dtype, shape, data = d["dtype"], d["shape"], d["data"]
     if dtype not in ARRAY_DTYPES:
