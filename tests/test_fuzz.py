@@ -476,3 +476,34 @@ def test_a_zeroed_fmt_record_is_refused_not_read_forever(tmp_path):
             "try:\n    list(DataflashReader(sys.argv[1]))\nexcept InputError as e:\n    print(e)\n")
     r = subprocess.run([sys.executable, "-c", code, str(p)], capture_output=True, text=True, timeout=60)
     assert f"FMT record at byte {i} defines type 0 ('') with length 0, but its format '' needs 3" in r.stdout, r
+
+
+def _attitude_records(n, t0=1_700_000_000_000_000):
+    ML = mavlink2_dialect()
+    mav = ML.MAVLink(None, srcSystem=1, srcComponent=1)
+    return [bytearray(struct.pack(">Q", t0 + k * 20_000) + ML.MAVLink_attitude_message(k * 20, 0, 0, 0, 0, 0, 0)
+                      .pack(mav)) for k in range(n)]
+
+
+def test_a_corrupt_length_byte_near_the_end_does_not_end_the_file(tmp_path):
+    """A length byte flipped so that its record runs past the end of the file: the reader ended there (the records
+    after it counted as a truncated tail); now it resynchronises and reads them."""
+    recs = _attitude_records(6)
+    recs[4][9] = 0xF0                                      # record 4 now claims 240 payload bytes
+    got, s = read_tlog(tmp_path, b"".join(recs))
+    assert [int.from_bytes(r[:8], "big") for r in recs[:4] + recs[5:]] == [h for h, _, _ in got]
+    assert s.truncated_bytes == 0
+
+
+def test_an_unknown_id_is_believed_only_when_a_record_follows_it(tmp_path):
+    """A flipped message id that the dialect does not define has no CRC check: with a flipped length too it
+    swallowed the records after it. It is taken as a record only when the next record starts right after it."""
+    recs = _attitude_records(8)
+    recs[3][8 + 7] ^= 0x5A                                 # record 3's message id: undefined now
+    recs[3][9] = 120                                        # and its length covers records 4 and 5
+    got, s = read_tlog(tmp_path, b"".join(recs))
+    assert [h for h, _, _ in got] == [int.from_bytes(r[:8], "big") for k, r in enumerate(recs) if k != 3]
+    ok = _attitude_records(3)
+    ok[1][8 + 7] ^= 0x5A                                   # an undefined id, framing intact: still a record
+    got, _ = read_tlog(tmp_path, b"".join(ok))
+    assert [t for _, t, _ in got] == ["ATTITUDE", f"UNKNOWN_{30 ^ 0x5A}", "ATTITUDE"]

@@ -669,6 +669,7 @@ class TlogReader:
         self._eof = False
         self._chunk = chunk
         self._last_header: int | None = None
+        self._resyncing = False      # after garbage or a bad packet, until the next good record
         dialect = mavlink2_dialect()
         self._mav = dialect.MAVLink(None)
         self._mav.robust_parsing = True
@@ -754,13 +755,20 @@ class TlogReader:
 
     def _plausible(self, i: int) -> bool:
         """A record may start at buffer index i: a packet marker, and a header time near the last one, or (a header
-        far from it: corrupt, or a corrupt last one) a packet that decodes."""
+        far from it: corrupt, or a corrupt last one; or garbage before the file's first good record) a packet that
+        decodes with its CRC."""
         if not self._fill(i + 11):
             return False
         h = int.from_bytes(self._buf[i:i + 8], "big")
         if self._buf[i + 8] not in (0xFE, 0xFD):
             return False
-        return self._last_header is None or abs(h - self._last_header) <= self.max_jump or self._decodes(i)
+        if not self._fill(i + self._record_len(i)):
+            return False                  # runs past the end: a truncated tail, or a corrupt length byte
+        if self._last_header is None and not self._resyncing:
+            return True                   # the file's first record
+        if self._last_header is not None and abs(h - self._last_header) <= self.max_jump:
+            return True
+        return self._decodes(i)
 
     def __iter__(self):
         st = self.stats
@@ -771,6 +779,7 @@ class TlogReader:
                 return
             if not self._plausible(0):
                 # garbage: skip to the next plausible record start
+                self._resyncing = True
                 j = 1
                 while self._fill(j + 11) and not self._plausible(j):
                     j += 1
@@ -800,9 +809,19 @@ class TlogReader:
                 log.debug("tlog bad packet at header %d: %s", header_us, e)
                 # the length byte may itself be corrupt: resync from the next byte
                 del self._buf[:1]
+                self._resyncing = True
+                st.resync_bytes += 1
+                continue
+            if msg.get_type().startswith("UNKNOWN_") and self._fill(n + 11) and not self._plausible(n):
+                # an id the dialect does not define has no CRC check: believed only when a record follows it
+                # (a corrupt id or length byte would otherwise swallow the records after it)
+                st.bad_data += 1
+                del self._buf[:1]
+                self._resyncing = True
                 st.resync_bytes += 1
                 continue
             del self._buf[:n]
+            self._resyncing = False
             header_us = self._check_header(header_us)
             st.records += 1
             msg._timestamp = header_us / 1e6
