@@ -1,11 +1,16 @@
 """Camera ingest: one camera, live or recorded -> schema ``frame`` messages on ``keys.frame(vehicle, camera_id)``.
 
-Live or recorded is one flag: ``--source`` takes a video file, an image folder (with an optional timestamps file),
-a V4L2 device or an RTSP/HTTP URL (docs/bus.md, "Camera ingest", lists the forms, the pacing and the stamps).
+Live or recorded is one flag: ``--source`` takes a video file or an image folder (each with an optional timestamps
+file), a V4L2 device or an RTSP/HTTP URL (docs/bus.md, "Camera ingest", lists the forms, the pacing and the stamps).
 Every frame carries ``stamp_us`` (UNIX microseconds of capture on this host's realtime clock) and ``stamp_source``,
 which says where the stamp came from: a recorded stamp, the stream's PTS, the V4L2 buffer time, the file's frame
 rate, or the host clock right after ``grab()`` (decode time kept out of the stamp). Replays of one recording given
 the same ``--replay-shift-us`` stay aligned with each other. The publisher drops frames rather than queueing them.
+
+With ``--cameras FILE`` (the cameras file the sync reads) a camera whose entry has a lens model is undistorted
+to its pinhole camera (tables built once, one ``cv2.remap`` a frame; ``eonav.io.calibration``), and each stamp
+moves by the entry's ``time_offset_s`` plus half of ``--exposure-us`` to the middle of the exposure
+(docs/cameras.md).
 
 :func:`capture_loop` runs over an injected source, sink and metrics object, testable without zenoh or a camera.
 """
@@ -23,7 +28,7 @@ import numpy as np
 
 from eonav import EonavError, InputError
 from eonav.bus import keys as K
-from eonav.bus.node import Node, add_flag, service_main
+from eonav.bus.node import Node, add_flag, restart_count, service_main
 
 log = logging.getLogger("eonav.service.camera")
 
@@ -32,6 +37,7 @@ TIMESTAMPS_FILE = "timestamps.txt"
 ENCODINGS = ("mono8", "bgr8")
 US_THRESHOLD = 1e11  # integer stamps at or above this are microseconds (1e11 us = 27.8 h; 1e11 s = year 5138)
 LIVE_PLAUSIBLE_US = 2_000_000
+RESUME_LATE_US = 100_000  # a joint replay (re)starts at its first frame due no more than this long ago
 
 
 # --------------------------------------------------------------------------------------------------
@@ -70,6 +76,7 @@ class RawFrame:
     grab_mono: float = field(default_factory=time.monotonic)
     error: str = ""
     name: str = ""
+    skipped: int = 0          # frames of the recording passed over just before this one (a resumed replay)
 
 
 class Pacer:
@@ -84,7 +91,8 @@ class Pacer:
         else:
             self.fps = float(rate)
             if self.fps < 0 or not np.isfinite(self.fps):
-                raise InputError(f"--rate {rate!r}: expected 'auto', 0 (as fast as possible) or frames per second > 0")
+                raise InputError(f"--rate-hz {rate!r}: expected 'auto', 0 (as fast as possible) "
+                                 f"or frames per second > 0")
             self.mode = "none" if self.fps == 0 else "fixed"
         self._t0 = None
         self._m0 = None
@@ -164,7 +172,9 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
                   reader: Callable | None = None, replay_shift_us: int | None = None) -> Iterator[RawFrame]:
     """Frames of an image folder (sorted files), stamped from the timestamps file if there is one.
     With ``replay_shift_us``, each frame is stamped recorded + shift and released when the host clock
-    reaches that stamp (joint replays; the pacer is then not used)."""
+    reaches that stamp (joint replays; the pacer is then not used); frames already due more than
+    ``RESUME_LATE_US`` when the replay starts are passed over unread (``RawFrame.skipped``), so a replay restarted
+    mid-way resumes where the clock says it is and never publishes an old stamp."""
     import cv2
     clock = clock or Clock()
     folder = Path(folder)
@@ -190,6 +200,8 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
     offset_us = None
     lap_shift_us = 0
     index = 0
+    resume_us = None if replay_shift_us is None else clock.now_us() - RESUME_LATE_US
+    skipped = 0
     while True:
         for i, path in enumerate(files):
             if stop is not None and stop.is_set():
@@ -198,6 +210,10 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
                 media_us = rec[i] + lap_shift_us
             else:
                 media_us = (index * period_us)
+            if resume_us is not None and media_us + replay_shift_us < resume_us:
+                skipped += 1
+                index += 1
+                continue
             if pacer:
                 pacer.wait(media_us / 1e6)
             if replay_shift_us is not None:
@@ -222,7 +238,8 @@ def folder_frames(folder, *, timestamps: str | None = None, unit: str = "auto", 
             except Exception as e:  # permission denied, truncated file, ...
                 img, err = None, f"{type(e).__name__}: {e}"
             yield RawFrame(index=index, image=img, stamp_us=stamp, stamp_source=src, source_pts_us=pts,
-                           grab_mono=t_grab, error=err, name=path.name)
+                           grab_mono=t_grab, error=err, name=path.name, skipped=skipped)
+            skipped = 0
             index += 1
         if not loop:
             return
@@ -249,8 +266,8 @@ def open_capture(source: str, kind: str, args=None):
     else:
         if kind == "stream" and args is not None and getattr(args, "open_timeout", None):
             cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG, [
-                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(args.open_timeout * 1000),
-                cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(args.open_timeout * 1000)])
+                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(args.open_timeout_s * 1000),
+                cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(args.open_timeout_s * 1000)])
         else:
             cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG)
     if not cap.isOpened():
@@ -351,6 +368,68 @@ def capture_frames(cap_factory: Callable[[], object], kind: str, *, loop: bool =
             pass
 
 
+def video_timestamps_file(video) -> Path:
+    """Where a video file's recorded stamps are looked for: ``flight.mp4`` -> ``flight.timestamps.txt`` beside it."""
+    p = Path(video)
+    return p.with_name(p.stem + ".timestamps.txt")
+
+
+def recorded_video_frames(frames: Iterable[RawFrame], stamps_us: list[int], *, keep_stamps: bool = False,
+                          replay_shift_us: int | None = None, clock: Clock | None = None,
+                          stop: threading.Event | None = None) -> Iterator[RawFrame]:
+    """A video file's frames stamped from its recorded stamps (one per decoded frame, in order), as an image
+    folder's are: moved onto the current clock with their spacing kept, kept as recorded (``keep_stamps``), or
+    recorded + ``replay_shift_us`` and released when the host clock reaches that stamp (``frames`` then unpaced;
+    frames due more than ``RESUME_LATE_US`` before the replay started are passed over, as a folder's)."""
+    clock = clock or Clock()
+    offset_us = None
+    resume_us = None if replay_shift_us is None or keep_stamps else clock.now_us() - RESUME_LATE_US
+    skipped = 0
+    for f in frames:
+        if f.index >= len(stamps_us):
+            raise InputError(f"video frame {f.index + 1}: more frames than the {len(stamps_us)} recorded stamps")
+        rec = stamps_us[f.index]
+        grab_mono = f.grab_mono
+        if keep_stamps:
+            stamp, src = rec, "recorded_raw"
+        elif replay_shift_us is not None:
+            if rec + replay_shift_us < resume_us:
+                skipped += 1
+                continue
+            clock.sleep((rec + replay_shift_us - clock.now_us()) / 1e6, stop)
+            if stop is not None and stop.is_set():
+                return
+            stamp, src, grab_mono = rec + replay_shift_us, "recorded", clock.monotonic()
+        else:
+            if offset_us is None:
+                offset_us = clock.now_us() - rec
+            stamp, src = rec + offset_us, "recorded"
+        yield RawFrame(index=f.index, image=f.image, stamp_us=stamp, stamp_source=src, source_pts_us=rec,
+                       grab_mono=grab_mono, error=f.error, name=f.name, skipped=skipped)
+        skipped = 0
+
+
+def video_stamps(args) -> list[int] | None:
+    """The recorded stamps of the video file ``args.source`` (``--timestamps`` or ``<name>.timestamps.txt``;
+    None when it has none), checked against the video's frame count when the container states one."""
+    import cv2
+    tpath = Path(args.timestamps) if args.timestamps else video_timestamps_file(args.source)
+    if args.timestamps and not tpath.is_file():
+        raise InputError(f"--timestamps {tpath}: no such file")
+    if not tpath.is_file():
+        return None
+    stamps = parse_timestamps(tpath, args.timestamps_unit)
+    if args.loop:
+        raise InputError(f"--loop: a video with recorded stamps ({tpath}) replays once; loop an image folder instead")
+    cap = open_capture(args.source, "file", args)
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    cap.release()
+    if n > 0 and n != len(stamps):
+        raise InputError(f"{tpath}: {len(stamps)} stamps for {n} frames in {args.source}; "
+                         "expected one stamp per line per frame")
+    return stamps
+
+
 def classify_source(source: str) -> str:
     """``folder``, ``file``, ``v4l2`` or ``stream`` for a ``--source`` string."""
     s = str(source)
@@ -402,18 +481,21 @@ class CaptureStats:
     published: int = 0
     corrupt: int = 0
     wrong_size: int = 0
+    skipped: int = 0
     last_stamp_us: int = -1
 
 
 def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, camera_id: str,
                  encoding: str = "mono8", width: int | None = None, height: int | None = None,
                  metrics=None, stop: threading.Event | None = None,
-                 monotonic: Callable[[], float] = time.monotonic) -> CaptureStats:
+                 monotonic: Callable[[], float] = time.monotonic, correct: Callable | None = None) -> CaptureStats:
     """Turn source frames into schema "frame" fields and hand them to ``sink``.
 
     Skips (and counts) unreadable frames (``corrupt_frames``) and, when ``width``/``height`` are given,
-    frames of another size (``wrong_size``). ``seq`` numbers published frames from 0. Returns when
-    ``frames`` is exhausted or ``stop`` is set."""
+    frames of another size (``wrong_size``). ``correct(image, stamp_us) -> (image, stamp_us)`` (a
+    ``eonav.io.calibration.FrameCorrection``) undistorts and re-stamps each kept frame. ``seq`` numbers published
+    frames from 0, plus the frames a resumed replay passed over (``replay_skipped``: downstream sees them as a gap,
+    not a restart). Returns when ``frames`` is exhausted or ``stop`` is set."""
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding {encoding!r}: expected one of {ENCODINGS}")
     m = metrics or NullMetrics()
@@ -422,6 +504,9 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
         if stop is not None and stop.is_set():
             break
         m.count("frames_in")
+        if f.skipped:
+            st.skipped += f.skipped
+            m.count("replay_skipped", f.skipped)
         if f.image is None:
             st.corrupt += 1
             m.count("corrupt_frames")
@@ -442,15 +527,18 @@ def capture_loop(frames: Iterable[RawFrame], sink: Callable[[dict], None], *, ca
             m.log_limited("size", logging.WARNING, "skipped frame %d %s: %dx%d, expected %sx%s",
                           f.index, f.name, w, h, width or "*", height or "*")
             continue
-        sink({"camera_id": camera_id, "seq": st.published, "stamp_us": int(f.stamp_us),
+        stamp_us = int(f.stamp_us)
+        if correct is not None:
+            img, stamp_us = correct(img, stamp_us)
+        sink({"camera_id": camera_id, "seq": st.published + st.skipped, "stamp_us": stamp_us,
               "stamp_source": f.stamp_source, "encoding": encoding, "image": img,
               "source_pts_us": int(f.source_pts_us)})
         m.latency("grab_to_put", monotonic() - f.grab_mono)
         m.tick("frames")
-        if st.last_stamp_us >= 0 and f.stamp_us <= st.last_stamp_us:
+        if st.last_stamp_us >= 0 and stamp_us <= st.last_stamp_us:
             m.count("nonincreasing_stamps")
         st.published += 1
-        st.last_stamp_us = int(f.stamp_us)
+        st.last_stamp_us = stamp_us
     return st
 
 
@@ -463,9 +551,9 @@ def _rate(s: str):
     try:
         v = float(s)
     except ValueError:
-        raise ValueError(f"--rate {s!r}: expected auto, 0 or frames per second") from None
+        raise ValueError(f"--rate-hz {s!r}: expected auto, 0 or frames per second") from None
     if v < 0:
-        raise ValueError("--rate must be >= 0")
+        raise ValueError("--rate-hz must be >= 0")
     return v
 
 
@@ -478,8 +566,9 @@ def add_arguments(p) -> None:
     add_flag(g, "--source", env="EONAV_CAMERA_SOURCE", default=None,
              help="video file, image folder, V4L2 device (/dev/videoN or N), or rtsp:// / http:// URL")
     add_flag(g, "--camera-id", env="EONAV_CAMERA_ID", default="nose", help="camera id in the frame key and messages")
-    add_flag(g, "--rate", env="EONAV_CAMERA_RATE", default="auto", type=_rate,
-             help="file pacing: auto = real time from stamps/PTS/fps, N = N fps, 0 = as fast as possible")
+    add_flag(g, "--rate-hz", env="EONAV_CAMERA_RATE_HZ", default="auto", type=_rate, metavar="auto|HZ",
+             help="file pacing: auto = real time from stamps/PTS/fps, N = N frames per second, 0 = as fast as possible",
+             aliases="--rate", old_env="EONAV_CAMERA_RATE")
     add_flag(g, "--loop", env="EONAV_CAMERA_LOOP", action="store_true", help="replay a file source forever")
     add_flag(g, "--encoding", env="EONAV_CAMERA_ENCODING", default="mono8", choices=ENCODINGS,
              help="published pixel format")
@@ -490,24 +579,53 @@ def add_arguments(p) -> None:
     add_flag(g, "--height", env="EONAV_CAMERA_HEIGHT", default=None, type=_opt_int,
              help="expected height in pixels (as --width)")
     add_flag(g, "--timestamps", env="EONAV_CAMERA_TIMESTAMPS", default=None,
-             help=f"timestamps file for an image folder (default <folder>/{TIMESTAMPS_FILE} if present)")
+             help=f"timestamps file for an image folder (default <folder>/{TIMESTAMPS_FILE} if present) or a video "
+                  "file (default <name>.timestamps.txt beside it if present)")
     add_flag(g, "--timestamps-unit", env="EONAV_CAMERA_TIMESTAMPS_UNIT", default="auto", choices=("auto", "s", "us"),
              help="s = seconds, us = integer microseconds, auto = us if all integers >= 1e11 else s")
     add_flag(g, "--keep-stamps", env="EONAV_CAMERA_KEEP_STAMPS", action="store_true",
              help="publish recorded stamps as they are instead of mapping them onto the current clock")
     add_flag(g, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default=None, type=int, metavar="D",
              help="joint replay: stamp recorded + D and release at that host time (same D for every replay)")
-    add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float,
+    add_flag(g, "--default-fps", env="EONAV_CAMERA_DEFAULT_FPS", default=10.0, type=float, metavar="FPS",
              help="frame rate assumed for folders without timestamps / files without fps (pacing in auto mode)")
-    add_flag(g, "--wait-subscribers", env="EONAV_CAMERA_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
-             help="file sources: wait up to S s for a subscriber before the first frame (declaration race)")
+    add_flag(g, "--wait-subscribers-s", env="EONAV_CAMERA_WAIT_SUBSCRIBERS_S", default=2.0, type=float, metavar="S",
+             help="file sources: wait up to S s for a subscriber before the first frame (declaration race)",
+             aliases="--wait-subscribers", old_env="EONAV_CAMERA_WAIT_SUBSCRIBERS")
+    add_flag(g, "--cameras", env="EONAV_CAMERA_CAMERAS", default=None, metavar="FILE",
+             help="cameras file (as the sync's): this camera's lens model (frames undistorted) and time_offset_s")
+    add_flag(g, "--exposure-us", env="EONAV_CAMERA_EXPOSURE_US", default=None, type=float, metavar="US",
+             help="known exposure time: stamps move by half of it to the middle of the exposure")
     add_flag(g, "--fourcc", env="EONAV_CAMERA_FOURCC", default=None, help="V4L2 pixel format, e.g. MJPG")
-    add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, help="V4L2 frame rate to request")
+    add_flag(g, "--device-fps", env="EONAV_CAMERA_DEVICE_FPS", default=None, type=float, metavar="FPS",
+             help="V4L2 frame rate to request")
     add_flag(g, "--buffer-size", env="EONAV_CAMERA_BUFFER_SIZE", default=2, type=int, help="V4L2 buffers (small = low latency)")
-    add_flag(g, "--live-timeout", env="EONAV_CAMERA_LIVE_TIMEOUT", default=5.0, type=float, metavar="S",
-             help="live sources: exit 1 (for a restart) after S s without a frame")
-    add_flag(g, "--open-timeout", env="EONAV_CAMERA_OPEN_TIMEOUT", default=10.0, type=float, metavar="S",
-             help="network streams: open/read timeout")
+    add_flag(g, "--live-timeout-s", env="EONAV_CAMERA_LIVE_TIMEOUT_S", default=5.0, type=float, metavar="S",
+             help="live sources: exit 1 (for a restart) after S s without a frame",
+             aliases="--live-timeout", old_env="EONAV_CAMERA_LIVE_TIMEOUT")
+    add_flag(g, "--open-timeout-s", env="EONAV_CAMERA_OPEN_TIMEOUT_S", default=10.0, type=float, metavar="S",
+             help="network streams: open/read timeout", aliases="--open-timeout", old_env="EONAV_CAMERA_OPEN_TIMEOUT")
+
+
+def camera_correction(args):
+    """The ``FrameCorrection`` of ``--cameras`` / ``--exposure-us`` (None when neither is given). The camera's
+    calibrated size becomes ``--width``/``--height`` (requested from V4L2; other sizes are skipped)."""
+    from eonav.io.calibration import frame_correction
+    exposure_s = None if args.exposure_us is None else args.exposure_us / 1e6
+    if not args.cameras:
+        return None if exposure_s is None else frame_correction(None, 0.0, exposure_s)
+    from eonav.io.pairfile import load_camera_models
+    models = load_camera_models(args.cameras, "--cameras")
+    if args.camera_id not in models:
+        raise InputError(f"--cameras {args.cameras}: no camera {args.camera_id!r} (has {sorted(models)})")
+    m = models[args.camera_id]
+    for flag, want in (("width", m.camera.width), ("height", m.camera.height)):
+        if getattr(args, flag) is None:
+            setattr(args, flag, want)
+        elif getattr(args, flag) != want:
+            raise InputError(f"--{flag} {getattr(args, flag)}: camera {args.camera_id!r} in --cameras is "
+                             f"{m.camera.width}x{m.camera.height}")
+    return frame_correction(m.undistort, m.time_offset_s, exposure_s)
 
 
 def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | None = None) -> Iterator[RawFrame]:
@@ -516,38 +634,55 @@ def make_frames(args, *, stop: threading.Event | None = None, clock: Clock | Non
         raise InputError("--source is required (or EONAV_CAMERA_SOURCE)")
     kind = classify_source(args.source)
     clock = clock or Clock()
-    pacer = Pacer(args.rate, clock, stop) if kind in ("folder", "file") else None
+    pacer = Pacer(args.rate_hz, clock, stop) if kind in ("folder", "file") else None
     if kind == "folder":
         return folder_frames(args.source, timestamps=args.timestamps, unit=args.timestamps_unit,
                              keep_stamps=args.keep_stamps, loop=args.loop, pacer=pacer, clock=clock,
                              default_fps=args.default_fps, stop=stop, replay_shift_us=args.replay_shift_us)
-    if args.replay_shift_us is not None:
-        raise InputError("--replay-shift-us applies to image folders with a timestamps file")
-    if args.timestamps:
-        raise InputError("--timestamps applies to image folders only")
+    stamps = video_stamps(args) if kind == "file" else None
+    if args.replay_shift_us is not None and (stamps is None or args.keep_stamps):
+        raise InputError("--replay-shift-us needs recorded stamps (an image folder's timestamps file, a video's "
+                         "<name>.timestamps.txt or --timestamps) and excludes --keep-stamps")
+    if args.timestamps and kind != "file":
+        raise InputError("--timestamps applies to image folders and video files only")
     open_capture(args.source, kind, args).release()  # fail early, as a configuration error
-    return capture_frames(lambda: open_capture(args.source, kind, args), kind, loop=args.loop, pacer=pacer,
-                          clock=clock, stop=stop, live_timeout_s=args.live_timeout, default_fps=args.default_fps)
+    frames = capture_frames(lambda: open_capture(args.source, kind, args), kind, loop=args.loop,
+                            pacer=None if args.replay_shift_us is not None else pacer, clock=clock, stop=stop,
+                            live_timeout_s=args.live_timeout_s, default_fps=args.default_fps)
+    if stamps is None:
+        return frames
+    return recorded_video_frames(frames, stamps, keep_stamps=args.keep_stamps, replay_shift_us=args.replay_shift_us,
+                                 clock=clock, stop=stop)
 
 
 def body(node: Node, args) -> None:
     K.check_chunk(args.camera_id, "--camera-id")
     kind = classify_source(args.source) if args.source else None
+    if kind in ("folder", "file") and args.replay_shift_us is None and restart_count():
+        # no fixed time reference: it would start over with the recording's beginning presented as now
+        node.log.warning("replay of %s restarted without --replay-shift-us: it cannot resume where it was, so it "
+                         "ends here instead of starting over (docs/bus.md, Staleness)", args.source)
+        node.stop("restarted replay cannot resume")
+        return
+    correct = camera_correction(args)
     frames = make_frames(args, stop=node.stop_event)
     key = K.frame(node.vehicle, args.camera_id)
     pub = node.publisher(key, image=True)
     node.log.info("camera %s: %s source %s -> %s (%s, rate %s)", args.camera_id, kind, args.source, key,
-                  args.encoding, args.rate)
+                  args.encoding, args.rate_hz)
+    if correct is not None:
+        node.log.info("camera %s: %s, stamps %+d us", args.camera_id,
+                      "undistorted" if correct.undistort is not None else "pinhole", correct.shift_us)
 
     def sink(fields):
         node.put(pub, "frame", **fields)
 
     def run():
-        if kind in ("folder", "file") and args.wait_subscribers > 0:
-            if not node.wait_matching(pub, args.wait_subscribers):
-                node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers)
+        if kind in ("folder", "file") and args.wait_subscribers_s > 0:
+            if not node.wait_matching(pub, args.wait_subscribers_s):
+                node.log.info("no subscriber after %.1f s; publishing anyway", args.wait_subscribers_s)
         st = capture_loop(frames, sink, camera_id=args.camera_id, encoding=args.encoding, width=args.width,
-                          height=args.height, metrics=node, stop=node.stop_event)
+                          height=args.height, metrics=node, stop=node.stop_event, correct=correct)
         if node.stop_event.is_set():
             return
         if st.published == 0 and st.corrupt + st.wrong_size > 0:
@@ -566,4 +701,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    service_main("camera", add_arguments, body)
+    service_main("camera", add_arguments, body, module="camera_ingest")

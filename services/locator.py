@@ -22,6 +22,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.bus import keys as K
+from eonav.bus.freshness import FreshnessGate, age_ms, screen
 from eonav.bus.node import Node, add_flag, now_us, service_main
 from eonav.bus.session import env_flag
 
@@ -31,22 +32,25 @@ MAX_SEQ_GAP = 10_000          # a larger jump of a camera's seq is a restart (or
 
 
 def add_arguments(p):
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    d = PairPolicyConfig()                       # the pair policy's defaults are the library's
     add_flag(p, "--method", env="EONAV_LOCATOR_METHOD", default="dense",
-             help="range estimator (eonav.locate.METHODS): dense (default), paper, dis")
+             help="range estimator (eonav.ranging.locate.METHODS): dense (default), paper, dis")
     p.add_argument("--method-param", action="append", default=[], metavar="NAME=VALUE",
                    help="extra keyword for the method, e.g. search_window=7 (repeatable; numbers parsed)")
     add_flag(p, "--cv-threads", env="EONAV_CV_THREADS", default=-1, type=int, metavar="N",
              help="cv2.setNumThreads(N); -1 keeps OpenCV's default, 0 disables its threading")
-    add_flag(p, "--camera", env="EONAV_LOCATOR_CAMERA", default=None,
-             help="only this camera id (default: every camera of the vehicle)")
+    add_flag(p, "--camera-id", env="EONAV_LOCATOR_CAMERA_ID", default=None,
+             help="only this camera id (default: every camera of the vehicle)",
+             aliases="--camera", old_env="EONAV_LOCATOR_CAMERA")
     add_flag(p, "--ring", env="EONAV_LOCATOR_RING", default=2, type=int,
              help="RingChannel depth of the posed-frame subscriber (newest N kept)")
-    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|S",
+    add_flag(p, "--scale", env="EONAV_LOCATOR_SCALE", default="auto", metavar="auto|FACTOR",
              help="auto: per camera and pair, the largest scale of the ladder (1, 0.5, ... --min-scale) whose "
-                  "compute time fits --budget-ms (eonav.ranging.scale_control); a number S in (0, 1]: always locate on images "
-                  "resized by S (0.5 = half resolution, ~4x less work). See --publish-grid")
-    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="S",
-             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (S itself is the last rung)")
+                  "compute time fits --budget-ms (eonav.ranging.scale_control); a number FACTOR in (0, 1]: always "
+                  "locate on images resized by FACTOR (0.5 = half resolution, ~4x less work). See --publish-grid")
+    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="FACTOR",
+             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (FACTOR itself is the last rung)")
     add_flag(p, "--budget-ms", env="EONAV_LOCATOR_BUDGET_MS", default=None, type=float, metavar="MS",
              help="--scale auto: compute-time budget per pair; default 60 %% of the camera's measured frame interval, "
                   "clamped to [20, 200] ms")
@@ -61,24 +65,33 @@ def add_arguments(p):
     add_flag(p, "--fusion", env="EONAV_LOCATOR_FUSION", default="auto", choices=("auto", "on", "off"),
              help="fuse every camera's measurements over time into one inverse-range state per camera and publish "
                   "the fused map (eonav.fusion); auto: on with the dense method, off with the others")
+    add_flag(p, "--max-input-age-ms", env="EONAV_LOCATOR_MAX_INPUT_AGE_MS", default=800.0, type=float,
+             help="drop (count dropped.too_old) a posed frame older than this on arrival, and a range map whose frame "
+                  "is older than this when it would be published (docs/bus.md, Staleness)")
+    add_flag(p, "--input-timeout-ms", env="EONAV_LOCATOR_INPUT_TIMEOUT_MS", default=1000.0, type=float,
+             help="no usable posed frame for this long: state degraded (5 periods of a 5 fps camera)")
     add_flag(p, "--range-std", env="EONAV_LOCATOR_RANGE_STD", default="f16", choices=("f16", "f32", "off"),
              help="send inv_range_std_per_m as float16, float32, or not at all")
     g = p.add_argument_group("pair policy (eonav.ranging.pair_policy)")
-    add_flag(g, "--min-disparity", env="EONAV_PAIR_MIN_DISPARITY", default=2.0, type=float, metavar="PX",
-             help="median translational disparity of a point at --ref-range needed for a pair")
-    add_flag(g, "--ref-range", env="EONAV_PAIR_REF_RANGE", default=50.0, type=float, metavar="M",
-             help="range at which parallax is judged")
-    add_flag(g, "--min-baseline", env="EONAV_PAIR_MIN_BASELINE", default=0.0, type=float, metavar="M",
-             help="a baseline of at least this also qualifies (0: off)")
-    add_flag(g, "--max-age", env="EONAV_PAIR_MAX_AGE", default=1.0, type=float, metavar="S",
-             help="oldest earlier frame used")
-    add_flag(g, "--max-rotation", env="EONAV_PAIR_MAX_ROTATION", default=10.0, type=float, metavar="DEG",
-             help="largest rotation between the two frames of a motion pair")
-    add_flag(g, "--history", env="EONAV_PAIR_HISTORY", default=8, type=int, help="frames kept per camera")
+    add_flag(g, "--min-disparity-px", env="EONAV_PAIR_MIN_DISPARITY_PX", default=d.min_disparity_px, type=float,
+             metavar="PX", help="median translational disparity of a point at --ref-range-m needed for a pair",
+             aliases="--min-disparity", old_env="EONAV_PAIR_MIN_DISPARITY")
+    add_flag(g, "--ref-range-m", env="EONAV_PAIR_REF_RANGE_M", default=d.ref_range_m, type=float, metavar="M",
+             help="range at which parallax is judged", aliases="--ref-range", old_env="EONAV_PAIR_REF_RANGE")
+    add_flag(g, "--min-baseline-m", env="EONAV_PAIR_MIN_BASELINE_M", default=d.min_baseline_m, type=float, metavar="M",
+             help="a baseline of at least this also qualifies (0: off)",
+             aliases="--min-baseline", old_env="EONAV_PAIR_MIN_BASELINE")
+    add_flag(g, "--max-age-s", env="EONAV_PAIR_MAX_AGE_S", default=d.max_age_s, type=float, metavar="S",
+             help="oldest earlier frame used", aliases="--max-age", old_env="EONAV_PAIR_MAX_AGE")
+    add_flag(g, "--max-rotation-deg", env="EONAV_PAIR_MAX_ROTATION_DEG", default=d.max_rotation_deg, type=float,
+             metavar="DEG", help="largest rotation between the two frames of a motion pair",
+             aliases="--max-rotation", old_env="EONAV_PAIR_MAX_ROTATION")
+    add_flag(g, "--history", env="EONAV_PAIR_HISTORY", default=d.history, type=int, help="frames kept per camera")
     add_flag(g, "--stereo", env="EONAV_PAIR_STEREO", default=None, metavar="REF,PARTNER",
              help="stereo rig: two camera ids, the first is the reference")
-    add_flag(g, "--max-stereo-dt", env="EONAV_PAIR_MAX_STEREO_DT", default=0.002, type=float, metavar="S",
-             help="largest stamp difference within a stereo pair")
+    add_flag(g, "--max-stereo-dt-s", env="EONAV_PAIR_MAX_STEREO_DT_S", default=d.max_stereo_dt_s, type=float,
+             metavar="S", help="largest stamp difference within a stereo pair",
+             aliases="--max-stereo-dt", old_env="EONAV_PAIR_MAX_STEREO_DT")
 
 
 def parse_params(items) -> dict:
@@ -105,10 +118,10 @@ def policy_config(args):
         rig = tuple(s.strip() for s in args.stereo.split(","))
         for c in rig:
             K.check_chunk(c, "--stereo camera id")
-    return PairPolicyConfig(min_disparity_px=args.min_disparity, ref_range_m=args.ref_range,
-                            min_baseline_m=args.min_baseline, max_age_s=args.max_age,
-                            max_rotation_deg=args.max_rotation, history=args.history, stereo_rig=rig,
-                            max_stereo_dt_s=args.max_stereo_dt)
+    return PairPolicyConfig(min_disparity_px=args.min_disparity_px, ref_range_m=args.ref_range_m,
+                            min_baseline_m=args.min_baseline_m, max_age_s=args.max_age_s,
+                            max_rotation_deg=args.max_rotation_deg, history=args.history, stereo_rig=rig,
+                            max_stereo_dt_s=args.max_stereo_dt_s)
 
 
 def grey_image(msg: dict) -> np.ndarray:
@@ -275,10 +288,14 @@ def body(node: Node, args) -> None:
     new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
     runner = fusion_runner(args, params)
-    key = K.posed_frame(node.vehicle, args.camera) if args.camera else K.posed_frames_all(node.vehicle)
+    if runner is not None:
+        warm_up_fusion(node, runner)
+    key = K.posed_frame(node.vehicle, args.camera_id) if args.camera_id else K.posed_frames_all(node.vehicle)
+    gate = FreshnessGate(args.max_input_age_ms / 1000.0)
     sub = node.subscribe(key, ring=args.ring)
+    node.expect_input("posed frames", args.input_timeout_ms / 1000.0)
     node.worker(locate_loop, node, sub, policy, args.method, params, new_controller, args.range_std, args.warmup,
-                args.publish_grid, runner, name="locate")
+                args.publish_grid, runner, gate, name="locate")
     node.log.info("locator: method %s, fusion %s, scale %s (ladder %s, budget %s), publish grid %s, %s, policy %s",
                   args.method, "on" if runner else "off", args.scale, new_controller().ladder,
                   "auto" if args.budget_ms is None else f"{args.budget_ms:g} ms", args.publish_grid, key,
@@ -301,8 +318,31 @@ def fusion_runner(args, params: dict):
     schedule = ScheduleConfig(policy=replace(pol, stereo_rig=None), stereo_rig=pol.stereo_rig,
                               max_stereo_dt_s=pol.max_stereo_dt_s)
     measure_params = dict(params, fill=False)
-    return FusionRunner(FusionConfig(schedule=schedule),
+    # fresh_measurements: the runner may write the fused map into a measurement's arrays (nothing else keeps them)
+    return FusionRunner(FusionConfig(schedule=schedule), fresh_measurements=True,
                         measure=lambda va, vb: locate(va, vb, method=args.method, **measure_params))
+
+
+def warm_up_fusion(node: Node, runner) -> None:
+    """Run predict, update and the fused map once on a small plane pair, before the first frame: their numba passes
+    load (or compile, on a fresh install) now, not in the first fused map, which would then be too old to publish.
+    A failure is counted (``warmup_errors``) and logged; the real frames then pay the load."""
+    from eonav.fusion.schedule import ScheduleConfig
+    from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+    from eonav.ranging.methods.dense import _plane_pair
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    t0 = time.perf_counter()
+    try:
+        va, vb = _plane_pair(96)
+        probe = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01))),
+                             measure=runner.measure, fresh_measurements=True)
+        maps = [m for k, v in enumerate((va, vb, va)) for m in probe.push(frame("warmup", v, 1_000_000 + k * 100_000, k))]
+    except Exception as e:  # noqa: BLE001  (see docstring)
+        node.count("warmup_errors")
+        node.log.warning("fusion warm-up failed: %s: %s", type(e).__name__, e)
+        return
+    node.latency("warmup_fusion", time.perf_counter() - t0)
+    node.log.info("fusion warm-up: %.0f ms, %d fused maps", (time.perf_counter() - t0) * 1e3, len(maps))
 
 
 def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
@@ -389,11 +429,13 @@ def show_scale(node: Node, camera_id: str, controller, shown: dict) -> None:
 
 
 def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controller=None,
-                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate", runner=None) -> None:
+                range_std: str = "f16", warmup: bool = False, publish_grid: str = "locate", runner=None,
+                gate: FreshnessGate | None = None) -> None:
     """``new_controller()`` makes a camera's ScaleController (``scale_controllers``; default: fixed scale 1);
     ``warmup``: ``warm_up_camera`` at each camera's first frame; ``publish_grid``: ``locate`` or ``frame`` (module
     docstring); ``runner``: an ``eonav.fusion`` FusionRunner (``fusion_runner``), which then schedules the pairs and
-    whose fused maps are published, instead of one pair's map per frame."""
+    whose fused maps are published, instead of one pair's map per frame; ``gate``: the max-age and stamp-order
+    gate on arrival and before each put (``eonav.bus.freshness``; None: none)."""
     if publish_grid not in ("locate", "frame"):
         raise InputError(f"publish grid must be 'locate' or 'frame', got {publish_grid!r}")
     from eonav.ranging.locate import locate
@@ -410,8 +452,9 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
     def one(sample, newest) -> None:
         nonlocal errors_in_row
         msg = node.decode(sample, expect="posed_frame")
-        if msg is None:
+        if msg is None or (gate is not None and not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival")):
             return
+        node.input_seen("posed frames")
         t_rx = now_us()
         t_rx0 = time.perf_counter()
         node.latency("capture_to_received", (t_rx - msg["stamp_us"]) * 1e-6)
@@ -451,7 +494,8 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             node.count("frames_superseded")
             return
         if runner is not None:
-            fuse_frame(node, runner, f, sc, pubs, range_std, t_rx0, cameras, publish_grid, reported_fusion, sources)
+            fuse_frame(node, runner, f, sc, pubs, range_std, t_rx0, cameras, publish_grid, reported_fusion, sources,
+                       gate)
             return
         d = policy.offer(f)
         node.count(f"pairs.{d.reason}")
@@ -465,7 +509,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
         sc = scalers[ref]                   # be the rig frame that arrived before f)
         scale = sc.scale                    # one scale for both frames of the pair
         errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
-                                              t_rx0, cameras, locate, publish_grid)
+                                              t_rx0, cameras, locate, publish_grid, gate)
         if compute_s is not None:
             change = sc.observe_compute(scale, compute_s)
             if change is not None:
@@ -485,8 +529,13 @@ def fusion_frame(f, scale: float, cameras: CameraCache):
     return frame(f.camera_id, scaled_view(f, scale, cameras), f.stamp_us, f.seq)
 
 
+def fresh_to_put(node: Node, gate: FreshnessGate | None, camera_id: str, stamp_us: int) -> bool:
+    """Whether a range map of ``camera_id`` stamped ``stamp_us`` may be put now (``gate`` None: always)."""
+    return gate is None or screen(node, gate, camera_id, stamp_us, "publish")
+
+
 def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: float, cameras: CameraCache,
-               publish_grid: str, reported: dict, sources: dict) -> None:
+               publish_grid: str, reported: dict, sources: dict, gate: FreshnessGate | None = None) -> None:
     """Push posed frame ``f`` through the fusion runner and publish the fused maps it returns (normally one: ``f``'s
     camera; a stereo partner's frame returns the rig reference's). The compute time (measurements + fusion) drives
     the camera's scale controller as a single pair's would."""
@@ -520,11 +569,15 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
         n = np.minimum(np.asarray(m.n_fused), 255).astype(np.uint8)
         if fields["range_m"].shape != n.shape:
             n = to_full_grid(n, a.camera)
+        if not fresh_to_put(node, gate, a.camera_id, a.stamp_us):
+            continue
         node.put(pubs[a.camera_id], "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
                  other_camera_id=ms.get("other_camera_id", ""), other_seq=ms.get("other_seq", -1),
                  method=m.result.method, position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"],
                  baseline_m=ms.get("baseline_m", float("nan")), compute_s=compute_s, scale=float(scale),
-                 overhead_s=(t0 - t_rx0), n_fused=n, **fields)
+                 overhead_s=(t0 - t_rx0), n_fused=n, frame_age_ms=age_ms(a.stamp_us), **fields)
+        if gate is not None:
+            gate.commit(a.camera_id, a.stamp_us)
         node.count("pairs_computed", len(m.measurements))
         node.count("maps_fused")
         node.tick("pairs_computed")
@@ -541,9 +594,11 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
 
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,
-               errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate") -> tuple:
-    """Locate one pair at ``scale`` (both frames) and publish its range map on the ``publish_grid`` (``map_fields``);
-    returns (the count of locate errors in a row, the locate call's seconds or None when it failed)."""
+               errors_in_row: int, t_rx0: float, cameras: CameraCache, locate, publish_grid: str = "locate",
+               gate: FreshnessGate | None = None) -> tuple:
+    """Locate one pair at ``scale`` (both frames) and publish its range map on the ``publish_grid`` (``map_fields``)
+    unless ``gate`` finds it stale; returns (the count of locate errors in a row, the locate call's seconds or None
+    when it failed)."""
     a, b = d.a, d.b
     va, vb = scaled_view(a, scale, cameras), scaled_view(b, scale, cameras)
     t0 = time.perf_counter()
@@ -565,10 +620,15 @@ def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: floa
     fields = map_fields(res, a, va.camera, range_std, publish_grid)
     range_m = fields["range_m"]
     overhead_s = (t0 - t_rx0) + (time.perf_counter() - t1)     # so far; the encode and put follow
+    if not fresh_to_put(node, gate, a.camera_id, a.stamp_us):
+        return 0, compute_s
     node.put(pub, "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
              other_camera_id=b.camera_id, other_seq=b.seq, other_stamp_us=b.stamp_us, method=res.method,
              position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"], baseline_m=d.baseline_m,
-             compute_s=compute_s, scale=float(scale), overhead_s=overhead_s, **fields)
+             compute_s=compute_s, scale=float(scale), overhead_s=overhead_s, frame_age_ms=age_ms(a.stamp_us),
+             **fields)
+    if gate is not None:
+        gate.commit(a.camera_id, a.stamp_us)
     node.count("pairs_computed")
     node.count(f"pairs_computed.{d.reason}")
     node.tick("pairs_computed")

@@ -8,7 +8,10 @@ the same quantities, ``eonav.nav.dataflash``). Out: one schema ``nav_state`` on
 NaN), and ``clock_offset`` on ``keys.nav_clock(vehicle)``. Every ``stamp_us`` is autopilot time mapped onto the
 companion clock by the estimated offset; decoding, validation and the clock estimators are ``eonav.nav.mavlink_in``
 (docs/mavlink.md). A log replays at real time or a speed factor with its times (tlog record headers, dataflash
-GPS-based times) moved onto the current clock (exit 0 at its end); a live link also gets a companion HEARTBEAT and TIMESYNC requests.
+GPS-based times) moved onto the current clock (exit 0 at its end); a live link also gets a companion HEARTBEAT and TIMESYNC requests. A live link that is not up yet or drops
+(serial device absent, TCP refused, UDP peer silent) is re-opened with back-off (``eonav.nav.links``) and the
+health says ``degraded`` until the autopilot is heard; only a malformed connection string is a configuration
+error (exit 2).
 """
 from __future__ import annotations
 
@@ -20,8 +23,9 @@ from pathlib import Path
 
 from eonav import InputError
 from eonav.bus import keys as K
-from eonav.bus.node import Node, add_flag, service_main
+from eonav.bus.node import Node, add_flag, restart_count, service_main
 from eonav.nav.dataflash import DataflashReader, is_dataflash
+from eonav.nav.links import MavLink
 from eonav.nav.mavlink_in import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
 
 log = logging.getLogger(__name__)
@@ -30,7 +34,8 @@ COMPANION_COMPONENT = 191          # MAV_COMP_ID_ONBOARD_COMPUTER
 STREAM_IDS = {"ATTITUDE": 30, "ATTITUDE_QUATERNION": 31, "LOCAL_POSITION_NED": 32, "GLOBAL_POSITION_INT": 33,
               "SYSTEM_TIME": 2}
 CLOCK_PUBLISH_PERIOD_US = 1_000_000
-MAX_UNKNOWN_IDS = 1024             # distinct unknown message ids told apart (unknown_msg_ids stops growing there)
+RESUME_LATE_US = 100_000     # a joint replay (re)starts at its first record due no more than this long ago
+MAX_UNKNOWN_IDS = 1024       # distinct unknown message ids told apart (unknown_msg_ids stops growing there)
 
 
 def now_us() -> int:
@@ -78,7 +83,7 @@ def parse_clock(s: str, tlog: bool):
 def make_ingest(args, tlog: bool) -> NavIngest:
     dec = NavDecoder(system_id=args.system_id, origin_lla=parse_origin(args.origin),
                      position_source=args.position_source)
-    mapper = ClockMapper(prefer=parse_clock(args.clock, tlog), window_us=int(args.clock_window * 1e6),
+    mapper = ClockMapper(prefer=parse_clock(args.clock, tlog), window_us=int(args.clock_window_s * 1e6),
                          max_rtt_us=int(args.max_rtt_ms * 1000))
     return NavIngest(dec, mapper)
 
@@ -114,6 +119,14 @@ class Publisher:
             states = self.ingest.feed(msg, rx_us)
         self.publish(states, rx_us)
 
+    def fast_forward(self, msg, rx_us: int) -> None:
+        """Feed a record the replay passes over (already due when it started): the decoder (origin, system id)
+        and the clock estimator see it, nothing is published (``replay_skipped``)."""
+        self.node.count("replay_skipped")
+        if msg.get_type() != "BAD_DATA":
+            with self.lock:
+                self.ingest.feed(msg, rx_us)
+
     def publish(self, states, now: int) -> None:
         for d in states:
             self.node.put(self.nav_pub, "nav_state", **d)
@@ -145,21 +158,27 @@ class Publisher:
                 self._reported[k] = v
 
 
-def replay_tlog(path, feed, *, rate: float, stop: threading.Event, keep_stamps: bool = False,
-                clock=now_us, sleep=None, shift_us: int | None = None) -> TlogReader:
+def replay_tlog(path, feed, *, speed: float, stop: threading.Event, keep_stamps: bool = False,
+                clock=now_us, sleep=None, shift_us: int | None = None, skip=None) -> TlogReader:
     """Replay a log (a path, or a reader from ``open_log``) into ``feed(msg, rx_us)``: its times shifted onto the
     current clock, paced at
-    ``rate`` x real time (0 = as fast as possible). With ``shift_us`` (joint replays, see the camera
-    ingest), each record is stamped header + shift_us and released when the clock reaches that stamp.
-    Returns the reader (its ``stats``)."""
+    ``speed`` x real time (0 = as fast as possible). With ``shift_us`` (joint replays, see the camera
+    ingest), each record is stamped header + shift_us and released when the clock reaches that stamp; records
+    already due more than ``RESUME_LATE_US`` when the replay starts go to ``skip(msg, rx_us)`` instead (default:
+    dropped), so a replay restarted mid-way resumes where the clock says it is. Returns the reader (its ``stats``)."""
     sleep = sleep or (lambda s: stop.wait(s))
     if shift_us is not None:
-        if keep_stamps or rate != 1.0:
-            raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --rate != 1")
+        if keep_stamps or speed != 1.0:
+            raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --speed != 1")
+        resume_us = clock() - RESUME_LATE_US
         with (open_log(path) if isinstance(path, (str, Path)) else path) as reader:
             for header_us, msg in reader:
                 if stop.is_set():
                     break
+                if header_us + shift_us < resume_us:
+                    if skip is not None:
+                        skip(msg, header_us + shift_us)
+                    continue
                 wait_s = (header_us + shift_us - clock()) / 1e6
                 if wait_s > 0.001:
                     sleep(wait_s)
@@ -176,8 +195,8 @@ def replay_tlog(path, feed, *, rate: float, stop: threading.Event, keep_stamps: 
             if first is None:
                 first = header_us
                 shift = 0 if keep_stamps else clock() - header_us
-            if rate > 0:
-                due = t_start_mono + (header_us - first) / 1e6 / rate
+            if speed > 0:
+                due = t_start_mono + (header_us - first) / 1e6 / speed
                 wait = due - time.monotonic()
                 if wait > 0.001:
                     sleep(wait)
@@ -190,8 +209,9 @@ def add_arguments(p) -> None:
     add_flag(g, "--source", env="EONAV_MAVLINK_SOURCE", default=None, required=False,
              help="pymavlink connection string (udpin:0.0.0.0:14550, tcp:host:port, /dev/ttyACM0) or a .tlog path")
     add_flag(g, "--baud", env="EONAV_MAVLINK_BAUD", default=57600, type=int, help="serial baud rate")
-    add_flag(g, "--rate", env="EONAV_MAVLINK_RATE", default=1.0, type=float,
-             help="tlog replay speed factor (1 = real time, 0 = as fast as possible)")
+    add_flag(g, "--speed", env="EONAV_MAVLINK_SPEED", default=1.0, type=float, metavar="FACTOR",
+             help="tlog replay speed factor (1 = real time, 2 = twice as fast, 0 = as fast as possible)",
+             aliases="--rate", old_env="EONAV_MAVLINK_RATE")
     add_flag(g, "--replay-shift-us", env="EONAV_REPLAY_SHIFT_US", default=None, type=int, metavar="D",
              help="tlog joint replay: stamp header + D and release at that host time (same D for every replay)")
     add_flag(g, "--keep-stamps", env="EONAV_MAVLINK_KEEP_STAMPS", default=False, action="store_true",
@@ -208,18 +228,20 @@ def add_arguments(p) -> None:
     add_flag(g, "--clock", env="EONAV_MAVLINK_CLOCK", default="auto",
              help="clock-offset methods in preference order: auto (tlog: receive; live: "
                   "timesync,system_time,receive) or a comma list")
-    add_flag(g, "--clock-window", env="EONAV_MAVLINK_CLOCK_WINDOW", default=20.0, type=float, metavar="S",
-             help="sliding window of the min-filter offset estimators (s of autopilot time)")
-    add_flag(g, "--max-rtt-ms", env="EONAV_MAVLINK_MAX_RTT_MS", default=10.0, type=float,
+    add_flag(g, "--clock-window-s", env="EONAV_MAVLINK_CLOCK_WINDOW_S", default=20.0, type=float, metavar="S",
+             help="sliding window of the min-filter offset estimators (s of autopilot time)",
+             aliases="--clock-window", old_env="EONAV_MAVLINK_CLOCK_WINDOW")
+    add_flag(g, "--max-rtt-ms", env="EONAV_MAVLINK_MAX_RTT_MS", default=10.0, type=float, metavar="MS",
              help="TIMESYNC exchanges with a longer round trip are ignored")
-    add_flag(g, "--timesync-hz", env="EONAV_MAVLINK_TIMESYNC_HZ", default=5.0, type=float,
+    add_flag(g, "--timesync-hz", env="EONAV_MAVLINK_TIMESYNC_HZ", default=5.0, type=float, metavar="HZ",
              help="live links: TIMESYNC request rate (0 = off)")
     add_flag(g, "--request-streams", env="EONAV_MAVLINK_REQUEST_STREAMS", default=False, action="store_true",
              help="live links: MAV_CMD_SET_MESSAGE_INTERVAL for the nav messages")
-    add_flag(g, "--stream-hz", env="EONAV_MAVLINK_STREAM_HZ", default=50.0, type=float,
+    add_flag(g, "--stream-hz", env="EONAV_MAVLINK_STREAM_HZ", default=50.0, type=float, metavar="HZ",
              help="rate requested with --request-streams")
-    add_flag(g, "--wait-subscribers", env="EONAV_MAVLINK_WAIT_SUBSCRIBERS", default=2.0, type=float, metavar="S",
-             help="tlog: wait up to S s for a nav_state subscriber before replaying (declaration race)")
+    add_flag(g, "--wait-subscribers-s", env="EONAV_MAVLINK_WAIT_SUBSCRIBERS_S", default=2.0, type=float, metavar="S",
+             help="tlog: wait up to S s for a nav_state subscriber before replaying (declaration race)",
+             aliases="--wait-subscribers", old_env="EONAV_MAVLINK_WAIT_SUBSCRIBERS")
 
 
 def body(node: Node, args) -> None:
@@ -230,28 +252,33 @@ def body(node: Node, args) -> None:
         raise InputError(f"--source {args.source}: no such log file")
     if tlog and not Path(args.source).is_file():
         raise InputError(f"--source {args.source}: not a regular file (expected a .tlog or dataflash .BIN log)")
-    if args.rate < 0:
-        raise InputError(f"--rate {args.rate}: expected >= 0 (0 = as fast as possible)")
-    if args.replay_shift_us is not None and (args.keep_stamps or args.rate != 1.0):
-        raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --rate != 1")
+    if tlog and args.replay_shift_us is None and restart_count():
+        # no fixed time reference: it would start over with the recording's beginning presented as now
+        node.log.warning("tlog replay of %s restarted without --replay-shift-us: it cannot resume where it was, so "
+                         "it ends here instead of starting over (docs/bus.md, Staleness)", args.source)
+        node.stop("restarted replay cannot resume")
+        return
+    if args.speed < 0:
+        raise InputError(f"--speed {args.speed}: expected >= 0 (0 = as fast as possible)")
+    if args.replay_shift_us is not None and (args.keep_stamps or args.speed != 1.0):
+        raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --speed != 1")
     ingest = make_ingest(args, tlog)
     pub = Publisher(node, ingest)
     node.log.info("mavlink %s source %s -> %s", "tlog" if tlog else "live", args.source,
                   K.nav_state(node.vehicle))
     if tlog:
         reader = open_log(args.source)        # a dataflash log is indexed here: an unreadable one fails now
-        kind = "dataflash" if isinstance(reader, DataflashReader) else "tlog"
-        node.log.info("%s log %s", kind, args.source)
+        node.log.info("%s log %s", "dataflash" if isinstance(reader, DataflashReader) else "tlog", args.source)
         node.worker(_run_tlog, node, args, pub, reader, name="replay")
     else:
         _start_live(node, args, pub)
 
 
 def _run_tlog(node: Node, args, pub: Publisher, reader) -> None:
-    if args.wait_subscribers > 0:
-        node.wait_matching(pub.nav_pub, args.wait_subscribers)
-    reader = replay_tlog(reader, pub.feed, rate=args.rate, stop=node.stop_event, keep_stamps=args.keep_stamps,
-                         shift_us=args.replay_shift_us)
+    if args.wait_subscribers_s > 0:
+        node.wait_matching(pub.nav_pub, args.wait_subscribers_s)
+    reader = replay_tlog(reader, pub.feed, speed=args.speed, stop=node.stop_event, keep_stamps=args.keep_stamps,
+                         shift_us=args.replay_shift_us, skip=pub.fast_forward)
     if node.stop_event.is_set():
         return
     with pub.lock:
@@ -284,28 +311,22 @@ def _run_tlog(node: Node, args, pub: Publisher, reader) -> None:
 
 def _start_live(node: Node, args, pub: Publisher) -> None:
     mavutil = mavutil_v2()
-    try:
-        conn = mavutil.mavlink_connection(args.source, baud=args.baud, source_system=args.source_system,
-                                          source_component=COMPANION_COMPONENT, dialect="ardupilotmega",
-                                          autoreconnect=True)
-    except Exception as e:
-        raise InputError(f"--source {args.source}: cannot open ({type(e).__name__}: {e})") from None
+    link = MavLink(args.source, what="--source", baud=args.baud, source_system=args.source_system,
+                   source_component=COMPANION_COMPONENT, dialect="ardupilotmega", count=node.count)
     send_lock = threading.Lock()
     mav = mavutil.mavlink
 
     def receive():
+        state = None
         while not node.stop_event.is_set():
-            try:
-                m = conn.recv_match(blocking=True, timeout=0.2)
-            except Exception as e:      # link errors: keep trying (autoreconnect for tcp)
-                node.count("link_errors")
-                node.log_limited("recv", logging.WARNING, "link error: %s", e)
-                node.stop_event.wait(0.2)
-                continue
-            if m is None:
-                continue
-            pub.feed(m, now_us())
-        conn.close()
+            m = link.recv(0.2, node.stop_event)       # opens / re-opens the link with back-off (eonav.nav.links)
+            if m is not None:
+                pub.feed(m, now_us())
+            now_state, detail = link.status()
+            if now_state != state:                    # down / silent: degraded until the autopilot is heard
+                node.set_state("ok" if now_state == "up" else "degraded", detail)
+                state = now_state
+        link.close()
 
     def send():
         next_hb = next_ts = next_req = time.monotonic()
@@ -315,23 +336,23 @@ def _start_live(node: Node, args, pub: Publisher) -> None:
             try:
                 if t >= next_hb:
                     with send_lock:
-                        conn.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0,
-                                                mav.MAV_STATE_ACTIVE)
+                        link.send(lambda c: c.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER,
+                                                                 mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE))
                     next_hb = t + 1.0
-                if ts_period and t >= next_ts:
+                if ts_period and t >= next_ts and link.conn is not None:
                     with pub.lock:
                         ts1 = pub.ingest.mapper.timesync.request(time.time_ns())
                     with send_lock:
-                        conn.mav.timesync_send(0, ts1)
-                    node.count("timesync_sent")
+                        if link.send(lambda c: c.mav.timesync_send(0, ts1)):
+                            node.count("timesync_sent")
                     next_ts = t + ts_period
                 sysid = pub.ingest.decoder.system_id
                 if args.request_streams and sysid is not None and t >= next_req:
                     for name, msg_id in STREAM_IDS.items():
                         hz = 1.0 if name == "SYSTEM_TIME" else args.stream_hz
                         with send_lock:
-                            conn.mav.command_long_send(sysid, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                                       msg_id, int(1e6 / hz), 0, 0, 0, 0, 0)
+                            link.send(lambda c: c.mav.command_long_send(sysid, 1, mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                                                        0, msg_id, int(1e6 / hz), 0, 0, 0, 0, 0))
                     node.count("stream_requests")
                     next_req = t + 30.0
             except Exception as e:
@@ -344,4 +365,4 @@ def _start_live(node: Node, args, pub: Publisher) -> None:
 
 
 if __name__ == "__main__":
-    service_main("mavlink", add_arguments, body)
+    service_main("mavlink", add_arguments, body, module="mavlink_ingest")

@@ -10,7 +10,8 @@ Decisions: the sectors sent to the autopilot are re-referenced to the latest nav
 (the autopilot applies them where it is on arrival); a stall sends one all-unknown message and then silence, so the
 autopilot sees a dead sensor, not an empty sky. Each map is read on its own grid with its own ``camera``; a map
 whose arrays or frame size do not fit that camera is rejected and counted. ``analyse`` is warmed up once on a
-synthetic map before the first real one.
+synthetic map before the first real one. An output link that is not up (refused, device absent) or whose
+autopilot is not heard is retried with back-off and makes the health ``degraded`` (``eonav.nav.links``).
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.bus import keys as K
+from eonav.bus.freshness import FreshnessGate, age_ms, screen
 from eonav.bus.node import Node, add_flag, now_us, service_main
 
 log = logging.getLogger("eonav.service.obstacles")
@@ -29,102 +31,232 @@ NAV_MAX_AHEAD_S = 1.0        # a nav state newer than the map by more than this 
 
 
 def add_arguments(p):
+    from eonav.obstacles.detect import ObstacleConfig
+    d = ObstacleConfig()                         # the extraction defaults are the library's
     add_flag(p, "--mavlink-out", env="EONAV_OBSTACLES_MAVLINK_OUT", default=None, metavar="CONNECTION",
              help="send OBSTACLE_DISTANCE on this pymavlink connection, e.g. udpout:127.0.0.1:14560")
-    add_flag(p, "--mavlink-sysid", env="EONAV_OBSTACLES_MAVLINK_SYSID", default=1, type=int,
-             help="MAVLink system id (the autopilot's); component is 191 (onboard computer)")
-    add_flag(p, "--mavlink-rate", env="EONAV_OBSTACLES_MAVLINK_RATE", default=10.0, type=float, metavar="HZ",
-             help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)")
-    add_flag(p, "--stale", env="EONAV_OBSTACLES_STALE", default=0.3, type=float, metavar="S",
+    add_flag(p, "--mavlink-source-system", env="EONAV_OBSTACLES_MAVLINK_SOURCE_SYSTEM", default=1, type=int,
+             help="our MAVLink system id (the vehicle's, as mavlink_ingest --source-system); component is 191 "
+                  "(onboard computer)", aliases="--mavlink-sysid", old_env="EONAV_OBSTACLES_MAVLINK_SYSID")
+    add_flag(p, "--mavlink-rate-hz", env="EONAV_OBSTACLES_MAVLINK_RATE_HZ", default=10.0, type=float, metavar="HZ",
+             help="OBSTACLE_DISTANCE rate (ArduPilot/PX4 time out after 0.5 s)",
+             aliases="--mavlink-rate", old_env="EONAV_OBSTACLES_MAVLINK_RATE")
+    add_flag(p, "--stale-s", env="EONAV_OBSTACLES_STALE_S", default=0.3, type=float, metavar="S",
              help="after this long without a new range map, send one all-unknown OBSTACLE_DISTANCE and then none "
-                  "until maps flow again (the autopilot then reports No Data)")
+                  "until maps flow again (the autopilot then reports No Data)",
+             aliases="--stale", old_env="EONAV_OBSTACLES_STALE")
+    add_flag(p, "--tracks-rate-hz", env="EONAV_OBSTACLES_TRACKS_RATE_HZ", default=10.0, type=float, metavar="HZ",
+             help="obstacle-track topic (guidance's input): a message on every map and on this fixed timer")
     add_flag(p, "--no-nav", env="EONAV_OBSTACLES_NO_NAV", default=False, action="store_true",
              help="do not re-reference MAVLink sectors to the latest navigation pose")
+    add_flag(p, "--max-input-age-ms", env="EONAV_OBSTACLES_MAX_INPUT_AGE_MS", default=1000.0, type=float,
+             help="drop (count dropped.too_old) a range map whose frame is older than this on arrival or when its "
+                  "obstacle list would be published (docs/bus.md, Staleness)")
+    add_flag(p, "--input-timeout-ms", env="EONAV_OBSTACLES_INPUT_TIMEOUT_MS", default=1000.0, type=float,
+             help="no usable range map for this long: state degraded (5 periods of a 5 fps camera)")
+    add_flag(p, "--nav-timeout-ms", env="EONAV_OBSTACLES_NAV_TIMEOUT_MS", default=500.0, type=float,
+             help="no nav_state for this long: state degraded (not watched with --no-nav)")
     g = p.add_argument_group("obstacle extraction (eonav.obstacles.ObstacleConfig)")
-    add_flag(g, "--min-distance", env="EONAV_OBST_MIN_DISTANCE", default=0.5, type=float, metavar="M")
-    add_flag(g, "--max-distance", env="EONAV_OBST_MAX_DISTANCE", default=150.0, type=float, metavar="M",
-             help="OBSTACLE_DISTANCE max_distance; farther is 'clear'")
-    add_flag(g, "--max-obstacle-distance", env="EONAV_OBST_MAX_LIST_DISTANCE", default=100.0, type=float,
-             metavar="M", help="obstacle list: only objects nearer than this")
-    add_flag(g, "--ground-down", env="EONAV_OBST_GROUND_DOWN", default="auto", metavar="M|auto",
-             help="NED down coordinate of the ground (0 = home level), or auto (estimated from the points)")
-    add_flag(g, "--ground-clearance", env="EONAV_OBST_GROUND_CLEARANCE", default=0.6, type=float, metavar="M")
-    add_flag(g, "--min-confidence", env="EONAV_OBST_MIN_CONFIDENCE", default=0.0, type=float)
-    add_flag(g, "--max-rel-std", env="EONAV_OBST_MAX_REL_STD", default=0.25, type=float,
-             help="ignore pixels whose relative range 1-sigma exceeds this")
-    add_flag(g, "--min-obstacle-pixels", env="EONAV_OBST_MIN_PIXELS", default=12, type=int)
-    add_flag(g, "--max-width", env="EONAV_OBST_MAX_WIDTH", default=160, type=int, metavar="PX",
+    add_flag(g, "--min-distance-m", env="EONAV_OBST_MIN_DISTANCE_M", default=d.min_distance_m, type=float,
+             metavar="M", help="OBSTACLE_DISTANCE min_distance (>= 0.01): nearer obstacles are reported at this "
+                               "distance",
+             aliases="--min-distance", old_env="EONAV_OBST_MIN_DISTANCE")
+    add_flag(g, "--max-distance-m", env="EONAV_OBST_MAX_DISTANCE_M", default=d.max_distance_m, type=float,
+             metavar="M", help="OBSTACLE_DISTANCE max_distance; farther is 'clear'",
+             aliases="--max-distance", old_env="EONAV_OBST_MAX_DISTANCE")
+    add_flag(g, "--max-obstacle-distance-m", env="EONAV_OBST_MAX_OBSTACLE_DISTANCE_M",
+             default=d.max_obstacle_distance_m, type=float, metavar="M",
+             help="obstacle list: only objects nearer than this",
+             aliases="--max-obstacle-distance", old_env="EONAV_OBST_MAX_LIST_DISTANCE")
+    add_flag(g, "--ground-down-m", env="EONAV_OBST_GROUND_DOWN_M", default="auto", metavar="M|auto",
+             help="NED down coordinate of the ground (0 = home level), or auto (estimated from the points)",
+             aliases="--ground-down", old_env="EONAV_OBST_GROUND_DOWN")
+    add_flag(g, "--ground-clearance-m", env="EONAV_OBST_GROUND_CLEARANCE_M", default=d.ground_clearance_m, type=float,
+             metavar="M", help=f"points less than this above the ground (plus {d.ground_sigma_k:g} sigma of their "
+                               f"height) or below it are ground, not obstacles",
+             aliases="--ground-clearance", old_env="EONAV_OBST_GROUND_CLEARANCE")
+    add_flag(g, "--min-confidence", env="EONAV_OBST_MIN_CONFIDENCE", default=d.min_confidence, type=float,
+             help="ignore pixels whose confidence (inverse range / its 1-sigma: the inverse of the relative range "
+                  "error) is below this (0: off)")
+    add_flag(g, "--max-rel-std", env="EONAV_OBST_MAX_REL_STD", default=d.max_rel_std, type=float,
+             help="ignore pixels whose relative range 1-sigma exceeds this (the dense method's VALID threshold)")
+    add_flag(g, "--min-obstacle-pixels", env="EONAV_OBST_MIN_OBSTACLE_PIXELS", default=d.min_obstacle_pixels, type=int,
+             help="smallest connected component kept as an obstacle (list and sectors), in analysed pixels",
+             old_env="EONAV_OBST_MIN_PIXELS")
+    add_flag(g, "--max-width-px", env="EONAV_OBST_MAX_WIDTH_PX", default=d.max_width_px, type=int, metavar="PX",
              help="analyse the range map pooled to at most this many columns (robust minimum per block; "
-                  "0: full resolution)")
+                  "0: full resolution)", aliases="--max-width", old_env="EONAV_OBST_MAX_WIDTH")
 
 
 def obstacle_config(args):
     from eonav.obstacles.detect import ObstacleConfig
-    if str(args.ground_down).lower() == "auto":
+    if str(args.ground_down_m).lower() == "auto":
         ground = None
     else:
         try:
-            ground = float(args.ground_down)
+            ground = float(args.ground_down_m)
         except ValueError:
-            raise InputError(f"--ground-down {args.ground_down!r}: expected metres or 'auto'") from None
+            raise InputError(f"--ground-down-m {args.ground_down_m!r}: expected metres or 'auto'") from None
     return ObstacleConfig(min_confidence=args.min_confidence, max_rel_std=args.max_rel_std,
-                          min_distance_m=args.min_distance, max_distance_m=args.max_distance,
-                          ground_down_m=ground, ground_clearance_m=args.ground_clearance,
-                          max_obstacle_distance_m=args.max_obstacle_distance,
-                          min_obstacle_pixels=args.min_obstacle_pixels, max_width_px=args.max_width)
+                          min_distance_m=args.min_distance_m, max_distance_m=args.max_distance_m,
+                          ground_down_m=ground, ground_clearance_m=args.ground_clearance_m,
+                          max_obstacle_distance_m=args.max_obstacle_distance_m,
+                          min_obstacle_pixels=args.min_obstacle_pixels, max_width_px=args.max_width_px)
 
 
 class LatestNav:
-    """The newest nav_state (pose + stamp), filled by a worker; read by the obstacle loop."""
+    """The vehicle's newest pose, filled by the nav worker, read by the obstacle loop and guidance.
+
+    The MAVLink ingest publishes attitude and position as separate nav_state messages (one autopilot message each),
+    so the newest attitude and the newest position are kept apart and joined when their stamps are within
+    ``MAX_PART_SKEW_US``: the pose then carries the newer stamp."""
+
+    MAX_PART_SKEW_US = 200_000
 
     def __init__(self):
         import threading
         self._lock = threading.Lock()
         self.state = None
         self.stamp_us = None
+        self.velocity_ned_mps = np.full(3, np.nan)
+        self._q = self._p = None             # (stamp_us, value) of the newest attitude / position (+ velocity)
 
-    def set(self, state, stamp_us):
+    def add(self, stamp_us: int, q_wxyz=None, position_ned_m=None, velocity_ned_mps=None) -> bool:
+        """One nav_state's known parts (None or NaN: absent). True when a whole pose could be formed."""
+        from eonav.geometry.camera import VehicleState
+        t = int(stamp_us)
         with self._lock:
-            if self.stamp_us is None or stamp_us >= self.stamp_us:
-                self.state, self.stamp_us = state, stamp_us
+            if q_wxyz is not None and np.all(np.isfinite(q_wxyz)) and abs(np.linalg.norm(q_wxyz) - 1) < 1e-3:
+                if self._q is None or t >= self._q[0]:
+                    self._q = (t, np.asarray(q_wxyz, float))
+            if position_ned_m is not None and np.all(np.isfinite(position_ned_m)):
+                if self._p is None or t >= self._p[0]:
+                    v = np.asarray(velocity_ned_mps if velocity_ned_mps is not None else [np.nan] * 3, float)
+                    self._p = (t, np.asarray(position_ned_m, float), v if np.all(np.isfinite(v)) else None)
+            if self._q is None or self._p is None or abs(self._q[0] - self._p[0]) > self.MAX_PART_SKEW_US:
+                return False
+            stamp = max(self._q[0], self._p[0])
+            if self.stamp_us is None or stamp >= self.stamp_us:
+                self.state = VehicleState.from_quat(self._p[1], self._q[1])
+                self.stamp_us = stamp
+                if self._p[2] is not None:
+                    self.velocity_ned_mps = self._p[2]
+            return True
 
     def get(self):
         with self._lock:
             return self.state, self.stamp_us
 
+    def ownship(self, fallback_state, fallback_stamp_us: int):
+        """The vehicle now for guidance: the latest nav state with its velocity, else ``fallback_state`` (a map's
+        capture pose) with an unknown velocity."""
+        from eonav.obstacles.tracking import Ownship
+        with self._lock:
+            if self.state is not None:
+                return Ownship(self.state.position_ned_m, self.state.T_body_ned, self.velocity_ned_mps, self.stamp_us)
+        return None if fallback_state is None else Ownship.from_state(fallback_state, stamp_us=fallback_stamp_us)
+
+
+class Guidance:
+    """The obstacle tracker and the track topic's publisher, shared by the map worker and the timer worker."""
+
+    def __init__(self, node: Node, nav: LatestNav, rate_hz: float, stale_after_s: float):
+        import threading
+
+        from eonav.obstacles.guidance import GuidancePublisher
+        from eonav.obstacles.tracking import Tracker, TrackerConfig
+        self.node, self.nav = node, nav
+        self.lock = threading.Lock()
+        self.tracker = Tracker(TrackerConfig())
+        self.publisher = GuidancePublisher(self.tracker, rate_hz=rate_hz, stale_after_s=stale_after_s)
+        self.pub = node.publisher(K.obstacle_tracks(node.vehicle))
+        self.last_state, self.last_stamp_us = None, -1      # the newest map's capture pose (no nav: the ownship)
+
+    def put(self, msg) -> None:
+        from eonav.bus import guidance_msg
+        if msg is None:
+            return
+        self.pub.put(guidance_msg.encode(msg))
+        self.node.count("out.obstacle_tracks")
+        self.node.tick("out.obstacle_tracks")
+
+    def on_map(self, res, msg, cam, state, cfg, ob) -> list:
+        """Track the map's obstacles; publish the tracks; the track id each listed obstacle supports (0: none)."""
+        from dataclasses import replace
+
+        from eonav.obstacles.tracking import FieldOfView, measurements_from_obstacles
+        frame_size = (msg.get("frame_width", 0), msg.get("frame_height", 0))
+        meas = measurements_from_obstacles(res.obstacles, cam, state, self.tracker.cfg, frame_size=frame_size,
+                                           camera_id=msg["camera_id"])
+        single = measurements_from_obstacles(res.obstacles, cam, state, replace(self.tracker.cfg, merge_gap_m=0.0),
+                                             frame_size=frame_size, camera_id=msg["camera_id"])
+        seen = ob.confident_mask(msg["range_m"], msg["confidence"], msg["flags"], msg["inv_range_std_per_m"], cfg) \
+            | ob.infinity_mask(msg["range_m"], msg["flags"])
+        view = FieldOfView(cam, state, cfg.max_obstacle_distance_m, cfg.min_distance_m, msg["range_m"], seen)
+        with self.lock:
+            try:
+                self.tracker.update(meas, msg["stamp_us"], view)
+            except InputError:                          # older than the last map (another camera's, late)
+                self.node.count("tracker.map_out_of_order")
+                return [0] * len(res.obstacles)
+            self.last_state, self.last_stamp_us = state, int(msg["stamp_us"])
+            ids = self.tracker.label(single) if len(single) == len(res.obstacles) else [0] * len(res.obstacles)
+            own = self.nav.ownship(state, msg["stamp_us"])
+            out = self.publisher.on_map(now_us(), own)
+        self.put(out)
+        return ids
+
+    def timer_loop(self) -> None:
+        """The fixed-rate messages (guidance sees a stall in ``status`` / ``map_age_s`` even with no map coming)."""
+        while not self.node.stop_event.wait(self.publisher.wait_s(now_us())):
+            with self.lock:
+                own = self.nav.ownship(self.last_state, self.last_stamp_us)
+                out = None if own is None else self.publisher.on_tick(now_us(), own)
+            self.node.guarded("obstacle_tracks", self.put, out)
+            if own is None:
+                self.node.stop_event.wait(0.1)
+
 
 def body(node: Node, args) -> None:
-    from eonav.obstacles.detect import ObstacleTracker
     cfg = obstacle_config(args)
     sender = None
     if args.mavlink_out:
         from eonav.nav.mavlink_out import ObstacleDistanceSender
-        if args.mavlink_rate < 10.0:
-            node.log.warning("--mavlink-rate %.1f Hz is below the 10 Hz the autopilots are tuned for",
-                             args.mavlink_rate)
-        sender = ObstacleDistanceSender(args.mavlink_out, system_id=args.mavlink_sysid, rate_hz=args.mavlink_rate,
-                                        stale_s=args.stale)
+        if args.mavlink_rate_hz < 10.0:
+            node.log.warning("--mavlink-rate-hz %.1f is below the 10 Hz the autopilots are tuned for",
+                             args.mavlink_rate_hz)
+        sender = ObstacleDistanceSender(args.mavlink_out, system_id=args.mavlink_source_system,
+                                        rate_hz=args.mavlink_rate_hz, stale_s=args.stale_s)
     pub = node.publisher(K.obstacles(node.vehicle))          # reliable, small, express
     maps = node.subscribe(K.range_maps_all(node.vehicle), ring=2)
     nav = LatestNav()
+    args._freshness = FreshnessGate(args.max_input_age_ms / 1000.0)
+    node.expect_input("range maps", args.input_timeout_ms / 1000.0)
     if not args.no_nav:
         navsub = node.subscribe(K.nav_state(node.vehicle), ring=1)
+        node.expect_input("nav", args.nav_timeout_ms / 1000.0)
         node.worker(nav_loop, node, navsub, nav, name="nav")
-    node.worker(obstacle_loop, node, maps, pub, cfg, ObstacleTracker(), nav, sender, args, name="obstacles")
+    guidance = Guidance(node, nav, args.tracks_rate_hz, args.stale_s)
+    node.worker(obstacle_loop, node, maps, pub, cfg, guidance, nav, sender, args, name="obstacles")
+    node.worker(guidance.timer_loop, name="tracks")
     if sender is not None:
         def send_loop():
             try:
-                last = 0.0
+                last, link_state = 0.0, None
                 while not node.stop_event.wait(sender.tick()):
                     if time.monotonic() - last >= 0.5:
                         last = time.monotonic()
                         mirror_counters(node, sender)
+                        state, detail = sender.link_status()     # autopilot link down / not heard: degraded
+                        if state != link_state:
+                            node.set_state("ok" if state == "up" else "degraded", detail)
+                            link_state = state
             finally:
                 mirror_counters(node, sender)
                 sender.close()
         node.worker(send_loop, name="mavlink")
         node.log.info("OBSTACLE_DISTANCE to %s at %.0f Hz (stale after %.2f s)", args.mavlink_out,
-                      args.mavlink_rate, args.stale)
+                      args.mavlink_rate_hz, args.stale_s)
 
 
 def mirror_counters(node: Node, sender) -> None:
@@ -137,23 +269,19 @@ def mirror_counters(node: Node, sender) -> None:
 
 
 def nav_loop(node: Node, sub, nav: LatestNav) -> None:
-    from eonav.geometry.camera import VehicleState
-
     def one(sample):
         msg = node.decode(sample, expect="nav_state")
         if msg is None:
             return
-        p, q = np.asarray(msg["position_ned_m"], float), np.asarray(msg["q_wxyz"], float)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1) < 1e-3):
-            node.count("nav_incomplete")
-            return
-        nav.set(VehicleState.from_quat(p, q), int(msg["stamp_us"]))
+        node.input_seen("nav")
+        if not nav.add(msg["stamp_us"], msg["q_wxyz"], msg["position_ned_m"], msg["velocity_ned_mps"]):
+            node.count("nav_incomplete")             # no whole pose yet (or its parts too far apart in time)
 
     for sample in sub:
         node.guarded("nav_state", one, sample)
 
 
-def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, args) -> None:
+def obstacle_loop(node: Node, sub, pub, cfg, guidance: Guidance, nav: LatestNav, sender, args) -> None:
     import scipy.ndimage  # noqa: F401  (now, with the subscriber declared: the first map must not pay ~0.5 s)
 
     from eonav.obstacles import detect as ob
@@ -166,7 +294,7 @@ def obstacle_loop(node: Node, sub, pub, cfg, tracker, nav: LatestNav, sender, ar
             if not newest:                  # a newer map of the same camera is waiting: latest wins
                 node.count("maps_superseded")
                 continue
-            node.guarded("range_map", process_map, node, sample, pub, cfg, tracker, nav, sender, args, cameras, ob,
+            node.guarded("range_map", process_map, node, sample, pub, cfg, guidance, nav, sender, args, cameras, ob,
                          VehicleState)
 
 
@@ -175,7 +303,7 @@ def analyse_msg(ob, msg: dict, cam, state, cfg, now_state=None):
     size (0 x 0 from older locators: the map is on the frame's grid) makes the pixel counts frame pixels."""
     return ob.analyse(msg["range_m"], cam, state, confidence=msg["confidence"], flags=msg["flags"],
                       inv_range_std_per_m=msg["inv_range_std_per_m"], cfg=cfg, now_state=now_state,
-                      frame_size=(msg.get("frame_width", 0), msg.get("frame_height", 0)))
+                      frame_size=(msg.get("frame_width", 0), msg.get("frame_height", 0)), n_fused=msg.get("n_fused"))
 
 
 def synthetic_map(width: int = 160, height: int = 120) -> dict:
@@ -222,10 +350,13 @@ def warm_up(node: Node, cfg, ob):
     return res
 
 
-def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, args, cameras, ob, VehicleState):
+def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav, sender, args, cameras, ob,
+                VehicleState):
     msg = node.decode(sample, expect="range_map")
-    if msg is None:
+    gate = args._freshness
+    if msg is None or not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival"):
         return
+    node.input_seen("range maps")
     t0 = time.perf_counter()
     try:
         K.check_chunk(msg["camera_id"], "camera id")
@@ -241,10 +372,14 @@ def process_map(node: Node, sample, pub, cfg, tracker, nav: LatestNav, sender, a
         node.log_limited("bad_map", logging.WARNING, "range map %s/%s rejected: %s", msg.get("camera_id"),
                          msg.get("seq"), e)
         return
-    tracker.update(res.obstacles, msg["stamp_us"])
+    if not screen(node, gate, msg["camera_id"], msg["stamp_us"], "publish"):   # stale by now: no list, no tracks
+        return
+    for o, track_id in zip(res.obstacles, guidance.on_map(res, msg, cam, state, cfg, ob)):
+        o.id = track_id
     node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
              obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
-             position_ned_m=msg["position_ned_m"], q_wxyz=q)
+             position_ned_m=msg["position_ned_m"], q_wxyz=q, frame_age_ms=age_ms(msg["stamp_us"]))
+    gate.commit(msg["camera_id"], msg["stamp_us"])
     compute_s = time.perf_counter() - t0
     node.count("maps_processed")
     node.count("obstacles_published", len(res.obstacles))

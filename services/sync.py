@@ -21,6 +21,7 @@ from collections import Counter
 from eonav import InputError
 from eonav.bus import schema
 from eonav.bus import keys as K
+from eonav.bus.freshness import FreshnessGate, screen
 from eonav.bus.node import Node, add_flag, now_us, service_main
 from eonav.io import pairfile
 from eonav.nav.timesync import NavBuffer
@@ -131,6 +132,13 @@ def add_arguments(p) -> None:
              help="frame subscriber ring size (the newest frames win)")
     add_flag(g, "--nav-fifo", env="EONAV_SYNC_NAV_FIFO", default=2000, type=int,
              help="nav_state subscriber FIFO size")
+    add_flag(g, "--max-input-age-ms", env="EONAV_SYNC_MAX_INPUT_AGE_MS", default=500.0, type=float,
+             help="drop (count dropped.too_old) a frame older than this on arrival or when its posed frame would be "
+                  "published (--max-wait-ms plus transport: docs/bus.md, Staleness)")
+    add_flag(g, "--input-timeout-ms", env="EONAV_SYNC_INPUT_TIMEOUT_MS", default=1000.0, type=float,
+             help="no usable frame for this long: state degraded (5 periods of a 5 fps camera)")
+    add_flag(g, "--nav-timeout-ms", env="EONAV_SYNC_NAV_TIMEOUT_MS", default=500.0, type=float,
+             help="no nav_state for this long: state degraded (2 x the default --max-gap-ms)")
     add_flag(g, "--attitude-only", env="EONAV_SYNC_ATTITUDE_ONLY", default=False, action="store_true",
              help="pose frames without a position stream (position NaN)")
 
@@ -146,6 +154,7 @@ def body(node: Node, args) -> None:
     if not 0 <= args.position_lead_ms <= args.max_extrapolation_ms:
         raise InputError(f"--position-lead-ms must be in [0, --max-extrapolation-ms], got {args.position_lead_ms}")
     pairer = Pairer(cams, nav, max_wait_s=args.max_wait_ms / 1000.0, position_lead_s=args.position_lead_ms / 1000.0)
+    gate = FreshnessGate(args.max_input_age_ms / 1000.0)
     lock = threading.Lock()
     pubs = {name: node.publisher(K.posed_frame(node.vehicle, name), image=True) for name in cams}
     frame_sub = node.subscribe(K.frames_all(node.vehicle), ring=args.frame_ring)
@@ -154,12 +163,21 @@ def body(node: Node, args) -> None:
     node.log.info("sync: cameras %s; frames %s + nav %s -> %s", sorted(cams), K.frames_all(node.vehicle),
                   K.nav_state(node.vehicle), K.posed_frame(node.vehicle, "CAMERA"))
 
+    put_lock = threading.Lock()     # the nav, frame and tick threads all release frames: one at a time, in order
+
     def process():
+        with put_lock:
+            put_released()
+
+    def put_released():
         with lock:
             out = pairer.poll(time.monotonic())
             counts = Counter(pairer.counts)
         for d in out:
+            if not screen(node, gate, d["camera_id"], d["stamp_us"], "publish"):
+                continue
             node.put(pubs[d["camera_id"]], "posed_frame", **d)
+            gate.commit(d["camera_id"], d["stamp_us"])
             node.latency("frame_to_posed", time.time() - d["stamp_us"] / 1e6)
         for k, v in counts.items():
             if v != reported[k]:
@@ -172,14 +190,16 @@ def body(node: Node, args) -> None:
         msg = node.decode(s, "nav_state")
         if msg is None:
             return
+        node.input_seen("nav")
         with lock:
             pairer.add_nav(msg)
         process()
 
     def on_frame(s):
         msg = node.decode(s, "frame")
-        if msg is None:
+        if msg is None or not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival"):
             return
+        node.input_seen("frames")
         with lock:
             pairer.add_frame(msg, time.monotonic())
         process()
@@ -203,6 +223,8 @@ def body(node: Node, args) -> None:
                     node.count(f"nav.{k}", d)
                     reported[f"nav.{k}"] = nav_counts[k]
 
+    node.expect_input("frames", args.input_timeout_ms / 1000.0)
+    node.expect_input("nav", args.nav_timeout_ms / 1000.0)
     node.worker(nav_loop, name="nav")
     node.worker(frame_loop, name="frames")
     node.worker(tick, name="tick")

@@ -102,7 +102,7 @@ def bus():
 
 def _start(script, bus, *extra, name="tiny"):
     return start_service([str(script), "--vehicle", VEHICLE, "--name", name, "--connect", endpoint(bus.port),
-                          "--health-period", "0.2", *extra])
+                          "--health-period-s", "0.2", *extra])
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
@@ -119,7 +119,7 @@ def test_token_health_config_and_clean_stop(tiny, bus, sig):
         replies = list(bus.session.get(K.config(VEHICLE, "tiny"), timeout=5.0))
         cfg = json.loads(next(r.ok for r in replies if r.ok is not None).payload.to_string())
         assert cfg["service"] == "tiny" and cfg["vehicle"] == VEHICLE
-        assert cfg["args"]["connect"] == endpoint(bus.port) and cfg["args"]["health_period"] == 0.2
+        assert cfg["args"]["connect"] == endpoint(bus.port) and cfg["args"]["health_period_s"] == 0.2
     finally:
         code, err = stop_service(proc, sig)
     assert code == 0, err
@@ -226,7 +226,7 @@ class _Sample:
 
 
 def test_node_decode_never_raises():
-    args = argparse.Namespace(vehicle="v", health_period=1.0)
+    args = argparse.Namespace(vehicle="v", health_period_s=1.0)
     node = Node("unit", args, session=None)
     assert node.decode(_Sample(b"\x00garbage"), expect="nav_state") is None
     assert node.decode(_Sample(schema.encode("nav_state", stamp_us=5)), expect="obstacle_list") is None

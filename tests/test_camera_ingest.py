@@ -131,7 +131,7 @@ def test_folder_keep_stamps_loop_and_fixed_rate(tmp_path):
     assert [f["stamp_us"] for f in out] == [10_000_000, 10_200_000, 10_400_000,
                                             10_600_000, 10_800_000, 11_000_000, 11_200_000]
     assert out[0]["stamp_source"] == "recorded_raw"
-    assert clock.slept == pytest.approx([0.02] * 6, abs=1e-5)          # --rate 50: fixed pacing
+    assert clock.slept == pytest.approx([0.02] * 6, abs=1e-5)          # --rate-hz 50: fixed pacing
 
 
 def test_folder_without_timestamps_uses_host_clock(tmp_path):
@@ -254,14 +254,20 @@ def test_classify_source(tmp_path):
 
 
 def test_flags_have_env_defaults(monkeypatch):
-    monkeypatch.setenv("EONAV_CAMERA_RATE", "0")
+    monkeypatch.setenv("EONAV_CAMERA_RATE_HZ", "0")
     monkeypatch.setenv("EONAV_CAMERA_LOOP", "1")
     monkeypatch.setenv("EONAV_CAMERA_WIDTH", "640")
     p = argparse.ArgumentParser()
     C.add_arguments(p)
     a = p.parse_args(["--colour"])
-    assert a.rate == 0.0 and a.loop is True and a.width == 640 and a.height is None and a.encoding == "bgr8"
-    assert p.parse_args(["--rate", "auto"]).rate == "auto"
+    assert a.rate_hz == 0.0 and a.loop is True and a.width == 640 and a.height is None and a.encoding == "bgr8"
+    assert p.parse_args(["--rate-hz", "auto"]).rate_hz == "auto"
+    assert p.parse_args(["--rate", "12.5"]).rate_hz == 12.5           # the old spelling (deployed specs)
+    monkeypatch.delenv("EONAV_CAMERA_RATE_HZ")
+    monkeypatch.setenv("EONAV_CAMERA_RATE", "7")                      # the old variable (deployed env files)
+    p = argparse.ArgumentParser()
+    C.add_arguments(p)
+    assert p.parse_args([]).rate_hz == 7.0
 
 
 # ---- the real service over zenoh -----------------------------------------------------------------------
@@ -290,8 +296,8 @@ def test_service_replays_folder_over_zenoh(tmp_path):
         health_sub = s.declare_subscriber(K.health("t1", "camera_nose"), zenoh.handlers.FifoChannel(1000))
         proc = start_service(["-m", "eonav.services.camera_ingest", "--source", str(d), "--camera-id", "nose",
                               "--vehicle", "t1", "--name", "camera_nose", "--connect", endpoint(port),
-                              "--width", "64", "--height", "48", "--rate", "20", "--health-period", "0.1",
-                              "--wait-subscribers", "10"])
+                              "--width", "64", "--height", "48", "--rate-hz", "20", "--health-period-s", "0.1",
+                              "--wait-subscribers-s", "10"])
         try:
             code = proc.wait(30)
         finally:

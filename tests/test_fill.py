@@ -4,8 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
+import fill_reference
 from eonav.ranging.methods.dense import locate_dense
-from eonav.ranging.methods.fill import fill_inverse_range, fill_unmeasured
+from eonav.ranging.methods.fill import fill_unmeasured
 from eonav.ranging.rangemap import FILLED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 from eonav.sim.presets import make_pair
 
@@ -97,9 +98,12 @@ def test_hole_across_a_depth_step_has_an_honest_sigma():
 
 
 def test_no_support_no_fill():
-    rho = np.full((H, W), 0.05, np.float32)
-    rf, sf, lev = fill_inverse_range(rho, np.zeros((H, W), bool))
-    assert np.isnan(rf).all() and np.isnan(sf).all()
+    """Nothing measured (every pixel LOW_TEXTURE): nothing is filled, the outputs stay as they were."""
+    rho = np.full((H, W), np.nan, np.float32)
+    flags = np.full((H, W), LOW_TEXTURE, np.uint8)
+    r, s, f, rg, cf = outputs(rho, flags)
+    assert fill_unmeasured(r, s, f, rg, cf, max_rel_std=0.34) == 0
+    assert np.isnan(r).all() and np.isnan(rg).all() and (f == LOW_TEXTURE).all() and (cf == 0).all()
 
 
 @pytest.fixture(scope="module")
@@ -110,8 +114,9 @@ def turning():
 
 def test_dense_fill_on_a_turning_flight(turning):
     """The issue's target on the turning flight: a finite range for >= 90 % of the non-sky pixels at a median error
-    <= 1 % (measured 90.8 % at 0.74 %; measured only: 75.3 % at 0.76 %); the FILLED pixels' sigma is calibrated
-    (robust z spread 0.79, 98.5 % within 2 sigma)."""
+    <= 1 % (measured 90.8 % at 0.74 %; measured only: 75.3 % at 0.76 %); the FILLED pixels' sigma is not too small
+    (robust z spread 0.79 <= 1, 98.3 % within 2 sigma; with the sigma scaled by 0.75 the spread would be 1.05). It is
+    too large: see test_filled_sigma_is_calibrated."""
     sp, res = turning
     truth = sp.truth[0].range_m
     ground = np.isfinite(truth)
@@ -123,9 +128,21 @@ def test_dense_fill_on_a_turning_flight(turning):
     assert filled.sum() / ground.sum() > 0.10
     z = (res.inv_range_per_m[filled] - 1 / truth[filled]) / res.inv_range_std_per_m[filled]
     spread = 1.4826 * np.median(np.abs(z - np.median(z)))
-    assert 0.5 < spread < 1.3
-    assert np.mean(np.abs(z) < 2) > 0.9
+    assert 0.5 < spread <= 1.0
+    assert np.mean(np.abs(z) < 2) > 0.954                 # a Gaussian's share within 2 sigma
     assert not ((res.flags & FILLED) & (res.flags & VALID)).any()
+
+
+@pytest.mark.xfail(strict=True, reason="the FILLED sigma over-reports: z spread 0.79 here, 0.56-1.07 over the sim "
+                                       "presets at 256 and 512 px (geometric means 0.75 and 0.67), 0.14 on a plane "
+                                       "with white noise of known sigma")
+def test_filled_sigma_is_calibrated(turning):
+    """A calibrated sigma gives a robust z spread of 1 (band 0.85-1.18 fails for a sigma 25 % off either way)."""
+    sp, res = turning
+    truth = sp.truth[0].range_m
+    filled = np.isfinite(truth) & ((res.flags & FILLED) != 0)
+    z = (res.inv_range_per_m[filled] - 1 / truth[filled]) / res.inv_range_std_per_m[filled]
+    assert 0.85 < 1.4826 * np.median(np.abs(z - np.median(z))) < 1.18
 
 
 def test_fill_off_leaves_unmeasured_pixels_empty(turning):
@@ -149,42 +166,66 @@ def test_sky_beside_a_pole_is_not_filled():
     assert filled_sky.sum() / deep.sum() < 0.005
 
 
-def fill_both_paths(bare):
-    """fill_unmeasured on copies of an unfilled result's arrays, by the numba kernels and by the numpy path:
-    [(n_filled, [rho, std, flags, range, confidence])] for each."""
+def fill_both_ways(bare, monkeypatch):
+    """fill_unmeasured on copies of an unfilled result's arrays, by the numba kernels and by their numpy formulation
+    (tests/fill_reference.py): [(n_filled, [rho, std, flags, range, confidence])] for each."""
     outs = []
-    for kernels in (True, False):
+    for reference in (False, True):
+        if reference:
+            fill_reference.use_reference(monkeypatch)
         arrs = [a.copy() for a in (bare.inv_range_per_m, bare.inv_range_std_per_m, bare.flags, bare.range_m,
                                    bare.confidence)]
-        outs.append((fill_unmeasured(*arrs, max_rel_std=0.34, rho_far=1e-4, kernels=kernels), arrs))
+        outs.append((fill_unmeasured(*arrs, max_rel_std=0.34, rho_far=1e-4), arrs))
     return outs
 
 
-def test_fill_kernels_match_numpy_path(turning):
-    """The numba passes and the numpy path fill the same pixels with the same values (float rounding apart)."""
-    pytest.importorskip("numba")
+def test_fill_kernels_match_reference(turning, monkeypatch):
+    """The numba passes and the numpy reference fill the same pixels with the same values (float rounding apart)."""
     sp, _ = turning
     bare = locate_dense(*sp.views[:2], fill=False)
-    (n1, a1), (n0, a0) = fill_both_paths(bare)
+    (n1, a1), (n0, a0) = fill_both_ways(bare, monkeypatch)
     assert n1 > 10000 and abs(n1 - n0) <= 1e-3 * n0
     both = ((a1[2] & FILLED) != 0) & ((a0[2] & FILLED) != 0)
     assert both.sum() >= 0.999 * n0
     np.testing.assert_allclose(a1[0][both], a0[0][both], rtol=5e-4)      # float64 vs float32 fits
-    # sigma: the kernel fits in float64, the numpy path in float32, and the residual variance is a difference of
+    # sigma: the kernel fits in float64, the reference in float32, and the residual variance is a difference of
     # near-equal window sums (measured: within 1.5 %)
     np.testing.assert_allclose(a1[1][both], a0[1][both], rtol=0.03)
 
 
 @pytest.mark.parametrize("size", [97, 333])
-def test_fill_kernels_match_numpy_path_at_sizes_not_divisible(size):
-    """Partial cells at the right and bottom edges: both paths index cells as y >> k, x >> k and sum a partial
-    cell exactly (the numpy path's cv2.resize maps had followed the size ratio: 38 % apart at 97 x 97)."""
-    pytest.importorskip("numba")
+def test_fill_kernels_match_reference_at_sizes_not_divisible(size, monkeypatch):
+    """Partial cells at the right and bottom edges: the kernels and the reference index cells as y >> k, x >> k
+    and sum a partial cell exactly (maps that follow the size ratio, as cv2.resize's, were 38 % apart at 97 x 97)."""
     sp = make_pair("turning", seed=0, size=size)
     bare = locate_dense(*sp.views[:2], fill=False)
-    (n1, a1), (n0, a0) = fill_both_paths(bare)
+    (n1, a1), (n0, a0) = fill_both_ways(bare, monkeypatch)
     assert n1 == n0 > 100
     np.testing.assert_array_equal(a1[2], a0[2])
     filled = (a1[2] & FILLED) != 0
-    # (the kernels fit in float64, the numpy path in float32: measured up to 2.4e-4 apart)
+    # (the kernels fit in float64, the reference in float32: measured up to 2.4e-4 apart)
     np.testing.assert_allclose(a1[0][filled], a0[0][filled], rtol=5e-4)
+
+
+def test_fill_kernels_match_reference_where_the_noise_floor_binds(monkeypatch):
+    """An exact plane measured with a 1 % sigma: the plane fits leave no scatter, so a filled sigma is the support's
+    own noise floor (the cells' mean noise variance). Kernels and reference agree on it."""
+    rho = plane_rho((0.3, 0.05, 0.9), 20.0)
+    flags = np.full(rho.shape, VALID, np.uint8)
+    flags[60:75, 40:70] = LOW_TEXTURE
+    outs = []
+    for reference in (False, True):
+        if reference:
+            fill_reference.use_reference(monkeypatch)
+        r, s, f, rg, cf = outputs(rho, flags)
+        s[:] = 0.01 * rho
+        outs.append((fill_unmeasured(r, s, f, rg, cf, max_rel_std=0.34), r, s))
+    (n1, r1, s1), (n0, r0, s0) = outs
+    hole = flags == LOW_TEXTURE
+    assert n1 == n0 == hole.sum()
+    np.testing.assert_allclose(r1[hole], r0[hole], rtol=1e-4)
+    np.testing.assert_allclose(s1[hole], s0[hole], rtol=1e-3)
+    # the floor: a cell mean's sigma, 1 % / sqrt(16 pixels per cell) = 0.25 % of rho, times sqrt(1 + (1 + leverage)
+    # / n) (measured 0.25-0.32 %; without the floor the plane's float rounding alone: 0-0.07 %)
+    rel = s1[hole] / rho[hole]
+    assert rel.min() > 0.0024 and rel.max() < 0.0035, (rel.min(), rel.max())

@@ -306,3 +306,213 @@ def test_real_indoor_sequence_fused_beats_single_pair_dense():
     e_newest, _ = median_error(locate_dense(views[k], views[k - 1]).range_m, truth[k])
     e_widest, _ = median_error(locate_dense(views[k], views[widest_partner(views, k, cfg)]).range_m, truth[k])
     assert e_fused < e_newest and e_fused < e_widest and cov > 0.5
+
+
+# --- the fused map's sigma: the slant term ---------------------------------------------------------------------
+
+def same_info(m0, m1):
+    i0, i1 = dict(m0.info), dict(m1.info)
+    return np.array_equal(i0.pop("n_fused"), i1.pop("n_fused")) and i0 == i1
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_slant_term_of_a_tilted_plane_and_at_a_depth_edge_derived_by_hand(kernels):
+    # rho = 0.05 + 0.002 y (a surface tilted along v: 0.002 /m per pixel) in columns 0..31, a near wall (rho 0.2)
+    # in columns 32..63: sigma^2 = var + slant_px^2 |grad rho|^2 with grad rho = 0.002 along v everywhere (the
+    # cells beside the edge take their own side: 0 along u); rows 0 and 47 have one vertical neighbour, same
+    # difference. Var 1e-8: the slant term (1.5 * 0.002 = 3e-3) dominates.
+    c = cam(64, 48)
+    st = planar_state(c, 0.0, var=1e-8)
+    ys = np.arange(48, dtype=np.float32)[:, None]
+    st.rho[:, :32] = 0.05 + 0.002 * ys
+    st.rho[:, 32:] = 0.2 + 0.002 * ys
+    m = fused_map(st, MapConfig(fill=False, slant_px=1.5), kernels=kernels)
+    want = np.sqrt(1e-8 + (1.5 * 0.002) ** 2)
+    assert np.allclose(m.inv_range_std_per_m, want, rtol=1e-4)
+    flat = fused_map(st, MapConfig(fill=False, slant_px=0.0), kernels=kernels)
+    assert np.allclose(flat.inv_range_std_per_m, 1e-4, rtol=1e-4)     # no slant term: the filter's own sigma
+    # an empty neighbour is not used: the row above the hole has the difference to the row above it only
+    st.rho[20, :], st.var[20, :] = np.nan, np.inf                # empty cells
+    m2 = fused_map(st, MapConfig(fill=False, slant_px=1.5), kernels=kernels)
+    assert np.allclose(m2.inv_range_std_per_m[19], want, rtol=1e-4)
+    assert np.isinf(m2.inv_range_std_per_m[20]).all()
+
+
+@pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
+def test_numba_and_numpy_fused_maps_agree_on_a_random_state():
+    rng = np.random.default_rng(5)
+    c = cam(96, 72)
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    occ = rng.random(st.shape) < 0.8
+    st.rho[occ] = rng.uniform(0.0, 0.3, occ.sum())
+    st.var[occ] = rng.uniform(1e-7, 1e-2, occ.sum())
+    st.a[occ], st.b[occ] = rng.uniform(1, 6, occ.sum()), rng.uniform(0.5, 3, occ.sum())
+    st.flags[...] = rng.choice([0, LOW_TEXTURE, ILL_CONDITIONED, 2 | 4], st.shape)
+    st.rho_far = 0.01
+    m0, m1 = (fused_map(st, MapConfig(), kernels=k) for k in (False, True))
+    assert np.array_equal(m0.flags, m1.flags)
+    for name in ("inv_range_per_m", "inv_range_std_per_m", "range_m", "confidence"):
+        a0, a1 = getattr(m0, name), getattr(m1, name)
+        assert np.array_equal(np.isnan(a0), np.isnan(a1)), name
+        ok = np.isfinite(a0)
+        assert np.array_equal(ok, np.isfinite(a1)) and np.allclose(a0[ok], a1[ok], rtol=1e-5), name
+    assert same_info(m0, m1)
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_update_and_map_in_one_sweep_equals_update_then_map(kernels):
+    # also when the map is written into the measurement's own arrays (reuse): rows are read before they are written
+    from eonav.fusion.fused_map import update_and_map
+    from eonav.ranging.rangemap import RangeResult
+    rng = np.random.default_rng(7)
+    c = cam(80, 60)
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    occ = rng.random(st.shape) < 0.7
+    st.rho[occ] = rng.uniform(0.02, 0.2, occ.sum())
+    st.var[occ] = rng.uniform(1e-7, 1e-5, occ.sum())
+    st.a[occ], st.b[occ], st.n[occ] = 4.0, 1.0, 3
+    m_rho = (np.where(occ, st.rho, 0.1) * rng.uniform(0.97, 1.03, st.shape)).astype(np.float32)
+    m_std = rng.uniform(5e-4, 3e-2, st.shape).astype(np.float32)
+    flags = rng.choice([VALID, ILL_CONDITIONED, LOW_TEXTURE], st.shape).astype(np.uint8)
+    s0, s1 = copy.deepcopy(st), copy.deepcopy(st)
+    c0 = update(s0, m_rho, m_std, flags, kernels=kernels)
+    r0 = fused_map(s0, kernels=kernels)
+    meas = RangeResult(range_m=np.empty(st.shape, np.float32), confidence=np.empty(st.shape, np.float32),
+                       method="dense", inv_range_per_m=m_rho.copy(), inv_range_std_per_m=m_std.copy(),
+                       flags=flags.copy(), info={})
+    c1, r1 = update_and_map(s1, meas.inv_range_per_m, meas.inv_range_std_per_m, meas.flags, kernels=kernels,
+                            reuse=meas)
+    assert c0 == c1 and same_info(r0, r1)
+    for name in ("rho", "var", "a", "b", "n"):
+        assert np.array_equal(getattr(s0, name), getattr(s1, name), equal_nan=True), name
+    for name in ("flags", "inv_range_per_m", "inv_range_std_per_m", "range_m", "confidence"):
+        assert np.array_equal(getattr(r0, name), getattr(r1, name), equal_nan=True), name
+    if kernels:
+        assert r1.inv_range_per_m is meas.inv_range_per_m          # written into the measurement's arrays
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_predict_into_a_used_state_equals_predict_into_a_fresh_one(kernels):
+    rng = np.random.default_rng(9)
+    c = cam(64, 48)
+    st = planar_state(c, 1 / 20.0)
+    st.rho[rng.random(st.shape) < 0.3] = np.nan
+    dirty = planar_state(c, 0.3, var=0.5)                     # a previous state's arrays, full of other values
+    new = pose(north=1.0, east=0.3, t=0.1)
+    p0 = predict(st, c, new, 0.1, kernels=kernels)
+    p1 = predict(st, c, new, 0.1, kernels=kernels, out=dirty)
+    assert p1 is dirty
+    for name in ("rho", "var", "a", "b", "n", "du", "dv", "flags"):
+        assert np.array_equal(getattr(p0, name), getattr(p1, name), equal_nan=True), name
+
+
+# --- weak measurements -------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_weak_measurements_are_fused_only_when_their_sigma_explains_the_flag(kernels):
+    # ILL_CONDITIONED at a relative sigma of 0.5 (above the dense method's 0.34): fused; ILL_CONDITIONED at a tight
+    # sigma (flagged for another reason): not; with another fault bit too: not; weak=False: only VALID
+    cases = [(ILL_CONDITIONED, 0.025, True), (ILL_CONDITIONED, 0.005, False),
+             (ILL_CONDITIONED | LOW_TEXTURE, 0.025, False), (VALID, 0.005, True)]
+    for flags, tau, fused in cases:
+        for cfg, want in ((UpdateConfig(), fused), (UpdateConfig(weak=False), fused and flags == VALID)):
+            st = one_cell_state()
+            c = measure(st, 0.05, tau, kernels, cfg, flags)
+            assert (c["measured"] == 16) == want and (c["measured"] == 0) == (not want), (flags, tau, cfg.weak)
+    # rho within 2 sigma of 0 (far, or near the focus of expansion): weak too
+    st = one_cell_state()
+    assert measure(st, 0.001, 0.002, kernels, UpdateConfig(), ILL_CONDITIONED)["measured"] == 16
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_many_weak_measurements_add_up_to_a_confident_range(kernels):
+    # 20 measurements of rho = 0.01 (100 m) with a relative sigma of 0.5 each (no single pair could range it):
+    # the fused sigma is 0.5 / sqrt(20) = 0.11 relative (a little more: at this sigma the Gaussian's density, ~50 /m,
+    # is not far above the outlier density of 0.5 /m, so each update keeps some of the mixture's spread), VALID,
+    # within 3 sigma of the truth
+    rng = np.random.default_rng(11)
+    st = one_cell_state()
+    tau = 0.005
+    xs = 0.01 + tau * rng.standard_normal(20)
+    for k, x in enumerate(xs, 1):
+        measure(st, float(x), tau, kernels, UpdateConfig(), ILL_CONDITIONED)
+        m = fused_map(st, MapConfig(fill=False))
+        if k == 1:
+            assert not (m.flags & VALID).any()                 # one weak measurement: no range
+    assert tau ** 2 / 20 <= st.var[0, 0] <= 1.3 * tau ** 2 / 20
+    assert (m.flags & VALID).all() and abs(st.rho[0, 0] - 0.01) < 3 * tau / np.sqrt(20)
+
+
+def test_fused_sigma_is_calibrated_on_a_flight_it_was_not_tuned_on():
+    # slant_px was calibrated on the approach flight at 320 x 320, noise seed 0; here 160 x 160, seed 3: the robust
+    # z spread of the fused last frame's VALID pixels is within 0.8-1.2; without the slant term it is too small a
+    # sigma (z > 1.3): the pairs share the window's error
+    from dataclasses import replace
+
+    from eonav.app.bench_fuse import z_spread
+    from eonav.sim.sequence import render_sequence
+    seq = render_sequence("flight:approach", n_frames=12, rate_hz=30.0, size=160, supersample=2, seed=3)
+    truth = seq.truth[-1].range_m
+    mask = np.isfinite(truth) & (truth > 0)
+    z = {}
+    for slant in (MapConfig().slant_px, 0.0):
+        runner = FusionRunner(replace(FusionConfig(), output=MapConfig(slant_px=slant)))
+        for k, v in enumerate(seq.views):
+            maps = runner.push(frame("nose", v, int(round(v.state.t_s * 1e6)), k))
+        z[slant] = z_spread(maps[0].result, truth, mask)
+    assert 0.8 <= z[MapConfig().slant_px] <= 1.2 and z[0.0] > 1.3, z
+
+
+def test_wide_partner_metrics_of_the_whole_history_equal_the_pair_policys():
+    # wide_metrics (all candidates at once) against pair_metrics one by one: a turning, climbing camera with a lever
+    # arm, and one frame turned 100 deg away (some probes behind it: the median over the rest, as pair_metrics)
+    from dataclasses import replace as dc_replace
+
+    from eonav.fusion.schedule import wide_metrics
+    from eonav.ranging.pair_policy import pair_metrics
+    c = dc_replace(cam(640, 480, 500.0), l_body_m=np.array([2.0, 0.5, -0.3]))
+    rng = np.random.default_rng(13)
+    views = [View(c, VehicleState.from_ypr(rng.normal(0, 5, 3) + [3.0 * k, 0, 0], np.deg2rad(rng.normal(0, 3, 3)),
+                                           0.1 * k), np.zeros((480, 640))) for k in range(8)]
+    views.append(View(c, VehicleState.from_ypr([30.0, 0, 0], np.deg2rad([100.0, 0, 0]), 0.8), np.zeros((480, 640))))
+    fs = [frame("c", v, int(round(v.state.t_s * 1e6)), k) for k, v in enumerate(views)]
+    a = fs[4]
+    rot, disp, base = wide_metrics(a, fs, 50.0)
+    for i, b in enumerate(fs):
+        m = pair_metrics(a, b, 50.0)
+        assert rot[i] == pytest.approx(m.rotation_deg, abs=1e-9)
+        assert disp[i] == pytest.approx(m.disparity_px, rel=1e-9, abs=1e-9)
+        assert base[i] == pytest.approx(m.baseline_m, rel=1e-12)
+    assert 0 < disp[-1] and rot[-1] > 90
+
+
+def test_a_custom_measurement_is_left_alone_unless_declared_fresh():
+    # the fused map is written into the measurement's arrays only when nobody else holds them: the default dense
+    # measurement, or a custom one declared fresh_measurements=True; a custom one that keeps its results is not touched
+    from eonav.ranging.rangemap import RangeResult
+    c = cam(32, 24)
+    kept = []
+
+    def plane(va, vb):
+        sh = (c.height, c.width)
+        r = RangeResult(range_m=np.full(sh, 20.0, np.float32), confidence=np.full(sh, 20.0, np.float32),
+                        method="test", inv_range_per_m=np.full(sh, 0.05, np.float32),
+                        inv_range_std_per_m=np.full(sh, 1e-3, np.float32), flags=np.full(sh, VALID, np.uint8),
+                        info={})
+        kept.append(r)
+        return r
+
+    views = [View(c, pose(east=5.0 * k, t=0.1 * k), np.zeros((24, 32), np.float32)) for k in range(3)]
+    for fresh in (None, True):
+        kept.clear()
+        runner = FusionRunner(FusionConfig(), measure=plane, fresh_measurements=fresh)
+        maps = []
+        for k, v in enumerate(views):
+            maps += runner.push(frame("c", v, int(round(v.state.t_s * 1e6)), k))
+        assert len(maps) == 2 and len(kept) == 2
+        shared = [m.result.inv_range_std_per_m is r.inv_range_std_per_m for m, r in zip(maps, kept)]
+        if fresh:
+            assert all(shared)
+        else:
+            assert not any(shared)
+            assert all(np.all(r.inv_range_std_per_m == 1e-3) and np.all(r.range_m == 20.0) for r in kept)

@@ -219,10 +219,10 @@ def test_locator_and_obstacles_survive_the_payloads_that_killed_them():
                        posed(camera=dict(CAM, width=10 ** 9))]
         for i, p in enumerate(bad_frames):
             frame_pub.put(p)
-            wait_until(lambda: counters("locator").get("decode_errors", 0) >= i + 1, timeout=10,
+            wait_until(lambda: counters("locator").get("decode_errors", 0) >= i + 1, timeout=20,
                        what=f"bad posed frame {i} counted")
         map_pub.put(range_map(flags=arr(np.ones((3, 4), np.float32))))
-        wait_until(lambda: counters("obstacles").get("decode_errors", 0) >= 1, timeout=10, what="bad map counted")
+        wait_until(lambda: counters("obstacles").get("decode_errors", 0) >= 1, timeout=20, what="bad map counted")
 
         # still alive and still working: a good pair gives a range map, and the map an obstacle list
         drain(maps_sub)                       # (the bad map itself, put on the map key above)

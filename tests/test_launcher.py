@@ -1,11 +1,11 @@
 """eonav run: embedded router, supervision (restart with back-off, give up, config errors, missing
-modules), --exit-when-done, --duration, and a clean stop on SIGINT, all with real processes."""
+modules), --exit-when-done, --duration-s, and a clean stop on SIGINT, all with real processes."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
-import sys
 import textwrap
 import time
 
@@ -74,9 +74,9 @@ def _gone(pid):
 # ---- spec -------------------------------------------------------------------------------------------
 
 def test_parse_spec_validates(tmp_path):
-    s = L.parse_spec({"services": [{"name": "camera_nose", "module": "camera_ingest", "args": ["--rate", 0]},
+    s = L.parse_spec({"services": [{"name": "camera_nose", "module": "camera_ingest", "args": ["--rate-hz", 0]},
                                    {"name": "x.y", "module": "pkg.mod", "restart": False, "enabled": False}]})
-    assert s[0].module == "eonav.services.camera_ingest" and s[0].args == ["--rate", "0"]
+    assert s[0].module == "eonav.services.camera_ingest" and s[0].args == ["--rate-hz", "0"]
     assert s[1].module == "pkg.mod" and not s[1].restart and not s[1].enabled
     with pytest.raises(InputError, match="used twice"):
         L.parse_spec({"services": [{"name": "a"}, {"name": "a"}]})
@@ -126,10 +126,11 @@ def test_router_process_prints_ready_and_stops_on_sigint():
 
 # ---- supervision -------------------------------------------------------------------------------------
 
-def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_path):
+def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="eonav.app.launcher")
     spec = {"services": [
         {"name": "crashy", "module": svc_pkg, "args": ["--exit-after", "0.3", "--exit-code", "3"], "max_restarts": 2},
-        {"name": "steady", "module": svc_pkg, "args": ["--health-period", "0.2"]},
+        {"name": "steady", "module": svc_pkg, "args": ["--health-period-s", "0.2"]},
         {"name": "badflags", "module": svc_pkg, "args": ["--no-such-flag"]},
         {"name": "ghost", "module": "services.not_written_yet"},
     ]}
@@ -148,8 +149,17 @@ def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_
     running = [s["steady"]["health"] for s in seen if s["steady"]["health"]]
     assert running and running[-1]["state"] == "ok" and running[-1]["rates_hz"]["loop"] > 5
     assert any(s["steady"]["alive"] for s in seen)
-    restarting = [s["crashy"]["state"] for s in seen]
-    assert "restarting" in restarting or final["crashy"]["restarts"] == 2
+    # crashy ran 1 + max_restarts = 3 times, each restart after the back-off (0.5 s, then 1 s) from its crash
+    assert (tmp_path / "logs" / "crashy.log").read_text().count("running (vehicle lt, pid") == 3
+    events = [(r.created, r.getMessage()) for r in caplog.records if "service crashy" in r.getMessage()]
+    crashes = [t for t, m in events if "exited 3; restart" in m]
+    starts = [t for t, m in events if " started (pid " in m]
+    assert [m.split("; ", 1)[1] for t, m in events if "exited 3; restart" in m] == ["restart 1/2 in 0.5 s",
+                                                                                  "restart 2/2 in 1.0 s"]
+    assert len(starts) == 3 and len(crashes) == 2
+    for crash, start, delay in zip(crashes, starts[1:], (0.5, 1.0)):
+        assert delay <= start - crash < delay + 0.5, (start - crash, delay)   # the launcher polls every 0.1 s
+    assert any("service crashy exited 3; gave up after 2 restarts" in m for _, m in events)
     assert code == 1                       # a service failed for good
     pids = {s[n]["pid"] for s in seen for n in ("crashy", "steady") if s[n]["pid"]}
     assert all(_gone(p) for p in pids)
@@ -175,7 +185,7 @@ def test_eonav_run_camera_replay_until_done(tmp_path):
     spec = tmp_path / "pipeline.json"
     spec.write_text(json.dumps({"services": [
         {"name": "camera_nose", "module": "camera_ingest",
-         "args": ["--source", "{spec_dir}/rec", "--camera-id", "nose", "--rate", "10", "--wait-subscribers", "0"]}]}))
+         "args": ["--source", "{spec_dir}/rec", "--camera-id", "nose", "--rate-hz", "10", "--wait-subscribers-s", "0"]}]}))
     out = start_service(["-m", "eonav.app.cli", "run", "--pipeline", str(spec), "--vehicle", "lt3",
                          "--exit-when-done", "camera_nose"])
     code = out.wait(60)
@@ -234,15 +244,24 @@ def test_eonav_service_command_passes_args(tmp_path):
     assert "not a directory" in proc.stderr.read()
     proc = start_service(["-m", "eonav.app.cli", "service", "nope_service"])
     assert proc.wait(30) == 2
-    assert "camera_ingest" in proc.stderr.read()           # lists what exists
-    assert sys.executable
+    err = proc.stderr.read()
+    services = ("camera_ingest", "locator", "mavlink_ingest", "obstacles", "sync")
+    assert all(s in err for s in services) and "did you mean" not in err, err    # lists what exists
+    proc = start_service(["-m", "eonav.app.cli", "service", "camera"])              # the instance name, not the module
+    assert proc.wait(30) == 2
+    assert "did you mean 'camera_ingest'?" in proc.stderr.read()
+    # each service's --help names the command that runs it
+    procs = {s: start_service(["-m", "eonav.app.cli", "service", s, "--help"]) for s in services}
+    for s, proc in procs.items():
+        assert proc.wait(60) == 0
+        assert proc.stdout.read().startswith(f"usage: eonav service {s} "), s
 
 
 def test_watch_mode_shows_remote_services(svc_pkg):
     from eonav.app.processes import router_process, stop_service
     with router_process() as ep:
         svc = start_service(["-m", svc_pkg, "--connect", ep, "--vehicle", "lt5", "--name", "elsewhere",
-                             "--health-period", "0.2"])
+                             "--health-period-s", "0.2"])
         try:
             seen = []
             code = L.run_pipeline({"services": []}, vehicle="lt5", router=ep, duration=4.0, on_status=seen.append,
@@ -268,9 +287,19 @@ def test_deploy_configs_are_valid_zenoh_configs():
     assert json.loads(p.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
     assert json.loads(p.get_json("scouting/multicast/enabled")) is False
     unit = (root / "systemd" / "eonav@.service").read_text()
-    for line in ("ExecStart=/opt/eonav/venv/bin/python -m services.%i", "EnvironmentFile=/etc/eonav/%i.env",
+    for line in ("EnvironmentFile=/etc/eonav/%i.env",
                  "KillSignal=SIGINT", "Restart=on-failure", "After=network-online.target zenohd.service"):
         assert line in unit
+    # every unit starts a module that exists: eonav@<service> for each deploy/env/<service>.env, eonav-camera@<id>
+    # (camera_nose.env is eonav-camera@nose's, checked with the instances below)
+    services = sorted(f.stem for f in (root / "env").glob("*.env") if f.stem not in ("common", "camera_nose"))
+    assert services == ["camera_ingest", "locator", "mavlink_ingest", "obstacles", "sync"]
+    for name, instances in (("eonav@.service", services), ("eonav-camera@.service", ["nose"])):
+        (cmd,) = [ln for ln in (root / "systemd" / name).read_text().splitlines() if ln.startswith("ExecStart=")]
+        module = cmd.split(" -m ", 1)[1].split()[0]
+        assert module.startswith("eonav.services."), module     # the wheel installs the services under eonav only
+        for i in instances:
+            assert L.module_exists(module.replace("%i", i)), (name, module, i)
     for env in (root / "env").glob("*.env"):
         for ln in env.read_text().splitlines():
             if ln.strip() and not ln.startswith("#"):

@@ -13,13 +13,13 @@ ROOT = Path(__file__).resolve().parents[1]
 ALLOWED = {
     "geometry": set(),
     "io": {"geometry"},
-    "ranging": {"geometry", "sim"},
+    "ranging": {"geometry"},
     "fusion": {"geometry", "ranging"},
     "obstacles": {"geometry", "ranging"},
     "nav": {"geometry", "obstacles"},
     "bus": {"geometry", "io"},
     "sim": {"geometry", "io", "nav"},
-    "recording": {"bus", "geometry", "io"},
+    "recording": {"bus", "geometry", "io", "ranging"},
     "services": {"bus", "geometry", "io", "nav", "obstacles", "ranging", "fusion"},
     "app": None,                                   # the top: anything
     None: set(),                                   # eonav/__init__.py: the error types only

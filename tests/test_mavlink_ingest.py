@@ -39,7 +39,7 @@ def test_replay_tlog_maps_headers_onto_now_and_paces(tlog):
     got = []
     stop = threading.Event()
     t0 = time.monotonic()
-    reader = MI.replay_tlog(path, lambda m, rx: got.append((m, rx)), rate=4.0, stop=stop, clock=lambda: 5_000_000)
+    reader = MI.replay_tlog(path, lambda m, rx: got.append((m, rx)), speed=4.0, stop=stop, clock=lambda: 5_000_000)
     elapsed = time.monotonic() - t0
     assert len(got) == sum(counts.values()) == reader.stats.records
     hdr = np.array([int(round(m._timestamp * 1e6)) for m, _ in got])
@@ -62,7 +62,7 @@ def test_replay_tlog_joint_shift_releases_each_record_at_its_shifted_stamp(tlog)
     with open(path, "rb") as f:
         first_hdr = int.from_bytes(f.read(8), "big")
     shift = now["us"] + 500_000 - first_hdr             # first record due 0.5 s from now
-    MI.replay_tlog(path, lambda m, rx: got.append((m, rx, now["us"])), rate=1.0, stop=threading.Event(),
+    MI.replay_tlog(path, lambda m, rx: got.append((m, rx, now["us"])), speed=1.0, stop=threading.Event(),
                    clock=lambda: now["us"], sleep=sleep, shift_us=shift)
     assert len(got) == sum(counts.values())
     hdr = np.array([int(round(m._timestamp * 1e6)) for m, _, _ in got])
@@ -72,7 +72,7 @@ def test_replay_tlog_joint_shift_releases_each_record_at_its_shifted_stamp(tlog)
     assert np.all(released >= rx - 1000)                   # never released more than 1 ms before its stamp
     assert slept[0] == pytest.approx(0.5, abs=1e-3)
     with pytest.raises(InputError, match="excludes --keep-stamps"):
-        MI.replay_tlog(path, lambda m, rx: None, rate=2.0, stop=threading.Event(), shift_us=shift)
+        MI.replay_tlog(path, lambda m, rx: None, speed=2.0, stop=threading.Event(), shift_us=shift)
 
 
 def test_clock_flag_and_origin_parsing():
@@ -93,7 +93,7 @@ def _run(args, subs, timeout=30):
     with listener_session(port) as s:
         chans = {k: s.declare_subscriber(k, zenoh.handlers.FifoChannel(20000)) for k in subs}
         proc = start_service(["-m", "eonav.services.mavlink_ingest", "--vehicle", "t2", "--connect", endpoint(port),
-                              "--health-period", "0.2", *args])
+                              "--health-period-s", "0.2", *args])
         return s, chans, proc, stop_service
 
 
@@ -122,9 +122,9 @@ def test_service_replays_generated_tlog(tlog, tmp_path):
         clk_sub = s.declare_subscriber(K.nav_clock("t2"), zenoh.handlers.FifoChannel(1000))
         h_sub = s.declare_subscriber(K.health("t2", "mavlink"), zenoh.handlers.FifoChannel(1000))
         t_start_us = time.time_ns() // 1000
-        proc = start_service(["-m", "eonav.services.mavlink_ingest", "--source", str(bad), "--rate", "0",
-                              "--vehicle", "t2", "--connect", endpoint(port), "--health-period", "0.2",
-                              "--position-source", "LOCAL_POSITION_NED", "--wait-subscribers", "10"])
+        proc = start_service(["-m", "eonav.services.mavlink_ingest", "--source", str(bad), "--speed", "0",
+                              "--vehicle", "t2", "--connect", endpoint(port), "--health-period-s", "0.2",
+                              "--position-source", "LOCAL_POSITION_NED", "--wait-subscribers-s", "10"])
         try:
             code = proc.wait(30)
         finally:

@@ -198,6 +198,26 @@ def test_flags_confidence_and_std_gate_pixels():
     assert res.obstacles[0].range_std_m == pytest.approx(1e-3 * 400, rel=0.01)   # sigma_rho r^2
 
 
+def test_fused_evidence_count_gates_pixels():
+    # a fused map: the wall's pixels fused from 2 measurements, the rest from 9
+    r = add_wall(ground_and_sky(), 20.0, 128, 192)
+    n = np.full(r.shape, 9, np.uint16)
+    n[:, 128:192] = 2
+    assert len(ob.analyse(r, CAM, LEVEL, cfg=CFG, n_fused=n).obstacles) == 1        # min_fused 1: off
+    cfg2 = ob.ObstacleConfig(ground_down_m=0.0, min_fused=2)
+    assert len(ob.analyse(r, CAM, LEVEL, cfg=cfg2, n_fused=n).obstacles) == 1       # 2 >= 2: kept
+    cfg3 = ob.ObstacleConfig(ground_down_m=0.0, min_fused=3)
+    res = ob.analyse(r, CAM, LEVEL, cfg=cfg3, n_fused=n)
+    assert res.obstacles == []                                                      # 2 < 3: not trusted
+    assert res.n_confident == np.count_nonzero(np.isfinite(r)) - np.count_nonzero(np.isfinite(r[:, 128:192]))
+    # a map without n_fused (a single pair) is not affected by min_fused
+    assert len(ob.analyse(r, CAM, LEVEL, cfg=cfg3).obstacles) == 1
+    with pytest.raises(InputError, match="n_fused has shape"):
+        ob.analyse(r, CAM, LEVEL, cfg=cfg3, n_fused=n[:10])
+    with pytest.raises(InputError, match="min_fused"):
+        ob.ObstacleConfig(min_fused=0)
+
+
 def test_ground_estimated_from_points_when_not_configured():
     r = add_wall(ground_and_sky(alt_m=25.0), 30.0, 128, 192, alt_m=25.0)
     st = VehicleState.from_ypr([0.0, 0.0, -25.0], [0.0, 0.0, 0.0])
@@ -454,8 +474,11 @@ def test_sender_rejects_bad_setup():
     from eonav.nav import mavlink_out as mo
     with pytest.raises(InputError, match="2 Hz"):
         mo.ObstacleDistanceSender("udpout:127.0.0.1:9", rate_hz=1.0)
-    with pytest.raises(InputError, match="cannot open MAVLink output"):
-        mo.ObstacleDistanceSender("tcp:127.0.0.1:1")
+    with pytest.raises(InputError, match="MAVLink output 'tcp:127.0.0.1': not a MAVLink connection string"):
+        mo.ObstacleDistanceSender("tcp:127.0.0.1")
+    tx = mo.ObstacleDistanceSender("tcp:127.0.0.1:1")         # refused: not an error, retried (tests/test_links.py)
+    assert tx.tick() > 0 and tx.link_status()[0] == "down"
+    tx.close()
 
 
 def test_sectors_now_move_with_the_vehicle():
@@ -598,3 +621,26 @@ def test_pool_confident_matches_its_definition(k, q):
     assert grid == (-(-H // k), -(-W // k)) and cell.size == want_idx.size
     np.testing.assert_array_equal(idx, want_idx)
     np.testing.assert_array_equal(weight, want_w)
+
+
+def test_latest_nav_joins_attitude_and_position_messages():
+    """The MAVLink ingest sends attitude and position as separate nav_state messages: the obstacle service joins the
+    newest of each into one pose (stamped with the newer part) when they are within 200 ms of each other."""
+    from eonav.services.obstacles import LatestNav
+    nav = LatestNav()
+    nan3, nan4 = [math.nan] * 3, [math.nan] * 4
+    q_yaw90 = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]
+    assert not nav.add(1_000_000, q_yaw90, nan3, nan3)                 # attitude alone: no pose
+    assert nav.get() == (None, None)
+    assert nav.add(1_150_000, nan4, [10.0, 20.0, -5.0], [3.0, 0.0, 0.0])  # position 150 ms later: joined
+    state, stamp = nav.get()
+    assert stamp == 1_150_000 and state.position_ned_m == pytest.approx([10.0, 20.0, -5.0])
+    assert state.T_body_ned @ np.array([0.0, 1.0, 0.0]) == pytest.approx([1.0, 0.0, 0.0], abs=1e-9)   # east = nose
+    assert nav.ownship(None, -1).velocity_ned_mps == pytest.approx([3.0, 0.0, 0.0])
+    assert not nav.add(1_360_000, nan4, [11.0, 20.0, -5.0], nan3)      # 360 ms after the attitude: too far apart
+    assert nav.get()[1] == 1_150_000
+    assert nav.add(1_400_000, [1.0, 0.0, 0.0, 0.0], nan3, nan3)        # a new attitude 40 ms after it: joined again
+    state, stamp = nav.get()
+    assert stamp == 1_400_000 and state.position_ned_m[0] == pytest.approx(11.0)
+    nav.add(1_500_000, [2.0, 0.0, 0.0, 0.0], nan3, nan3)                # not a unit quaternion: ignored
+    assert nav.get()[1] == 1_400_000 and nav._q[0] == 1_400_000

@@ -105,6 +105,24 @@ def test_non_unit_quaternion_is_rejected(pair_dir):
         load_pair_file(write(pair_dir, doc))
 
 
+@pytest.mark.parametrize("norm,ok", [(1.0009, True), (0.9991, True), (1.0011, False), (0.9989, False),
+                                     (1.05, False), (0.7, False)])
+def test_quaternion_norm_tolerance_is_1e3(pair_dir, norm, ok):
+    """A quaternion whose norm is within 1e-3 of 1 (float rounding of a written unit quaternion) is taken as the
+    rotation it stands for; one farther off is an error, not silently normalised."""
+    from eonav.geometry.frames import quat_wxyz_from_ypr
+    doc = copy.deepcopy(DOC)
+    ypr = doc["frames"][1].pop("ypr_deg")
+    doc["frames"][1]["q_wxyz"] = (norm * quat_wxyz_from_ypr(*np.deg2rad(ypr))).tolist()
+    if ok:
+        a = load_pair_file(write(pair_dir, doc)).frames[1]["state"].T_body_ned
+        b = load_pair_file(write(pair_dir, DOC)).frames[1]["state"].T_body_ned
+        assert np.allclose(a, b, atol=1e-12)
+    else:
+        with pytest.raises(InputError, match=rf"frames\[1\].q_wxyz: expected a unit quaternion.*norm {norm:.6f}"):
+            load_pair_file(write(pair_dir, doc))
+
+
 @pytest.mark.parametrize("image,match", [
     ("missing.png", "image file not found"),
     ("corrupt.png", "cannot decode image"),

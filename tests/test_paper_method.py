@@ -205,13 +205,35 @@ def test_recovers_range_where_disparities_are_subpixel():
     # confident points are the better ones
     hi, lo = ok & (res.confidence >= 10), ok & (res.confidence < 2)
     assert np.median(err[hi]) < 0.5 * np.median(err[lo])
-    # the reported 1-sigma is the right size: robust spread of (rho - rho_true)/sigma, measured 1.75
-    z = ((res.inv_range_per_m - 1 / ra) / res.inv_range_std_per_m)[ok]
-    assert 0.8 < 1.4826 * np.median(np.abs(z - np.median(z))) < 2.5
     va, vb, ra = pair(S_SMALL, tex=separable_texture)
     res = locate_paper(va, vb, bandwidth=0.5, bias=0.0)                  # eq. (40), its own assumption met
     ok = (res.flags & VALID) > 0
     assert np.median(np.abs(res.range_m / ra - 1)[ok]) < 0.09
+
+
+def z_spread(res, ra):
+    """Robust spread (1.4826 x MAD) of z = (rho - rho_true) / sigma over VALID pixels: 1 for a calibrated sigma."""
+    ok = (res.flags & VALID) > 0
+    z = ((res.inv_range_per_m - 1 / ra) / res.inv_range_std_per_m)[ok]
+    assert ok.sum() > 15000
+    return 1.4826 * np.median(np.abs(z - np.median(z)))
+
+
+def test_sigma_is_the_image_noise_propagated():
+    """The reported sigma is white image noise propagated to first order through the estimators and eq. (28)
+    (module docstring, item 6). Where that noise dominates the error (4 grey levels on the textured wall, small
+    motion) it is the error's size: z spread measured 0.98-1.01 over three noise seeds. The band fails for a sigma
+    25 % off either way."""
+    va, vb, ra = pair(S_SMALL, noise=4.0)
+    res = locate_paper(va, vb, bandwidth=0.5, combine="linear", noise_sigma=4.0)
+    assert 0.85 < z_spread(res, ra) < 1.18
+
+
+@pytest.mark.xfail(strict=True, reason="the sigma models image noise only: at 1 grey level the model error (Taylor "
+                                       "truncation, estimator bias) dominates: z spread 1.58-1.60, median z -0.66 to -0.71")
+def test_sigma_is_calibrated_at_low_noise():
+    va, vb, ra = pair(S_SMALL)
+    assert 0.85 < z_spread(locate_paper(va, vb, bandwidth=0.5, combine="linear"), ra) < 1.18
 
 
 def test_c1_sign_e1_minus_e2_is_right():

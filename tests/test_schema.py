@@ -60,6 +60,23 @@ def test_malformed_payloads_are_rejected_with_a_reason(payload, match):
         schema.decode(payload)
 
 
+@pytest.mark.parametrize("extra", [-6, -1, 0, 1, 6])
+def test_array_data_must_have_exactly_the_size_of_its_shape(extra):
+    """A mono8 4 x 6 image needs 24 bytes: one byte or one row more or less is a SchemaError naming the sizes;
+    exactly 24 decodes to the image."""
+    a = np.arange(24, dtype=np.uint8).reshape(4, 6)
+    data = a.tobytes() + b"\0" * max(extra, 0)
+    data = data[:len(data) + extra] if extra < 0 else data
+    payload = raw({"kind": "frame", "v": 1, "camera_id": "c", "seq": 1, "stamp_us": 1,
+                   "image": {"dtype": "uint8", "shape": [4, 6], "data": data}})
+    if extra == 0:
+        np.testing.assert_array_equal(schema.decode(payload)["image"], a)
+    else:
+        with pytest.raises(SchemaError, match=rf"field frame\.image: {24 + extra} bytes but dtype uint8 x shape "
+                                              rf"\[4, 6\] needs 24"):
+            schema.decode(payload)
+
+
 def test_wrong_kind_for_the_topic():
     with pytest.raises(SchemaError, match="expected a nav_state message, got frame"):
         schema.decode(frame_msg(), expect="nav_state")

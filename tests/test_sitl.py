@@ -55,9 +55,9 @@ class Loop:
         self.port = free_port()
         self.session = listener_session(self.port).__enter__()
         self.proc = start_service(["-m", "eonav.services.obstacles", "--vehicle", VEHICLE,
-                                   "--connect", endpoint(self.port), "--health-period", "0.5", "--ground-down", "0",
-                                   "--no-nav", "--max-distance", str(MAX_DISTANCE_M),
-                                   "--mavlink-out", autopilot.companion_url, "--mavlink-sysid", str(sysid)])
+                                   "--connect", endpoint(self.port), "--health-period-s", "0.5", "--ground-down-m", "0",
+                                   "--no-nav", "--max-distance-m", str(MAX_DISTANCE_M),
+                                   "--mavlink-out", autopilot.companion_url, "--mavlink-source-system", str(sysid)])
         self.feeder = MapFeeder(self.session, K.range_map(VEHICLE, "nose"))
 
     def show(self, scene, camera, state=None):

@@ -95,7 +95,8 @@ def test_service_poses_frames_against_truth(tmp_path):
         tail_pub = s.declare_publisher(K.frame("t4", "tail"))
         try:
             proc = start_service(["-m", "eonav.services.sync", "--cameras", str(cams_path), "--vehicle", "t4",
-                                  "--connect", endpoint(port), "--health-period", "0.2", "--max-wait-ms", "300"])
+                                  "--connect", endpoint(port), "--health-period-s", "0.2", "--max-wait-ms", "300",
+                                  "--max-input-age-ms", "5000"])      # the frames are stamped 1-2.5 s ago
             wait_until(lambda: nav_pub.matching_status.matching and frame_pub.matching_status.matching, 15,
                        what="the sync service's subscribers")
             time.sleep(0.2)
@@ -103,12 +104,12 @@ def test_service_poses_frames_against_truth(tmp_path):
             for m in _nav_msgs(base, 1.2):
                 nav_pub.put(schema.encode("nav_state", **m))
             frame_t = [0.11, 0.333, 0.5, 0.777, 0.9, 1.1]
+            frame_pub.put(schema.encode("frame", **_frame(base, -0.5, 100)))             # before the nav
+            time.sleep(0.03)
             for i, t in enumerate(frame_t):
                 frame_pub.put(schema.encode("frame", **_frame(base, t, i)))
                 time.sleep(0.03)
             tail_pub.put(schema.encode("frame", **_frame(base, 0.5, 99, cam="tail")))    # unknown camera
-            time.sleep(0.03)
-            frame_pub.put(schema.encode("frame", **_frame(base, -0.5, 100)))             # before the nav
             time.sleep(0.03)
             frame_pub.put(schema.encode("frame", **_frame(base, 1.3, 101)))              # nav never comes
             got = []

@@ -17,6 +17,7 @@ frames, depth-sensor reference); KITTI 00 frames 5 -> 0 pushed as a reversing ca
 """
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from dataclasses import dataclass, field
@@ -238,7 +239,9 @@ def add_arguments(p):
     p.add_argument("--seed", type=int, default=0, help="sensor-noise seed of the simulated sequences")
     p.add_argument("--data", default=None, help="real data folder (default: shared/data beside the checkout)")
     p.add_argument("--no-real", action="store_true", help="skip the HoloLens and KITTI sequences")
-    p.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1: one core)")
+    p.add_argument("--cv-threads", type=int, default=1, metavar="N",
+                   help="OpenCV threads, cv2.setNumThreads(N) (default 1: one core)")
+    p.add_argument("--threads", dest="cv_threads", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     p.add_argument("--json", default=None, help="also write the figures as JSON")
 
 
@@ -249,7 +252,7 @@ def run(args) -> int:
 
     from eonav.ranging.methods.dense import prepare_kernels
     from eonav.io.datasets import default_data_dir
-    cv2.setNumThreads(args.threads)
+    cv2.setNumThreads(args.cv_threads)
     prepare_kernels()
     cases = []
     for name in [s for s in args.sequences.split(",") if s]:
@@ -265,7 +268,7 @@ def run(args) -> int:
             print(f"(real data {data / 'hololens_dvmvs_20f'} not found: skipped)")
         if (data / "kitti00_frames0-5").is_dir():
             cases.append(lambda: kitti_case(data))
-    print(f"eonav bench fuse: OpenCV threads {args.threads}; times are CPU time of this process")
+    print(f"eonav bench fuse: OpenCV threads {args.cv_threads}; times are CPU time of this process")
     rows, summaries = [], {}
     for make in cases:
         case = make()

@@ -7,6 +7,7 @@ the OpenCV DIS optical-flow baseline is one of them. Figures, not assertions.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import statistics
 import time
@@ -242,7 +243,9 @@ def add_arguments(p):
     p.add_argument("--data", default=None, help="real data folder (default: shared/data beside the checkout)")
     p.add_argument("--no-real", action="store_true", help="skip Middlebury and KITTI")
     p.add_argument("--repeat", type=int, default=3, help="timed runs per method and pair (median)")
-    p.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1: one core)")
+    p.add_argument("--cv-threads", type=int, default=1, metavar="N",
+                   help="OpenCV threads, cv2.setNumThreads(N) (default 1: one core)")
+    p.add_argument("--threads", dest="cv_threads", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     p.add_argument("--json", default=None, help="also write the figures as JSON")
 
 
@@ -251,7 +254,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from eonav.io.datasets import default_data_dir
-    cv2.setNumThreads(args.threads)
+    cv2.setNumThreads(args.cv_threads)
     methods = [m for m in args.methods.split(",") if m]
     cases = sim_cases([p for p in args.presets.split(",") if p], args.size)
     data = Path(args.data) if args.data else default_data_dir()
@@ -261,6 +264,6 @@ def run(args) -> int:
             cases += kitti_cases(data)
         else:
             print(f"(real data folder {data} not found: Middlebury and KITTI skipped)")
-    print(f"eonav bench locate: methods {methods}, OpenCV threads {args.threads}, median of {args.repeat} runs")
+    print(f"eonav bench locate: methods {methods}, OpenCV threads {args.cv_threads}, median of {args.repeat} runs")
     run_bench(methods, cases, args.repeat, args.json)
     return 0

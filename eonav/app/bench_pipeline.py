@@ -50,10 +50,10 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
     from eonav.bus import schema
     from eonav.bus.session import client_session
     from eonav.app.processes import start_service, stop_service, wait_until
-    common = ["--vehicle", vehicle, "--connect", ep, "--health-period", "1", "--log-level", "warning"]
+    common = ["--vehicle", vehicle, "--connect", ep, "--health-period-s", "1", "--log-level", "warning"]
     procs = [start_service(["-m", "eonav.services.locator", *common, "--method", method, "--cv-threads", str(cv_threads),
                             "--scale", str(scale), "--publish-grid", publish_grid]),
-             start_service(["-m", "eonav.services.obstacles", *common, "--ground-down", "0"])]
+             start_service(["-m", "eonav.services.obstacles", *common, "--ground-down-m", "0"])]
     res = {"fps": fps, "width": width, "height": height, "method": method, "scale": scale,
            "publish_grid": publish_grid}
     try:
@@ -250,7 +250,8 @@ def add_arguments(p) -> None:
     p.add_argument("--methods", default="dense,dis",
                    help="locator methods, each over every case in the same run (default dense,dis: DIS is the "
                         "OpenCV optical-flow baseline)")
-    p.add_argument("--cv-threads", type=int, default=1, help="locator cv2.setNumThreads")
+    p.add_argument("--cv-threads", type=int, default=1, metavar="N",
+                   help="the locator's OpenCV threads (its --cv-threads; default 1: one core)")
     p.add_argument("--scale", default="auto",
                    help="locator --scale: auto (default, adaptive) or a number (1: full, 0.5: half-resolution locate)")
     p.add_argument("--publish-grid", default="locate", choices=("locate", "frame"),

@@ -1,11 +1,21 @@
 """Tracker benchmark on simulated flights: rendered frames -> range maps -> ``eonav.obstacles.analyse`` ->
 ``eonav.obstacles.tracking.Tracker``, scored against the simulator's boxes.
 
-Range maps: ``dense``, the dense locator on motion pairs chosen by ``eonav.ranging.pair_policy`` (what the pipeline does), or
-``truth``, the renderer's true range with 1 % Gaussian noise per pixel (seeded) and that sigma as
-``inv_range_std_per_m``: the tracker's own behaviour on clean obstacle lists.
+Range maps (``--maps``):
+- ``truth``: the renderer's true range with 1 % Gaussian noise per pixel (seeded) and that sigma: the tracker's own
+  behaviour on clean obstacle lists;
+- ``dense``: the dense locator on single motion pairs chosen by ``eonav.ranging.pair_policy``;
+- ``fused``: what the locator publishes by default, the fused maps of ``eonav.fusion.sequence.FusionRunner`` (one
+  push per frame, the dense method without its own fill as the measurement), with ``n_fused`` per pixel.
 
-Per box of the scene (ground truth: the renderer's object ids and the solid box):
+Scenarios (``--scenarios``): the simulator's flights (``approach``, ``turning``, ``climbing``) with their boxes, the
+same flights with every box removed (``<flight>-clear``: textured ground and runway only), ``slope`` (the approach
+flight, boxes removed, analysed in a frame pitched by ``--slope-deg``: the ground rises ahead, as over a slope the
+vehicle follows), ``head-on`` (the approach flight's trajectory straight at a wall on its path: time to contact)
+and ``moving`` (two vehicles driving at constant velocity, one across the path and one towards the aircraft: their
+tracked velocity). The simulator's scene is static; a moving box is rendered at its place at each frame's time.
+
+Per box (ground truth: the renderer's object ids and the solid box):
 - in view: at least ``min_obstacle_pixels`` of its pixels in the frame and its distance within the obstacle list's
   ``max_obstacle_distance_m``;
 - represented by a confirmed track in a frame when the track's position lies within ``max(2 m, 5 % of the
@@ -14,27 +24,75 @@ Per box of the scene (ground truth: the renderer's object ids and the solid box)
 - id stability: of the frames in view after the first represented one, the fraction in which its most frequent
   track id is among the tracks representing it (``ids_used`` counts every id that ever did: duplicates and
   replacements);
-- a confirmed track that never came near any box is false; false confirmed tracks per minute of flight.
-The "clear" flight is the approach flight's trajectory and textured ground with every box removed.
+- a confirmed track that never came near any box is false; false confirmed tracks per minute of flight; a false
+  track that lies within 1 m of the ground (or below it) is a ground track;
+- time to contact (head-on): the guidance threat (``eonav.obstacles.tracking.assess``, ``nearest_threat``) against
+  the true entry time of the vehicle's velocity ray into the wall grown by the vehicle radius, for every frame at most
+  3 s from contact; also the track's surface distance over the closing speed (the estimate without the cone's sigma
+  margin);
+- velocity (moving): over the frames from 1 s after a mover's track is confirmed, |v_track - v_true| / |v_true|.
 
-    python -m eonav.app.bench_tracking [--seconds-approach 8] [--seconds-clear 30] [--rate 15] [--size 320x240]
+    python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
+        [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0]
 """
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from collections import Counter, defaultdict
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from eonav.geometry.camera import View
+from eonav.geometry.camera import VehicleState, View
 from eonav.obstacles.detect import ObstacleConfig, analyse, confident_mask, infinity_mask
+from eonav.obstacles.tracking import (ConeConfig, FieldOfView, Ownship, Tracker, TrackerConfig, assess,
+                                      box_entry_time, measurements_from_obstacles, nearest_threat)
 from eonav.ranging.pair_policy import PairPolicy, PosedFrameInfo
-from eonav.obstacles.tracking import FieldOfView, Tracker, TrackerConfig, measurements_from_obstacles
+from eonav.sim.scene import Box
 
-# the obstacle service's defaults (services/obstacles.py flags)
-SERVICE_OBSTACLES = ObstacleConfig(max_rel_std=0.25)
+# the obstacle service's defaults (its flags default to the library's)
+SERVICE_OBSTACLES = ObstacleConfig()
+MAP_SOURCES = ("truth", "dense", "fused")
+GROUND_TRACK_M = 1.0
+
+
+@dataclass(frozen=True)
+class Mover:
+    box: Box                       # at t = 0
+    velocity_ned_mps: tuple
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    flight: str
+    seconds: float
+    clear: bool = False            # the flight's boxes removed
+    boxes: tuple = ()              # boxes added (static)
+    movers: tuple = ()             # boxes moving at constant velocity
+    slope_deg: float = 0.0         # analysis frame pitched by this (the ground rises ahead)
+    ttc_box: str = ""              # the box whose time to contact is scored
+
+
+def scenario(name: str, seconds: float | None = None, slope_deg: float = 5.0) -> Scenario:
+    """A named scenario (module docstring); ``seconds`` overrides its default length."""
+    base, _, clear = name.partition("-")
+    if base in ("approach", "turning", "climbing") and clear in ("", "clear"):
+        default = (30.0 if base == "approach" else 12.0) if clear else {"approach": 8.0, "turning": 10.0,
+                                                                         "climbing": 6.0}[base]
+        return Scenario(name, base, seconds or default, clear=bool(clear))
+    if name == "slope":
+        return Scenario(name, "approach", seconds or 12.0, clear=True, slope_deg=slope_deg)
+    if name == "head-on":
+        wall = Box.on_ground("wall", 150.0, 0.0, 3.0, 12.0, 8.0, albedo=120.0, contrast=30.0)
+        return Scenario(name, "approach", seconds or 10.0, clear=True, boxes=(wall,), ttc_box="wall")
+    if name == "moving":
+        crosser = Mover(Box.on_ground("crosser", 110.0, -30.0, 4.5, 2.0, 1.8, yaw_deg=90.0, albedo=110.0), (0.0, 6.0, 0.0))
+        oncoming = Mover(Box.on_ground("oncoming", 140.0, -7.0, 5.0, 2.0, 2.2, albedo=140.0), (-8.0, 0.0, 0.0))
+        return Scenario(name, "approach", seconds or 7.0, clear=True, movers=(crosser, oncoming))
+    raise SystemExit(f"unknown scenario {name!r}")
 
 
 def box_distance(box, p_ned) -> float:
@@ -43,35 +101,59 @@ def box_distance(box, p_ned) -> float:
     return float(np.linalg.norm(local - np.clip(local, -box.half_m, box.half_m)))
 
 
-def frames(flight_name: str, seconds: float, rate_hz: float, size, clear: bool = False, seed: int = 0):
-    """Yield (stamp_us, View, Render) of a simulated flight (``clear``: its boxes removed)."""
+def scene_at(sc: Scenario, base_scene, t_s: float):
+    """The scene at time ``t_s``: the flight's (or none) boxes, the scenario's, the movers where they are then."""
+    boxes = (() if sc.clear else tuple(base_scene.boxes)) + tuple(sc.boxes)
+    boxes += tuple(replace(m.box, center_ned_m=tuple(np.asarray(m.box.center_ned_m) + t_s * np.asarray(m.velocity_ned_mps)))
+                   for m in sc.movers)
+    return replace(base_scene, boxes=boxes)
+
+
+def tilt(slope_deg: float) -> np.ndarray:
+    """Rotation true NED -> analysis frame: pitched about east by ``slope_deg`` (the true ground, flat, then rises
+    ahead in the analysis frame: down decreases northwards)."""
+    a = math.radians(slope_deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def velocity_at(flight_name: str, t_s: float, dt: float = 1e-3) -> np.ndarray:
+    from eonav.sim.flight import flight_states
+    a, b = flight_states(flight_name, [max(t_s - dt, 0.0), t_s + dt])
+    return (b.position_ned_m - a.position_ned_m) / (b.t_s - a.t_s)
+
+
+def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
+    """Yield (stamp_us, View, Render, scene) of a scenario's frames (true NED)."""
     from eonav.sim.flight import flight, flight_states
     from eonav.sim.presets import scale_camera
     from eonav.sim.render import render
-    fl = flight(flight_name)
-    scene = replace(fl.scene, boxes=()) if clear else fl.scene
+    fl = flight(sc.flight)
     cam = scale_camera(fl.camera, size)
-    times = np.arange(int(round(seconds * rate_hz))) / rate_hz
-    for i, st in enumerate(flight_states(flight_name, times)):
+    times = np.arange(int(round(sc.seconds * rate_hz))) / rate_hz
+    for i, st in enumerate(flight_states(sc.flight, times)):
+        scene = scene_at(sc, fl.scene, float(times[i]))
         r = render(scene, cam, st, supersample=1, noise_sigma=1.0,
                    seed=int(np.random.SeedSequence([seed, i]).generate_state(1)[0]))
         yield int(round(times[i] * 1e6)), View(cam, st, r.image), r, scene
 
 
-def run_flight(flight_name: str, seconds: float, rate_hz: float, size, clear: bool = False,
-               ocfg: ObstacleConfig = SERVICE_OBSTACLES, tcfg: TrackerConfig = TrackerConfig(), maps: str = "dense",
-               seed: int = 0):
-    """Feed a flight through locator (or noisy truth), analysis and tracker; returns the per-frame record and the
-    tracker's time per map (measurements + visibility mask + update)."""
+def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0):
+    """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
+    confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene."""
     from eonav.ranging.locate import locate
     from eonav.ranging.rangemap import AT_INFINITY, VALID
+    if maps not in MAP_SOURCES:
+        raise SystemExit(f"unknown map source {maps!r}; expected one of {MAP_SOURCES}")
     policy = PairPolicy()
-    tracker = Tracker(tcfg)
+    runner = None
+    if maps == "fused":
+        from eonav.fusion.sequence import FusionRunner
+        runner = FusionRunner()
     rng = np.random.default_rng(seed)
-    rec = []
-    t_track = []
-    for stamp, view, rnd, scene in frames(flight_name, seconds, rate_hz, size, clear):
+    for k, (stamp, view, rnd, scene) in enumerate(frames(sc, rate_hz, size, seed)):
         cam, st = view.camera, view.state
+        n_fused = None
         if maps == "truth":
             with np.errstate(invalid="ignore"):
                 r = (rnd.range_m * (1.0 + 0.01 * rng.standard_normal(rnd.range_m.shape))).astype(np.float32)
@@ -79,43 +161,89 @@ def run_flight(flight_name: str, seconds: float, rate_hz: float, size, clear: bo
                 std = np.where(np.isfinite(r), 0.01 / r, 0.0).astype(np.float32)
             flags = np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8)
             conf = np.ones(r.shape, np.float32)
-        else:
-            d = policy.offer(PosedFrameInfo("nose", len(rec), stamp, cam, st, view))
+        elif maps == "dense":
+            d = policy.offer(PosedFrameInfo("nose", k, stamp, cam, st, view))
             if not d.ok:
                 continue
             res = locate(d.a.payload, d.b.payload, method="dense")
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
-        ob = analyse(r, cam, st, confidence=conf, flags=flags, inv_range_std_per_m=std, cfg=ocfg)
+        else:
+            from eonav.fusion.sequence import frame
+            out = [m for m in runner.push(frame("nose", view, stamp, seq=k)) if m.frame.seq == k]
+            if not out:
+                continue
+            res = out[0].result
+            r, conf, flags, std, n_fused = (res.range_m, res.confidence, res.flags, res.inv_range_std_per_m,
+                                            np.asarray(out[0].n_fused))
+        ids, counts = np.unique(rnd.object_id, return_counts=True)
+        yield {"stamp_us": stamp, "camera": cam, "state": st, "range_m": r, "confidence": conf, "flags": flags,
+               "inv_range_std_per_m": std, "n_fused": n_fused, "scene": scene,
+               "visible_px": {int(i) - 2: int(c) for i, c in zip(ids, counts) if i >= 2},
+               "truth_range_m": rnd.range_m, "object_id": rnd.object_id}
+
+
+def to_analysis(st: VehicleState, R: np.ndarray) -> VehicleState:
+    """The vehicle state in the analysis frame x' = R x."""
+    return VehicleState(R @ st.position_ned_m, st.T_body_ned @ R.T, st.t_s)
+
+
+def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, tcfg: TrackerConfig = TrackerConfig(),
+               cone: ConeConfig = ConeConfig()):
+    """Analyse and track a stream of ``range_maps``; returns the per-map record (tracks and threat in true NED) and
+    the tracker's time per map (measurements + visibility mask + update)."""
+    R = tilt(sc.slope_deg)
+    tracker = Tracker(tcfg)
+    rec, t_track = [], []
+    for m in stream:
+        cam, st_true = m["camera"], m["state"]
+        st = to_analysis(st_true, R)
+        r, conf, flags, std = m["range_m"], m["confidence"], m["flags"], m["inv_range_std_per_m"]
+        ob = analyse(r, cam, st, confidence=conf, flags=flags, inv_range_std_per_m=std, cfg=ocfg,
+                     **({"n_fused": m["n_fused"]} if m.get("n_fused") is not None else {}))
         t0 = time.perf_counter()
         meas = measurements_from_obstacles(ob.obstacles, cam, st, tcfg, camera_id="nose")
-        mask = confident_mask(r, conf, flags, std, ocfg)
+        mask = confident_mask(r, conf, flags, std, ocfg, m.get("n_fused"))
         fov = FieldOfView(cam, st, ocfg.max_obstacle_distance_m, ocfg.min_distance_m, r, mask | infinity_mask(r, flags))
-        tracker.update(meas, stamp, fov)
+        tracker.update(meas, m["stamp_us"], fov)
         t_track.append(time.perf_counter() - t0)
-        ids, counts = np.unique(rnd.object_id, return_counts=True)
-        visible = {int(i) - 2: int(c) for i, c in zip(ids, counts) if i >= 2}
-        rec.append({"stamp_us": stamp, "state": st, "scene": scene, "visible_px": visible,
-                    "confirmed": [(t.id, t.x[:3].copy()) for t in tracker.confirmed()],
-                    "n_measurements": len(meas)})
+        v_true = velocity_at(sc.flight, st_true.t_s)
+        own = Ownship.from_state(st, R @ v_true, m["stamp_us"])
+        views = assess(tracker.snapshot(m["stamp_us"]), own, m["stamp_us"], cone, tcfg)
+        threat = nearest_threat(views)
+        rec.append({"stamp_us": m["stamp_us"], "state": st_true, "scene": m["scene"], "visible_px": m["visible_px"],
+                    "velocity_ned_mps": v_true,
+                    "confirmed": [(t.id, R.T @ t.x[:3], R.T @ t.x[3:]) for t in tracker.confirmed()],
+                    "surface": {tv.track.id: (tv.surface_distance_m, tv.closing_speed_mps) for tv in views},
+                    "threat": None if threat is None else (threat.track.id, threat.time_to_contact_s),
+                    "n_measurements": len(meas), "n_obstacles": len(ob.obstacles)})
     return rec, t_track
 
 
-def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict:
-    """Confirmation delay and id stability per box, false confirmed tracks (see the module docstring)."""
+def true_ttc(box: Box, pos_ned, vel_ned, radius_m: float) -> float | None:
+    """Entry time of the ray pos + vel t into the (axis-aligned, yaw 0) box grown by ``radius_m``."""
+    c = np.asarray(box.center_ned_m) - np.asarray(pos_ned)
+    return box_entry_time(c, box.half_m + radius_m, np.asarray(vel_ned))
+
+
+def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Scenario | None = None,
+          cone: ConeConfig = ConeConfig()) -> dict:
+    """Confirmation delay and id stability per box, false confirmed tracks, time to contact, velocity (module
+    docstring)."""
     if not rec:
         return {}
-    scene = rec[0]["scene"]
     per_box = defaultdict(lambda: {"first_in_view_us": None, "first_confirmed_us": None, "ids": []})
-    near_box_ids = set()
-    all_ids = set()
+    near_box_ids, all_ids, ground_ids = set(), set(), set()
     for r in rec:
         pos = r["state"].position_ned_m
-        for tid, p in r["confirmed"]:
+        boxes = r["scene"].boxes
+        for tid, p, _ in r["confirmed"]:
             all_ids.add(tid)
-            for b in scene.boxes:
+            if p[2] > -GROUND_TRACK_M:
+                ground_ids.add(tid)
+            for b in boxes:
                 if box_distance(b, p) <= max(2.0, 0.05 * np.linalg.norm(p - pos)):
                     near_box_ids.add(tid)
-        for i, b in enumerate(scene.boxes):
+        for i, b in enumerate(boxes):
             dist = box_distance(b, pos)
             if r["visible_px"].get(i, 0) < ocfg.min_obstacle_pixels or dist > ocfg.max_obstacle_distance_m:
                 continue
@@ -123,7 +251,7 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict
             if s["first_in_view_us"] is None:
                 s["first_in_view_us"] = r["stamp_us"]
             tol = max(2.0, 0.05 * dist)
-            reps = {tid for tid, p in r["confirmed"] if box_distance(b, p) <= tol}
+            reps = {tid for tid, p, _ in r["confirmed"] if box_distance(b, p) <= tol}
             if reps and s["first_confirmed_us"] is None:
                 s["first_confirmed_us"] = r["stamp_us"]
             if s["first_confirmed_us"] is not None:
@@ -138,12 +266,57 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict
                                 else (s["first_confirmed_us"] - s["first_in_view_us"]) * 1e-6),
             "id_stability": main[1] / len(s["ids"]) if s["ids"] else 0.0,
             "ids_used": len(counts),
+            "main_id": main[0],
         }
     minutes = (rec[-1]["stamp_us"] - rec[0]["stamp_us"]) * 1e-6 / 60.0 + 1.0 / rate_hz / 60.0
     false_ids = all_ids - near_box_ids
-    return {"boxes": boxes, "false_confirmed": len(false_ids), "false_per_min": len(false_ids) / minutes,
-            "minutes": minutes, "maps": len(rec), "mean_measurements": float(np.mean([r["n_measurements"]
-                                                                                     for r in rec]))}
+    out = {"boxes": boxes, "false_confirmed": len(false_ids), "false_per_min": len(false_ids) / minutes,
+           "false_ground": len(false_ids & ground_ids), "minutes": minutes, "maps": len(rec),
+           "mean_measurements": float(np.mean([r["n_measurements"] for r in rec])),
+           "mean_obstacles": float(np.mean([r["n_obstacles"] for r in rec]))}
+    if sc is not None and sc.ttc_box:
+        out["ttc"] = score_ttc(rec, sc.ttc_box, boxes.get(sc.ttc_box, {}).get("main_id"), cone)
+    if sc is not None and sc.movers:
+        out["velocity"] = {m.box.name: score_velocity(rec, m, boxes.get(m.box.name, {})) for m in sc.movers}
+    return out
+
+
+def score_ttc(rec, box_name: str, main_id, cone: ConeConfig, horizon_s: float = 3.0) -> dict:
+    """Relative time-to-contact errors over the frames at most ``horizon_s`` from contact (module docstring)."""
+    threat_err, plain_err, missing = [], [], 0
+    for r in rec:
+        box = next(b for b in r["scene"].boxes if b.name == box_name)
+        t_true = true_ttc(box, r["state"].position_ned_m, r["velocity_ned_mps"], cone.vehicle_radius_m)
+        if t_true is None or not 0 < t_true <= horizon_s:
+            continue
+        thr = r["threat"]
+        if thr is None or thr[0] != main_id:
+            missing += 1
+            threat_err.append(math.inf)
+        else:
+            threat_err.append((thr[1] - t_true) / t_true)
+        surf = r["surface"].get(main_id)
+        if surf is not None and surf[1] > 0:
+            plain_err.append((surf[0] - cone.vehicle_radius_m) / surf[1] / t_true - 1.0)
+        else:
+            plain_err.append(math.inf)
+    return {"frames": len(threat_err), "missing": missing, "threat_rel_err": threat_err, "plain_rel_err": plain_err}
+
+
+def score_velocity(rec, mover: Mover, box_score: dict) -> dict:
+    """|v_track - v_true| / |v_true| of the mover's main track, from 1 s after its confirmation."""
+    tid = box_score.get("main_id")
+    v_true = np.asarray(mover.velocity_ned_mps)
+    first = None
+    errs = []
+    for r in rec:
+        for i, p, v in r["confirmed"]:
+            if i != tid:
+                continue
+            first = r["stamp_us"] if first is None else first
+            if r["stamp_us"] - first >= 1_000_000:
+                errs.append(float(np.linalg.norm(v - v_true) / np.linalg.norm(v_true)))
+    return {"frames": len(errs), "rel_err": errs}
 
 
 def _size(s: str):
@@ -151,36 +324,70 @@ def _size(s: str):
     return w, h
 
 
+DEFAULT_SCENARIOS = "approach,approach-clear,turning,turning-clear,climbing,climbing-clear,slope,head-on,moving"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--maps", default="truth,dense,fused", help=f"comma list of {', '.join(MAP_SOURCES)}")
+    p.add_argument("--scenarios", default=DEFAULT_SCENARIOS, help="comma list (module docstring)")
+    p.add_argument("--duration-s", type=float, default=None, metavar="S",
+                   help="length of every scenario (default: its own)")
+    p.add_argument("--rate-hz", type=float, default=15.0, metavar="HZ", help="frame rate")
+    p.add_argument("--size", type=_size, default=(320, 240), help="image size in pixels, WxH")
+    p.add_argument("--seed", type=int, default=0, help="sensor-noise seed")
+    p.add_argument("--slope-deg", type=float, default=5.0, metavar="DEG", help="the slope scenario's ground slope")
+    p.add_argument("--min-fused", type=int, default=SERVICE_OBSTACLES.min_fused,
+                   help="ObstacleConfig.min_fused: fused-map pixels need this many measurements")
+    p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seconds-approach", type=float, default=8.0)
-    p.add_argument("--seconds-clear", type=float, default=30.0)
-    p.add_argument("--rate", type=float, default=15.0, help="frame rate, Hz")
-    p.add_argument("--size", type=_size, default=(320, 240), help="WxH")
-    p.add_argument("--maps", choices=("dense", "truth", "both"), default="both")
+    add_arguments(p)
     args = p.parse_args(argv)
-    sources = ("truth", "dense") if args.maps == "both" else (args.maps,)
-    for maps in sources:
-        for name, secs, clear in (("approach", args.seconds_approach, False), ("approach", args.seconds_clear, True)):
-            if secs > 0:
-                report(name, secs, args.rate, args.size, clear, maps)
+    ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused)
+    print(f"obstacle config: {ocfg}")
+    for maps in [s for s in args.maps.split(",") if s]:
+        for name in [s for s in args.scenarios.split(",") if s]:
+            report(scenario(name, args.duration_s, args.slope_deg), args.rate_hz, args.size, maps, args.seed, ocfg)
     return 0
 
 
-def report(name, secs, rate, size, clear, maps) -> None:
-    """Run one flight and print its figures."""
+def _pct(errs, q):
+    a = np.abs(np.asarray(errs, float))
+    return float(np.percentile(a, q, method="nearest")) if a.size else math.nan
+
+
+def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict:
+    """Run one scenario and print its figures."""
     t0 = time.perf_counter()
-    rec, tt = run_flight(name, secs, rate, size, clear=clear, maps=maps)
-    sc = score(rec, rate)
-    label = f"{name}{' (boxes removed)' if clear else ''}, {maps} maps"
-    print(f"{label}: {sc['maps']} maps over {sc['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
-          f"{sc['mean_measurements']:.1f} measurements a map; tracker p50 {np.median(tt) * 1e3:.2f} ms, "
-          f"max {max(tt) * 1e3:.2f} ms a map ({time.perf_counter() - t0:.0f} s run)")
-    for bname, b in sorted(sc["boxes"].items()):
+    rec, tt = track_maps(range_maps(sc, rate, size, maps, seed), sc, ocfg)
+    s = score(rec, rate, ocfg, sc=sc)
+    label = f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
+    print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
+          f"{s['mean_obstacles']:.1f} obstacles / {s['mean_measurements']:.1f} measurements a map; tracker p50 "
+          f"{np.median(tt) * 1e3:.2f} ms, max {max(tt) * 1e3:.2f} ms a map ({time.perf_counter() - t0:.0f} s run)")
+    for bname, b in sorted(s["boxes"].items()):
         delay = "never" if b["confirm_delay_s"] is None else f"{b['confirm_delay_s']:.2f} s"
         print(f"  {bname:9s} confirmed after {delay:>7s}; id stable in {100 * b['id_stability']:5.1f} % of "
               f"{b['frames_in_view']} frames ({b['ids_used']} id(s))")
-    print(f"  false confirmed tracks: {sc['false_confirmed']} ({sc['false_per_min']:.1f} per minute)", flush=True)
+    print(f"  false confirmed tracks: {s['false_confirmed']} ({s['false_per_min']:.1f} per minute), "
+          f"{s['false_ground']} of them on the ground")
+    if "ttc" in s:
+        t = s["ttc"]
+        within = np.mean(np.abs(t["threat_rel_err"]) <= 0.10) if t["frames"] else math.nan
+        within_p = np.mean(np.abs(t["plain_rel_err"]) <= 0.10) if t["frames"] else math.nan
+        print(f"  time to contact, {t['frames']} frames <= 3 s out: guidance threat within 10 % in "
+              f"{100 * within:.0f} % (|error| median {100 * _pct(t['threat_rel_err'], 50):.1f} %, max "
+              f"{100 * _pct(t['threat_rel_err'], 100):.1f} %, {t['missing']} frames without the wall as the threat); "
+              f"surface distance / closing speed within 10 % in {100 * within_p:.0f} % (median "
+              f"{100 * _pct(t['plain_rel_err'], 50):.1f} %, max {100 * _pct(t['plain_rel_err'], 100):.1f} %)")
+    for name, v in s.get("velocity", {}).items():
+        print(f"  velocity of {name}: {v['frames']} frames from 1 s after confirmation, |error| / speed median "
+              f"{100 * _pct(v['rel_err'], 50):.1f} %, p90 {100 * _pct(v['rel_err'], 90):.1f} %, within 20 % in "
+              f"{100 * np.mean(np.asarray(v['rel_err']) <= 0.2) if v['frames'] else math.nan:.0f} %")
+    print("", flush=True)
+    return s
 
 
 if __name__ == "__main__":

@@ -15,6 +15,9 @@ COMMANDS = {
     "bench": ("eonav.app.commands.bench", "benchmarks that print figures (locate, pipeline)"),
     "run": ("eonav.app.commands.run", "start the whole pipeline (embedded router + all services)"),
     "service": ("eonav.app.commands.service", "start one service in the foreground"),
+    "record": ("eonav.app.commands.record", "record the bus into an MCAP file (raw + Foxglove channels)"),
+    "replay": ("eonav.app.commands.replay", "put the raw channels of MCAP recordings back on the bus"),
+    "acl": ("eonav.app.commands.acl", "access-control files: users, router and session configs (eonav.bus.acl)"),
 }
 
 

@@ -1,19 +1,24 @@
 """``eonav run`` with no source: the newcomer's end-to-end demo on one machine.
 
-Records a simulated flight (``eonav.sim.record``: frames, MAVLink tlog, cameras, ground truth; cached in the system
-temp directory), runs the whole pipeline on it through ``eonav.app.launcher.run_pipeline``, scores what arrives on
-the bus against the truth (:class:`Monitor`, :class:`Truth`, reused by ``tests/test_pipeline_e2e.py``), prints a
-summary (range error, coverage, obstacles against the true nearest box, latency, drops) and writes a picture of the
-last range map beside its truth (``last_range.png`` in the recording's folder unless ``png`` says otherwise).
+Records a simulated flight (``eonav.sim.record``: frames, MAVLink tlog, cameras, ground truth; cached per user under
+``$XDG_CACHE_HOME/eonav/demo`` or ``~/.cache/eonav/demo``, keyed by its parameters), runs the whole pipeline on it
+through ``eonav.app.launcher.run_pipeline``, scores what arrives on the bus against the truth (:class:`Monitor`,
+:class:`Truth`, reused by ``tests/test_pipeline_e2e.py``), prints a summary (range error, coverage, obstacles against
+the true nearest box, latency, drops, and the verdict: ``ok``, ``degraded`` when frames or maps were lost beyond
+:data:`MIN_FRACTION`, ``failed``) and writes the picture of the last range map beside its truth. From the command
+line every run gets its own folder, ``eonav-demo-<date>-<time>`` in the working directory (or ``--out DIR``), with
+the picture (``range.png``), the summary (``summary.json``) and the services' logs (``logs/``).
 
-Both replays get the same ``--replay-shift-us`` (now + a start-up lead - the recording's first stamp), so camera
-and navigation stay aligned to the microsecond and the services' latency figures (now - stamp) are real.
+The replays start once the sync, locator and obstacle services are alive, and both get the same
+``--replay-shift-us`` (then + a start-up lead - the recording's first stamp), so no frame is lost to a service still
+starting, camera and navigation stay aligned to the microsecond and the latency figures (now - stamp) are real.
 """
 from __future__ import annotations
 
 import json
 import logging
 import math
+import os
 import shutil
 import sys
 import tempfile
@@ -23,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eonav.app.sources import DEFAULT_START_IN_S
 from eonav.geometry.camera import on_grid
 
 log = logging.getLogger("eonav.app.demo")
@@ -34,6 +40,33 @@ DEFAULT_SIZE = 256
 # Navigation runs before the camera, as on a vehicle: the MAVLink ingest needs 2 s of autopilot time to lock its
 # clock-offset estimate before it publishes, so the recording starts the frames 3 s into the flight.
 NAV_LEAD_S = 3.0
+# The verdict: a run is "degraded" when fewer than this fraction of the recorded frames reached the bus, or of the
+# frames that can have a range map (all but the first: it has no earlier frame to pair with) got one.
+MIN_FRACTION = 0.8
+PICTURE_BOXES = 6             # the picture boxes the nearest obstacles of the list (all of them clutter it)
+
+
+def default_cache_dir() -> Path:
+    """This user's cache of demo recordings: ``$XDG_CACHE_HOME/eonav/demo``, else ``~/.cache/eonav/demo``."""
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    base = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".cache"
+    return base / "eonav" / "demo"
+
+
+def new_run_dir(out_dir=None) -> Path:
+    """A fresh folder for one demo run, ``eonav-demo-<YYYYmmdd-HHMMSS>[-N]`` in ``out_dir`` (default: the working
+    directory); never one another run uses."""
+    base = Path(out_dir) if out_dir else Path.cwd()
+    base.mkdir(parents=True, exist_ok=True)
+    stem = "eonav-demo-" + time.strftime("%Y%m%d-%H%M%S")
+    for n in range(1, 1000):
+        d = base / (stem if n == 1 else f"{stem}-{n}")
+        try:
+            d.mkdir()
+            return d
+        except FileExistsError:
+            continue
+    raise RuntimeError(f"no free run folder {stem}-N in {base}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -41,9 +74,10 @@ NAV_LEAD_S = 3.0
 
 def recording(flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, rate_hz: float = DEFAULT_RATE_HZ,
               size: int = DEFAULT_SIZE, seed: int = 0, cache_dir=None) -> Path:
-    """A recorded simulated flight, rendered once and cached (keyed by its parameters)."""
+    """A recorded simulated flight, rendered once and cached (keyed by its parameters) in ``cache_dir`` (default:
+    :func:`default_cache_dir`, this user's)."""
     from eonav.sim.record import record_flight
-    base = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / "eonav-demo"
+    base = Path(cache_dir) if cache_dir else default_cache_dir()
     out = base / f"{flight}_n{n_frames}_r{rate_hz:g}_{size}px_s{seed}_lead{NAV_LEAD_S:g}"
     if (out / "manifest.json").is_file():
         return out
@@ -69,13 +103,18 @@ class Truth:
         self.dir = Path(rec_dir)
         self.manifest = json.loads((self.dir / "manifest.json").read_text())
         z = np.load(self.dir / "truth.npz")
-        self.stamp_us = z["stamp_us"].astype(np.int64) + int(shift_us)
+        self.recorded_stamp_us = z["stamp_us"].astype(np.int64)
+        self.stamp_us = self.recorded_stamp_us + int(shift_us)
         self.range_m = z["range_m"]
         self.object_id = z["object_id"]
         self.position_ned_m = z["position_ned_m"]
         self.scene = flight(self.manifest["flight"]).scene
         self.box_ids = {FIRST_BOX_ID + i: b for i, b in enumerate(self.scene.boxes)}
         self.camera_id = self.manifest["camera_id"]
+
+    def set_shift(self, shift_us: int) -> None:
+        """The replay shift, once it is known (it is computed when the replays start)."""
+        self.stamp_us = self.recorded_stamp_us + int(shift_us)
 
     def index(self, stamp_us: int) -> int | None:
         i = int(np.argmin(np.abs(self.stamp_us - int(stamp_us))))
@@ -115,8 +154,10 @@ class Monitor:
 
     Use as a context manager around the pipeline run: ``with Monitor(endpoint, vehicle, truth) as m: ...``."""
 
-    def __init__(self, endpoint: str, vehicle: str, truth: Truth, bearing_tol_deg: float = 3.0):
+    def __init__(self, endpoint: str, vehicle: str, truth: Truth, bearing_tol_deg: float = 3.0,
+                 zenoh_config: str | None = None):
         self.endpoint, self.vehicle, self.truth, self.bearing_tol_deg = endpoint, vehicle, truth, bearing_tol_deg
+        self.zenoh_config = zenoh_config              # a session config (the operator's credentials under ACL)
         self.lock = threading.Lock()
         self.frame_rx: dict[int, float] = {}          # stamp_us -> monotonic receive time
         self.range_rx: dict[int, float] = {}
@@ -125,7 +166,9 @@ class Monitor:
         self.obst_scores: list[dict] = []
         self.health: dict[str, dict] = {}
         self.health_states: dict[str, set] = {}      # every state each service reported
+        self.health_log: list[tuple] = []            # (monotonic receive time, service, state, detail)
         self.last_range = None
+        self.obstacles_at: dict[int, list] = {}      # stamp_us -> obstacles of the latest lists
         self.bad_messages = 0
         self._session = None
         self._subs, self._threads = [], []
@@ -134,7 +177,7 @@ class Monitor:
         import zenoh
         from eonav.bus.session import client_session
         from eonav.bus import keys as K
-        self._session = client_session(self.endpoint)
+        self._session = client_session(self.endpoint, self.zenoh_config)
         s = self._session
         for key, handler, fn in ((K.frames_all(self.vehicle), zenoh.handlers.FifoChannel(256), self._on_frame),
                                  (K.range_maps_all(self.vehicle), zenoh.handlers.FifoChannel(64), self._on_range),
@@ -216,6 +259,9 @@ class Monitor:
         with self.lock:
             self.obst_rx.setdefault(st, t)
             self.obst_scores.append(score)
+            self.obstacles_at[st] = m["obstacles"]
+            while len(self.obstacles_at) > 8:
+                self.obstacles_at.pop(next(iter(self.obstacles_at)))
 
     def _on_health(self, sample, t):
         from eonav.bus import schema
@@ -223,6 +269,7 @@ class Monitor:
         with self.lock:
             self.health[m["service"]] = m
             self.health_states.setdefault(m["service"], set()).add(m["state"])
+            self.health_log.append((t, m["service"], m["state"], m["detail"]))
 
     # ---- results ------------------------------------------------------------------------------
     def counts(self) -> dict:
@@ -236,6 +283,10 @@ class Monitor:
             lat_r = [self.range_rx[s] - self.frame_rx[s] for s in self.range_rx if s in self.frame_rx]
             lat_o = [self.obst_rx[s] - self.frame_rx[s] for s in self.obst_rx if s in self.frame_rx]
             n_frames = len(self.frame_rx)
+            last_frame = max(self.frame_rx.values(), default=math.inf)
+            # a service may report a silent input once the replay has ended, never while frames still come
+            not_ok_fed = sorted({f"{svc} {state}: {detail}" for t, svc, state, detail in self.health_log
+                                 if state != "ok" and t <= last_frame})
         errs = [s["median_rel_error"] for s in rs if np.isfinite(s.get("median_rel_error", math.nan))]
         cov = [s["coverage"] for s in rs if "coverage" in s]
         with_truth = [s for s in os_ if "truth_box" in s]
@@ -265,6 +316,7 @@ class Monitor:
                       "sync_dropped": {k.split(".", 1)[1]: v for k, v in sync.items() if k.startswith("dropped.")}},
             "health": {k: v["state"] for k, v in h.items()},
             "health_states_seen": {k: sorted(v) for k, v in self.health_states.items()},
+            "health_not_ok_while_fed": not_ok_fed,
             "bad_messages": self.bad_messages,
         }
 
@@ -274,24 +326,50 @@ def _yaw_deg(q_wxyz) -> float:
     return math.degrees(ypr_from_T_body_ned(T_body_ned_from_quat(q_wxyz))[0])
 
 
-def range_picture(msg: dict, truth_range=None, max_range_m: float = 150.0) -> np.ndarray:
-    """BGR picture: estimated range (VALID pixels; black = no estimate) and the truth beside it, one fixed
-    colour scale from 5 m (red) to ``max_range_m`` (blue)."""
-    import cv2
+def range_picture(msg: dict, truth_range=None, obstacles=(), near_m: float = 5.0,
+                  max_range_m: float = 150.0, max_boxes: int = PICTURE_BOXES) -> np.ndarray:
+    """BGR picture of range map message ``msg``: the estimate (VALID pixels; black = no estimate) and the truth beside
+    it on one colour scale from ``near_m`` (red) to ``max_range_m`` (blue), a colour bar in metres, and the
+    ``max_boxes`` nearest ``obstacles`` (an obstacle list's, ``bbox_px`` in frame pixels) boxed with their distance
+    (``eonav.io.viz.estimate_truth_picture``)."""
     from eonav.ranging.rangemap import VALID
-    from eonav.app.viz import inverse_range_colours
+    from eonav.io.viz import estimate_truth_picture
 
     r = np.asarray(msg["range_m"], np.float32)
     valid = np.isfinite(r) & (r > 0) & (r < max_range_m)
     if msg.get("flags") is not None:
         valid &= (msg["flags"] & VALID) != 0
-    tiles = [inverse_range_colours(r, valid, 5.0, max_range_m)]
-    if truth_range is not None:
-        g = np.asarray(truth_range, np.float32)
-        tiles.append(inverse_range_colours(g, np.isfinite(g) & (g < max_range_m), 5.0, max_range_m))
-    pic = np.concatenate([np.pad(t, ((0, 0), (0, 4), (0, 0))) for t in tiles], axis=1)
-    scale = max(1, 512 // pic.shape[0])
-    return cv2.resize(pic, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    fw, fh = int(msg.get("frame_width") or 0), int(msg.get("frame_height") or 0)
+    frame_size = (fw, fh) if fw > 0 and fh > 0 else None
+    nearest = sorted(obstacles, key=lambda o: float(o["distance_m"]))[:max_boxes]
+    pic, _ = estimate_truth_picture(r, valid, truth_range, obstacles=nearest, frame_size=frame_size,
+                                    near_m=near_m, far_m=max_range_m)
+    return pic
+
+
+def verdict(frames_recorded: int, frames_seen: int, range_maps: int) -> tuple[str, list[str]]:
+    """``("ok", [])``, or ``("degraded", reasons)`` when fewer than :data:`MIN_FRACTION` of the recorded frames were
+    seen on the bus or of the frames that can have a range map (all but the first) got one."""
+    reasons = []
+    if frames_seen < MIN_FRACTION * frames_recorded:
+        reasons.append(f"{frames_seen}/{frames_recorded} frames seen (fewer than {MIN_FRACTION:.0%})")
+    rangeable = max(frames_recorded - 1, 1)
+    if range_maps < MIN_FRACTION * rangeable:
+        reasons.append(f"{range_maps} range maps for {rangeable} frames that can have one "
+                       f"(fewer than {MIN_FRACTION:.0%})")
+    return ("degraded" if reasons else "ok"), reasons
+
+
+def outcome(summary: dict, pipeline_exit: int | None, stop_reason: str) -> dict:
+    """``verdict`` (``ok`` / ``degraded`` / ``failed``: the pipeline exited non-zero, ranged nothing, timed out or
+    was interrupted), ``verdict_reasons`` and ``exit_code`` (0 only for ``ok``) of a run's summary."""
+    state, reasons = verdict(summary["frames_recorded"], summary["frames_seen"], summary["range_maps"])
+    if (pipeline_exit != 0 or summary["range_maps"] == 0 or stop_reason == "interrupted"
+            or stop_reason.startswith("timeout")):
+        state = "failed"
+        reasons = [f"pipeline exit {pipeline_exit}, {summary['range_maps']} range maps, stopped: {stop_reason}"
+                   ] + reasons
+    return {"verdict": state, "verdict_reasons": reasons, "exit_code": 0 if state == "ok" else 1}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -315,19 +393,25 @@ def replay_shift_us(rec_dir, start_in_s: float = 4.0) -> int:
 
 def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: int = 1,
                   mavlink_out: str | None = None) -> dict:
-    """The demo pipeline: replays of the recording (both shifted by ``shift_us``) + sync, locator, obstacles."""
+    """The demo pipeline: replays of the recording (both shifted by ``shift_us``) + sync, locator, obstacles.
+    ``shift_us`` = ``"{replay_shift_us}"`` (a substitution of ``run_pipeline``): the replays start once the other
+    services are alive, with the shift computed then."""
     rec = Path(rec_dir).resolve()
     man = json.loads((rec / "manifest.json").read_text())
-    shift_us = str(int(shift_us))
-    obst = ["--ground-down", "0",                       # local NED origin at the take-off (ground) level
-            "--max-obstacle-distance", "150"]
+    staged = isinstance(shift_us, str) and shift_us.startswith("{")
+    shift_us = shift_us if staged else str(int(shift_us))
+    after = {"after": ["sync", "locator", "obstacles"]} if staged else {}
+    obst = ["--ground-down-m", "0",                     # local NED origin at the take-off (ground) level
+            "--max-obstacle-distance-m", "150"]
     if mavlink_out:
         obst += ["--mavlink-out", mavlink_out]
+    # the replays are restarted like any service: with the shared shift a restarted replay resumes at the record
+    # the clock says is due, so nothing older than that reaches the pipeline (docs/bus.md, Staleness)
     return {"services": [
-        {"name": "camera", "module": "camera_ingest", "restart": False,
+        {"name": "camera", "module": "camera_ingest", **after,
          "args": ["--source", str(rec / man["frames"]), "--camera-id", man["camera_id"],
                   "--replay-shift-us", shift_us]},
-        {"name": "mavlink", "module": "mavlink_ingest", "restart": False,
+        {"name": "mavlink", "module": "mavlink_ingest", **after,
          # --origin: the recording's local NED origin (take-off point on the ground), not the first GPS fix, so that
          # positions match the truth and the ground is at down = 0
          "args": ["--source", str(rec / man["tlog"]), "--replay-shift-us", shift_us,
@@ -341,16 +425,18 @@ def pipeline_spec(rec_dir, shift_us: int, *, method: str = "dense", cv_threads: 
 def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, rate_hz: float = DEFAULT_RATE_HZ,
              size: int = DEFAULT_SIZE, seed: int = 0, cache_dir=None, png=None, vehicle: str = "demo",
              method: str = "dense", mavlink_out: str | None = None, timeout_s: float = 180.0,
-             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None) -> dict:
-    """Record (cached), run the pipeline, score it; returns the summary dict (``summary["exit_code"]``)."""
+             drain_s: float = 3.0, quiet: bool = False, log_dir=None, stream=None, record=None,
+             acl_dir=None) -> dict:
+    """Record (cached), run the pipeline, score it; returns the summary dict (``summary["exit_code"]``).
+    ``acl_dir``: under access control (``run_pipeline``); the monitor connects as the operator."""
     from eonav.app.processes import free_port
     from eonav.app.launcher import run_pipeline
     stream = stream or sys.stdout
     rec = recording(flight, n_frames, rate_hz, size, seed, cache_dir)
     if method == "dense":
-        # the locator compiles its numba kernels (or loads them from numba's cache, ~2 s) before it subscribes: on a
-        # fresh install ~15-25 s, far past the replay's start-up lead, and it ranged no frame. Compiled here first (the
-        # cache is shared), the locator only loads them.
+        # the locator compiles its numba kernels (or loads them from numba's cache, ~2 s) before it subscribes, and
+        # the replays wait for it: on a fresh install ~15-25 s. Compiled here first (the cache is shared) with a word
+        # to the newcomer, the locator only loads them.
         from eonav.ranging.methods.dense import prepare_kernels
         t = time.monotonic()
         if not quiet:
@@ -359,8 +445,13 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         prepare_kernels()
         if not quiet:
             print(f"eonav demo: kernels ready in {time.monotonic() - t:.1f} s", file=stream, flush=True)
-    shift_us = replay_shift_us(rec)
-    truth = Truth(rec, shift_us)
+    truth = Truth(rec)
+    shift = {}
+
+    def shift_now() -> int:            # called when the replays start (the other services alive)
+        shift["us"] = replay_shift_us(rec, start_in_s=DEFAULT_START_IN_S)
+        truth.set_shift(shift["us"])
+        return shift["us"]
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     stop = threading.Event()
@@ -371,9 +462,10 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         status.update(st)
 
     def pipeline():
-        result["code"] = run_pipeline(pipeline_spec(rec, shift_us, method=method, mavlink_out=mavlink_out), vehicle=vehicle,
-                                      port=port, on_status=on_status, stop_event=stop, quiet=quiet,
-                                      log_dir=log_dir)
+        spec = pipeline_spec(rec, "{replay_shift_us}", method=method, mavlink_out=mavlink_out)
+        result["code"] = run_pipeline(spec, vehicle=vehicle, port=port, on_status=on_status, stop_event=stop,
+                                      quiet=quiet, log_dir=log_dir, record=record, acl_dir=acl_dir,
+                                      substitutions={"replay_shift_us": shift_now})
 
     th = threading.Thread(target=pipeline, name="pipeline")
     th.start()
@@ -381,7 +473,11 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
     reason = ""
     try:
         _wait_port(port, th, timeout_s=30.0)
-        with Monitor(endpoint, vehicle, truth) as mon:
+        monitor_config = None
+        if acl_dir:
+            from eonav.bus.acl import OPERATOR_USER, session_file
+            monitor_config = str(session_file(acl_dir, OPERATOR_USER))
+        with Monitor(endpoint, vehicle, truth, zenoh_config=monitor_config) as mon:
             last_n, last_change = -1, time.monotonic()
             while th.is_alive():
                 time.sleep(0.2)
@@ -405,6 +501,8 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
             th.join(60.0)
             summary = mon.summary()
             last = mon.last_range
+            with mon.lock:
+                boxes = mon.obstacles_at.get(int(last[0]["stamp_us"]), []) if last is not None else []
     except KeyboardInterrupt:
         reason = "interrupted"
         stop.set()
@@ -414,19 +512,17 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         stop.set()
         th.join(60.0)
     summary.update(recording=str(rec), stop_reason=reason, pipeline_exit=result["code"],
+                   replay_shift_us=shift.get("us"),
                    exit_codes={k: v.get("exit_code") for k, v in status.items()},
                    service_states={k: v.get("state") for k, v in status.items()})
-    if last is not None:
+    if last is not None and png is not None:
         import cv2
         m, i = last
-        path = Path(png) if png else rec / "last_range.png"
         pic = range_picture(m, on_grid(truth.range_m[i], m["range_m"].shape[1], m["range_m"].shape[0])
-                            .astype(np.float32) if i is not None else None)
-        cv2.imwrite(str(path), pic)
-        summary["png"] = str(path)
-    ok = (result["code"] == 0 and summary["range_maps"] > 0 and reason != "interrupted"
-          and not reason.startswith("timeout"))
-    summary["exit_code"] = 0 if ok else 1
+                            .astype(np.float32) if i is not None else None, obstacles=boxes)
+        cv2.imwrite(str(png), pic)
+        summary.update(png=str(png), png_obstacles=min(len(boxes), PICTURE_BOXES), obstacles_in_list=len(boxes))
+    summary.update(outcome(summary, result["code"], reason))
     return summary
 
 
@@ -463,7 +559,14 @@ def format_summary(s: dict) -> str:
         f"  stopped              {s['stop_reason']}",
     ]
     if "png" in s:
-        lines.append(f"  range picture        {s['png']} (left: estimate, right: truth; near = red, black = none)")
+        lines.append(f"  range picture        {s['png']} (left: estimate, right: truth, colour bar in metres; "
+                     f"the {s.get('png_obstacles', 0)} nearest of the map's {s.get('obstacles_in_list', 0)} obstacles "
+                     f"boxed with their distance from the vehicle origin, the colours range from the camera; "
+                     f"black = no estimate)")
+    if "verdict" in s:
+        why = f": {'; '.join(s['verdict_reasons'])}" if s["verdict_reasons"] else (
+            f" (at least {MIN_FRACTION:.0%} of the frames seen and ranged)")
+        lines.append(f"  verdict              {s['verdict']}{why}")
     return "\n".join(lines)
 
 
@@ -476,24 +579,33 @@ def add_arguments(p) -> None:
     p.add_argument("--fps", type=float, default=DEFAULT_RATE_HZ, help="frame rate of the recording")
     p.add_argument("--size", type=int, default=DEFAULT_SIZE, help="square image size in pixels")
     p.add_argument("--method", default="dense", help="locator method")
-    p.add_argument("--png", default=None, help="where to write the range picture (default: in the recording)")
-    p.add_argument("--cache-dir", default=None, help="recording cache (default: <tmp>/eonav-demo)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="where this run's folder eonav-demo-<date>-<time> goes (default: the working directory)")
+    p.add_argument("--png", default=None, help="where to write the range picture (default: range.png in the run folder)")
+    p.add_argument("--cache-dir", default=None,
+                   help="recording cache (default: $XDG_CACHE_HOME/eonav/demo or ~/.cache/eonav/demo)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON too")
 
 
 def run(args) -> int:
+    run_dir = new_run_dir(getattr(args, "out", None))
     log_dir = getattr(args, "log_dir", None)
     if log_dir is None and not getattr(args, "verbose", 0):
         # A newcomer sees the status line and the summary; each service's log goes to a file.
-        log_dir = str(Path(getattr(args, "cache_dir", None) or Path(tempfile.gettempdir()) / "eonav-demo") / "logs")
-        print(f"eonav demo: simulated flight -> camera, MAVLink, sync, locator, obstacle services over an embedded "
-              f"zenoh router; service logs in {log_dir} (-v to see them here)", flush=True)
+        log_dir = str(run_dir / "logs")
+    print(f"eonav demo: simulated flight -> camera, MAVLink, sync, locator, obstacle services over an embedded "
+          f"zenoh router; this run's picture, summary{' and service logs' if log_dir else ''} in {run_dir}"
+          f"{' (-v to see the logs here)' if log_dir else ''}", flush=True)
     s = run_demo(flight=getattr(args, "flight", DEFAULT_FLIGHT), n_frames=getattr(args, "frames", DEFAULT_FRAMES),
                  rate_hz=getattr(args, "fps", DEFAULT_RATE_HZ), size=getattr(args, "size", DEFAULT_SIZE),
-                 method=getattr(args, "method", "dense"), png=getattr(args, "png", None),
+                 method=getattr(args, "method", "dense"), png=getattr(args, "png", None) or run_dir / "range.png",
                  cache_dir=getattr(args, "cache_dir", None), vehicle=getattr(args, "vehicle", "demo") or "demo",
-                 quiet=getattr(args, "quiet", False), log_dir=log_dir)
+                 quiet=getattr(args, "quiet", False), log_dir=log_dir, record=getattr(args, "record", None),
+                 acl_dir=getattr(args, "acl_dir", None))
+    s["run_dir"] = str(run_dir)
+    (run_dir / "summary.json").write_text(json.dumps(s, indent=2, default=str))
     print(format_summary(s))
+    print(f"  summary              {run_dir / 'summary.json'}")
     if getattr(args, "json", False):
         print(json.dumps(s, default=str))
     return s["exit_code"]

@@ -34,7 +34,9 @@ BACKOFF_INITIAL_S = 0.5
 BACKOFF_MAX_S = 10.0
 STABLE_RESET_S = 30.0
 DEFAULT_MAX_RESTARTS = 5
+AFTER_TIMEOUT_S = 90.0           # a service with "after" starts anyway once its dependencies took this long
 EXIT_CONFIG = 2
+STATUS_DETAIL_CHARS = 40
 
 # The default pipeline. Services whose modules do not exist yet are reported as missing.
 DEFAULT_SERVICES = [
@@ -57,6 +59,7 @@ class ServiceSpec:
     restart: bool = True
     max_restarts: int = DEFAULT_MAX_RESTARTS
     enabled: bool = True
+    after: list = field(default_factory=list)
 
 
 def _module_path(m: str) -> str:
@@ -82,7 +85,7 @@ def parse_spec(spec, spec_dir: str | None = None) -> list[ServiceSpec]:
     for i, it in enumerate(items):
         if not isinstance(it, dict) or "name" not in it:
             raise InputError(f"pipeline spec services[{i}]: expected an object with at least a name")
-        unknown = set(it) - {"name", "module", "args", "env", "restart", "max_restarts", "enabled"}
+        unknown = set(it) - {"name", "module", "args", "env", "restart", "max_restarts", "enabled", "after"}
         if unknown:
             raise InputError(f"pipeline spec services[{i}] ({it['name']}): unknown key(s) {sorted(unknown)}")
         name = check_chunk(str(it["name"]), f"pipeline spec services[{i}].name")
@@ -98,30 +101,60 @@ def parse_spec(spec, spec_dir: str | None = None) -> list[ServiceSpec]:
         mr = it.get("max_restarts", DEFAULT_MAX_RESTARTS)
         if not isinstance(mr, int) or mr < 0:
             raise InputError(f"pipeline spec {name}.max_restarts: expected an integer >= 0")
+        after = it.get("after", [])
+        if not isinstance(after, list) or not all(isinstance(a, str) for a in after):
+            raise InputError(f"pipeline spec {name}.after: expected a list of service names")
         out.append(ServiceSpec(name=name, module=_module_path(str(it.get("module", name))),
                                args=[str(a) for a in args], env={str(k): str(v) for k, v in env.items()},
                                restart=bool(it.get("restart", True)), max_restarts=mr,
-                               enabled=bool(it.get("enabled", True))))
+                               enabled=bool(it.get("enabled", True)), after=list(after)))
+    names = {s.name for s in out}
+    for s in out:
+        bad = [a for a in s.after if a not in names or a == s.name]
+        if bad:
+            raise InputError(f"pipeline spec {s.name}.after: {bad} not other services of the pipeline "
+                             f"({', '.join(sorted(names))})")
     if spec_dir is not None:
         for s in out:
             s.env.setdefault("EONAV_SPEC_DIR", spec_dir)
     return out
 
 
-def default_spec(cameras=(), mavlink: str | None = None) -> dict:
+def default_spec(cameras=(), mavlink: str | None = None, cameras_file: str | None = None,
+                 replay_shift_us: int | None = None) -> dict:
     """The default pipeline: camera ingest per ``[ID=]SOURCE`` in ``cameras``, MAVLink ingest (with
-    ``--source`` when given), sync, locator, obstacles."""
+    ``--source`` when given), sync, locator, obstacles. ``cameras_file`` goes to the sync and to every camera
+    ingest (``--cameras``); ``replay_shift_us`` (a number or ``"{replay_shift_us}"``, substituted when the replays
+    start) to every replay: camera ingests and MAVLink ingest then start after the other services are alive (and,
+    restarted, resume where the clock says they are: docs/bus.md, "Staleness")."""
+    replay = [] if replay_shift_us is None else ["--replay-shift-us", str(replay_shift_us)]
+    cams = [] if cameras_file is None else ["--cameras", str(cameras_file)]
     services = []
-    for i, c in enumerate(cameras):
-        cid, _, src = c.partition("=") if "=" in c and "://" not in c.split("=", 1)[0] else (f"cam{i}", "", c)
+    for cid, src in camera_sources(cameras):
         services.append({"name": f"camera_{cid}", "module": "camera_ingest",
-                         "args": ["--source", src, "--camera-id", cid]})
+                         "args": ["--source", src, "--camera-id", cid, *cams, *replay]})
     for s in DEFAULT_SERVICES:
         s = dict(s)
         if s["name"] == "mavlink" and mavlink:
-            s["args"] = ["--source", mavlink]
+            s["args"] = ["--source", mavlink, *replay]
+        if s["name"] == "sync" and cams:
+            s["args"] = list(cams)
         services.append(s)
+    if replay:
+        consumers = [s["name"] for s in services if "--replay-shift-us" not in s.get("args", [])]
+        for s in services:
+            if "--replay-shift-us" in s.get("args", []):
+                s["after"] = consumers
     return {"services": services}
+
+
+def camera_sources(cameras) -> list[tuple[str, str]]:
+    """``[ID=]SOURCE`` strings -> (camera id, source); without an id the i-th camera is ``cam<i>``."""
+    out = []
+    for i, c in enumerate(cameras):
+        cid, _, src = c.partition("=") if "=" in c and "://" not in c.split("=", 1)[0] else (f"cam{i}", "", c)
+        out.append((cid, src))
+    return out
 
 
 def module_exists(module: str) -> bool:
@@ -137,7 +170,7 @@ def module_exists(module: str) -> bool:
 @dataclass
 class Proc:
     spec: ServiceSpec
-    state: str = "pending"         # pending missing starting running restarting done failed config_error stopped disabled
+    state: str = "pending"     # pending waiting missing running restarting done failed config_error stopped disabled
     popen: subprocess.Popen | None = None
     restarts: int = 0
     started_mono: float = 0.0
@@ -152,9 +185,17 @@ class Proc:
         return self.spec.name
 
 
+SETTLED = ("done", "failed", "config_error", "missing", "disabled", "stopped")
+
+
 def _subst(s: str, ctx: dict) -> str:
-    for k, v in ctx.items():
-        s = s.replace("{" + k + "}", str(v))
+    """``{name}`` -> ``ctx[name]``; a callable value is called at its first use and its result kept."""
+    for k, v in list(ctx.items()):
+        key = "{" + k + "}"
+        if key in s:
+            if callable(v):
+                v = ctx[k] = v()
+            s = s.replace(key, str(v))
     return s
 
 
@@ -162,16 +203,20 @@ class Supervisor:
     """Starts, watches, restarts and stops the router and service processes."""
 
     def __init__(self, services: list[ServiceSpec], *, vehicle: str, router: str, ctx: dict,
-                 grace_s: float = 5.0, log_dir: str | None = None, extra_env: dict | None = None):
+                 grace_s: float = 5.0, log_dir: str | None = None, extra_env: dict | None = None,
+                 zenoh_configs: dict | None = None):
         self.vehicle, self.router, self.ctx, self.grace_s = vehicle, router, ctx, grace_s
+        self.zenoh_configs = zenoh_configs or {}      # service name -> session config (its credentials)
         self.procs = [Proc(s) for s in services]
         self.log_dir = log_dir
         self.extra_env = extra_env or {}
         self._lock = threading.Lock()
 
     def argv(self, sp: ServiceSpec) -> list[str]:
+        zc = self.zenoh_configs.get(sp.name)
         return [sys.executable, "-m", sp.module, "--name", sp.name, "--vehicle", self.vehicle,
-                "--connect", self.router, *[_subst(a, self.ctx) for a in sp.args]]
+                "--connect", self.router, *(["--zenoh-config", str(zc)] if zc else []),
+                *[_subst(a, self.ctx) for a in sp.args]]
 
     def check_modules(self) -> None:
         for p in self.procs:
@@ -187,6 +232,7 @@ class Supervisor:
         env.update({k: _subst(v, self.ctx) for k, v in p.spec.env.items()})
         env.setdefault("PYTHONUNBUFFERED", "1")
         env["EONAV_SUPERVISOR_PID"] = str(os.getpid())
+        env["EONAV_RESTART_COUNT"] = str(p.restarts)       # a replay resumes, or ends, rather than start over
         stdout = stderr = None
         if self.log_dir:
             f = open(Path(self.log_dir) / f"{p.name}.log", "ab")
@@ -209,8 +255,29 @@ class Supervisor:
         log.info("service %s started (pid %d)", p.name, p.popen.pid)
 
     def start_all(self) -> None:
+        """Start every pending service; one with ``after`` waits (state "waiting") for :meth:`start_waiting`."""
         for p in self.procs:
             if p.state == "pending":
+                if p.spec.after:
+                    p.state, p.next_start_mono = "waiting", time.monotonic() + AFTER_TIMEOUT_S
+                else:
+                    self.start(p)
+
+    def start_waiting(self, now: float | None = None) -> None:
+        """Start each waiting service whose ``after`` services are all alive (their liveliness token: subscribed and
+        running) or ended, or that has waited :data:`AFTER_TIMEOUT_S`."""
+        now = time.monotonic() if now is None else now
+        by = {p.name: p for p in self.procs}
+        for p in self.procs:
+            if p.state != "waiting":
+                continue
+            deps = [by[a] for a in p.spec.after]
+            late = [d.name for d in deps if not (d.alive or d.state in SETTLED)]
+            if not late:
+                self.start(p)
+            elif now >= p.next_start_mono:
+                log.warning("service %s: %s not alive after %.0f s; starting anyway", p.name, ", ".join(late),
+                            AFTER_TIMEOUT_S)
                 self.start(p)
 
     def poll(self, now: float | None = None) -> list[Proc]:
@@ -248,12 +315,12 @@ class Supervisor:
         return exited
 
     def active(self) -> bool:
-        return any(p.state in ("running", "restarting", "pending") for p in self.procs)
+        return any(p.state in ("running", "restarting", "pending", "waiting") for p in self.procs)
 
     def stop_all(self) -> None:
         running = [p for p in self.procs if p.popen is not None and p.popen.poll() is None]
         for p in self.procs:
-            if p.state == "restarting":
+            if p.state in ("restarting", "waiting"):
                 p.state = "stopped"
         stop_processes([p.popen for p in running], self.grace_s)
         for p in running:
@@ -268,8 +335,8 @@ class Supervisor:
 class HealthMonitor:
     """A client session on the router: latest health message and liveliness per service."""
 
-    def __init__(self, vehicle: str, router: str, procs: list[Proc]):
-        self.vehicle, self.router = vehicle, router
+    def __init__(self, vehicle: str, router: str, procs: list[Proc], zenoh_config: str | None = None):
+        self.vehicle, self.router, self.zenoh_config = vehicle, router, zenoh_config
         self.procs = procs
         self.by_name = {p.name: p for p in procs}
         self._lock = threading.Lock()
@@ -281,7 +348,8 @@ class HealthMonitor:
         import zenoh
         from eonav.bus import keys as K
         from eonav.bus.session import build_config
-        args = argparse.Namespace(mode="client", connect=self.router, listen=None, zenoh_config=None, multicast=False)
+        args = argparse.Namespace(mode="client", connect=self.router, listen=None,
+                                  zenoh_config=str(self.zenoh_config) if self.zenoh_config else None, multicast=False)
         self.session = zenoh.open(build_config(args))
         hs = self.session.declare_subscriber(K.health_all(self.vehicle), zenoh.handlers.FifoChannel(256))
         al = self.session.liveliness().declare_subscriber(K.alive_all(self.vehicle), zenoh.handlers.FifoChannel(256),
@@ -341,6 +409,8 @@ def _fmt_service(p: Proc, now: float) -> str:
         r = f" r{p.restarts}" if p.restarts else ""
         return f"{p.name} {p.state if p.state != 'running' else 'starting'}{extra}{r}"
     state = h["state"] if now - p.health_mono < 5.0 else "stale"
+    if state in ("degraded", "error") and h.get("detail"):
+        state += f"({h['detail'].split(';')[0][:STATUS_DETAIL_CHARS]})"      # e.g. degraded(no frames for 1.2 s ...)
     parts = [p.name, state]
     rates = h.get("rates_hz") or {}
     if rates:
@@ -406,11 +476,27 @@ class StatusPrinter:
 # --------------------------------------------------------------------------------------------------
 # the pipeline function
 
+def secure_sessions(acl_dir, services: list[ServiceSpec], write: bool) -> tuple[dict, Path]:
+    """Credentials of a pipeline under access control: (service name -> session config, the operator's config
+    for the status monitor). ``write``: (re)write ``acl_dir`` for these services first (``eonav.bus.acl``)."""
+    from eonav.bus import acl
+    if write:
+        acl.write_acl_dir(acl_dir, {s.name: s.module for s in services if s.enabled})
+    configs = {s.name: acl.session_file(acl_dir, s.name) for s in services if s.enabled}
+    monitor = acl.session_file(acl_dir, acl.OPERATOR_USER)
+    missing = [str(p) for p in (*configs.values(), monitor) if not p.is_file()]
+    if missing:
+        raise InputError(f"access control: no credentials {', '.join(missing)} (eonav acl init {acl_dir} "
+                         "--service NAME=MODULE ...)")
+    return configs, monitor
+
+
 def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, duration: float | None = None,
                  on_status: Callable[[dict], None] | None = None, exit_when_done: str | None = None,
                  router: str | None = None, grace_s: float = 5.0, stop_event: threading.Event | None = None,
                  status_stream=None, quiet: bool = False, log_dir: str | None = None,
-                 router_config: str | None = None, extra_env: dict | None = None) -> int:
+                 router_config: str | None = None, extra_env: dict | None = None, record: str | None = None,
+                 acl_dir: str | None = None, substitutions: dict | None = None) -> int:
     """Run a pipeline until stopped; returns the exit code (see the module docstring).
 
     ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
@@ -418,18 +504,38 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
     after that many seconds. ``on_status(status_dict)``: called about once a second with
     {service: {state, pid, restarts, exit_code, alive, health}}. ``stop_event``: set it to stop
     (SIGINT/SIGTERM also stop when called from the main thread). ``log_dir``: one log file per
-    service instead of inheriting stderr. ``extra_env``: added to every service's environment."""
+    service instead of inheriting stderr. ``extra_env``: added to every service's environment. ``record``: also run
+    the recorder (``eonav.recording.recorder``) writing this MCAP file. ``acl_dir``: run with access control
+    (``eonav.bus.acl``): the embedded router enforces it and every service and the status monitor connect with
+    their own credentials from ``acl_dir`` (written there for this pipeline, passwords already there kept; with
+    ``router``, only read). ``substitutions``: more ``{name}`` values for args and env (a callable is called when
+    a service first needs it)."""
     from eonav.bus.keys import check_chunk
     check_chunk(vehicle, "--vehicle")
     spec_dir = None
     if isinstance(spec, (str, Path)):
         spec_dir = str(Path(spec).resolve().parent)
     services = parse_spec(spec, spec_dir)
+    if record:
+        from eonav.recording.recorder import recorder_service
+        rec = parse_spec([recorder_service(record)])
+        for s in services:
+            if s.after:                    # replays wait for the recorder too: it keeps their first records
+                s.after.append(rec[0].name)
+        services += rec
     if exit_when_done and exit_when_done not in {s.name for s in services}:
         raise InputError(f"--exit-when-done {exit_when_done!r}: no such service in the pipeline "
                          f"({', '.join(s.name for s in services)})")
     if log_dir:
         Path(log_dir).mkdir(parents=True, exist_ok=True)
+    zenoh_configs, monitor_config = secure_sessions(acl_dir, services, write=router is None) if acl_dir \
+        else ({}, None)
+    if acl_dir and router is None:
+        if router_config:
+            raise InputError("--router-config and access control: the router config is written in the ACL "
+                             "directory; give one of them")
+        from eonav.bus.acl import ROUTER_FILE
+        router_config = str(Path(acl_dir) / ROUTER_FILE)
     stop = stop_event or threading.Event()
     reason = {"why": ""}
     old = {}
@@ -460,18 +566,19 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                         return 2
             log.info("embedded router on %s (pid %d)", router, router_proc.pid)
         ctx = {"spec_dir": spec_dir or os.getcwd(), "vehicle": vehicle, "router": router,
-               "port": router.rsplit(":", 1)[-1]}
+               "port": router.rsplit(":", 1)[-1], **(substitutions or {})}
         sup = Supervisor(services, vehicle=vehicle, router=router, ctx=ctx, grace_s=grace_s, log_dir=log_dir,
-                         extra_env=extra_env)
+                         extra_env=extra_env, zenoh_configs=zenoh_configs)
         sup.check_modules()
         missing = [p.name for p in sup.procs if p.state == "missing"]
         if missing:
             log.warning("not started (module not found): %s", ", ".join(missing))
-        with HealthMonitor(vehicle, router, sup.procs):
+        with HealthMonitor(vehicle, router, sup.procs, zenoh_config=monitor_config):
             sup.start_all()
             last_status = 0.0
             while not stop.wait(0.1):
                 exited = sup.poll()
+                sup.start_waiting()
                 if router_proc is not None and router_proc.poll() is not None:
                     log.error("embedded router exited (%s); restarting it", router_proc.returncode)
                     try:

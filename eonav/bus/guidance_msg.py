@@ -17,7 +17,7 @@ import math
 import msgpack
 import numpy as np
 
-from eonav.bus.schema import REQUIRED, SCHEMA_VERSION, SUPPORTED_VERSIONS, SchemaError, _check
+from eonav.bus.schema import REQUIRED, SCHEMA_VERSION, SUPPORTED_VERSIONS, SchemaError, _check, _plain
 
 KIND = "obstacle_tracks"
 NAN3 = [math.nan] * 3
@@ -129,20 +129,6 @@ def validate(msg: dict) -> dict:
             raise SchemaError(f"{KIND}.nearest_threat.id {th['id']} is not one of the tracks {ids}")
         out["nearest_threat"] = th
     return out
-
-
-def _plain(v):
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, np.bool_):
-        return bool(v)
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, dict):
-        return {k: _plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    return v
 
 
 def encode(msg: dict) -> bytes:

@@ -14,8 +14,8 @@ A service module looks like this::
     if __name__ == "__main__":
         service_main("camera", add_arguments, body)
 
-``service_main`` runs the lifecycle (configure, open the session, declare the liveliness token, config queryable
-and health publisher, call ``body``, wait for a stop, shut down) and maps the outcome to the exit code: 0 clean
+``service_main`` runs the lifecycle (configure, open the session, declare the config queryable and health
+publisher, call ``body``, declare the liveliness token, wait for a stop, shut down) and maps the outcome to the exit code: 0 clean
 stop, 1 a worker or ``body`` raised, 2 a configuration error. Subscribers are channels (``RingChannel`` for images,
 ``FifoChannel`` for small must-not-lose streams) read by worker threads that are joined before the session closes:
 nothing runs in a zenoh callback (docs/bus.md, docs/zenoh.md "Pitfalls").
@@ -39,11 +39,14 @@ from eonav.bus import keys as K
 from eonav.bus.session import add_flag, add_session_arguments, env_default, open_session
 
 __all__ = ["Node", "service_main", "add_common_arguments", "add_flag", "env_default",
-           "RateMeter", "LatencyWindow", "STATES", "EXIT_OK", "EXIT_ERROR", "EXIT_CONFIG"]
+           "RateMeter", "LatencyWindow", "STATES", "EXIT_OK", "EXIT_ERROR", "EXIT_CONFIG", "DEFAULT_INPUT_GRACE_S",
+           "restart_count"]
 
 STATES = ("ok", "degraded", "error")
 EXIT_OK, EXIT_ERROR, EXIT_CONFIG = 0, 1, 2
 JOIN_TIMEOUT_S = 5.0
+INPUT_CHECK_S = 0.1           # the health timer looks at the watched inputs this often
+DEFAULT_INPUT_GRACE_S = 15.0  # budget of a watched input before its first sample (start-up, replay leads)
 
 
 MAX_COUNTERS = 512            # distinct health counter names per service
@@ -208,6 +211,8 @@ class Node:
         self._suppressed: dict[str, int] = {}
         self._gc_t0 = None
         self._gc_cb = None
+        self._inputs: dict[str, dict] = {}      # expect_input: name -> timeout_s, grace_s, since, seen, silent
+        self._silent: list[str] = []            # details of the inputs silent at the last check
 
     # ---- garbage collector ------------------------------------------------------------------------
     def watch_gc(self) -> None:
@@ -343,6 +348,68 @@ class Node:
             args = (*args, n)
         self.log.log(level, fmt, *args)
 
+    # ---- inputs ---------------------------------------------------------------------------------
+    def expect_input(self, name: str, timeout_s: float, grace_s: float | None = None, now: float | None = None):
+        """Watch input ``name``: silent for longer than ``timeout_s`` after a sample (``input_seen``), or for longer
+        than ``grace_s`` from now before its first one (default ``--input-grace-s``: start-up, a replay's lead), the
+        node reports ``degraded`` with a detail naming the input, and ``ok`` again as soon as it flows. The health
+        timer checks every ``INPUT_CHECK_S`` and publishes a health message at once on a change. ``now``: a
+        ``time.monotonic()`` value (tests)."""
+        if not (isinstance(timeout_s, (int, float)) and timeout_s > 0):
+            raise EonavError(f"expect_input({name!r}): timeout must be > 0 s, got {timeout_s!r}")
+        if grace_s is None:
+            grace_s = float(getattr(self.args, "input_grace_s", DEFAULT_INPUT_GRACE_S))
+        t = time.monotonic() if now is None else now
+        with self._lock:
+            self._inputs[name] = {"timeout_s": float(timeout_s), "grace_s": max(float(grace_s), float(timeout_s)),
+                                  "since": t, "seen": None, "silent": False}
+
+    def input_seen(self, name: str, now: float | None = None) -> None:
+        """A usable sample of watched input ``name`` arrived (call it after the checks that could drop it, so an
+        input of nothing but stale or bad messages stays silent)."""
+        inp = self._inputs.get(name)
+        if inp is not None:
+            inp["seen"] = time.monotonic() if now is None else now
+
+    def check_inputs(self, now: float | None = None) -> bool:
+        """Re-evaluate the watched inputs; logs each input that falls silent or flows again. Returns whether any
+        input changed between silent and flowing."""
+        t = time.monotonic() if now is None else now
+        changed, details = False, []
+        with self._lock:
+            items = list(self._inputs.items())
+        for name, inp in items:
+            seen = inp["seen"]
+            quiet_s = t - (inp["since"] if seen is None else seen)
+            budget = inp["grace_s"] if seen is None else inp["timeout_s"]
+            silent = quiet_s > budget
+            if silent:
+                details.append(f"no {name} yet after {quiet_s:.1f} s" if seen is None
+                               else f"no {name} for {quiet_s:.1f} s (budget {budget:.2f} s)")
+            if silent != inp["silent"]:
+                inp["silent"] = silent
+                changed = True
+                if silent:
+                    self.log.warning("input %s silent: %s", name, details[-1])
+                else:
+                    self.log.info("input %s flowing again", name)
+        with self._lock:
+            self._silent = details
+        return changed
+
+    def silent_inputs(self) -> list[str]:
+        """Details of the inputs found silent at the last ``check_inputs``."""
+        with self._lock:
+            return list(self._silent)
+
+    def _reported_state(self) -> tuple[str, str]:
+        """The state and detail to report: the service's own, made ``degraded`` while a watched input is silent."""
+        with self._lock:
+            state, detail, silent = self._state, self._detail, list(self._silent)
+        if not silent or state == "error":
+            return state, detail
+        return "degraded", "; ".join(silent + ([detail] if detail else []))
+
     # ---- metrics --------------------------------------------------------------------------------
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to a health counter. Bounded: at most ``MAX_COUNTERS`` names (later new names all count as
@@ -391,7 +458,8 @@ class Node:
 
     @property
     def state(self) -> str:
-        return self._state
+        """The reported state: the one set by ``set_state``/``fail``, ``degraded`` while a watched input is silent."""
+        return self._reported_state()[0]
 
     def counters(self) -> dict:
         with self._lock:
@@ -399,11 +467,13 @@ class Node:
 
     def health_fields(self) -> dict:
         """The fields of this node's health message now."""
+        if self._inputs:
+            self.check_inputs()
+        state, detail = self._reported_state()
         with self._lock:
             counters = dict(self._counters)
             rates = dict(self._rates)
             lats = dict(self._lat)
-            state, detail = self._state, self._detail
         return {"service": self.name, "stamp_us": now_us(), "state": state, "detail": detail,
                 "counters": counters, "pid": os.getpid(),
                 "rates_hz": {k: round(m.rate_hz(), 3) for k, m in rates.items()},
@@ -433,9 +503,13 @@ class Node:
         return json.dumps({"service": self.name, "vehicle": self.vehicle, "pid": os.getpid(), "args": cfg},
                           default=str, sort_keys=True)
 
+    def declare_alive(self) -> None:
+        """The liveliness token, declared once ``body`` has returned: alive = subscribed and running (the launcher
+        starts a pipeline's replays only when their consumers are alive)."""
+        self._token = self.session.liveliness().declare_token(K.alive(self.vehicle, self.name))
+
     def _declare_infrastructure(self) -> None:
         import zenoh
-        self._token = self.session.liveliness().declare_token(K.alive(self.vehicle, self.name))
         self._health_pub = self.session.declare_publisher(
             K.health(self.vehicle, self.name), encoding=zenoh.Encoding("application/msgpack"),
             congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA_LOW)
@@ -455,10 +529,16 @@ class Node:
                     raise
 
         def publish_health():
-            period = float(self.args.health_period)
+            # every --health-period-s, and at once when a watched input falls silent or flows again
+            period = float(self.args.health_period_s)
+            due = time.monotonic()
             while True:
-                self.publish_health()
-                if self.stop_event.wait(period):
+                now = time.monotonic()
+                if (self._inputs and self.check_inputs(now)) or now >= due:
+                    self.publish_health()
+                    due = now + period
+                wait = min(INPUT_CHECK_S, period) if self._inputs else max(0.0, due - time.monotonic())
+                if self.stop_event.wait(wait):
                     return
 
         self.worker(serve_config, name="config")
@@ -512,15 +592,20 @@ def add_common_arguments(p: argparse.ArgumentParser, default_name: str) -> None:
     add_flag(g, "--vehicle", env="EONAV_VEHICLE", default="demo", help="vehicle name (key prefix eonav/<vehicle>)")
     add_flag(g, "--name", env="EONAV_SERVICE_NAME", default=default_name,
              help="service instance name in health/alive/config keys (several instances need distinct names)")
-    add_flag(g, "--health-period", env="EONAV_HEALTH_PERIOD", default=1.0, type=float, metavar="S",
-             help="seconds between health messages")
+    add_flag(g, "--health-period-s", env="EONAV_HEALTH_PERIOD_S", default=1.0, type=float, metavar="S",
+             help="seconds between health messages", aliases="--health-period", old_env="EONAV_HEALTH_PERIOD")
+    add_flag(g, "--input-grace-s", env="EONAV_INPUT_GRACE_S", default=DEFAULT_INPUT_GRACE_S, type=float,
+             metavar="S", help="a watched input (Node.expect_input) with no sample yet is reported silent after "
+                               "this long (start-up, a replay's lead)")
     add_flag(g, "--log-level", env="EONAV_LOG_LEVEL", default="info",
              choices=["debug", "info", "warning", "error"], help="logging level")
     add_session_arguments(p)
 
 
-def build_parser(name: str, add_arguments: Callable | None) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=f"eonav service {name}",
+def build_parser(name: str, add_arguments: Callable | None, module: str | None = None) -> argparse.ArgumentParser:
+    """The service's parser: its own flags, then the common ones. ``module``: the service's module name under
+    eonav.services (what ``eonav service MODULE`` takes; default ``name``), for the usage line."""
+    p = argparse.ArgumentParser(prog=f"eonav service {module or name}",
                                 description=f"eonav {name} service")
     if add_arguments is not None:
         add_arguments(p)
@@ -543,6 +628,15 @@ def _supervisor_pid() -> int:
     parent is gone (e.g. the launcher was SIGKILLed) instead of lingering as orphans."""
     try:
         return int(os.environ.get("EONAV_SUPERVISOR_PID", "0"))
+    except ValueError:
+        return 0
+
+
+def restart_count() -> int:
+    """``EONAV_RESTART_COUNT``: how often ``eonav run`` has restarted this service (0 at the first start, and when
+    not run by it). A replay without a fixed time reference uses it to end rather than start over."""
+    try:
+        return max(0, int(os.environ.get("EONAV_RESTART_COUNT", "0") or 0))
     except ValueError:
         return 0
 
@@ -591,6 +685,7 @@ def run_node(name: str, args, body: Callable, freeze_gc: bool = False) -> int:
                 node.fail(f"body raised {type(e).__name__}: {e}", exc=True)
                 node._shutdown()
                 return EXIT_ERROR
+            node.declare_alive()
             if freeze_gc:
                 freeze_startup_objects()
             log.info("running (vehicle %s, pid %d)", node.vehicle, os.getpid())
@@ -622,14 +717,17 @@ def freeze_startup_objects() -> None:
     gc.freeze()
 
 
-def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None) -> None:
-    """Parse flags, run the node, ``sys.exit`` with its code. ``argv`` defaults to ``sys.argv[1:]``."""
-    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True))
+def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None, *,
+                 module: str | None = None) -> None:
+    """Parse flags, run the node, ``sys.exit`` with its code. ``name``: the default instance name (``--name``);
+    ``module``: see :func:`build_parser`. ``argv`` defaults to ``sys.argv[1:]``."""
+    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True, module=module))
 
 
-def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False) -> int:
+def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False,
+         module: str | None = None) -> int:
     """Like :func:`service_main` but returns the exit code (for ``eonav service`` and tests)."""
-    parser = build_parser(name, add_arguments)
+    parser = build_parser(name, add_arguments, module)
     args = parser.parse_args(argv)
     _setup_logging(args.log_level, args.name)
     try:

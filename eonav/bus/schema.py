@@ -39,6 +39,7 @@ MAX_POSITION_M = 1.0e7            # 10 000 km from the local origin
 MAX_SPEED_MPS = 1.0e4
 MAX_RATE_RADPS = 100.0
 MAX_IMAGE_SIDE_PX = 16384
+MAX_AGE_MS = 86_400_000.0         # a frame age of more than a day is a broken clock, not a measurement
 IMAGE_ENCODINGS = {"mono8": (np.uint8, 1), "mono16": (np.uint16, 1), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3)}
 FLOAT_DTYPES = ("float16", "float32", "float64")
 
@@ -92,10 +93,15 @@ FIELDS = {
         # appended: a fused map's number of measurements fused per pixel (uint8, saturating at 255); absent on a
         # single pair's map
         "n_fused": ("array", None),
+        # appended: age of the frame (now - stamp_us on the publisher's clock) when the map was put; NaN = unknown
+        # (older locators). A stage never puts a map older than its max age (eonav.bus.freshness)
+        "frame_age_ms": ("float", math.nan),
     },
     "obstacle_list": {
         "stamp_us": ("int", REQUIRED), "camera_id": ("str", ""), "obstacles": ("list", REQUIRED),
         "sectors": ("dict", None), "position_ned_m": ("vec3", NAN3), "q_wxyz": ("vec4", NAN4),
+        # appended: age of the map's frame when the list was put (as range_map.frame_age_ms)
+        "frame_age_ms": ("float", math.nan),
     },
     "health": {
         "service": ("str", REQUIRED), "stamp_us": ("int", REQUIRED), "state": ("str", REQUIRED),
@@ -324,6 +330,9 @@ def validate(msg: dict) -> None:
         if name in msg:
             _range(kind, name, (name == "other_seq" and msg[name] == -1) or 0 <= msg[name] < MAX_SEQ,
                    "a sequence number in 0 .. 2^62", msg[name])
+    if "frame_age_ms" in msg:
+        v = msg["frame_age_ms"]
+        _range(kind, "frame_age_ms", math.isnan(v) or abs(v) <= MAX_AGE_MS, f"NaN or within +-{MAX_AGE_MS:g} ms", v)
     required_pose = kind in ("posed_frame", "range_map")
     if "position_ned_m" in msg:
         _check_vec(kind, "position_ned_m", msg["position_ned_m"], MAX_POSITION_M, nan_ok=not required_pose)

@@ -22,30 +22,44 @@ MODES = ("peer", "client", "router")
 _TRUE = ("1", "true", "yes", "on")
 
 
-def env_default(var: str, default=None):
-    """The value of environment variable ``var`` if set and non-empty, else ``default``."""
-    val = os.environ.get(var)
-    return default if val is None or val == "" else val
+def env_default(var: str, default=None, old_env=()):
+    """The value of environment variable ``var`` if set and non-empty, else of the first set one of ``old_env``
+    (names a variable had before it was renamed), else ``default``."""
+    for name in (var, *old_env):
+        val = os.environ.get(name)
+        if val is not None and val != "":
+            return val
+    return default
 
 
-def env_flag(var: str, default: bool = False) -> bool:
-    val = os.environ.get(var)
-    if val is None or val == "":
+def env_flag(var: str, default: bool = False, old_env=()) -> bool:
+    val = env_default(var, None, old_env)
+    if val is None:
         return default
     return val.strip().lower() in _TRUE
 
 
-def add_flag(p, *names, env: str, default=None, help: str = "", **kw):
+def add_flag(p, *names, env: str, default=None, help: str = "", aliases=(), old_env=(), **kw):
     """``p.add_argument`` whose default comes from environment variable ``env`` (then ``default``).
 
     For ``action="store_true"`` the variable is read as a boolean (1/true/yes/on). argparse applies
-    ``type`` to string defaults, so ``type=float`` works with an environment string too."""
+    ``type`` to string defaults, so ``type=float`` works with an environment string too.
+    ``aliases``: old spellings of the flag, still accepted (same destination) but not shown in ``--help``;
+    ``old_env``: old names of the variable, read when ``env`` is not set. Both keep deployed env files and
+    pipeline specs working after a rename."""
+    aliases = (aliases,) if isinstance(aliases, str) else tuple(aliases)
+    old_env = (old_env,) if isinstance(old_env, str) else tuple(old_env)
     if kw.get("action") == "store_true":
-        dflt = env_flag(env, bool(default))
+        dflt = env_flag(env, bool(default), old_env)
     else:
-        dflt = env_default(env, default)
+        dflt = env_default(env, default, old_env)
     suffix = f" (env {env}; default {dflt!r})"
-    return p.add_argument(*names, default=dflt, help=(help + suffix).strip(), **kw)
+    action = p.add_argument(*names, default=dflt, help=(help + suffix).strip(), **kw)
+    action.env, action.old_env = env, old_env          # (for --help readers and tests)
+    if aliases:
+        kw = {k: v for k, v in kw.items() if k not in ("dest", "required")}
+        p.add_argument(*aliases, dest=action.dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS, **kw)
+    return action
 
 
 def close_subscribers(subs, threads, session, join_timeout_s: float) -> None:
@@ -156,9 +170,9 @@ def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def _open(mode: str, connect=None, listen=None):
+def _open(mode: str, connect=None, listen=None, zenoh_config=None):
     import zenoh
-    args = argparse.Namespace(mode=mode, connect=connect, listen=listen, zenoh_config=None, multicast=False)
+    args = argparse.Namespace(mode=mode, connect=connect, listen=listen, zenoh_config=zenoh_config, multicast=False)
     return zenoh.open(build_config(args))
 
 
@@ -167,6 +181,7 @@ def listener_session(port: int):
     return _open("peer", listen=endpoint(port))
 
 
-def client_session(ep: str):
-    """A client session connected to a router endpoint (use as a context manager)."""
-    return _open("client", connect=ep)
+def client_session(ep: str, zenoh_config: str | None = None):
+    """A client session connected to a router endpoint (use as a context manager); ``zenoh_config``: a session
+    config file applied first (e.g. a user's credentials, ``eonav.bus.acl``)."""
+    return _open("client", connect=ep, zenoh_config=zenoh_config)

@@ -15,9 +15,11 @@ For every new frame:
 3. ``update``   -- each measured pixel fused into its cell under the Gaussian x uniform model with a Beta inlier
    ratio (Vogiatzis & Hernandez 2011, as REMODE, Pizzoli et al. 2014, and SVO's depth filter use it): an outlier
    leaves a converged cell where it was and lowers its inlier evidence; a cell whose evidence turns against it
-   restarts from the measurement;
+   restarts from the measurement; pixels one pair cannot range only for their sigma (far, near the focus of
+   expansion) are fused too: their measurements add up;
 4. ``fused_map`` -- the state as a range map (the arrays of ``eonav locate``): only cells whose evidence agrees and
-   whose sigma is tight are VALID; the rest is filled from them (FILLED) like a single pair's holes.
+   whose sigma is tight are VALID; the rest is filled from them (FILLED) like a single pair's holes. Its sigma
+   adds the error every pair shares (the window's slant error) to the filter's own.
 
 ``FusionRunner`` (``eonav.fusion.sequence``) runs the four stages over a stream of posed frames, one ``push`` per
 frame: the code path of ``eonav fuse``, ``eonav bench fuse`` and the locator service alike. Pure: numpy, OpenCV and

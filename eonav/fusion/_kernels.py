@@ -12,16 +12,29 @@ import numpy as np
 from numba import njit
 
 _JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
+# reciprocals, contractions and approximate functions allowed; not "no NaN / no inf" (empty cells are NaN)
+_FAST = dict(_JIT, fastmath={"arcp", "contract", "afn"})
 
 
 @njit(**_JIT)
 def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
          o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags):
-    """Every occupied source cell's point into the new grid (predict's module docstring): the output arrays come
-    empty (o_rho NaN); where several points land on one pixel the largest rho_new wins (the first of equal ones).
-    cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of cells written."""
+    """Every occupied source cell's point into the new grid (predict's module docstring): the output arrays are
+    first emptied (any contents: a reused state); where several points land on one pixel the largest rho_new wins
+    (the first of equal ones). cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of
+    cells written."""
     h, w = rho.shape
     h1, w1 = o_rho.shape
+    for y in range(h1):
+        for x in range(w1):
+            o_rho[y, x] = np.nan
+            o_var[y, x] = np.inf
+            o_a[y, x] = 0.0
+            o_b[y, x] = 0.0
+            o_n[y, x] = 0
+            o_du[y, x] = 0.0
+            o_dv[y, x] = 0.0
+            o_flags[y, x] = 0
     fx0, fy0, cx0, cy0 = cam0[0], cam0[1], cam0[2], cam0[3]
     fx1, fy1, cx1, cy1 = cam1[0], cam1[1], cam1[2], cam1[3]
     written = 0
@@ -41,8 +54,8 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
             inv = np.float32(1.0) / den
             un = cx1 + fx1 * (A1 + t[1] * r) * inv
             vn = cy1 + fy1 * (A2 + t[2] * r) * inv
-            ui = np.rint(un)
-            vi = np.rint(vn)
+            ui = np.float32(math.floor(un + np.float32(0.5)))      # nearest pixel (halves up, as predict)
+            vi = np.float32(math.floor(vn + np.float32(0.5)))
             if not (ui >= 0 and ui <= w1 - 1 and vi >= 0 and vi <= h1 - 1):
                 continue
             X = int(ui)
@@ -101,75 +114,209 @@ def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
     return closed
 
 
-@njit(**_JIT)
-def update(rho, var, a, b, n, du, dv, rho_m, std_m, meas, s, rho_max, a_init, b_init, cap, eta_outlier):
-    """update.update's arithmetic per measured pixel (``meas``), in place. Returns (started, inliers, outliers,
-    restarted)."""
-    h, w = rho.shape
-    started = inl = outl = rest = 0
-    inv_u = np.float32(1.0 / rho_max)
-    two_pi = np.float32(2.0 * math.pi)
+@njit(**_FAST)
+def update(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm):
+    """update.update's arithmetic in place: every pixel's flags taken from the measurement's, and each measured one
+    (``update.measured``; bits: VALID | FILLED, VALID, WEAK_BITS (0: no weak measurements), ILL_CONDITIONED) fused.
+    prm: float32 (max_rel_std, sigma_scale, rho_max, a_init, b_init, evidence_cap, eta_outlier). Returns (measured,
+    started, inliers, outliers, restarted)."""
+    cnt = np.zeros(5, np.int64)
+    for y in range(rho.shape[0]):
+        _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt)
+    return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]
+
+
+@njit(**_FAST)
+def update_classify(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm,
+                    cbits, eta_inlier, max_rel_std, rho_far, slant2, o_rho, o_std, o_flags, o_rng, o_conf, o_exclude):
+    """``update`` then ``classify_state`` in one sweep: row y-1 is classified once row y is updated (its slant
+    term needs its neighbours' rows), so the state is read once. Returns the five update counts then the four
+    classification counts."""
+    h = rho.shape[0]
+    cnt = np.zeros(5, np.int64)
+    cc = np.zeros(4, np.int64)
     for y in range(h):
-        for x in range(w):
-            if not meas[y, x]:
+        _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt)
+        if y >= 1:
+            _classify_row(y - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
+                          o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc)
+    _classify_row(h - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
+                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc)
+    return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4], cc[0], cc[1], cc[2], cc[3]
+
+
+@njit(**_FAST)
+def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt):
+    """One row of ``update``; cnt (int64[5]) gains its counts."""
+    w = rho.shape[1]
+    max_rel_std, s, rho_max, a_init, b_init, cap, eta_outlier = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
+    inv_u = np.float32(1.0) / rho_max
+    two_pi = np.float32(2.0 * math.pi)
+    one = np.float32(1.0)
+    for x in range(w):
+        fm = flags_m[y, x]
+        flags[y, x] = fm
+        xm = rho_m[y, x]
+        sd = std_m[y, x]
+        if not (math.isfinite(xm) and math.isfinite(sd) and sd > 0):
+            continue
+        if (fm & bits[0]) != bits[1]:
+            if not (bits[2] != 0 and (fm & bits[2]) == bits[3]
+                    and not (sd <= max_rel_std * xm and xm >= np.float32(2.0) * sd)):
                 continue
-            xm = rho_m[y, x]
-            tau = std_m[y, x] * s
-            tau2 = tau * tau
-            mu = rho[y, x]
-            if not math.isfinite(mu):
-                rho[y, x] = xm
-                var[y, x] = tau2
-                a[y, x] = a_init
-                b[y, x] = b_init
-                n[y, x] = 1
-                du[y, x] = 0.0
-                dv[y, x] = 0.0
-                started += 1
-                continue
-            s2 = var[y, x]
+        cnt[0] += 1
+        tau = sd * s
+        tau2 = tau * tau
+        mu = rho[y, x]
+        if not math.isfinite(mu):
+            rho[y, x] = xm
+            var[y, x] = tau2
+            a[y, x] = a_init
+            b[y, x] = b_init
+            n[y, x] = 1
+            du[y, x] = 0.0
+            dv[y, x] = 0.0
+            cnt[1] += 1
+            continue
+        s2 = var[y, x]
+        A = a[y, x]
+        B = b[y, x]
+        S = s2 + tau2
+        d = xm - mu
+        c1 = A / (A + B) * np.exp(np.float32(-0.5) * d * d / S) / np.sqrt(two_pi * S)
+        c2 = B / (A + B) * inv_u
+        c1 = c1 / (c1 + c2)
+        c2 = one - c1
+        sp2 = s2 * tau2 / S
+        m = mu + sp2 / tau2 * d
+        mu_new = c1 * m + c2 * mu
+        dm = m - mu
+        s2_new = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
+        ab1 = A + B + one
+        ab2 = ab1 + one
+        f = (c1 * (A + one) + c2 * A) / ab1
+        e = (c1 * (A + one) * (A + np.float32(2.0)) + c2 * A * (A + one)) / (ab1 * ab2)
+        a_new = (e - f) / (f - e / f)
+        b_new = a_new * (one - f) / f
+        tot = a_new + b_new
+        if tot > cap:
+            k = cap / tot
+            a_new *= k
+            b_new *= k
+        if c1 > 0.5:
+            cnt[2] += 1
+        else:
+            cnt[3] += 1
+        if a_new / (a_new + b_new) < eta_outlier:
+            rho[y, x] = xm
+            var[y, x] = tau2
+            a[y, x] = a_init
+            b[y, x] = b_init
+            n[y, x] = 1
+            du[y, x] = 0.0
+            dv[y, x] = 0.0
+            cnt[4] += 1
+            continue
+        rho[y, x] = mu_new
+        var[y, x] = s2_new
+        a[y, x] = a_new
+        b[y, x] = b_new
+        if n[y, x] < 65535:
+            n[y, x] += 1
+
+
+@njit(**_FAST)
+def classify_state(rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
+                   o_rho, o_std, o_flags, o_rng, o_conf, o_exclude):
+    """fused_map's arrays in one pass: o_rho = rho, o_std = sqrt(var + slant2 * g2) (g2: ``slant_g2``), the flags
+    of fused_map and the rules of ``eonav.ranging.methods._common.classify_into`` (the same float32 arithmetic),
+    o_exclude = occupied cells whose evidence disagrees. bits: uint8 (reason bits kept for empty cells,
+    ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION, AT_INFINITY, VALID) of
+    ``eonav.ranging.rangemap``. Returns (n_valid, n_at_infinity, n_occupied, n_disagree)."""
+    cc = np.zeros(4, np.int64)
+    for y in range(rho.shape[0]):
+        _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
+                      o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc)
+    return cc[0], cc[1], cc[2], cc[3]
+
+
+@njit(**_FAST)
+def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
+                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc):
+    """One row of ``classify_state``; cc (int64[4]) gains its counts."""
+    w = rho.shape[1]
+    reason_bits, ILL, BAD, INF, VAL = bits[0], bits[1], bits[2], bits[3], bits[4]
+    two_f = np.float32(2.0)
+    for x in range(w):
+        r = rho[y, x]
+        o_rho[y, x] = r
+        occ = math.isfinite(r)
+        if occ:
+            cc[2] += 1
             A = a[y, x]
-            B = b[y, x]
-            S = s2 + tau2
-            d = xm - mu
-            c1 = A / (A + B) * np.exp(np.float32(-0.5) * d * d / S) / np.sqrt(two_pi * S)
-            c2 = B / (A + B) * inv_u
-            c1 = c1 / (c1 + c2)
-            c2 = np.float32(1.0) - c1
-            sp2 = s2 * tau2 / S
-            m = mu + sp2 / tau2 * d
-            mu_new = c1 * m + c2 * mu
-            dm = m - mu
-            s2_new = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
-            ab1 = A + B + np.float32(1.0)
-            ab2 = ab1 + np.float32(1.0)
-            f = (c1 * (A + np.float32(1.0)) + c2 * A) / ab1
-            e = (c1 * (A + np.float32(1.0)) * (A + np.float32(2.0)) + c2 * A * (A + np.float32(1.0))) / (ab1 * ab2)
-            a_new = (e - f) / (f - e / f)
-            b_new = a_new * (np.float32(1.0) - f) / f
-            tot = a_new + b_new
-            if tot > cap:
-                k = cap / tot
-                a_new *= k
-                b_new *= k
-            if c1 > 0.5:
-                inl += 1
-            else:
-                outl += 1
-            if a_new / (a_new + b_new) < eta_outlier:
-                rho[y, x] = xm
-                var[y, x] = tau2
-                a[y, x] = a_init
-                b[y, x] = b_init
-                n[y, x] = 1
-                du[y, x] = 0.0
-                dv[y, x] = 0.0
-                rest += 1
-                continue
-            rho[y, x] = mu_new
-            var[y, x] = s2_new
-            a[y, x] = a_new
-            b[y, x] = b_new
-            if n[y, x] < 65535:
-                n[y, x] += 1
-    return started, inl, outl, rest
+            agree = A >= eta_inlier * (A + b[y, x])
+            f = np.uint8(0) if agree else ILL
+            sd = np.float32(math.sqrt(var[y, x] + slant2 * slant_g2(rho, var, y, x)))
+            if not agree:
+                cc[3] += 1
+        else:
+            agree = False
+            f = flags[y, x] & reason_bits
+            if f == 0:
+                f = ILL
+            sd = np.float32(math.sqrt(var[y, x]))
+        o_std[y, x] = sd
+        o_exclude[y, x] = occ and not agree
+        two = two_f * sd
+        near0 = r < two
+        inf_ok = (two < rho_far) and near0
+        good = ((sd / r <= max_rel_std) and not near0) or inf_ok
+        good = good and occ and math.isfinite(sd)
+        if not good:
+            f |= ILL
+        ok = (f & BAD) == 0
+        rng = np.float32(np.nan)
+        conf = np.float32(0.0)
+        if ok and inf_ok:
+            f |= INF | VAL
+            cc[1] += 1
+            rng = np.float32(np.inf)
+            conf = max(np.float32(rho_far) / sd, np.float32(0.0))
+        elif ok:
+            f |= VAL
+            cc[0] += 1
+            rng = np.float32(1.0) / abs(r)
+            conf = max(r / sd, np.float32(0.0))
+        o_flags[y, x] = f
+        o_rng[y, x] = rng
+        o_conf[y, x] = conf
+
+
+@njit(**_FAST)
+def slant_g2(rho, var, y, x):
+    """The squared inverse-range gradient (1/m per pixel)^2 of the surface cell (y, x) lies on: per axis the
+    smaller of its two one-sided squared differences (the side across a depth edge is not its surface); a side with
+    an empty neighbour (NaN) or outside the image is not used, an axis with none contributes 0. (Not less the two
+    cells' noise: neighbours share most of their windows, their errors are nearly the same.)
+    Branch-free (fmin / fmax skip NaN): which side is smaller is noise, a branch on it is mispredicted."""
+    h, w = rho.shape
+    r = rho[y, x]
+    nan = np.float32(np.nan)
+    x0, x1, y0, y1 = max(x - 1, 0), min(x + 1, w - 1), max(y - 1, 0), min(y + 1, h - 1)
+    d = rho[y, x0] - r
+    el = d * d
+    d = rho[y, x1] - r
+    er = d * d
+    d = rho[y0, x] - r
+    eu = d * d
+    d = rho[y1, x] - r
+    ed = d * d
+    if x == 0:
+        el = nan
+    if x == w - 1:
+        er = nan
+    if y == 0:
+        eu = nan
+    if y == h - 1:
+        ed = nan
+    return np.fmax(np.fmin(el, er), np.float32(0.0)) + np.fmax(np.fmin(eu, ed), np.float32(0.0))

@@ -1,6 +1,15 @@
 """The state as a range map: the arrays of ``eonav locate`` (range_m, confidence, inv_range_per_m,
 inv_range_std_per_m, flags) plus the number of measurements fused per pixel.
 
+The reported sigma adds to the filter's variance an error that fusion cannot average away: the dense method fits
+one inverse range per window, weighting its pixels by their squared epipolar gradient, so on a surface whose rho
+varies across the window it measures rho at the texture-weighted centre of the window, not at the pixel. The offset
+is fixed to the scene's texture, so every pair of the sequence makes the same error: the measurements agree with
+each other (the filter's variance shrinks as 1/N) but not with the truth. Its size is |grad rho| x the spread of
+that offset (``slant_px``), grad rho taken from the state itself on the cell's own surface (``slant_g2``):
+
+    sigma^2 = var + slant_px^2 |grad rho|^2.
+
 A cell is VALID when its evidence agrees (E[inlier ratio] >= ``eta_inlier``) and, by the rules of a single pair
 (``eonav.ranging.methods._common.classify_into``), its relative sigma is within ``max_rel_std`` -- or it is AT_INFINITY (rho
 within 2 sigma of 0 and 2 sigma below the state's far limit). A cell whose evidence disagrees is ILL_CONDITIONED
@@ -19,11 +28,16 @@ import numpy as np
 from eonav import InputError
 from eonav.ranging.methods._common import classify_into, make_result
 from eonav.ranging.methods.fill import fill_unmeasured
-from eonav.ranging.rangemap import ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, RangeResult
-from eonav.fusion.state import F32, InverseRangeState
+from eonav.ranging.rangemap import (AT_INFINITY, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION,
+                                   VALID, RangeResult)
+from eonav.fusion.state import F32, InverseRangeState, optional_kernels
+from eonav.fusion.update import (UpdateConfig, counts_dict, kernel_params, measurement_arrays, update,
+                                 update_rho_far)
 
 METHOD = "fused"
 REASON_BITS = np.uint8(TRUNCATION | ILL_CONDITIONED | OUT_OF_VIEW | LOW_TEXTURE | OCCLUDED)
+_BITS = np.array([REASON_BITS, ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION,
+                  AT_INFINITY, VALID], np.uint8)       # for _kernels.classify_state
 
 
 @dataclass(frozen=True)
@@ -31,19 +45,117 @@ class MapConfig:
     eta_inlier: float = 0.65       # least E[inlier ratio] of a VALID cell
     max_rel_std: float = 0.34      # largest relative sigma of a VALID cell (the dense method's rule)
     fill: bool = True              # fill the cells without a fused range from the VALID ones around them
+    slant_px: float = 1.5          # spread (px) of the window's effective centre: sigma^2 += slant_px^2 |grad rho|^2
 
     def __post_init__(self):
         if not 0 < self.eta_inlier < 1:
             raise InputError(f"fused map: eta_inlier must be in (0, 1), got {self.eta_inlier!r}")
         if not (math.isfinite(self.max_rel_std) and self.max_rel_std > 0):
             raise InputError(f"fused map: max_rel_std must be > 0, got {self.max_rel_std!r}")
+        if not (math.isfinite(self.slant_px) and self.slant_px >= 0):
+            raise InputError(f"fused map: slant_px must be a finite number >= 0, got {self.slant_px!r}")
 
 
-def fused_map(state: InverseRangeState, cfg: MapConfig = MapConfig()) -> RangeResult:
-    """A RangeResult of the state (method "fused"); ``info`` holds the counts and ``n_fused`` (uint16 H x W)."""
+def slant_g2(rho: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """The squared inverse-range gradient ((1/m per pixel)^2) of the surface each cell lies on: per axis the smaller
+    of its two one-sided squared differences (the side across a depth edge is not its surface); sides with an empty
+    neighbour are not used, an axis with none adds 0. Not less the two cells' noise: neighbours share most of their
+    windows, so their errors are nearly the same. (``_kernels.slant_g2`` per cell.)"""
+    g2 = np.zeros(rho.shape, F32)
+    with np.errstate(invalid="ignore"):
+        for axis in (0, 1):
+            best = np.full(rho.shape, np.inf, F32)
+            n = rho.shape[axis]
+            for lo, hi in ((slice(1, n), slice(0, n - 1)), (slice(0, n - 1), slice(1, n))):
+                me = [slice(None)] * 2
+                nb = [slice(None)] * 2
+                me[axis], nb[axis] = lo, hi
+                me, nb = tuple(me), tuple(nb)
+                d = rho[nb] - rho[me]
+                e = (d * d).astype(F32)
+                e = np.where(np.isfinite(e), e, np.inf)
+                np.minimum(best[me], e, out=best[me])
+            g2 += np.where(np.isfinite(best) & (best > 0), best, F32(0))
+    return np.where(np.isfinite(rho), g2, F32(0)).astype(F32)
+
+
+def fused_map(state: InverseRangeState, cfg: MapConfig = MapConfig(), kernels: bool | None = None,
+              reuse: RangeResult | None = None) -> RangeResult:
+    """A RangeResult of the state (method "fused"); ``info`` holds the counts and ``n_fused`` (uint16 H x W).
+    kernels: the numba pass (``_kernels.classify_state``; None: when numba is installed; False: the numpy path,
+    the reference). reuse: a range map of the state's shape that nobody holds any more (the measurement just fused)
+    whose arrays to overwrite with the result (numba pass): no fresh memory to page in."""
+    K = optional_kernels() if kernels is None or kernels else None
+    if kernels and K is None:
+        raise ImportError("fused_map(kernels=True) needs numba")
+    if K is None:
+        rho, std, flags, rng, conf, n_val, n_inf, occ, exclude = _classify_numpy(state, cfg)
+        return _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, int(occ.sum()), exclude)
+    out = _outputs(state.shape, reuse)
+    n_val, n_inf, n_occ, n_dis = K.classify_state(state.rho, state.var, state.a, state.b, state.flags,
+                                                  *_classify_params(state, cfg), *out)
+    return _finish(state, cfg, *out[:5], n_val, n_inf, n_occ, out[5])
+
+
+def update_and_map(state: InverseRangeState, rho_m, std_m, flags_m, ucfg: UpdateConfig = UpdateConfig(),
+                   mcfg: MapConfig = MapConfig(), rho_far: float | None = None, kernels: bool | None = None,
+                   reuse: RangeResult | None = None):
+    """``update`` then ``fused_map``: (update counts, RangeResult); with numba in one sweep over the state
+    (``_kernels.update_classify``), the same result."""
+    K = optional_kernels() if kernels is None or kernels else None
+    if kernels and K is None:
+        raise ImportError("update_and_map(kernels=True) needs numba")
+    if K is None:
+        counts = update(state, rho_m, std_m, flags_m, ucfg, rho_far=rho_far, kernels=False)
+        return counts, fused_map(state, mcfg, kernels=False)
+    if np.shape(rho_m) != state.shape:
+        raise InputError(f"fusion update: measurement shape {np.shape(rho_m)} differs from the state {state.shape}")
+    update_rho_far(state, rho_far)
+    meas = measurement_arrays(rho_m, std_m, flags_m)
+    out = _outputs(state.shape, reuse)
+    r = K.update_classify(state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags, *meas,
+                          *kernel_params(ucfg), *_classify_params(state, mcfg), *out)
+    res = _finish(state, mcfg, *out[:5], r[5], r[6], r[7], out[5])
+    return counts_dict(*r[:5]), res
+
+
+def _classify_params(state, cfg):
+    return _BITS, F32(cfg.eta_inlier), F32(cfg.max_rel_std), F32(state.rho_far), F32(cfg.slant_px ** 2)
+
+
+def _outputs(shape, reuse):
+    """(rho, std, flags, rng, conf, exclude) to write: ``reuse``'s arrays where they fit, else fresh."""
+    if reuse is not None and _reusable(reuse, shape):
+        rho, std, rng, conf, flags = (reuse.inv_range_per_m, reuse.inv_range_std_per_m, reuse.range_m,
+                                      reuse.confidence, reuse.flags)
+    else:
+        rho, std, rng, conf = (np.empty(shape, F32) for _ in range(4))
+        flags = np.empty(shape, np.uint8)
+    return rho, std, flags, rng, conf, np.empty(shape, np.bool_)
+
+
+def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude) -> RangeResult:
+    # a cell whose measurements disagree gets no range from its neighbours either
+    n_filled = (fill_unmeasured(rho, std, flags, rng, conf, cfg.max_rel_std, rho_far=state.rho_far,
+                                exclude=exclude) if cfg.fill else 0)
+    size = max(rho.size, 1)
+    info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(np.count_nonzero(exclude)) / size,
+            "filled_fraction": n_filled / size, "n_fused": state.n.copy()}
+    return make_result(rho, std, flags, rng, conf, METHOD, int(n_val), int(n_inf), info)
+
+
+def _reusable(r: RangeResult, shape) -> bool:
+    arrs = (r.inv_range_per_m, r.inv_range_std_per_m, r.range_m, r.confidence)
+    return (all(isinstance(a, np.ndarray) and a.shape == shape and a.dtype == F32 and a.flags.c_contiguous
+                and a.flags.writeable for a in arrs)
+            and isinstance(r.flags, np.ndarray) and r.flags.shape == shape and r.flags.dtype == np.uint8
+            and r.flags.flags.writeable and len({id(a) for a in arrs}) == 4)
+
+
+def _classify_numpy(state: InverseRangeState, cfg: MapConfig):
     rho = state.rho.copy()
-    std = np.sqrt(state.var).astype(F32)
     occ = state.occupied()
+    std = np.sqrt(state.var + F32(cfg.slant_px ** 2) * slant_g2(state.rho, state.var)).astype(F32)
     with np.errstate(invalid="ignore", divide="ignore"):
         agree = occ & (state.a >= F32(cfg.eta_inlier) * (state.a + state.b))
     flags = np.where(occ, np.uint8(0), state.flags & REASON_BITS).astype(np.uint8)
@@ -52,9 +164,4 @@ def fused_map(state: InverseRangeState, cfg: MapConfig = MapConfig()) -> RangeRe
     rng = np.empty(rho.shape, F32)
     conf = np.empty(rho.shape, F32)
     n_val, n_inf = classify_into(rho, std, flags, rng, conf, rho_far=state.rho_far, max_rel_std=cfg.max_rel_std)
-    # a cell whose measurements disagree gets no range from its neighbours either
-    n_filled = (fill_unmeasured(rho, std, flags, rng, conf, cfg.max_rel_std, rho_far=state.rho_far,
-                                exclude=occ & ~agree) if cfg.fill else 0)
-    info = {"occupied_fraction": float(occ.mean()), "disagree_fraction": float((occ & ~agree).mean()),
-            "filled_fraction": n_filled / max(rho.size, 1), "n_fused": state.n.copy()}
-    return make_result(rho, std, flags, rng, conf, METHOD, n_val, n_inf, info)
+    return rho, std, flags, rng, conf, n_val, n_inf, occ, occ & ~agree

@@ -74,14 +74,18 @@ def transfer(state: InverseRangeState, camera: Camera, pose: VehicleState):
 
 def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_s: float,
             noise: ProcessNoise = ProcessNoise(), crack_k: float = 3.0,
-            kernels: bool | None = None) -> InverseRangeState:
+            kernels: bool | None = None, out: InverseRangeState | None = None) -> InverseRangeState:
     """``state`` carried into the frame of ``camera`` at ``pose`` (time ``stamp_s``); see the module docstring.
     kernels: the numba pass (``_kernels.warp``; None: when numba is installed; False: the numpy path, the
-    reference)."""
+    reference). out: a state (not ``state``) whose arrays to overwrite (a stream reuses its previous state's:
+    no fresh memory per frame); None: a new one."""
     dt = float(stamp_s) - state.stamp_s
     if not dt >= 0:
         raise InputError(f"predict: the new frame ({stamp_s:.6f} s) is older than the state ({state.stamp_s:.6f} s)")
-    out = InverseRangeState.empty(camera, pose, stamp_s)
+    if out is None or out is state or out.shape != (camera.height, camera.width):
+        out = InverseRangeState.empty(camera, pose, stamp_s)
+    else:
+        out.camera, out.pose, out.stamp_s = camera, pose, float(stamp_s)
     out.rho_far = state.rho_far
     K = optional_kernels() if kernels is None or kernels else None
     if kernels and K is None:
@@ -97,9 +101,10 @@ def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_
         if crack_k > 0:
             K.close_cracks(out.rho, out.var, out.a, out.b, out.n, out.du, out.dv, out.flags, F32(crack_k * crack_k))
         return out
+    out.clear()
     idx, u_new, v_new, rho_new, jac, baseline_m = transfer(state, camera, pose)
-    ui = np.rint(u_new)
-    vi = np.rint(v_new)
+    ui = np.floor(u_new + F32(0.5))          # the nearest pixel (halves up: cheaper than rint in the kernel)
+    vi = np.floor(v_new + F32(0.5))
     h, w = out.shape
     inside = (ui >= 0) & (ui <= w - 1) & (vi >= 0) & (vi <= h - 1)
     idx, ui, vi, u_new, v_new, rho_new, jac = (x[inside] for x in (idx, ui, vi, u_new, v_new, rho_new, jac))

@@ -16,9 +16,11 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from eonav import InputError
-from eonav.ranging.pair_policy import (CAMERA_MISMATCH, HISTORY_RESET, OK_MOTION, OUT_OF_ORDER, PairPolicy, PairPolicyConfig,
-                           PosedFrameInfo, pair_metrics)
+from eonav.ranging.pair_policy import (CAMERA_MISMATCH, HISTORY_RESET, OK_MOTION, OUT_OF_ORDER, PairPolicy,
+                                      PairPolicyConfig, PosedFrameInfo, _probe_pixels, pair_metrics)
 
 NEAR, WIDE, STEREO = "near", "wide", "stereo"
 
@@ -69,6 +71,7 @@ class Scheduler:
         self._hist: dict[str, deque] = {}
         self._count: dict[str, int] = {}
         self._stereo_done: deque = deque(maxlen=64)
+        self._poses: dict = {}        # id(frame) -> _cam_pose(frame), for the frames in a history (alive)
 
     def newest(self, camera_id: str) -> PosedFrameInfo | None:
         h = self._hist.get(camera_id)
@@ -85,6 +88,17 @@ class Scheduler:
     def _history(self, camera_id: str) -> deque:
         return self._hist.setdefault(camera_id, deque(maxlen=self.config.history))
 
+    def _pose(self, f: PosedFrameInfo):
+        """_cam_pose of a frame in a history, computed once (a frame in a history is alive, so its id is its own;
+        an entry of a dead frame is overwritten when its id comes back with a new frame)."""
+        p = self._poses.get(id(f))
+        if p is None or p[0] is not f:
+            if len(self._poses) > 4 * self.config.history * max(len(self._hist), 1):
+                live = {id(x) for h in self._hist.values() for x in h}
+                self._poses = {k: v for k, v in self._poses.items() if k in live}
+            p = self._poses[id(f)] = (f, *_cam_pose(f))
+        return p[1:]
+
     def offer(self, f: PosedFrameInfo) -> tuple[list, str]:
         """The measurements of the new frame ``f`` (possibly none) and the pair policy's reason code."""
         cfg = self.config
@@ -97,7 +111,7 @@ class Scheduler:
         earlier = list(h)
         h.append(f)
         out = []
-        motion = self._motion(f, earlier, d.b if d.reason == OK_MOTION else None)
+        motion = self._motion(f, earlier, d if d.reason == OK_MOTION else None)
         if motion is not None:
             out.append(motion)
         if cfg.stereo_rig is not None and f.camera_id in cfg.stereo_rig:
@@ -106,37 +120,37 @@ class Scheduler:
                 out.append(st)
         return out, d.reason
 
-    def _motion(self, f, earlier, near_b) -> Measurement | None:
+    def _motion(self, f, earlier, near) -> Measurement | None:
+        """near: the pair policy's decision (OK_MOTION) or None."""
         cfg = self.config
         k = self._count.get(f.camera_id, 0)
         role = cfg.pattern[k % len(cfg.pattern)]
-        wide = self._wide(f, earlier) if role == WIDE or near_b is None else None
+        wide = self._wide(f, earlier) if role == WIDE or near is None else None
         if role == WIDE and wide is not None:
-            b, m = wide
-        elif near_b is not None:
-            b, m = near_b, pair_metrics(f, near_b, cfg.policy.ref_range_m)
+            b, disp, base = wide
+        elif near is not None:
+            b, disp, base = near.b, near.disparity_px, near.baseline_m
             role = NEAR
         elif wide is not None:
-            (b, m), role = wide, WIDE
+            (b, disp, base), role = wide, WIDE
         else:
             return None
         self._count[f.camera_id] = k + 1
-        return Measurement(role, f, b, m.disparity_px, m.baseline_m)
+        return Measurement(role, f, b, disp, base)
 
     def _wide(self, f, earlier):
-        """(frame, metrics) of the earlier frame with the most parallax up to wide_max_disparity_px, or None."""
+        """(frame, disparity px, baseline m) of the earlier frame with the most parallax up to
+        wide_max_disparity_px, or None: ``pair_metrics`` of every candidate at once (``wide_metrics``)."""
         pc = self.config.policy
-        best = None
-        for b in reversed(earlier):
-            if (f.stamp_us - b.stamp_us) * 1e-6 > pc.max_age_s:
-                break
-            m = pair_metrics(f, b, pc.ref_range_m)
-            if (m.rotation_deg > pc.max_rotation_deg or m.disparity_px < pc.min_disparity_px
-                    or m.disparity_px > self.config.wide_max_disparity_px):
-                continue
-            if best is None or m.disparity_px > best[1].disparity_px:
-                best = (b, m)
-        return best
+        cands = [b for b in reversed(earlier) if (f.stamp_us - b.stamp_us) * 1e-6 <= pc.max_age_s]
+        if not cands:
+            return None
+        rot_deg, disp, base = wide_metrics(f, cands, pc.ref_range_m, [self._pose(b) for b in cands])
+        ok = (rot_deg <= pc.max_rotation_deg) & (disp >= pc.min_disparity_px) & (disp <= self.config.wide_max_disparity_px)
+        if not ok.any():
+            return None
+        i = int(np.argmax(np.where(ok, disp, -np.inf)))     # the newest of equal ones
+        return cands[i], float(disp[i]), float(base[i])
 
     def _stereo(self, f) -> Measurement | None:
         cfg = self.config
@@ -153,6 +167,59 @@ class Scheduler:
             return None
         self._stereo_done.append((a.camera_id, a.seq, a.stamp_us))
         return Measurement(STEREO, a, b, m.disparity_px, m.baseline_m)
+
+
+def _cam_pose(f: PosedFrameInfo):
+    """(R_cam_ned, camera centre in NED, m) of a frame: X_cam = R (X_ned - c)."""
+    T2 = np.asarray(f.state.T_body_ned, float)
+    R = np.asarray(f.camera.T_cam_body, float) @ T2
+    c = np.asarray(f.state.position_ned_m, float).reshape(3) + T2.T @ np.asarray(f.camera.l_body_m, float).reshape(3)
+    return R, c
+
+
+def _probe_rays(cam):
+    """[1, x_p/fx, y_p/fy] of ``pair_metrics``' probe pixels of ``cam`` (3 x p), computed once per camera."""
+    key = (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+    m = _RAYS.get(key)
+    if m is None:
+        u, v = _probe_pixels(cam)
+        m = _RAYS[key] = np.stack([np.ones_like(u), (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy])
+        m.setflags(write=False)
+    return m
+
+
+_RAYS: dict = {}
+
+
+def wide_metrics(a: PosedFrameInfo, bs: list, ref_range_m: float, poses=None):
+    """``pair_metrics(a, b, ref_range_m)``'s rotation (deg), median translational disparity (px) and baseline (m) of
+    a against every frame of ``bs`` in one pass (arrays): the same pose algebra as ``relative_pose`` (R_ba = R_b
+    R_a^T, t_ba = R_b (c_a - c_b) with the camera centres c in NED) and the same probe grid. ``poses``: the
+    ``_cam_pose`` of each of ``bs`` if known."""
+    Ra, ca = _cam_pose(a)
+    poses = poses if poses is not None else [_cam_pose(b) for b in bs]
+    Rb = np.stack([p[0] for p in poses])
+    cb = np.stack([p[1] for p in poses])
+    R = Rb @ Ra.T                                                       # (n, 3, 3)
+    t = np.einsum("nij,nj->ni", Rb, ca[None, :] - cb)                  # (n, 3)
+    rot_deg = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    m = _probe_rays(a.camera)                                           # (3, p)
+    A = R @ m                                                           # (n, 3, p): X_b / x_c at rho = 0
+    rho = 1.0 / ref_range_m
+    den_inf = A[:, 0]
+    den_ref = den_inf + t[:, 0:1] * rho
+    ok = (den_inf > 1e-6) & (den_ref > 1e-6)
+    fx = np.array([b.camera.fx for b in bs])[:, None]
+    fy = np.array([b.camera.fy for b in bs])[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        du = fx * ((A[:, 1] + t[:, 1:2] * rho) / den_ref - A[:, 1] / den_inf)
+        dv = fy * ((A[:, 2] + t[:, 2:3] * rho) / den_ref - A[:, 2] / den_inf)
+    d = np.hypot(du, dv)
+    if ok.all():
+        disp = np.median(d, axis=1)
+    else:
+        disp = np.array([float(np.median(x[k])) if k.any() else 0.0 for x, k in zip(d, ok)])
+    return rot_deg, disp, np.linalg.norm(t, axis=1)
 
 
 def _size(f: PosedFrameInfo):

@@ -9,11 +9,13 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
    in a stereo rig, the reference camera's newest frame against the partner's frame of the same instant;
 3. each measurement (``measure(view_a, view_b)``, default the dense method without its own fill) fused into the
    state of its reference camera (``update``);
-4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it.
+4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it; a state's
+   last measurement and its map in one sweep (``update_and_map``), into the default measurement's arrays.
 
 ``push`` returns those maps (usually one: the frame's own camera; a stereo partner's frame returns the rig
 reference's map, which it updated). A frame not newer than its camera's state is dropped (``counts``
 ``out_of_order``). Timing per map: ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
+``states[camera_id]`` is valid until the next push of that camera (the one before is reused for its arrays).
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ from eonav.geometry.camera import View, pair_geometry
 from eonav.ranging.methods._common import far_inverse_range
 from eonav.ranging.pair_policy import PosedFrameInfo
 from eonav.ranging.rangemap import RangeResult
-from eonav.fusion.fused_map import MapConfig, fused_map
+from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.predict import ProcessNoise, predict
 from eonav.fusion.schedule import ScheduleConfig, Scheduler
 from eonav.fusion.state import InverseRangeState
@@ -74,13 +76,17 @@ class FusedMap:
 class FusionRunner:
     """Per-camera inverse-range states fed by a stream of posed frames (module docstring). One thread."""
 
-    def __init__(self, config: FusionConfig = FusionConfig(), measure=None):
+    def __init__(self, config: FusionConfig = FusionConfig(), measure=None, fresh_measurements: bool | None = None):
+        """fresh_measurements: ``measure`` returns results nobody else holds, so their arrays may become the fused
+        map's (no fresh memory per frame); None: True for the default measurement only."""
         self.config = config
         self.measure = measure or dense_measurement
+        self.fresh = (self.measure is dense_measurement) if fresh_measurements is None else bool(fresh_measurements)
         self.scheduler = Scheduler(config.schedule)
         self.states: dict[str, InverseRangeState] = {}
         self.frames: dict[str, PosedFrameInfo] = {}          # the frame each state is on
         self.counts: dict[str, int] = {}
+        self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
 
     def count(self, name: str, k: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + k
@@ -90,6 +96,7 @@ class FusionRunner:
         for cid in ([camera_id] if camera_id is not None else list(self.states)):
             self.states.pop(cid, None)
             self.frames.pop(cid, None)
+            self._spare.pop(cid, None)
 
     def remember(self, f: PosedFrameInfo) -> None:
         """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
@@ -112,7 +119,8 @@ class FusionRunner:
                 self.count("gap_resets")
                 old = None
             else:
-                self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise)
+                self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise, out=self._spare.get(cid))
+                self._spare[cid] = old
                 self.frames[cid] = f
                 if self.states[cid].occupied().any():      # nothing measured yet: no map to give
                     touched[cid] = []
@@ -123,17 +131,24 @@ class FusionRunner:
         measurements, reason = self.scheduler.offer(f)
         self.count(f"policy.{reason}")
         locate_s = 0.0
-        for m in measurements:
+        live = [m for m in measurements if self.frames.get(m.a.camera_id) is m.a]
+        if len(live) < len(measurements):                  # the reference's state moved on (or never started)
+            self.count("stale_measurements", len(measurements) - len(live))
+        last = {m.a.camera_id: i for i, m in enumerate(live)}
+        maps = {}
+        for i, m in enumerate(live):
             ref = m.a.camera_id
-            if self.frames.get(ref) is not m.a:       # the reference's state moved on (or never started)
-                self.count("stale_measurements")
-                continue
             t1 = time.perf_counter()
             res = self.measure(m.a.payload, m.b.payload)
             t2 = time.perf_counter()
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
-            counts = update(self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags,
-                            self.config.update, rho_far=rho_far)
+            args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
+            if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
+                # a fresh measurement's arrays (nobody else holds them) become the map's
+                counts, maps[ref] = update_and_map(*args, self.config.output, rho_far=rho_far,
+                                                   reuse=res if self.fresh else None)
+            else:
+                counts = update(*args, rho_far=rho_far)
             fusion_s += time.perf_counter() - t2
             locate_s += t2 - t1
             self.count(f"measurements.{m.kind}")
@@ -143,7 +158,7 @@ class FusionRunner:
         out = []
         for ref, ms in touched.items():
             t3 = time.perf_counter()
-            res = fused_map(self.states[ref], self.config.output)
+            res = maps[ref] if ref in maps else fused_map(self.states[ref], self.config.output)
             n_fused = res.info.pop("n_fused")
             dt = time.perf_counter() - t3
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))

@@ -50,6 +50,13 @@ class InverseRangeState:
                    np.zeros(shape, F32), np.zeros(shape, F32), np.zeros(shape, np.uint16),
                    np.zeros(shape, F32), np.zeros(shape, F32), np.zeros(shape, np.uint8), 0.0)
 
+    def clear(self) -> None:
+        """Every cell empty, in place."""
+        self.rho.fill(np.nan)
+        self.var.fill(np.inf)
+        for x in (self.a, self.b, self.n, self.du, self.dv, self.flags):
+            x.fill(0)
+
     @property
     def shape(self):
         return self.rho.shape

@@ -23,7 +23,12 @@ Beyond the published filter, for a stream that never ends and a scene that may m
   confidence in a few frames instead of never);
 - a cell whose inlier ratio falls below ``eta_outlier`` (diverged) restarts from the measurement;
 - an empty cell starts from its first measurement (mu = x, s^2 = tau^2, Beta(a_init, b_init)).
-Only measured pixels (VALID, not FILLED) update; the rest keep their prediction.
+Measured pixels update, the rest keep their prediction: VALID ones (not FILLED), and, with ``weak`` (default),
+ILL_CONDITIONED ones whose only fault is their own sigma (relative sigma above ``max_rel_std`` or rho within 2 sigma
+of 0: far or near the focus of expansion, where one pair has too little parallax): a single pair cannot range them,
+but their Gaussian measurements add up over the stream, which is the point of fusing (REMODE fuses every pixel with
+its own sigma). An ILL_CONDITIONED pixel whose sigma is tight was flagged for another reason (the dense method's
+point-at-infinity or orientation tests: its estimate is not to be trusted at that sigma) and is not fused.
 """
 from __future__ import annotations
 
@@ -33,21 +38,28 @@ from dataclasses import dataclass
 import numpy as np
 
 from eonav import InputError
-from eonav.ranging.rangemap import FILLED, VALID
+from eonav.ranging.rangemap import (FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION,
+                                   VALID)
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
+
+
+# a weak measurement: of these bits only ILL_CONDITIONED set
+WEAK_BITS = np.uint8(VALID | FILLED | ILL_CONDITIONED | LOW_TEXTURE | OUT_OF_VIEW | OCCLUDED | TRUNCATION)
 
 
 @dataclass(frozen=True)
 class UpdateConfig:
     rho_max_per_m: float = 2.0        # support of the uniform outlier density (nearest range 0.5 m)
-    sigma_scale: float = 1.0          # measurement sigma multiplier (correlation between pairs sharing frames)
+    sigma_scale: float = 1.0          # measurement sigma multiplier (the error pairs share: fused_map's slant term)
     a_init: float = 3.0               # Beta evidence of a cell started from one measurement: E[pi] = 0.75
     b_init: float = 1.0
     evidence_cap: float = 8.0         # a + b kept at most this (the last ~8 measurements' inlier ratio)
     eta_outlier: float = 0.45         # E[pi] below this: diverged, restart from the measurement
+    weak: bool = True                 # fuse ILL_CONDITIONED pixels whose only fault is their sigma (module docstring)
+    max_rel_std: float = 0.34         # the dense method's VALID limit of the relative sigma (what "weak" means)
 
     def __post_init__(self):
-        for name in ("rho_max_per_m", "sigma_scale", "a_init", "b_init", "evidence_cap"):
+        for name in ("rho_max_per_m", "sigma_scale", "a_init", "b_init", "evidence_cap", "max_rel_std"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"fusion update: {name} must be a finite number > 0, got {v!r}")
@@ -57,11 +69,42 @@ class UpdateConfig:
             raise InputError("fusion update: evidence_cap must be at least a_init + b_init")
 
 
-def measured(rho_m, std_m, flags_m) -> np.ndarray:
-    """Pixels of a measurement that carry one: VALID (measured, not FILLED) with a finite rho and sigma > 0."""
+def measured(rho_m, std_m, flags_m, cfg: UpdateConfig = UpdateConfig()) -> np.ndarray:
+    """Pixels of a measurement that carry one (finite rho, finite sigma > 0): VALID (not FILLED), and with
+    ``cfg.weak`` ILL_CONDITIONED ones with no other fault whose sigma alone explains the flag (module docstring)."""
+    rho_m = np.asarray(rho_m, F32)
+    std_m = np.asarray(std_m, F32)
     with np.errstate(invalid="ignore"):
-        return (((flags_m & np.uint8(VALID | FILLED)) == np.uint8(VALID)) & np.isfinite(rho_m)
-                & np.isfinite(std_m) & (std_m > 0))
+        ok = np.isfinite(rho_m) & np.isfinite(std_m) & (std_m > 0)
+        sel = (flags_m & np.uint8(VALID | FILLED)) == np.uint8(VALID)
+        if cfg.weak:
+            tight = (std_m <= F32(cfg.max_rel_std) * rho_m) & (rho_m >= F32(2.0) * std_m)
+            sel |= ((flags_m & WEAK_BITS) == np.uint8(ILL_CONDITIONED)) & ~tight
+    return sel & ok
+
+
+def measurement_arrays(rho_m, std_m, flags_m):
+    """The measurement as the kernels take it (float32, float32, uint8)."""
+    return np.asarray(rho_m, F32), np.asarray(std_m, F32), np.asarray(flags_m, np.uint8)
+
+
+def kernel_params(cfg: UpdateConfig):
+    """(bits, prm) of ``_kernels.update``."""
+    bits = np.array([VALID | FILLED, VALID, WEAK_BITS if cfg.weak else 0, ILL_CONDITIONED], np.uint8)
+    prm = np.array([cfg.max_rel_std, cfg.sigma_scale, cfg.rho_max_per_m, cfg.a_init, cfg.b_init, cfg.evidence_cap,
+                    cfg.eta_outlier], F32)
+    return bits, prm
+
+
+def counts_dict(n_meas, started, inl, outl, rest) -> dict:
+    return {"measured": int(n_meas), "started": int(started), "inliers": int(inl), "outliers": int(outl),
+            "restarted": int(rest)}
+
+
+def update_rho_far(state: InverseRangeState, rho_far: float | None) -> None:
+    """The state keeps the smallest far inverse range of the pairs fused."""
+    if rho_far is not None and rho_far > 0:
+        state.rho_far = rho_far if state.rho_far <= 0 else min(state.rho_far, float(rho_far))
 
 
 def gaussian_uniform_step(mu, s2, a, b, x, tau2, rho_max: float):
@@ -97,20 +140,17 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     if np.shape(rho_m) != state.shape:
         raise InputError(f"fusion update: measurement shape {np.shape(rho_m)} differs from the state {state.shape}")
     flags_m = np.asarray(flags_m, np.uint8)
-    meas = measured(rho_m, std_m, flags_m)
-    state.flags[...] = flags_m
-    if rho_far is not None and rho_far > 0:
-        state.rho_far = rho_far if state.rho_far <= 0 else min(state.rho_far, float(rho_far))
+    update_rho_far(state, rho_far)
     K = optional_kernels() if kernels is None or kernels else None
     if kernels and K is None:
         raise ImportError("update(kernels=True) needs numba")
     if K is not None:
-        started, inl, outl, rest = K.update(
-            state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, np.asarray(rho_m, F32),
-            np.asarray(std_m, F32), meas, F32(cfg.sigma_scale), F32(cfg.rho_max_per_m), F32(cfg.a_init),
-            F32(cfg.b_init), F32(cfg.evidence_cap), F32(cfg.eta_outlier))
-        return {"measured": int(meas.sum()), "started": int(started), "inliers": int(inl), "outliers": int(outl),
-                "restarted": int(rest)}
+        n_meas, started, inl, outl, rest = K.update(
+            state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags,
+            *measurement_arrays(rho_m, std_m, flags_m), *kernel_params(cfg))
+        return counts_dict(n_meas, started, inl, outl, rest)
+    meas = measured(rho_m, std_m, flags_m, cfg)
+    state.flags[...] = flags_m
     occ = state.occupied()
     s = F32(cfg.sigma_scale)
     start = np.flatnonzero(meas & ~occ)
@@ -144,5 +184,4 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     B[start] = cfg.b_init
     N[start] = 1
     inl = c1 > F32(0.5)
-    return {"measured": int(meas.sum()), "started": int(start.size), "inliers": int(inl.sum()),
-            "outliers": int((~inl).sum()), "restarted": int(diverged.sum())}
+    return counts_dict(meas.sum(), start.size, inl.sum(), (~inl).sum(), diverged.sum())

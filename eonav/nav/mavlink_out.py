@@ -3,7 +3,8 @@
 - ``encode_obstacle_distance(sectors, time_usec)``: the wire bytes of one MAVLink 2 message in the autopilots' own
   layout (``MAV_FRAME_BODY_FRD``, 72 x 5 degrees, ``angle_offset`` 0 = element 0's centre on the nose), from
   component 191; layouts either autopilot misreads are refused (``check_sectors``).
-- ``ObstacleDistanceSender``: one pymavlink connection with a companion HEARTBEAT at 1 Hz and OBSTACLE_DISTANCE on a
+- ``ObstacleDistanceSender``: one pymavlink connection (opened and re-opened with back-off by ``eonav.nav.links``
+  while the autopilot is not up; ``link_status()`` for the health) with a companion HEARTBEAT at 1 Hz and OBSTACLE_DISTANCE on a
   fixed timer carrying the merge of every camera's fresh sectors (ArduPilot resets all sectors on each message).
   Once every source is stale it sends ONE all-unknown message and then none until a fresh map arrives: a stall must
   look like a dead sensor (No Data at the autopilot), not like an empty sky. ``tick()`` takes an injected clock.
@@ -107,12 +108,11 @@ class ObstacleDistanceSender:
         self._flushed = True                    # nothing to flush before the first sectors
         self._next_send = self._next_hb = 0.0
         self.counters = {"od_sent_fresh": 0, "od_sent_flush": 0, "heartbeats_sent": 0, "send_errors": 0}
-        if conn is None:
-            mu = mavutil()
-            try:
-                conn = mu.mavlink_connection(connection, source_system=system_id, source_component=component_id)
-            except Exception as e:        # pymavlink raises anything from OSError to ModuleNotFoundError('serial')
-                raise InputError(f"cannot open MAVLink output {connection!r}: {type(e).__name__}: {e}") from None
+        self.link = None
+        if conn is None:    # opened and re-opened with back-off (eonav.nav.links); a malformed string is an InputError
+            from eonav.nav.links import MavLink
+            self.link = MavLink(connection, what="MAVLink output", source_system=system_id,
+                                source_component=component_id, clock=clock)
         self.conn = conn
 
     def update(self, sectors: Sectors, stamp_us: int, source: str = "") -> None:
@@ -135,11 +135,24 @@ class ObstacleDistanceSender:
         except OSError as e:
             self.counters["send_errors"] += 1
             log.warning("MAVLink send on %s failed: %s", self.connection, e)
+            if self.link is not None:
+                self.link.mark_lost(self.conn, e)
+
+    def link_status(self) -> tuple:
+        """(state, detail) of the output link: ``up``, ``silent`` (open, the autopilot not heard) or ``down``."""
+        return self.link.status() if self.link is not None else ("up", "")
 
     def tick(self) -> float:
         """Send whatever is due now; return the seconds until the next thing is due."""
         mu = mavutil()
         now = self._clock()
+        if self.link is not None:
+            for _ in range(200):            # read what the autopilot sends: its HEARTBEAT says the link is up
+                if self.link.recv(0) is None:
+                    break
+            self.conn = self.link.conn
+            if self.conn is None:           # not up yet: nothing to send on; the link retries with back-off
+                return 0.1
         if now >= self._next_hb:
             self._send(lambda: self.conn.mav.heartbeat_send(mu.mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
                                                             mu.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0),
@@ -168,6 +181,9 @@ class ObstacleDistanceSender:
             stop_event.wait(self.tick())
 
     def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+            return
         try:
             self.conn.close()
         except Exception:  # closing a half-open link must not mask the real shutdown path

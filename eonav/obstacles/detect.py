@@ -49,6 +49,8 @@ class ObstacleConfig:
     min_obstacle_pixels: int = 12      # smallest component kept (list and sectors)
     min_obstacle_height_m: float = 0.3  # flatter components (5..95 % of down) are mismatch speckle, dropped
     max_obstacles: int = 32            # nearest first
+    min_fused: int = 1                 # fused maps: pixels fused from fewer measurements are ignored (agreement
+                                       # needs at least two); maps without n_fused are not affected
     max_width_px: int = 160            # pool the map to at most this many columns (0: full resolution)
     pool_percentile: float = 10.0      # which confident pixel of a pooling block stands for it (0 = the nearest)
 
@@ -76,7 +78,7 @@ class ObstacleConfig:
             raise InputError(f"obstacle config: max_width_px must be an integer >= 0, got {self.max_width_px!r}")
         if self.ground_down_m is not None and not math.isfinite(self.ground_down_m):
             raise InputError("obstacle config: ground_down_m must be finite or None")
-        for name in ("min_sector_pixels", "min_clear_pixels", "min_obstacle_pixels", "max_obstacles"):
+        for name in ("min_sector_pixels", "min_clear_pixels", "min_obstacle_pixels", "max_obstacles", "min_fused"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise InputError(f"obstacle config: {name} must be an integer >= 1, got {v!r}")
@@ -192,8 +194,10 @@ def frame_grid(camera: Camera, frame_size=None) -> tuple:
     return fw, fh, (fw / camera.width) * (fh / camera.height)
 
 
-def confident_mask(range_m, confidence=None, flags=None, inv_range_std_per_m=None, cfg: ObstacleConfig = ObstacleConfig()):
-    """Pixels with a finite positive range the estimator stands behind."""
+def confident_mask(range_m, confidence=None, flags=None, inv_range_std_per_m=None, cfg: ObstacleConfig = ObstacleConfig(),
+                   n_fused=None):
+    """Pixels with a finite positive range the estimator stands behind (``n_fused``: measurements per pixel of a
+    fused map, at least ``cfg.min_fused``)."""
     r = np.asarray(range_m, np.float32)
     with np.errstate(invalid="ignore"):
         m = np.isfinite(r) & (r > 0)
@@ -204,6 +208,8 @@ def confident_mask(range_m, confidence=None, flags=None, inv_range_std_per_m=Non
         if inv_range_std_per_m is not None:
             s = np.asarray(inv_range_std_per_m, np.float32)
             m &= ~(s * r > cfg.max_rel_std)           # sigma_r / r = sigma_rho * r (first order); NaN std passes
+        if n_fused is not None and cfg.min_fused > 1:
+            m &= np.asarray(n_fused) >= cfg.min_fused
     return m
 
 
@@ -369,7 +375,7 @@ class ObstacleResult:
 
 def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags=None, inv_range_std_per_m=None,
             cfg: ObstacleConfig = ObstacleConfig(), now_state: VehicleState | None = None,
-            frame_size=None) -> ObstacleResult:
+            frame_size=None, n_fused=None) -> ObstacleResult:
     """Sectors and obstacle list of one range map (see the module docstring).
 
     ``state`` is the vehicle pose at capture (it places the points, eq. 33). ``now_state``, when given, is
@@ -386,7 +392,9 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     frame (tests/test_obstacles.py), for a quarter of the pixels at scale 0.5."""
     _check_maps(range_m, confidence, flags, inv_range_std_per_m, camera)
     fw, fh, area = frame_grid(camera, frame_size)
-    conf_m = confident_mask(range_m, confidence, flags, inv_range_std_per_m, cfg)
+    if n_fused is not None and np.shape(n_fused) != np.shape(range_m):
+        raise InputError(f"n_fused has shape {np.shape(n_fused)}, expected {np.shape(range_m)} like range_m")
+    conf_m = confident_mask(range_m, confidence, flags, inv_range_std_per_m, cfg, n_fused)
     k = pool_factor(camera.width, cfg)
     idx, weight, cell, grid = pool_confident(np.asarray(range_m, np.float32), conf_m, k, cfg.pool_percentile)
     if area != 1.0:

@@ -397,6 +397,20 @@ class Tracker:
         self.last_stamp_us = stamp_us
         return self.tracks
 
+    def label(self, measurements) -> list:
+        """The id of the live track each measurement supports (inside its gate, nearest by Mahalanobis distance),
+        0 where none does: the stable id an obstacle list's detections carry after ``update``."""
+        out = []
+        for m in measurements:
+            best, best_d2 = 0, self.cfg.gate_chi2
+            for t in self._tracks:
+                y = m.position_ned_m - t.x[:3]
+                d2 = float(y @ np.linalg.solve(t.P[:3, :3] + m.cov_ned_m2, y))
+                if d2 <= best_d2:
+                    best, best_d2 = t.id, d2
+            out.append(best)
+        return out
+
     def _associate(self, meas) -> list:
         if not self._tracks or not meas:
             return []

@@ -1,9 +1,10 @@
-"""``eonav bench locate|fuse|pipeline``: benchmarks that print figures."""
+"""``eonav bench locate|fuse|pipeline|soak``: benchmarks that print figures."""
 from __future__ import annotations
 
 import importlib
 
-TARGETS = {"locate": "eonav.app.bench_locate", "fuse": "eonav.app.bench_fuse", "pipeline": "eonav.app.bench_pipeline"}
+TARGETS = {"locate": "eonav.app.bench_locate", "fuse": "eonav.app.bench_fuse", "pipeline": "eonav.app.bench_pipeline",
+           "soak": "eonav.app.bench_soak"}
 
 
 def add_arguments(p) -> None:

@@ -13,9 +13,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("seq", help="pair file with N >= 2 frames in time order (docs/pair-file.md)")
     p.add_argument("--out", required=True, help="output .npz: the fused map of the last frame of the first frame's camera")
     p.add_argument("--out-dir", help="also write range_{k:04d}.npz for every frame index k that got a map")
-    p.add_argument("--stereo-dt", type=float, default=0.002,
+    p.add_argument("--max-stereo-dt-s", type=float, default=0.002, metavar="S",
                    help="frames of two cameras at most this many seconds apart are a stereo pair (the first frame's "
-                        "camera is the reference)")
+                        "camera is the reference; the locator's --max-stereo-dt-s)")
+    p.add_argument("--stereo-dt", dest="max_stereo_dt_s", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
 def check_sequence(doc) -> None:
@@ -83,8 +84,8 @@ def run(args) -> int:
         if prev and pf.frames[i]["t"] <= pf.frames[prev[-1]]["t"]:
             raise InputError(f"frames[{i}].t: {pf.frames[i]['t']!r} is not after frames[{prev[-1]}].t "
                              f"{pf.frames[prev[-1]]['t']!r} of the same camera {cam!r}")
-    rig = stereo_rig(pf, args.stereo_dt)
-    runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=rig, max_stereo_dt_s=args.stereo_dt)))
+    rig = stereo_rig(pf, args.max_stereo_dt_s)
+    runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=rig, max_stereo_dt_s=args.max_stereo_dt_s)))
     views = pf.views()
     out_dir = check_output_dir(args.out_dir) if args.out_dir else None
     ref = pf.frames[0]["camera"]

@@ -15,10 +15,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--truth", help="ground-truth .npz with range_m (e.g. from 'eonav sim'): print an accuracy summary")
     p.add_argument("--timing", action="store_true", help="time the estimator; last stdout line is JSON")
     p.add_argument("--repeat", type=int, default=5, help="runs for --timing (median after one warm-up)")
-    p.add_argument("--threads", type=int, default=0, help="OpenCV threads (0 = OpenCV default)")
+    p.add_argument("--cv-threads", type=int, default=-1, metavar="N",
+                   help="cv2.setNumThreads(N); -1 (default) keeps OpenCV's default, 0 disables its threading")
+    p.add_argument("--threads", dest="cv_threads", type=int, action=_OldThreads, default=argparse.SUPPRESS,
+                   help=argparse.SUPPRESS)
     p.add_argument("--measured-only", action="store_true",
                    help="dense: no FILLED pixels (ranges the pair could not measure, inferred from their neighbours); "
                         "range_m is then finite on VALID pixels only")
+
+
+class _OldThreads(argparse.Action):
+    """``--threads N``, the old spelling of ``--cv-threads``, where 0 meant OpenCV's default (now -1)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, -1 if values == 0 else values)
 
 
 def accuracy_summary(range_m, truth_m, confidence=None) -> dict:
@@ -89,9 +99,9 @@ def run(args) -> int:
     from eonav.io.pairfile import load_pair_file
     from eonav.ranging.locate import get_method
 
-    if args.threads:
+    if args.cv_threads >= 0:
         import cv2
-        cv2.setNumThreads(args.threads)
+        cv2.setNumThreads(args.cv_threads)
     check_output(args.out, "--out")                     # before any work: a path that cannot be written fails now
     if args.png:
         check_png_output(args.png)
@@ -120,7 +130,7 @@ def run(args) -> int:
               f"{100 * s['within_5pct']:.1f} % of estimates within 5 %, coverage {100 * s['coverage']:.1f} % "
               f"of {s['scene_pixels']} non-sky pixels")
     if args.png:
-        from eonav.app.viz import write_range_png
+        from eonav.io.viz import write_range_png
         write_range_png(args.png, r, a.image, confidence=res.confidence)
         print(f"picture -> {args.png}")
     if args.timing:

@@ -24,7 +24,12 @@ def run(args) -> int:
 
     module = _module_path(args.name)
     if not module_exists(module):
-        raise InputError(f"no service module {module!r} (services available: {', '.join(available())})")
+        import difflib
+        names = available()
+        close = difflib.get_close_matches(args.name, names, n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        raise InputError(f"no service {args.name!r} (no module {module}); {hint}services: {', '.join(names)}, "
+                         f"or a dotted module path")
     rest = list(args.service_args)
     if rest and rest[0] == "--":
         rest = rest[1:]

@@ -1,5 +1,6 @@
 """Helpers shared by the dense method and the flow baseline: pyramid-level geometry, the exact epipolar map
-and its derivative in inverse range, and the final classification of per-pixel estimates into a RangeResult.
+and its derivative in inverse range, the final classification of per-pixel estimates into a RangeResult, and the
+loading of the numba kernels.
 
 Pyramid convention: ``cv2.pyrDown`` puts level-L pixel x at level-0 pixel 2^L x (kernel centred on the even
 pixels), so the level-L intrinsics are simply f / 2^L and c / 2^L; inverse range rho = 1/x_c is the same
@@ -211,15 +212,18 @@ def rectified_stereo_baseline(geo: PairGeometry, tol: float = 1e-6):
 
 
 @lru_cache(maxsize=None)
-def optional_kernels(name: str):
-    """The numba kernel module ``eonav.ranging.methods.<name>``, or None when numba is not installed (the caller's
-    OpenCV / numpy path runs instead)."""
+def numba_kernels(name: str):
+    """The numba kernel module ``eonav.ranging.methods.<name>``: the methods' only implementation of their per-pixel
+    work. numba is a dependency of eonav; without it, an ImportError that says so (not a silent slow path)."""
     try:
         return importlib.import_module(f"{__package__}.{name}")
-    except ImportError:
-        return None
+    except ModuleNotFoundError as e:
+        if e.name not in ("numba", "llvmlite"):
+            raise
+        raise ImportError(f"eonav.ranging.methods.{name} needs numba, a dependency of eonav (pip install 'numba>=0.59'): "
+                          f"{e}") from e
 
 
 __all__ = ["EpipolarMap", "level_camera", "pyramid", "pyr_up_to", "classify", "classify_into", "make_result", "no_motion_result",
            "far_inverse_range", "to_u8", "rectified_stereo_baseline", "pair_geometry", "View",
-           "optional_kernels"]
+           "numba_kernels"]

@@ -1,25 +1,23 @@
-"""Fused per-pixel kernels (numba) of the dense method (``dense.locate_dense`` with ``fused``).
+"""Numba kernels of the dense method (``dense.locate_dense``): its only implementation of the per-pixel work.
 
 ``gn_level`` does one re-linearised Gauss-Newton step of a whole pyramid level in one pass: rows stream through a
 ring of window-height term planes (the map into b, b's bilinear samples, the Huber-weighted normal-equation terms),
 and as soon as a row's window is complete its window sums (at the coarse levels the shiftable windows' choice,
 ``_shift_windows_row``), its update and (final step) its uncertainty, flags and classification follow. Nothing
-per pixel is written but the outputs, where the OpenCV path (``dense._gn_block``, the reference and the fallback
-without numba) makes ~100 passes over each strip of rows. The arithmetic is the
-OpenCV path's, in float32 with its fused multiply-adds (``_fma``); the window sums add in another order and the
-borders of the warp round differently, so the two agree to float rounding, not bit for bit
-(tests/test_dense.py::test_fused_kernels_match_opencv_path). ``scharr`` and ``pack_b4p`` prepare a level (a's
-gradient; b with its gradient and a zero border as the warp source).
+per pixel is written but the outputs. ``scharr`` and ``pack_b4p`` prepare a level (a's gradient; b with its
+gradient and a zero border as the warp source), ``residual_grid`` samples the residual for the noise estimate.
+The coarse epipolar search (``dense._search``) has its kernels here too (``search_*``).
+
+The arithmetic is float32 with fused multiply-adds (``_fma``), as OpenCV computes it. tests/dense_reference.py
+formulates the same steps with OpenCV array operations: the search gives the same result bit for bit
+(tests/test_dense.py::test_search_kernels_match_reference); the Gauss-Newton steps agree to float rounding (the
+window sums add in another order and the borders of the warp round differently:
+tests/test_dense.py::test_kernels_match_reference).
 
 Writing kernels numba vectorises: index row views with the loop variable itself, or with unsigned offsets (numba
 tests a signed index that varies along the loop for wraparound on every element, which stops the vectorisation);
 no views inside per-row loops (each costs ~20 ns of reference counting); keep branches out of the elementwise
 loops (selects vectorise).
-
-The coarse epipolar search (``dense._search_fused``) has its kernels here too (``search_*``), bit-identical to
-``dense._search``'s OpenCV path (tests/test_dense.py::test_fused_search_matches_opencv_search).
-
-Imported only when numba is installed (``_common.optional_kernels``); without it the OpenCV path runs.
 """
 from __future__ import annotations
 
@@ -64,8 +62,8 @@ def _fma32(typingctx, a, b, c):
 @njit(inline="always", **_JIT)
 def _fma(a, b, c):
     """a * b + c rounded once to float32, as OpenCV's scaleAdd / accumulateProduct / accumulateSquare compute it
-    here (fused multiply-add; llvm.fma.f32). It was a float64 product and sum rounded to float32: the same but for
-    ties that double rounding breaks differently, and ~1.5x the time of the final-level kernel."""
+    here (fused multiply-add; llvm.fma.f32; a float64 product and sum rounded to float32 would break ties
+    differently, at a higher cost)."""
     return _fma32(a, b, c)
 
 
@@ -168,7 +166,7 @@ def search_warp(disp, per_pixel, rows, A0, A1, A2, cn, cap, fx, cx, fy, cy, B0, 
 def search_cost(mb, vbb, cab, good, ma, va, noise4, p, cost):
     """Cost 1 - ZNCC of one chunk (m, h, w) from the window sums of the warped b (mb: mean, vbb: mean square,
     cab: mean product with a; (m * hp, w) planes) and a's (ma, va: mean and variance (>= 0), rows of the padded
-    a); 2 where the hypothesis is out of view. The arithmetic of dense._search's OpenCV path."""
+    a); 2 where the hypothesis is out of view."""
     m, h, w = cost.shape
     hp = h + 2 * p
     for k in range(m):
@@ -192,10 +190,10 @@ def search_cost(mb, vbb, cab, good, ma, va, noise4, p, cost):
 
 @njit(**_JIT)
 def search_wta(agg, cost, hyp, per_pixel, A0, cn, B0, cap, va, noise2, rho_o, conf_o):
-    """dense._wta (first minimum over the hypotheses of agg, parabola fit of the sub-sample offset), np.interp of
+    """Winner-take-all (first minimum over the hypotheses of agg, parabola fit of the sub-sample offset), np.interp of
     the fractional index into the hypotheses (hyp: displacements with per_pixel, else inverse ranges), the rho of
     that displacement (per_pixel: ``_rho_at_disp``), and the confidence clip(1 - cost, 0, 1)^2 x texture
-    (va / (va + noise2)): dense._search's arithmetic, per pixel."""
+    (va / (va + noise2)), per pixel."""
     n, h, w = agg.shape
     bestr = np.empty(w, F32)
     kbr = np.empty(w, np.int64)
@@ -266,7 +264,7 @@ def search_wta(agg, cost, hyp, per_pixel, A0, cn, B0, cap, va, noise2, rho_o, co
             conf_o[y, x] = (q * q) * tex
 
 
-# --- one Gauss-Newton step of a whole pyramid level in one pass (dense._gn_level_fused): rows stream through a ring
+# --- one Gauss-Newton step of a whole pyramid level in one pass (dense._gauss_newton_step): rows stream through a ring
 # of window-height term planes; the window sums, the update and (final) the uncertainty, flags and classification
 # of a row follow as soon as its window is complete. Nothing but the ring (a few hundred KiB) is written per pixel.
 
@@ -547,7 +545,7 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
     rw[5] + kc[5] clipped to [0, cap_hi] when use_cap, else cap_hi; shift > 0: shiftable windows,
     ``_shift_windows_row``). final: also the uncertainty, flags and classification (std_o .. amb_o; fp: the
     thresholds of dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr, occ_px2, occ_thr, orient_min,
-    rho_far, max_rel_std). Infinity test (dense._infinity_ambiguous): inf_mode 1 writes its verdict into inf_o;
+    rho_far, max_rel_std). Infinity test (does a point at infinity explain the window as well?): inf_mode 1 writes its verdict into inf_o;
     inf_mode 2 (final) uses it for the flags; otherwise a non-empty amb_in (uint8, a coarser level's verdict) is
     used.
     Returns (n_valid, n_at_infinity)."""
@@ -621,7 +619,7 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
 @njit(inline="always", **_JIT)
 def _window_cost(sJJ, sJq, s0, sJ, sq, sqq):
     """A window's weighted residual after its least-squares solution (rho and the brightness offset), per unit
-    weight (dense._shift_windows); +inf where not finite."""
+    weight (the shiftable windows' cost); +inf where not finite."""
     s1n = sJ / s0
     gp = sJq - sq * s1n
     hp = sJJ - sJ * s1n
@@ -641,7 +639,7 @@ def _shift_code(c0, cl, cr, ratio):
 
 @njit(**_JIT)
 def _shift_windows_row(hs, sh, ratio, cost, code, sel):
-    """dense._shift_windows on one row of window means (hs rows 0-4 and _S_WQQ), into sel (rows 0-4): a pixel takes
+    """The shiftable windows on one row of window means (hs rows 0-4 and _S_WQQ), into sel (rows 0-4): a pixel takes
     the sums of the window sh pixels to its left or right (clamped at the border) where that one's cost is below
     ratio x its centred window's. The interior columns by shifted views (numba vectorises the selects), the sh
     columns at each border one by one."""
@@ -694,7 +692,7 @@ def _update_row(sJJ, sJq, sW, sJ, sq, E2, R, lam_c, use_cap, capr, capc, cap_hi,
         hi = cap_hi
         if use_cap:
             c = capr[x] + capc
-            hi = c if c < cap_hi else cap_hi        # np.clip(c, 0, cap_hi), as _Level.cap_rows
+            hi = c if c < cap_hi else cap_hi        # np.clip(c, 0, cap_hi)
             hi = _ZERO if hi < _ZERO else hi
         out[x] = hi if v > hi else v
 
@@ -702,8 +700,8 @@ def _update_row(sJJ, sJq, sW, sJ, sq, E2, R, lam_c, use_cap, capr, capc, cap_hi,
 @njit(**_JIT)
 def _classify_row(rho_r, R, E2, H, S0, G, G3, R2, Mx, My, mf, amb, fp, noise_info, std_o, flags_o, rng_o, conf_o,
                   amb_o):
-    """One row's uncertainty, flags and classification from its final window means (dense._gn_block's arithmetic
-    and _common.classify_into's rules; fp: dense._Final's thresholds noise_G, var_k, floor2, trunc2, low_thr,
+    """One row's uncertainty, flags and classification from its final window means (the rules of
+    _common.classify_into; fp: dense._Final's thresholds noise_G, var_k, floor2, trunc2, low_thr,
     occ_px2, occ_thr, orient_min, rho_far, max_rel_std); amb: the infinity test's verdict (1: a point at infinity
     explains the window as well), amb_o: where it made the pixel ILL_CONDITIONED. Returns (n_valid,
     n_at_infinity). Branch-free (selects): numba vectorises it."""

@@ -1,10 +1,9 @@
-"""Fused per-pixel passes (numba) of the fill (``fill.fill_unmeasured``): the pixels' sums into the first octave's
-cells, and the cells' planes back to the pixels with the gating and the writing of the outputs, each one pass where
-the numpy path of ``fill`` makes about ten full-resolution array passes. The octaves' plane fits in between stay
-numpy / OpenCV (they run on the cells: 1/16 of the pixels and less).
-tests/test_fill.py::test_fill_kernels_match_numpy_path compares the two.
-
-Imported only when numba is installed; without it the numpy path runs.
+"""Numba kernels of the fill (``fill.fill_unmeasured``): the pixels' sums into the first octave's cells, each
+octave's weighted plane fit per cell (``plane``), the coarse-to-fine merge of the octaves (``merge``), and the cells'
+planes back to the pixels with the gating and the writing of the outputs (``to_pixels``): one pass each. The
+window sums between them stay OpenCV's box filters on the cells (1/16 of the pixels and less). The planes are
+fitted in float64 inside. tests/fill_reference.py holds the numpy formulation (float32) that
+tests/test_fill.py::test_fill_kernels_match_reference checks them against.
 """
 from __future__ import annotations
 

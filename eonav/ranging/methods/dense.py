@@ -1,52 +1,54 @@
-"""The default range estimator: a dense, direct inverse-range method (brightness constancy + known motion).
+"""The default range estimator "dense": a direct inverse-range method (brightness constancy and known motion).
 
-Idea (the paper's, eqs. 25-28, made robust): with the relative pose known, every pixel of image a can
-only move along its epipolar curve in image b, parameterised exactly by its inverse range rho = 1/x_c
-(eqs. 25-26, ``_common.EpipolarMap``). Brightness constancy I_b(map(rho)) = I_a is then ONE equation in
-ONE unknown per pixel; its first-order expansion (the paper's eq. 27 after multiplying through by the
-denominator of eqs. 25-26) is linear in rho. We solve it
+With the relative pose known, every pixel of image a can only move along its epipolar curve in image b, which is
+parameterised exactly by its inverse range rho = 1/x_c (the paper's eqs. 25-26, ``_common.EpipolarMap``).
+Brightness constancy I_b(map(rho)) = I_a is then one equation in one unknown per pixel; its first-order
+expansion (eq. 27, multiplied through by the denominator of eqs. 25-26) is linear in rho. ``locate_dense`` runs
+the method in four stages (docs/methods.md describes it):
 
-1. where the first-order model breaks (disparities of many pixels) by a 1-D search over inverse-range
-   hypotheses along the epipolar curve, uniform in each pixel's own displacement, at a coarse pyramid level
-   (windowed ZNCC, winner-take-all, parabola sub-sample fit, 3x3 median) -- no 2-D flow search anywhere;
-2. then coarse-to-fine by re-linearised Gauss-Newton: at each level warp b at the current rho
-   (cv2.remap), so that the Taylor remainder (eq. 7) stays small, and solve the windowed (box), Huber-
-   weighted normal equations of r + J (rho' - rho) = 0, r = I_b(map(rho)) - I_a,
-   J = grad I . d(u_b, v_b)/d rho (analytic derivative of the rational map) with the gradient averaged over
-   I_a and the warped I_b (eq. 27's symmetric form: a second-order step, half the interpolation bias of a
-   one-sided gradient), with a Levenberg trust term worth about ``trust_px`` pixels of displacement.
+1. search: at a coarse pyramid level, where the first-order model breaks (disparities of many pixels), a 1-D
+   search over inverse-range hypotheses along each pixel's epipolar curve, uniform in the pixel's own
+   displacement (windowed ZNCC, winner-take-all, parabola sub-sample fit), then a 3 x 3 median and a
+   normalised-convolution fill of the weak matches: the seed of the refinement. No 2-D flow search anywhere;
+2. refine per level, coarse to fine: re-linearised Gauss-Newton steps. Each warps b at the current rho, so that
+   the Taylor remainder (eq. 7) stays small, and solves the windowed, Huber-weighted normal equations of
+   r + J (rho' - rho) = 0 with r = I_b(map(rho)) - I_a and J = grad I . d(u_b, v_b)/d rho (the gradient
+   averaged over I_a and the warped I_b: eq. 27's symmetric form), a brightness offset per window eliminated,
+   shiftable windows at the coarse levels and a Levenberg trust term worth ``trust_px`` pixels of displacement;
+3. classify, in level 0's last step: per-pixel 1-sigma of rho from the normal equations and the noise (robust MAD
+   of the residual), confidence rho / sigma, and the flags OUT_OF_VIEW (the map leaves b or lies behind it;
+   OCCLUDED: a windowed residual neither the noise nor a small misregistration explains), LOW_TEXTURE,
+   ILL_CONDITIONED (focus of expansion, gradient across the epipolar direction, relative sigma above
+   ``max_rel_std``, or a point at infinity explains the window as well), TRUNCATION (the last step still moved by
+   more than ``trunc_px``) and AT_INFINITY (rho within 2 sigma of 0 with a tight sigma: range +inf);
+4. fill: the pixels without a measurement get an inverse range from plane fits of the measured ones around them
+   (``fill.fill_unmeasured``), flagged FILLED.
 
-Per-pixel 1-sigma of rho from the normal equations and the noise (robust MAD of the final residual),
-confidence = rho / sigma. Flags: OUT_OF_VIEW (map leaves b, behind b, or occluded = high windowed
-residual), LOW_TEXTURE (gradient energy not above the noise's own), ILL_CONDITIONED (focus of expansion,
-gradient perpendicular to the epipolar direction, relative std above ``max_rel_std``), TRUNCATION
-(eq. 7-style: the last update still moved by more than ``trunc_px``), AT_INFINITY (rho within 2 sigma
-of 0 with a tight sigma: range +inf).
-
-All per-pixel work is float32 numpy / OpenCV or (when numba is installed) fused numba kernels (``_dense_kernels``,
-``fused``) that give the same result to float rounding: no per-pixel Python. With numba each Gauss-Newton step of a
-level is one pass (rows streamed through a ring of window-height term planes). The OpenCV path runs the steps, the
-flags and the classification on strips of rows (``strip_px`` pixels each including a half-window halo, so the
-box sums are exactly those of the whole image): the temporaries of a strip are 16 work planes that stay in
-the CPU cache; they and the large per-level buffers (warp source, gradients, cost volume) are per-thread work
-buffers reused from strip to strip and call to call (_ws), never fresh (page-faulting) arrays.
+The per-pixel work runs in numba kernels (``_dense_kernels``): one pass per Gauss-Newton step of a level, three
+kernels for the search. They are the only implementation (numba is a dependency of eonav; importing this module
+without it fails, naming numba); tests/dense_reference.py holds an independent OpenCV formulation of the same
+arithmetic, which the tests check the kernels against. Large per-level buffers are per-thread work buffers
+reused from call to call (``_ws``).
 """
 from __future__ import annotations
 
 import math
 import threading
 import time
+from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
 import numpy as np
 
 from eonav import InputError
-from eonav.geometry.camera import View, pair_geometry
-from eonav.ranging.rangemap import ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID, RangeResult
-from eonav.ranging.methods._common import (F32, EpipolarMap, classify_into, far_inverse_range, make_result,
-                      no_motion_result, optional_kernels, pyr_up_to, pyramid)
+from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
+from eonav.ranging.methods._common import (F32, EpipolarMap, far_inverse_range, make_result, no_motion_result,
+                                           numba_kernels, pyr_up_to, pyramid)
 from eonav.ranging.methods.fill import fill_unmeasured
+from eonav.ranging.rangemap import RangeResult
+
+_K = numba_kernels("_dense_kernels")
 
 METHOD = "dense"
 _BR = cv2.BORDER_REFLECT
@@ -61,12 +63,11 @@ _TLS = threading.local()
 
 
 def _ws(key, shape, dtype=F32, fill=None) -> np.ndarray:
-    """A per-thread work buffer, reused from call to call (never part of a result). Large fresh arrays cost
-    a page fault per 4 KiB page on every call (the allocator returns them to the OS): ~1000 faults for the
-    4-channel warp source of a 512 x 512 image alone. ``fill``: constant contents, written once."""
+    """A per-thread work buffer, reused from call to call (never part of a result): large fresh arrays cost a page
+    fault per 4 KiB page on every call (the allocator returns them to the OS). ``fill``: constant contents, written
+    once."""
     d = getattr(_TLS, "bufs", None)
     if d is None or len(d) > 128:      # bounded: a stream of ever-new image sizes cannot grow it without end
-        # (one 512 x 512 locate holds ~50 buffers: the strips' work planes, caches and warps per level)
         d = _TLS.bufs = {}
     k = (key, tuple(shape), np.dtype(dtype).str, fill)
     a = d.get(k)
@@ -82,11 +83,11 @@ def _box_kernel(win: int) -> np.ndarray:
     return np.full(win, 1.0 / win, F32)
 
 
-def _box(img: np.ndarray, win: int) -> np.ndarray:
-    """Mean over a win x win window (reflected border). A separable direct filter: for the small windows
-    used here OpenCV's SIMD sepFilter2D is ~1.6x faster than its running-sum boxFilter."""
+def _box(img: np.ndarray, win: int, dst: np.ndarray | None = None) -> np.ndarray:
+    """Mean over a win x win window (reflected border), into ``dst`` if given. A separable direct filter: for the
+    small windows used here OpenCV's SIMD sepFilter2D is faster than its running-sum boxFilter."""
     k = _box_kernel(win)
-    return cv2.sepFilter2D(img, -1, k, k, borderType=_BR)
+    return cv2.sepFilter2D(img, -1, k, k, dst=dst, borderType=_BR)
 
 
 def _grad(img: np.ndarray):
@@ -245,91 +246,6 @@ def _sgm(cost: np.ndarray, img: np.ndarray, P1: float, P2: float, tau: float) ->
             + _sgm_paths(cv, img, P1, P2, tau).transpose(1, 0, 2))
 
 
-def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, win: int, noise: float,
-            sgm_p1: float = 0.0, sgm_p2: float = 0.0, sgm_tau: float = 0.0, chunk_px: int = 32768,
-            disp=None, cap=None, K=None):
-    """Windowed ZNCC along the epipolar curve for all hypotheses at once (b warped for every hypothesis into
-    one tall image, each slab padded by symmetric rows so the box filters do not mix hypotheses);
-    optional semi-global aggregation (sgm_p2 > 0); winner-take-all with a parabola sub-sample fit.
-    Returns rho (h x w) and the confidence of the winner. K: the numba kernels (``_search_fused``), else the
-    OpenCV path (the reference)."""
-    if K is not None:
-        return _search_fused(K, a, b, emap, rhos, win, noise, sgm_p1, sgm_p2, sgm_tau, chunk_px, disp, cap)
-    h, w = a.shape
-    n = len(rhos)
-    p = win // 2
-    B = emap.B
-    cb = emap.cam_b
-    hp = h + 2 * p
-    hb, wb = b.shape
-    # maps on the rows of a padded by p symmetric rows; hypotheses in chunks of ~chunk_px pixels (one tall
-    # remap and box filtering per chunk: the temporaries stay in cache, the peak memory stays small)
-    A0, A1, A2 = (np.pad(x, ((p, p), (0, 0)), mode="symmetric")[None] for x in (emap.A0, emap.A1, emap.A2))
-    if disp is not None:      # hypotheses uniform in each pixel's own displacement (rhos = disp): rho per pixel
-        cn = np.hypot(emap.C1, emap.C2)
-        cn_p, cap_p = (np.pad(x, ((p, p), (0, 0)), mode="symmetric")[None] for x in (cn, cap))
-    P1 = A1 * F32(cb.fx) + A0 * F32(cb.cx)
-    P2 = A2 * F32(cb.fy) + A0 * F32(cb.cy)
-    Q1, Q2 = F32(cb.fx * B[1] + cb.cx * B[0]), F32(cb.fy * B[2] + cb.cy * B[0])
-    ap, ma, va, va_pos = _a_side(a, win)
-    cost = _ws("cost", (n, h, w))
-    c = (slice(None), slice(p, p + h))
-    step = max(1, min(n, chunk_px // (hp * w)))
-    # a-side statistics tiled once for a whole chunk: the per-hypothesis arithmetic is then OpenCV's
-    # array-array ops on 2-D (m * hp, w) images (no numpy broadcasting)
-    ap_t, ma_t, va_t = (np.tile(x, (step, 1)) for x in (ap, ma, va_pos))
-    noise4 = F32(noise ** 4)
-    mul, sub = cv2.multiply, cv2.subtract
-    # a chunk's temporaries in reused work planes (fresh ones page-fault: ~320 faults per locate)
-    Wk = _ws("search", (7, step * hp, w))
-    Wg = _ws("search_good", (2, step * hp, w), np.uint8)
-    for k0 in range(0, n, step):
-        k1 = min(n, k0 + step)
-        m = k1 - k0
-        mh = m * hp
-        if disp is not None:
-            R = _rho_at_disp(disp[k0:k1].astype(F32)[:, None, None], A0, cn_p, F32(B[0]), cap_p)
-        else:
-            R = rhos[k0:k1].astype(F32)[:, None, None]
-        inv, ub, vb = (Wk[i, :mh].reshape(m, hp, w) for i in (4, 5, 6))
-        # (per-pixel rho is +inf for a displacement the pixel can never reach: its map is NaN, the hypothesis
-        # out of view below)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            np.add(A0, B[0] * R, out=inv)
-            np.divide(F32(1.0), inv, out=inv)
-            np.multiply(np.add(P1, Q1 * R, out=ub), inv, out=ub)
-            np.multiply(np.add(P2, Q2 * R, out=vb), inv, out=vb)
-        ub2, vb2 = ub.reshape(mh, w), vb.reshape(mh, w)
-        good = cv2.bitwise_and(cv2.inRange(ub2, 0.0, float(wb - 1), dst=Wg[0, :mh]),
-                               cv2.inRange(vb2, 0.0, float(hb - 1), dst=Wg[1, :mh]), dst=Wg[0, :mh])
-        if not float(inv.min()) > 0:
-            good &= (inv.reshape(mh, w) > 0).view(np.uint8)
-        bw = cv2.remap(b, ub2, vb2, cv2.INTER_LINEAR, dst=Wk[0, :mh], borderMode=cv2.BORDER_REPLICATE)
-        mb = _box_to(bw, win, dst=Wk[1, :mh])
-        vbb = _box_to(mul(bw, bw, dst=Wk[2, :mh]), win, dst=Wk[2, :mh])
-        sub(vbb, mul(mb, mb, dst=Wk[3, :mh]), dst=vbb)
-        cab = _box_to(mul(bw, ap_t[:mh], dst=Wk[3, :mh]), win, dst=Wk[3, :mh])
-        sub(cab, mul(ma_t[:mh], mb, dst=mb), dst=cab)
-        np.maximum(vbb, 0, out=vbb)
-        mul(vbb, va_t[:mh], dst=vbb)
-        vbb += noise4
-        np.sqrt(vbb, out=vbb)
-        cv2.divide(cab, vbb, dst=cab)
-        ck = cost[k0:k1]
-        np.subtract(F32(1.0), cab.reshape(m, hp, w)[c], out=ck)
-        np.copyto(ck, F32(2.0), where=good.reshape(m, hp, w)[c] == 0)
-    vat = va[p:p + h]
-    tex = vat / (vat + F32(noise * noise))
-    kf, cbest = _wta(_sgm(cost, a, sgm_p1, sgm_p2, sgm_tau) if sgm_p2 > 0 else cost, cost)
-    # confidence of the winner: correlation (>= 0) times texture (windowed variance against the noise)
-    conf = np.clip(1.0 - cbest, 0.0, 1.0) ** 2 * tex
-    if disp is not None:
-        D = np.interp(kf.ravel(), np.arange(n), disp).reshape(h, w).astype(F32)
-        rho = _rho_at_disp(D, emap.A0, cn, F32(B[0]), cap)
-    else:
-        rho = np.interp(kf.ravel(), np.arange(n), rhos).reshape(h, w).astype(F32)
-    return rho, conf.astype(F32)
-
 
 @lru_cache(maxsize=8)
 def _pad_rows(h: int, p: int) -> np.ndarray:
@@ -339,19 +255,25 @@ def _pad_rows(h: int, p: int) -> np.ndarray:
 
 def _a_side(a: np.ndarray, win: int):
     """Image a padded by half a window of symmetric rows (as np.pad "symmetric"), its windowed mean and variance,
-    and the variance clipped at 0: the search's a-side statistics (both paths)."""
+    and the variance clipped at 0: the search's a-side statistics."""
     ap = a[_pad_rows(a.shape[0], win // 2)]
     ma = _box(ap, win)
     va = _box(ap * ap, win) - ma * ma
     return ap, ma, va, np.maximum(va, 0)
 
 
-def _search_fused(K, a, b, emap: EpipolarMap, rhos, win: int, noise: float, sgm_p1: float, sgm_p2: float,
-                  sgm_tau: float, chunk_px: int, disp, cap):
-    """_search with its per-pixel work in numba kernels (``_dense_kernels.search_*``): per chunk of hypotheses one
-    pass for the rho, the map, the in-view test and the bilinear sample of b with the products the box sums need,
-    OpenCV's box sums, one pass for the cost; one pass for the winner-take-all, the rho and the confidence. The
-    same float32 arithmetic as the OpenCV path (the sample reproduces cv2.remap's): the same result."""
+def _search(a: np.ndarray, b: np.ndarray, emap: EpipolarMap, rhos: np.ndarray, win: int, noise: float,
+            sgm_p1: float = 0.0, sgm_p2: float = 0.0, sgm_tau: float = 0.0, chunk_px: int = 32768,
+            disp=None, cap=None):
+    """Windowed ZNCC along the epipolar curve for every hypothesis (rhos; with ``disp``, hypotheses uniform in each
+    pixel's own displacement: rho per pixel by ``_rho_at_disp``, at most ``cap``), optional semi-global aggregation
+    (sgm_p2 > 0), winner-take-all with a parabola sub-sample fit. Returns rho (h x w) and the confidence of the
+    winner: correlation (>= 0) squared times texture (windowed variance against the noise).
+
+    Per chunk of ~chunk_px pixels of hypotheses (the rows of a padded by half a window of symmetric rows, so the
+    box sums do not mix hypotheses): one kernel pass for the rho, the map, the in-view test and b sampled there (as
+    cv2.remap INTER_LINEAR would) with the products the box sums need, OpenCV's box sums, one pass for the cost;
+    then one pass for the winner-take-all, the rho and the confidence (``_dense_kernels.search_*``)."""
     h, w = a.shape
     n = len(rhos)
     p = win // 2
@@ -381,48 +303,31 @@ def _search_fused(K, a, b, emap: EpipolarMap, rhos, win: int, noise: float, sgm_
         mh = (k1 - k0) * hp
         bw, bw2, bwa = Wk[0, :mh], Wk[1, :mh], Wk[2, :mh]
         good = Wg[:mh]
-        K.search_warp(hyp[k0:k1], per_pixel, rows, emap.A0, emap.A1, emap.A2, cn, capf, fx, cx, fy, cy, B0, Q1, Q2,
-                      a, b, bw, bw2, bwa, good)
+        _K.search_warp(hyp[k0:k1], per_pixel, rows, emap.A0, emap.A1, emap.A2, cn, capf, fx, cx, fy, cy, B0, Q1, Q2,
+                       a, b, bw, bw2, bwa, good)
         for t in (bw, bw2, bwa):
-            _box_to(t, win, dst=t)
-        K.search_cost(bw, bw2, bwa, good, ma, va_pos, noise4, p, cost[k0:k1])
+            _box(t, win, dst=t)
+        _K.search_cost(bw, bw2, bwa, good, ma, va_pos, noise4, p, cost[k0:k1])
     agg = np.ascontiguousarray(_sgm(cost, a, sgm_p1, sgm_p2, sgm_tau)) if sgm_p2 > 0 else cost
     rho = np.empty((h, w), F32)
     conf = np.empty((h, w), F32)
-    K.search_wta(agg, cost, hyp, per_pixel, emap.A0, cn, B0, capf, va[p:p + h], F32(noise * noise), rho, conf)
+    _K.search_wta(agg, cost, hyp, per_pixel, emap.A0, cn, B0, capf, va[p:p + h], F32(noise * noise), rho, conf)
     return rho, conf
 
 
-def _wta(agg: np.ndarray, cost: np.ndarray):
-    """Winner-take-all over axis 0 of agg with a parabola sub-sample fit: fractional index and the (raw)
-    cost of the winner."""
-    n = agg.shape[0]
-    shape = agg.shape[1:]
-    flat = agg.reshape(n, -1)
-    # first index of the minimum: a min-reduction over contiguous rows, then argmax of the equality mask
-    # (~4x faster than numpy's strided argmin over axis 0 or a running minimum with masked copies)
-    best = flat.min(axis=0)
-    kbest = (flat == best).argmax(axis=0)
-    ar = np.arange(best.size)
-    cbest = cost.reshape(n, -1)[kbest, ar]
-    cm = flat[np.maximum(kbest - 1, 0), ar]
-    cp = flat[np.minimum(kbest + 1, n - 1), ar]
-    curv = cm - 2 * best + cp
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = np.where((curv > 1e-6) & (kbest > 0) & (kbest < n - 1), 0.5 * (cm - cp) / curv, 0.0)
-    return (kbest + np.clip(off, -0.5, 0.5)).reshape(shape), cbest.reshape(shape)
-
-
 class _Level:
-    """Per-level constants: the epipolar map with the intrinsics folded in, and b with its gradients.
+    """One pyramid level's constants for the Gauss-Newton steps: image a (ia) with its Scharr gradient (gxa, gya),
+    image b (ib) as the warp source b4p ([I, gx, gy, 1] per pixel with a border of one zero pixel), and the
+    epipolar map with the intrinsics folded in.
 
-    Every geometric map is affine in the pixel's normalised coordinates m = [1, m1, m2] of camera a (A = R m):
+    Every map is affine in the pixel's normalised coordinates m = [1, m1, m2] of camera a (A = R m):
     den = A0 + B0 rho, u_b = (P1 + Q1 rho) / den, v_b = (P2 + Q2 rho) / den, d(u_b, v_b)/d rho = (C1, C2) / den^2
-    (see _common.EpipolarMap). They are stored as a row part (c0 + c1 m1, per column) and a column part
-    (c2 m2, per row) and built block by block (one broadcast add each), never as full-size arrays."""
+    (see _common.EpipolarMap). Each is stored as a row part rw (c0 + c1 m1, per column) and a column part kc
+    (c2 m2, per row) that the kernels add per pixel; rows: A0, P1, P2, C1 / 2, C2 / 2 (the 1/2 of the averaged
+    gradient folded in) and, when b moves towards the scene (B0 < 0, ``use_cap``), the largest rho keeping
+    den >= den_min."""
 
-    def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05, cache: bool = False,
-                 strip_rows: int | None = None, n_strips: int = 1, kernels=None):
+    def __init__(self, geo, lev, ia, ib, rho_hi, den_min: float = 0.05):
         sc = 0.5 ** lev      # level intrinsics (as level_camera, without building Camera objects)
         ca, cb = geo.cam_a, geo.cam_b
         fxa, fya, cxa, cya = ca.fx * sc, ca.fy * sc, ca.cx * sc, ca.cy * sc
@@ -433,179 +338,33 @@ class _Level:
         R = np.asarray(geo.R_ba, float)
         t = np.asarray(geo.t_ba_m, float)
         a0, a1, a2 = R[0], R[1], R[2]
-        # the maps' coefficients (c0, c1, c2): A0, P1, P2, C1, C2 and (b moving towards the scene) cap:
-        # half of (C1, C2): the 1/2 of the averaged gradient folded in (so E2 below is a quarter of |C|^2/den^4);
-        # cap: largest rho keeping den >= den_min (only bounded when b moves towards the scene), and at most rho_hi
         cs = [a0, fxb * a1 + cxb * a0, fyb * a2 + cyb * a0, 0.5 * fxb * (t[1] * a0 - t[0] * a1),
               0.5 * fyb * (t[2] * a0 - t[0] * a2)]
-        if t[0] < 0:
+        self.use_cap = bool(t[0] < 0)
+        if self.use_cap:
             cs.append(np.array([a0[0] - den_min, a0[1], a0[2]]) / -t[0])
-        K = np.array(cs)
-        # per map: (row part (1, w), column part (h, 1), [1, column] (h, 2), [row; 1] (2, w)): a block of rows s
-        # of the map is X[s] @ W (one small matmul: exact, and ~3x faster than numpy's broadcast add); all maps
-        # in one go (the same float64 arithmetic as one map at a time, ~0.2 ms less Python per level)
-        n = len(cs)
-        rw = (K[:, :1] + K[:, 1:2] * m1[None, :]).astype(F32)
-        kc = (K[:, 2:3] * m2[None, :]).astype(F32)
-        X = np.ones((n, self.h, 2), F32)
-        X[:, :, 1] = kc
-        Wm = np.ones((n, 2, self.w), F32)
-        Wm[:, 0] = rw
-        aff = [(rw[i][None, :], kc[i][:, None], X[i], Wm[i]) for i in range(n)]
-        self.rw, self.kc = rw, np.ascontiguousarray(kc)     # (the fused kernels add the parts per pixel: the same sum)
-        self.ia = ia
-        self.ib = ib
-        self.A0, self.P1, self.P2, self.C1, self.C2 = aff[:5]
+        coef = np.array(cs)
+        self.rw = (coef[:, :1] + coef[:, 1:2] * m1[None, :]).astype(F32)
+        self.kc = (coef[:, 2:3] * m2[None, :]).astype(F32)
+        self.ia, self.ib = ia, ib
         self.B0 = F32(t[0])
         self.Q1 = F32(fxb * t[1] + cxb * t[0])
         self.Q2 = F32(fyb * t[2] + cyb * t[0])
-        self.cap = aff[5] if t[0] < 0 else None
         self.rho_hi = F32(rho_hi)
-        self.kernels = kernels
-        if kernels is not None:
-            # the fused kernels: the gradient of a for the whole level, and b4 with a border of one zero pixel
-            # (gn_level's samples then read no neighbour outside it); b4 is its interior
-            self.gxa, self.gya = _ws("gxa", ia.shape), _ws("gya", ia.shape)
-            kernels.scharr(ia, self.gxa, self.gya)
-            hb, wb = ib.shape
-            self.b4p = _ws("b4p", (hb + 2, wb + 2, 4))
-            kernels.pack_b4p(ib, self.b4p)
-            self.b4 = self.b4p[1:-1, 1:-1]
-        else:
-            gx = cv2.Scharr(ib, cv2.CV_32F, 1, 0, dst=_ws("gxb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
-            gy = cv2.Scharr(ib, cv2.CV_32F, 0, 1, dst=_ws("gyb", ib.shape), scale=1.0 / 32.0, borderType=_BR)
-            self.b4 = cv2.merge([ib, gx, gy, _ws("one", ib.shape, fill=1.0)], dst=_ws("b4", ib.shape + (4,)))
-        # strips' geometric maps and gradients of a, kept for the next iteration (levels iterated more than
-        # once); read-only. Stored in planes of a work buffer (8 per strip), like every temporary of a strip
-        # (``work``): fresh strip-sized arrays page-faulted, the allocator trimming the heap they were freed to
-        # (~6500 minor faults, ~11 ms of system time per 512 x 512 locate, before the work planes)
-        self.strip_rows = min(self.h, strip_rows or self.h)
-        self._cache = {} if cache else None
-        self._cplanes = (_ws(("gn_cache", lev), (8 * n_strips, self.strip_rows + 2, self.w)) if cache else None)
-        self._ncp = 0
+        self.gxa, self.gya = _ws("gxa", ia.shape), _ws("gya", ia.shape)
+        _K.scharr(ia, self.gxa, self.gya)
+        hb, wb = ib.shape
+        self.b4p = _ws("b4p", (hb + 2, wb + 2, 4))
+        _K.pack_b4p(ib, self.b4p)
 
-    _N_WORK = 16
 
-    def work(self) -> np.ndarray:
-        """The strips' work planes (_N_WORK, strip_rows + 2, w): a strip of n rows uses [:, :n] (each plane
-        contiguous); the 2 spare rows take the Scharr halo of grad_a."""
-        return _ws(("gn_work", self.w), (self._N_WORK, self.strip_rows + 2, self.w))
-
-    def _cache_plane(self, rows: int) -> np.ndarray:
-        """Next free plane of the level's cache buffer (rows x w); a fresh array if it is full."""
-        if self._ncp < len(self._cplanes):
-            self._ncp += 1
-            return self._cplanes[self._ncp - 1, :rows]
-        return np.empty((rows, self.w), F32)
-
-    def rows(self, c, s: slice, out: np.ndarray | None = None) -> np.ndarray:
-        """Rows s of an affine map, into ``out`` (read-only and not in ``out`` when cached)."""
-        if self._cache is None:
-            return np.matmul(c[2][s], c[3], out=out)
-        k = (id(c), s.start, s.stop)
-        v = self._cache.get(k)
-        if v is None:
-            v = self._cache[k] = np.matmul(c[2][s], c[3], out=self._cache_plane(s.stop - s.start))
-        return v
-
-    def c2(self, s: slice) -> np.ndarray:
-        """A quarter of |C|^2 on rows s (C1, C2 are halved): the sensitivity without its 1/den^4 factor."""
-        k = ("c2", s.start, s.stop)
-        v = self._cache.get(k) if self._cache is not None else None
-        if v is None:
-            C1, C2 = self.rows(self.C1, s), self.rows(self.C2, s)
-            if self._cache is not None:
-                v = self._cache[k] = cv2.multiply(C1, C1, dst=self._cache_plane(s.stop - s.start))
-                cv2.add(v, cv2.multiply(C2, C2, dst=_ws("c2_tmp", v.shape)), dst=v)
-            else:
-                v = cv2.multiply(C1, C1, dst=C1)
-                cv2.add(v, cv2.multiply(C2, C2, dst=C2), dst=v)
-        return v
-
-    def grad_a(self, ya: int, yb: int, work=None):
-        """Gradient of a on rows [ya, yb) (one extra row each side when available, so the Scharr kernel sees
-        the image's own rows and reflects only at the image border), in two planes of ``work`` (w wide, at
-        least yb - ya + 2 rows) unless cached. Read-only."""
-        k = ("ga", ya, yb)
-        v = self._cache.get(k) if self._cache is not None else None
-        if v is None:
-            y0, y1 = max(0, ya - 1), min(self.h, yb + 1)
-            n = y1 - y0
-            if self._cache is not None:
-                dx, dy = self._cache_plane(n), self._cache_plane(n)
-            elif work is not None:
-                dx, dy = work[0][:n], work[1][:n]
-            else:
-                dx = dy = None
-            src = self.ia[y0:y1]
-            gx = cv2.Scharr(src, cv2.CV_32F, 1, 0, dst=dx, scale=1.0 / 32.0, borderType=_BR)
-            gy = cv2.Scharr(src, cv2.CV_32F, 0, 1, dst=dy, scale=1.0 / 32.0, borderType=_BR)
-            v = gx[ya - y0:yb - y0], gy[ya - y0:yb - y0]
-            if self._cache is not None:
-                self._cache[k] = v
-        return v
-
-    def cap_rows(self, y0: int, y1: int) -> np.ndarray:
-        """Rows [y0, y1) of the level's rho cap (den >= den_min, clipped to [0, rho_hi]), computed once per level
-        (the per-pixel search sets rho_hi from the pixels nearest the focus of expansion, so the cap binds in most
-        strips of every iteration)."""
-        if getattr(self, "_capmap", None) is None:
-            cap = np.matmul(self.cap[2], self.cap[3])
-            self._capmap = np.clip(cap, F32(0), self.rho_hi, out=cap)
-        return self._capmap[y0:y1]
-
-    def residual_at_infinity(self, s: slice, out, u, v):
-        """Rows s of I_b warped at rho = 0 (the rotation alone) minus I_a, NaN where that leaves b (or lies behind
-        it), in ``out`` (``u``, ``v``: work planes for the map; all three rows-of-s x w)."""
-        den = self.rows(self.A0, s, out=out)
-        ub = cv2.divide(self.rows(self.P1, s, out=u), den, dst=u)
-        vb = cv2.divide(self.rows(self.P2, s, out=v), den, dst=v)
-        if not float(den.min()) > 0:
-            ub[den <= 0] = -1e6
-        r0 = cv2.remap(self.ib, ub, vb, cv2.INTER_LINEAR, dst=out, borderMode=cv2.BORDER_CONSTANT,
-                       borderValue=float("nan"))
-        return cv2.subtract(r0, self.ia[s], dst=r0)
-
-    def warp(self, rho, s: slice, T):
-        """Warped [I_b, gx_b, gy_b, in-view] at rho (rows s of a), and 1/den (in T[0]; T[1], T[2]: the map)."""
-        inv = cv2.scaleAdd(rho, float(self.B0), self.rows(self.A0, s, out=T[0]), dst=T[0])
-        np.divide(F32(1.0), inv, out=inv)
-        ub = cv2.scaleAdd(rho, float(self.Q1), self.rows(self.P1, s, out=T[1]), dst=T[1])
-        cv2.multiply(ub, inv, dst=ub)
-        vb = cv2.scaleAdd(rho, float(self.Q2), self.rows(self.P2, s, out=T[2]), dst=T[2])
-        cv2.multiply(vb, inv, dst=vb)
-        wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, dst=_ws("wv", ub.shape + (4,)),
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return wv, inv
-
-    def noise(self, rho, step: int = 3, final: bool = True):
-        """Robust residual noise on the subsampled grid (every ``step``-th pixel) at rho: over all pixels
-        (Huber scale) and over the fully in-view ones (the final noise; None unless ``final``)."""
-        sr, sc = slice(0, self.h, step), slice(0, self.w, step)
-        if self.kernels is not None:    # the same residuals in one numba pass (b sampled as gn_level does)
-            g = (-(-self.h // step), -(-self.w // step))
-            r, inview = _ws("noise_r", g), _ws("noise_in", g, np.uint8)
-            self.kernels.residual_grid(self.b4p, self.ia, self.rw, self.kc, rho, self.B0, self.Q1, self.Q2, step, r,
-                                       inview)
-            return _robust_sigma(r, step=1), (_robust_sigma(r, inview.view(bool), step=1) if final else None)
-        rs = np.ascontiguousarray(rho[sr, sc])
-        B0, Q1, Q2 = self.B0, self.Q1, self.Q2
-        sub = lambda c: np.matmul(c[2][sr], np.ascontiguousarray(c[3][:, sc]))   # the map on the grid (exact)
-        inv = rs * B0
-        inv += sub(self.A0)
-        np.divide(F32(1.0), inv, out=inv)
-        ub = rs * Q1
-        ub += sub(self.P1)
-        ub *= inv
-        vb = rs * Q2
-        vb += sub(self.P2)
-        vb *= inv
-        wv = cv2.remap(self.b4, ub, vb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        r = wv[..., 0] - self.ia[sr, sc]
-        if not final:
-            return _robust_sigma(r, step=1), None
-        inview = (wv[..., 3] > F32(0.999)) & (inv > 0)
-        return _robust_sigma(r, step=1), _robust_sigma(r, inview, step=1)
+def _residual_noise(lv: _Level, rho, final: bool = True, step: int = 3):
+    """Robust noise of the residual I_b(map(rho)) - I_a on every ``step``-th row and column: over all pixels (the
+    Huber scale) and over the fully in-view ones (the classification's noise; None unless ``final``)."""
+    g = (-(-lv.h // step), -(-lv.w // step))
+    r, inview = _ws("noise_r", g), _ws("noise_in", g, np.uint8)
+    _K.residual_grid(lv.b4p, lv.ia, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, step, r, inview)
+    return _robust_sigma(r, step=1), (_robust_sigma(r, inview.view(bool), step=1) if final else None)
 
 
 def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None, min_range_m: float | None = None,
@@ -617,11 +376,10 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  std_scale: float = 1.35, shift_px: int = 2, shift_ratio: float = 0.4,
                  fill_sigma: float = 4.0, fill_c: float = 0.3, highpass_sigma: float = 0.0,
                  highpass_levels: int = 9, bias: bool = True,
-                 match_floor_px: float = 0.05, strip_px: int = 49152, sgm: bool = False,
+                 match_floor_px: float = 0.05, sgm: bool = False,
                  tex_noise: str = "image", noise_info: bool = True, per_pixel_search: bool = True,
                  inf_test: bool = True, fill: bool = True,
-                 sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
-                 fused: bool | None = None) -> RangeResult:
+                 sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -695,10 +453,6 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     Table I vehicles -0.5 / +2.3 / +0.7 %; +1.5 % locate time. At every level (level 0 too) the gains were the
     same at +6 % time; at 3 px with ratio 0.5 the small far Table I vehicle went +2.3 -> +7.4 %; without the ratio
     (least cost wins) the sim medians rose (noise picks the window).
-    strip_px: pixels per strip of rows of the Gauss-Newton steps, halo included; strips balanced in height
-    (<= 0: whole image at once; same result). 49152 (6 strips of 86 rows at 512 x 512): the 16 work planes,
-    ~3 MiB, stay in a 4 MiB L2, with fewer halo rows and calls than 32768 (9 strips): 2-5 % faster per
-    locate (interleaved in one process, 25 rounds x 5 presets, twice); 65536 as fast, 98304 slower.
     fill: pixels without a measurement (low texture, ill-conditioned, out of view of b; not occluded or truncated)
     get an inverse range inferred from the measured ones around them (``eonav.ranging.methods.fill``: plane fits in
     windows growing by octaves, sigma from the fit and its disagreement across scales), flagged FILLED (not VALID),
@@ -707,6 +461,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     own median error 0.3-2 %); Middlebury coverage 65-80 % -> 81-87 %, medians within +0.1 pp.
     (Not to be confused with fill_sigma / fill_c: the coarse search's normalised-convolution fill, which only
     seeds the Gauss-Newton steps.)
+    bias: a brightness offset per window, eliminated from the normal equations. The kernels always eliminate it;
+    False turns the shiftable windows off (they choose by the offset model's cost), nothing else.
     sgm: semi-global aggregation (4 scanline paths) of the coarse ZNCC cost volume before winner-take-all;
     sgm_p1 / sgm_p2: penalties (cost units, 1 - ZNCC) of a one-hypothesis / larger jump between neighbours,
     sgm_tau: grey levels over which the jump penalty halves across an intensity edge. Off by default:
@@ -714,165 +470,210 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     1.41 %, share of pixels off by > 5 %: teddy 22.5 -> 17.2 %, venus 25.6 -> 19.8 %), but on the paper
     preset it pulls the small far vehicles into their background at the coarse level (vehicle2 +2.7 ->
     +8.8 %, vehicle1 -0.0 -> -1.3 %), whatever the penalties (0.2/2 .. 1/8, tau 1 .. 8).
-    fused: each Gauss-Newton step of a level in one numba pass (``_dense_kernels.gn_level``: the map, the warp, the
-    terms, their window sums streamed row by row, the update and the classification; ``_gn_level_fused``) instead
-    of the OpenCV path's ~100 calls per strip of rows; None: when numba is installed, else the OpenCV path; False:
-    the OpenCV path (the reference); True: numba required. The same result to float rounding (the window sums add in
-    another order): ranges valid in both within 1.5e-5 (99th percentile) on the sim presets, flags differ on
-    <= 1e-4 of the pixels. Level 0's final step 13.7 -> ~7 ms, locate dense / DIS 0.45-0.53 -> 0.32-0.36
-    (512 x 512 sim presets, interleaved in one process). The coarse search too (``_search_fused``: the map,
-    cv2.remap's bilinear sample, the ZNCC cost and the winner-take-all in three kernels, the box sums OpenCV's,
-    bit-identical): 4.5-5.3 -> 1.3-1.7 ms.
     """
     t_start = time.perf_counter()
     geo = pair_geometry(view_a, view_b)
-    Ia, Ib = view_a.image, view_b.image
-    ha, wa = Ia.shape
+    ha, wa = view_a.image.shape
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
-    if search_level is None:
-        # coarsest level whose geometric-mean size is >= 64 px (at most 3): the search's resolution follows the
-        # image's area, not its short side (640 x 480 searches at 80 x 60 like 512 x 512 at 64 x 64; with the
-        # short side it searched at 160 x 120: 4x the work, 2x the locate time, no accuracy gain: 1.05 -> 1.02 %)
-        m = math.sqrt(min(ha * wa, Ib.shape[0] * Ib.shape[1]))
-        search_level = int(max(0, min(3, math.floor(math.log2(m / 64.0)))))
-    L = search_level
-    nlev = L + 1
+    L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
     if tex_noise not in ("image", "residual"):
         raise InputError(f"tex_noise must be 'image' or 'residual', got {tex_noise!r}")
-    img_sigma = image_noise_sigma(Ia) if tex_noise == "image" else None
-    if presmooth_sigma > 0:
-        Ia = _blur(Ia, presmooth_sigma, dst=_ws("pre_a", Ia.shape))
-        Ib = _blur(Ib, presmooth_sigma, dst=_ws("pre_b", Ib.shape))
-    pa, pb = pyramid(Ia, nlev), pyramid(Ib, nlev)
-    if highpass_sigma > 0:   # remove local brightness offsets (illumination, vignetting, exposure)
-        pa = [x - _blur(x, highpass_sigma) if i < highpass_levels else x for i, x in enumerate(pa)]
-        pb = [x - _blur(x, highpass_sigma) if i < highpass_levels else x for i, x in enumerate(pb)]
+    img_sigma = image_noise_sigma(view_a.image) if tex_noise == "image" else None
+    pa = _pyramid(view_a.image, "pre_a", L + 1, presmooth_sigma, highpass_sigma, highpass_levels)
+    pb = _pyramid(view_b.image, "pre_b", L + 1, presmooth_sigma, highpass_sigma, highpass_levels)
 
-    K = optional_kernels("_dense_kernels") if fused is None or fused else None
-    if fused and K is None:
-        raise InputError("fused=True needs numba (pip install numba)")
+    # 1. search along the epipolar curves at level L, and the seed of the refinement
+    found = _search_epipolar(geo, pa[L], pb[L], L, (ha, wa), max_disp_px, min_range_m, per_pixel_search,
+                             search_step_px, search_window, sgm_p1, sgm_p2 if sgm else 0.0, sgm_tau)
+    if found is None:
+        return no_motion_result((ha, wa), METHOD, "no parallax at any range")
+    rho, conf, rho_max, n_hyp = found
+    rho = _seed(rho, conf, median, fill_sigma, fill_c)
 
-    # --- 1. epipolar search at the coarse level
-    em_s = EpipolarMap.build(geo, L, pa[L].shape, pb[L].shape)
-    sub = _sparse(em_s)
-    md = (float(max_disp_px) if max_disp_px is not None else 0.3 * max(wa, ha)) / 2.0 ** L
-    if per_pixel_search:
-        if not math.isfinite(_find_rho_max(sub, md)):
-            return no_motion_result((ha, wa), METHOD, "no parallax at any range")
-        # nothing nearer than min_range_m, or than 5 % of the baseline (near the focus of contraction of a camera
-        # moving away, a pixel's displacement is reached only at absurd rho; the den cap only binds moving towards)
-        near_m = float(min_range_m) if min_range_m is not None else 0.05 * geo.baseline_m
-        cap = np.minimum(em_s.rho_cap, F32(1.0 / near_m))
-        disp = np.arange(0.0, md + 0.5 * search_step_px, search_step_px)
-        # largest finite rho searched anywhere (the Gauss-Newton steps are clipped at 1.25 x it): at the largest
-        # displacement some pixel can reach (moving away from the scene, displacements are bounded)
-        cn = np.hypot(em_s.C1, em_s.C2)
-        rho_max = 0.0
-        for dv in disp[::-1]:
-            rm = _rho_at_disp(F32(dv), em_s.A0, cn, F32(em_s.B[0]), cap)
-            rm = rm[np.isfinite(rm)]
-            if rm.size:
-                rho_max = float(rm.max())
-                break
-        rhos = disp
-        rho, conf = _search(pa[L], pb[L], em_s, disp, search_window, noise=2.0, sgm_p1=sgm_p1,
-                            sgm_p2=sgm_p2 if sgm else 0.0, sgm_tau=sgm_tau, disp=disp, cap=cap, K=K)
-    else:
-        if min_range_m is not None:
-            rho_max = 1.0 / float(min_range_m)
-        else:
-            rho_max = _find_rho_max(sub, md)
-            if not math.isfinite(rho_max):
-                return no_motion_result((ha, wa), METHOD, "no parallax at any range")
-        rhos = _hypotheses(sub, rho_max, search_step_px)
-        rho, conf = _search(pa[L], pb[L], em_s, rhos, search_window, noise=2.0, sgm_p1=sgm_p1,
-                            sgm_p2=sgm_p2 if sgm else 0.0, sgm_tau=sgm_tau, K=K)
-    if median:
-        rho = cv2.medianBlur(rho, 3)
-    if fill_sigma > 0:
-        # normalised convolution: weak matches (textureless, ambiguous) take the confident neighbours' value
-        nc = _blur(conf * rho, fill_sigma) / (_blur(conf, fill_sigma) + F32(1e-6))
-        wf = conf / (conf + F32(fill_c))
-        rho = (wf * rho + (1 - wf) * nc).astype(F32)
-    rho_hi = F32(rho_max * 1.25)
-
-    # --- 2. coarse-to-fine re-linearised Gauss-Newton, block by block (strips of rows: every temporary
-    # stays in cache), each block with a halo of half a window so the box sums are those of the whole image
-    iters = list(iters)
-    while len(iters) < nlev:
-        iters.insert(0, iters[0])
-    iters = iters[-nlev:]
-    prm = dict(window=window, occ_window=min(int(occ_window), window), huber_k=huber_k,
-               lam_k=1.0 / (window * window * trust_px * trust_px), bias=bias,
-               shift_px=0, shift_ratio=F32(shift_ratio))
+    # 2. refine per level, coarse to fine; 3. classify in level 0's last step
+    steps = _Steps(window=window, occ_window=min(int(occ_window), window), huber_k=huber_k,
+                   lam_k=1.0 / (window * window * trust_px * trust_px), shift_ratio=F32(shift_ratio))
     g0, gG = _noise_gains(float(presmooth_sigma))
-    # the infinity test runs at level 1's last iteration (a quarter of the pixels; the ambiguous regions are blobs
-    # of tens of pixels) and its mask is carried to level 0; at level 0 itself when there is no level 1
-    inf_level = 1 if inf_test and L >= 1 and iters[L - 1] >= 1 else 0
-    prm["inf_mask"] = None
+    rules = dict(img_sigma=img_sigma, g0=g0, gG=gG, window=window, tex_k=tex_k,
+                 occ_k=occ_k, occ_px=occ_px, trunc_px=trunc_px, match_floor_px=match_floor_px, noise_info=noise_info,
+                 inf_test=inf_test, std_scale=std_scale, orient_min=orient_min,
+                 rho_far=far_inverse_range(geo, far_parallax_px), max_rel_std=max_rel_std)
+    iters = _iterations(iters, L + 1)
+    # the infinity test runs at level 1's last step (a quarter of the pixels; the ambiguous regions are blobs of tens
+    # of pixels) and its verdict is carried to level 0; at level 0 itself when there is no level 1
+    inf_at_level1 = inf_test and L >= 1 and iters[L - 1] >= 1
+    inf_mask = None
+    rho_hi = F32(rho_max * 1.25)
     for lev in range(L, -1, -1):
+        rho = _to_level(rho, pa[lev].shape)
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
+        if n_it == 0:
+            continue
+        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi)
         # shiftable windows at the coarser levels, where a pixel's estimate settles on one surface or the other;
         # level 0 refines within a pixel, and its sigma and flags are those of the pixel's own (centred) window
-        prm["shift_px"] = int(shift_px) if bias and lev >= 1 else 0
-        h, w = pa[lev].shape
-        # strip arrays incl. the halo within strip_px (a strip's work planes stay in L2)
-        step = max(8, strip_px // w - 2 * (window // 2)) if strip_px > 0 else h
-        step = -(-h // -(-h // step))      # balanced: no thin last strip (each strip costs ~50 calls)
-        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi, cache=n_it > 1 and K is None,
-                    strip_rows=step + 2 * (window // 2), n_strips=-(-h // step), kernels=K)
-        if rho.shape != pa[lev].shape:
-            if rho.shape[0] * 2 == h and rho.shape[1] * 2 == w:     # into a work buffer: same values
-                rho = cv2.pyrUp(rho, dst=_ws("rho_up", (h, w)), dstsize=(w, h))
-            else:
-                rho = pyr_up_to(rho, pa[lev].shape)
-        for it in range(n_it):
-            last = lev == 0 and it == n_it - 1
-            if it == 0 or last:
-                sig_all, sig_in = lv.noise(rho, final=last)
-            if it == 0:
-                sigma = sig_all
-            # the final estimate is a result (fresh array); intermediate ones are work buffers
-            new = np.empty_like(rho) if last else _ws(("rho", it % 2), rho.shape)
-            if last:
-                fin = _Final(rho.shape, sig_in, img_sigma, g0, gG, window,
-                             presmooth_sigma, tex_k, occ_k, occ_px, trunc_px, match_floor_px, noise_info,
-                             inf_test, std_scale, orient_min, far_inverse_range(geo, far_parallax_px),
-                             max_rel_std)
-            prm["inf_out"] = (_ws("inf_l1", (h, w), np.uint8) if inf_test and inf_level == lev == 1
-                              and it == n_it - 1 else None)
-            if K is not None:
-                _gn_level_fused(K, lv, rho, new, sigma, prm, fin if last else None)
-            else:
-                for y0 in range(0, h, step):
-                    _gn_block(lv, rho, new, y0, min(h, y0 + step), sigma, prm, fin if last else None)
-            if prm["inf_out"] is not None:
-                h0, w0 = pa[0].shape
-                prm["inf_mask"] = cv2.resize(prm["inf_out"], (w0, h0), interpolation=cv2.INTER_NEAREST)
-            rho = new
+        shift = int(shift_px) if bias and lev >= 1 else 0
+        if lev > 0:
+            rho, amb = _refine_level(lv, rho, n_it, steps, shift, infinity_test=inf_at_level1 and lev == 1)
+            if amb is not None:
+                inf_mask = cv2.resize(amb, (wa, ha), interpolation=cv2.INTER_NEAREST)
+        else:
+            rho, fin = _refine_level(lv, rho, n_it, steps, shift, rules=rules, inf_mask=inf_mask)
+
+    # 4. fill the pixels without a measurement
     n_filled = fill_unmeasured(rho, fin.std, fin.flags, fin.rng, fin.conf, max_rel_std, rho_far=fin.rho_far,
                                exclude=fin.amb) if fill else 0
     info = {"seconds": time.perf_counter() - t_start, "noise_sigma": fin.sigma, "rho_max_per_m": rho_max,
-            "n_hypotheses": int(len(rhos)), "search_level": L, "baseline_m": geo.baseline_m,
+            "n_hypotheses": n_hyp, "search_level": L, "baseline_m": geo.baseline_m,
             "filled_fraction": n_filled / max(rho.size, 1)}
     return make_result(rho, fin.std, fin.flags, fin.rng, fin.conf, METHOD, fin.n_val, fin.n_inf, info)
 
 
-class _Final:
-    """Output arrays and thresholds of the last linearisation at level 0 (uncertainty, flags, classification),
-    filled block by block."""
+def _default_search_level(shape_a, shape_b) -> int:
+    """The coarsest pyramid level whose geometric-mean size is >= 64 px, at most 3: the search's resolution follows
+    the image's area, not its short side (640 x 480 searches at 80 x 60 like 512 x 512 at 64 x 64)."""
+    m = math.sqrt(min(shape_a[0] * shape_a[1], shape_b[0] * shape_b[1]))
+    return int(max(0, min(3, math.floor(math.log2(m / 64.0)))))
 
-    def __init__(self, shape, sigma, img_sigma, g0, gG, window, presmooth_sigma, tex_k, occ_k, occ_px, trunc_px,
-                 match_floor_px, noise_info, inf_test, std_scale, orient_min, rho_far, max_rel_std):
+
+def _pyramid(img: np.ndarray, key: str, n_levels: int, presmooth_sigma: float, highpass_sigma: float,
+             highpass_levels: int) -> list:
+    """The image pre-smoothed (into work buffer ``key``) and its Gaussian pyramid; with highpass_sigma, local
+    brightness offsets (illumination, vignetting, exposure) removed from its first highpass_levels levels. Every
+    level C-contiguous (the kernels are compiled for that layout)."""
+    img = np.ascontiguousarray(img)
+    if presmooth_sigma > 0:
+        img = _blur(img, presmooth_sigma, dst=_ws(key, img.shape))
+    pyr = pyramid(img, n_levels)
+    if highpass_sigma > 0:
+        pyr = [x - _blur(x, highpass_sigma) if i < highpass_levels else x for i, x in enumerate(pyr)]
+    return pyr
+
+
+def _search_epipolar(geo, a, b, L: int, shape0, max_disp_px, min_range_m, per_pixel_search: bool,
+                     search_step_px: float, search_window: int, sgm_p1: float, sgm_p2: float, sgm_tau: float):
+    """Stage 1: the search at level L (images a, b) over displacements up to max_disp_px (level-0 pixels; default
+    0.3 x the larger side of shape0). Returns (rho, confidence, largest rho searched, number of hypotheses), or
+    None when no range gives parallax."""
+    em = EpipolarMap.build(geo, L, a.shape, b.shape)
+    sub = _sparse(em)
+    md = (float(max_disp_px) if max_disp_px is not None else 0.3 * max(shape0[1], shape0[0])) / 2.0 ** L
+    sgm_kw = dict(sgm_p1=sgm_p1, sgm_p2=sgm_p2, sgm_tau=sgm_tau)
+    if per_pixel_search:
+        if not math.isfinite(_find_rho_max(sub, md)):
+            return None
+        # nothing nearer than min_range_m, or than 5 % of the baseline (near the focus of contraction of a camera
+        # moving away, a pixel's displacement is reached only at absurd rho; the den cap only binds moving towards)
+        near_m = float(min_range_m) if min_range_m is not None else 0.05 * geo.baseline_m
+        cap = np.minimum(em.rho_cap, F32(1.0 / near_m))
+        disp = np.arange(0.0, md + 0.5 * search_step_px, search_step_px)
+        rho_max = _largest_rho(em, disp, cap)
+        rho, conf = _search(a, b, em, disp, search_window, noise=2.0, disp=disp, cap=cap, **sgm_kw)
+        return rho, conf, rho_max, int(len(disp))
+    if min_range_m is not None:
+        rho_max = 1.0 / float(min_range_m)
+    else:
+        rho_max = _find_rho_max(sub, md)
+        if not math.isfinite(rho_max):
+            return None
+    rhos = _hypotheses(sub, rho_max, search_step_px)
+    rho, conf = _search(a, b, em, rhos, search_window, noise=2.0, **sgm_kw)
+    return rho, conf, rho_max, int(len(rhos))
+
+
+def _largest_rho(em: EpipolarMap, disp, cap) -> float:
+    """The largest finite rho the per-pixel search reaches anywhere: at the largest displacement some pixel can reach
+    (moving away from the scene, displacements are bounded). The Gauss-Newton steps are clipped at 1.25 x it."""
+    cn = np.hypot(em.C1, em.C2)
+    for dv in disp[::-1]:
+        rm = _rho_at_disp(F32(dv), em.A0, cn, F32(em.B[0]), cap)
+        rm = rm[np.isfinite(rm)]
+        if rm.size:
+            return float(rm.max())
+    return 0.0
+
+
+def _seed(rho, conf, median: bool, fill_sigma: float, fill_c: float):
+    """The search's rho as the seed of the refinement: a 3 x 3 median, then weak matches (textureless, ambiguous)
+    pulled towards their confident neighbours' value by normalised convolution."""
+    if median:
+        rho = cv2.medianBlur(rho, 3)
+    if fill_sigma > 0:
+        nc = _blur(conf * rho, fill_sigma) / (_blur(conf, fill_sigma) + F32(1e-6))
+        wf = conf / (conf + F32(fill_c))
+        rho = (wf * rho + (1 - wf) * nc).astype(F32)
+    return rho
+
+
+def _iterations(iters, n_levels: int) -> list:
+    """Gauss-Newton iterations per level, coarsest first: the finest level's last, padded with the first entry."""
+    iters = list(iters)
+    while len(iters) < n_levels:
+        iters.insert(0, iters[0])
+    return iters[-n_levels:]
+
+
+def _to_level(rho, shape):
+    """rho carried one pyramid level down (pyrUp alignment) when it is not on ``shape`` yet."""
+    if rho.shape == tuple(shape):
+        return rho
+    h, w = shape
+    if rho.shape[0] * 2 == h and rho.shape[1] * 2 == w:     # into a work buffer: same values
+        return cv2.pyrUp(rho, dst=_ws("rho_up", (h, w)), dstsize=(w, h))
+    return pyr_up_to(rho, shape)
+
+
+@dataclass(frozen=True)
+class _Steps:
+    """The Gauss-Newton steps' parameters: box window (level pixels) of the normal equations and of the occlusion
+    test, Huber threshold (noise sigmas), Levenberg factor (lam = sigma^2 lam_k |d map / d rho|^2) and the
+    shiftable windows' cost ratio."""
+    window: int
+    occ_window: int
+    huber_k: float
+    lam_k: float
+    shift_ratio: np.float32
+
+
+def _refine_level(lv: _Level, rho, n_it: int, steps: _Steps, shift_px: int, *, infinity_test: bool = False,
+                  rules: dict | None = None, inf_mask=None):
+    """Stage 2 at one level: n_it re-linearised Gauss-Newton steps from rho, the Huber scale from the residual at the
+    level's start. infinity_test: the last step also judges whether a point at infinity explains each window as
+    well (returned as a uint8 mask, else None). rules (level 0, stage 3): the last step also classifies, with the
+    noise of the residual before it, into a _Final (returned instead of the mask); inf_mask: a coarser level's
+    infinity verdict on this level's grid."""
+    sigma = None
+    for it in range(n_it):
+        last = it == n_it - 1
+        final = last and rules is not None
+        if it == 0 or final:
+            sig_all, sig_in = _residual_noise(lv, rho, final=final)
+        if it == 0:
+            sigma = sig_all
+        fin = _Final(rho.shape, sig_in, **rules) if final else None
+        # the final estimate is a result (fresh array); intermediate ones are work buffers
+        new = np.empty_like(rho) if final else _ws(("rho", it % 2), rho.shape)
+        amb = _ws("inf_l1", rho.shape, np.uint8) if infinity_test and last else None
+        _gauss_newton_step(lv, rho, new, sigma, steps, shift_px, fin=fin, inf_out=amb,
+                           inf_mask=inf_mask if final else None)
+        rho = new
+    return rho, (fin if rules is not None else amb)
+
+
+class _Final:
+    """Stage 3's rules (thresholds of the uncertainty, the flags and the classification, from the noise ``sigma`` of
+    the residual) and its output arrays, written by level 0's last Gauss-Newton step."""
+
+    def __init__(self, shape, sigma, img_sigma, g0, gG, window, tex_k, occ_k, occ_px, trunc_px, match_floor_px,
+                 noise_info, inf_test, std_scale, orient_min, rho_far, max_rel_std):
         self.sigma = sigma
         n_win = float(window * window)
         sc2 = float(std_scale) ** 2
         self.var_k = F32(sc2 * sigma * sigma / n_win)
-        self.floor2 = F32(sc2 * match_floor_px ** 2 / 4.0)  # E2 in _gn_block is a quarter of |d map/d rho|^2
+        self.floor2 = F32(sc2 * match_floor_px ** 2 / 4.0)  # E2 in the kernels is a quarter of |d map/d rho|^2
         # gradient energy of the noise alone: of the sensor noise (img_sigma), or of the final residual's (which on
-        # real images also holds interpolation and non-Lambertian misfit: 2.6-3.4 x the sensor noise on Middlebury
-        # teddy / cones)
+        # real images also holds interpolation and non-Lambertian misfit)
         noise_G = img_sigma * img_sigma * gG if img_sigma is not None else (sigma * sigma / (2.0 * g0)) * gG
         self.low_thr = F32((1.0 + tex_k * tex_k) * noise_G)
         self.noise_G = F32(noise_G)
@@ -890,264 +691,76 @@ class _Final:
         self.amb = np.zeros(shape, bool)      # the infinity test's: not filled either
         self.n_val = self.n_inf = 0
 
-
-def _box_to(img: np.ndarray, win: int, dst: np.ndarray | None = None) -> np.ndarray:
-    k = _box_kernel(win)
-    return cv2.sepFilter2D(img, -1, k, k, dst=dst, borderType=_BR)
-
-
-def _shift_windows(sh: int, ratio, H, g, S0, S1, Sq, Q) -> None:
-    """Shiftable windows (in place on the window means of a block's rows): each pixel takes the sums of the window
-    shifted sh pixels left or right (clamped at the image border; the pixel stays inside it) instead of its centred
-    one where that one fits the linearised model with less than ``ratio`` times the centred window's cost. Cost: the
-    weighted residual left after the window's least-squares solution (rho and the brightness offset), per unit
-    weight: (Q - Sq^2 / S0 - g'^2 / H') / S0, g' = g - Sq S1 / S0, H' = H - S1^2 / S0. A window straddling a depth
-    edge fits neither side (its rho is a blend: the nearer surface "fattens"); a shifted one on the pixel's side
-    fits. The threshold keeps the centred window where the costs differ by noise (the least cost alone raised the
-    sim presets' median errors)."""
-    def cost(H_, g_, S0_, S1_, Sq_, Q_):
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            S1n = S1_ / S0_
-            gp = g_ - Sq_ * S1n
-            Hp = np.maximum(H_ - S1_ * S1n, F32(1e-12))
-            c = (Q_ - Sq_ * Sq_ / S0_ - gp * gp / Hp) / S0_
-        return np.where(np.isfinite(c), c, F32(np.inf))
-    w = H.shape[1]
-    planes = (H, g, S0, S1, Sq, Q)
-    cols = [np.clip(np.arange(w) + d, 0, w - 1) for d in (-sh, sh)]
-    c0 = cost(*planes)
-    cl, cr = (cost(*(a[:, c] for a in planes)) for c in cols)
-    right = cr < cl                                   # (a tie takes the left one)
-    take = np.where(right, cr, cl) < ratio * c0
-    for a in planes[:5]:
-        np.copyto(a, np.where(right, a[:, cols[1]], a[:, cols[0]]), where=take)
-
-
-def _infinity_ambiguous(lv: _Level, s: slice, o: slice, r, T, win: int, squared: bool = False) -> np.ndarray:
-    """Does a point at infinity explain the window at least as well as the current estimate? (Then the estimate is
-    not supported by the data: faint clouds ranged at whatever their neighbours had after a wrong start.) ``r``: the
-    in-view-masked residual at the estimate on the strip rows s (squared already with ``squared``; either way
-    consumed); rows o of the strip are judged. Uses work planes T1, T2, T6 (free after the weights)."""
-    if not squared:
-        cv2.multiply(r, r, dst=r)
-    Se = _box_to(r, win)[o]
-    r0 = lv.residual_at_infinity(s, T[1], T[2], T[6])
-    cv2.multiply(r0, r0, dst=r0)
-    return _box_to(r0, win, dst=r0)[o] <= Se       # (NaN, a window reaching out of b: no ambiguity)
-
-
-def _strip(lv: _Level, rho, y0: int, y1: int, win: int):
-    """A strip's rows with its halo of half a window (s), its own rows within them (o), the work planes (W, and T
-    cut to the strip) and rho on the strip."""
-    ya, yb = max(0, y0 - win // 2), min(lv.h, y1 + win // 2)
-    W = lv.work()
-    return slice(ya, yb), slice(y0 - ya, y1 - ya), W, W[:, :yb - ya], rho[ya:yb]
-
-
-def _gn_block(lv: _Level, rho, new, y0: int, y1: int, sigma: float, prm: dict, fin: _Final | None):
-    """One re-linearised Gauss-Newton step for rows [y0, y1) of ``rho``, written into ``new``; with ``fin``,
-    also the uncertainty, flags and classification of those rows.
-
-    Elementwise work is done with OpenCV's array-array arithmetic (cv2.multiply/add/subtract/scaleAdd into
-    existing buffers): ~1.5x faster than numpy's ufuncs on these strip-sized float32 arrays. Every float
-    temporary is one of the strip's work planes T[i] (lv.work; reused from strip to strip and call to call:
-    fresh ones page-faulted, see _Level); the comments name what each plane holds."""
-    mul, add, sub = cv2.multiply, cv2.add, cv2.subtract
-    win = prm["window"]
-    s, o, W, T, R = _strip(lv, rho, y0, y1, win)
-    wv, inv = lv.warp(R, s, T)                                   # T0 inv (T1, T2: the map, free again)
-    # the warp's channels (cv2.split into the planes: one pass, ~6x faster than 4 strided numpy copies)
-    Ib, gxb, gyb, mask = cv2.split(wv, [T[3], T[4], T[5], T[6]])
-    r = sub(Ib, lv.ia[s], dst=Ib)                                # T3 r
-    gxa, gya = lv.grad_a(s.start, s.stop, (W[7], W[8]))                   # T7, T8 (unless cached)
-    C1, C2 = lv.rows(lv.C1, s, out=T[1]), lv.rows(lv.C2, s, out=T[2])
-    # J = grad I . d(u_b, v_b)/d rho with the gradient averaged over both images (eq. 27's symmetric form:
-    # second-order accurate in the step, and the interpolation bias of a one-sided gradient halves)
-    gx = add(gxb, gxa, dst=gxb)
-    gy = add(gyb, gya, dst=gyb)
-    J = mul(gx, C1, dst=gx)                                      # T4 J
-    cv2.accumulateProduct(gy, C2, J)
-    inv2 = mul(inv, inv, dst=T[9])                               # T9 inv2
-    mul(J, inv2, dst=J)
-    # a quarter of the squared sensitivity |d(u_b, v_b)/d rho|^2 = |C|^2 / den^4 (C1, C2 are halved)
-    c2 = lv.c2(s) if lv._cache is not None else cv2.accumulateSquare(C2, mul(C1, C1, dst=C1))   # T1 c2
-    # Huber weights min(1, k sigma / |r|) times the in-view mask: ks mask / max(|r|, ks)
-    ks = F32(max(prm["huber_k"] * sigma, 1e-6))
-    wgt = np.abs(r, out=T[5])                                    # T5 wgt
-    np.maximum(wgt, ks, out=wgt)
-    cv2.divide(mask, wgt, dst=wgt, scale=float(ks))
-    wJ = mul(wgt, J, dst=T[2])                                   # T2 wJ
-    q = mul(J, R, dst=T[10])                                     # T10 q
-    sub(q, r, dst=q)
-    # window sums; everything after them only on the block's own rows o (the halo only feeds the sums)
-    H = _box_to(mul(wJ, J, dst=T[11]), win, dst=T[11])[o]       # T11 H
-    g = _box_to(mul(wJ, q, dst=T[12]), win, dst=T[12])[o]       # T12 g
-    wsum = None
-    if prm["bias"]:   # unknown brightness offset per window, eliminated (Schur complement)
-        S0 = _box_to(wgt, win, dst=T[13])[o]
-        S0 += F32(1e-6)
-        S1 = _box_to(wJ, win, dst=wJ)[o]
-        Q = _box_to(mul(mul(wgt, q), q), win)[o] if prm["shift_px"] > 0 else None
-        Sq = _box_to(mul(wgt, q, dst=q), win, dst=q)[o]
-        if Q is not None and H.shape[1] > 2 * prm["shift_px"]:
-            _shift_windows(prm["shift_px"], prm["shift_ratio"], H, g, S0, S1, Sq, Q)
-        wsum = S0.copy() if fin is not None else None
-        S1n = cv2.divide(S1, S0, dst=S0)
-        sub(g, mul(Sq, S1n, dst=Sq), dst=g)
-        sub(H, mul(S1, S1n, dst=S1), dst=H)
-    Ro = R[o]
-    i2 = inv2[o]
-    E2 = mul(c2[o], mul(i2, i2, dst=i2), dst=i2)                 # T9 E2
-    # Levenberg: (H + lam) rho' = g + lam rho, lam = lam_c E2 (den = 0 only where C = 0 and H = 0: OpenCV's
-    # division gives 0 there)
-    lam_c = float(4.0 * sigma * sigma * prm["lam_k"])
-    num = cv2.scaleAdd(mul(E2, Ro, dst=T[14][o]), lam_c, g, dst=g)
-    den = cv2.scaleAdd(E2, lam_c, H, dst=T[15][o])
-    out = new[y0:y1]
-    cv2.divide(num, den, dst=out)
-    np.maximum(out, F32(0), out=out)
-    if lv.cap is not None and float(lv.cap[0].min()) + float(lv.cap[1][s].min()) < lv.rho_hi:
-        np.minimum(out, lv.cap_rows(y0, y1), out=out)               # the den >= den_min cap binds here
-    else:
-        np.minimum(out, lv.rho_hi, out=out)
-    if fin is None:
-        io = prm.get("inf_out")
-        if io is not None:      # the infinity test, at this level (see _infinity_ambiguous)
-            mf = cv2.threshold(mask, 0.999, 1.0, cv2.THRESH_BINARY, dst=T[13])[1]
-            io[y0:y1] = _infinity_ambiguous(lv, s, o, mul(r, mf, dst=r), T, win)
-        return
-    # --- uncertainty and flags of rows [y0, y1), from this (the last) linearisation
-    d = sub(out, Ro, dst=T[14][o])                               # T14 d
-    mul(d, d, dst=d)
-    mul(d, E2, dst=d)
-    trunc = d > fin.trunc2
-    # in view: 1.0 where mask > 0.999 and inv > 0 (thresholds straight to 0/1 floats)
-    mf = cv2.threshold(mask, 0.999, 1.0, cv2.THRESH_BINARY, dst=T[4])[1]             # T4 mf
-    if not float(inv.min()) > 0:     # (inv > 0 nearly everywhere: one read-only pass instead of two; NaN: False)
-        mul(mf, cv2.threshold(inv, 0.0, 1.0, cv2.THRESH_BINARY, dst=T[13])[1], dst=mf)
-    G = mul(gxa, gxa, dst=T[10])                                 # T10 G
-    cv2.accumulateSquare(gya, G)
-    mul(G, mf, dst=G)
-    G3 = _box_to(G, prm["occ_window"])[o]
-    G = _box_to(G, win, dst=G)[o]
-    mul(r, r, dst=r)
-    mul(r, mf, dst=r)
-    if fin.inf_test:
-        amb = (prm["inf_mask"][y0:y1] != 0) if prm.get("inf_mask") is not None else \
-            _infinity_ambiguous(lv, s, o, r, T, win, squared=True)
-    R2 = _box_to(r, prm["occ_window"], dst=r)[o]
-    std = fin.std[y0:y1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # normal-equation information (Huber-weighted, brightness offset eliminated) of the last linearisation
-        # plus a floor of match_floor_px pixels of displacement (interpolation bias, surface slant, ...), times
-        # std_scale (folded in squared)
-        if fin.noise_info:
-            # the part of H that the image noise's own gradients contribute (E[J^2] of noise alone = E2 noise_G
-            # per unit weight) is no information about rho: without it a window of faint texture reports a
-            # tight sigma around whatever its neighbours suggested
-            H = cv2.scaleAdd(mul(E2, wsum) if wsum is not None else E2, -float(fin.noise_G), H)
-            np.maximum(H, F32(1e-12), out=H)
-        np.divide(fin.var_k, H, out=std)
-        std += np.divide(fin.floor2, E2, out=d)
-        np.sqrt(std, out=std)
-        E2 = mul(E2, G, dst=E2)
-        orient = np.divide(H, E2, out=E2)     # share of the gradient energy along the epipolar direction
-    # texture the brightness-offset model can use: the windowed variance of the gradient (a brightness ramp,
-    # e.g. a smooth sky, has a constant gradient that the per-window offset absorbs entirely)
-    Mx = _box_to(mul(gxa, mf), win)[o]
-    My = _box_to(mul(gya, mf), win)[o]
-    Gc = sub(G, mul(Mx, Mx, dst=Mx))
-    sub(Gc, mul(My, My, dst=My), dst=Gc)
-    low = Gc < fin.low_thr
-    oov = mf[o] == F32(0)
-    # occluded: a residual that neither the noise nor a misregistration of occ_px pixels explains
-    G3 *= fin.occ_px2
-    G3 += fin.occ_thr
-    occ = R2 > G3
-    oov |= occ
-    ill = orient >= fin.orient_min
-    np.logical_not(ill, out=ill)
-    ill &= ~low
-    if fin.inf_test:
-        # (a rho within 2 sigma of 0 is AT_INFINITY's business, not an ambiguity)
-        amb &= new[y0:y1] > F32(2.0) * std
-        ill |= amb
-        fin.amb[y0:y1] = amb
-    flags = fin.flags[y0:y1]
-    np.multiply(oov.view(np.uint8), np.uint8(OUT_OF_VIEW), out=flags)
-    flags |= low.view(np.uint8) * np.uint8(LOW_TEXTURE)
-    flags |= ill.view(np.uint8) * np.uint8(ILL_CONDITIONED)
-    flags |= trunc.view(np.uint8) * np.uint8(TRUNCATION)
-    flags |= occ.view(np.uint8) * np.uint8(OCCLUDED)
-    nv, ni = classify_into(new[y0:y1], std, flags, fin.rng[y0:y1], fin.conf[y0:y1], rho_far=fin.rho_far,
-                           max_rel_std=fin.max_rel_std, work=(T[0][o], T[2][o], T[5][o]))
-    fin.n_val += nv
-    fin.n_inf += ni
-
+    def thresholds(self) -> np.ndarray:
+        """The thresholds in the order ``_dense_kernels.gn_level`` takes them (fp)."""
+        return np.array([self.noise_G, self.var_k, self.floor2, self.trunc2, self.low_thr, self.occ_px2, self.occ_thr,
+                         self.orient_min, self.rho_far, self.max_rel_std], F32)
 
 
 _NO_AMB = np.empty((0, 0), np.uint8)
+_NO_F2 = np.empty((0, 0), F32)
+_NO_FP = np.zeros(10, F32)
 
 
-def _gn_level_fused(K, lv: _Level, rho, new, sigma: float, prm: dict, fin: _Final | None):
-    """One Gauss-Newton step of the whole level ``lv`` in one numba pass (``_dense_kernels.gn_level``): the
-    arithmetic of _gn_block (map, warp, terms, window sums, update; with ``fin`` the uncertainty, flags and
-    classification; the infinity test) with the window sums taken row by row from a ring of window-height term
-    planes, so no per-pixel plane is written but the outputs (the level's gradient of a and padded b: _Level)."""
-    io = prm.get("inf_out") if fin is None else None
+def _gauss_newton_step(lv: _Level, rho, new, sigma: float, steps: _Steps, shift_px: int, fin: _Final | None = None,
+                       inf_out=None, inf_mask=None) -> None:
+    """One re-linearised Gauss-Newton step of the whole level ``lv`` from rho into ``new``, in one kernel pass
+    (``_dense_kernels.gn_level``: the map, the warp, the terms, their window sums streamed row by row through a ring
+    of window-height planes, the update). With ``fin`` also the uncertainty, flags and classification (stage 3),
+    the infinity test's verdict taken from inf_mask or, without one, judged here; inf_out: write the verdict."""
     inf_mode, amb_in = 0, _NO_AMB
-    if io is not None:
+    if inf_out is not None:
         inf_mode = 1
     elif fin is not None and fin.inf_test:
-        if prm.get("inf_mask") is not None:
-            amb_in = prm["inf_mask"]
+        if inf_mask is not None:
+            amb_in = inf_mask
         else:
             inf_mode = 2      # no level 1: the infinity test at level 0
-    ks = F32(max(prm["huber_k"] * sigma, 1e-6))
-    lam_c = F32(4.0 * sigma * sigma * prm["lam_k"])
+    ks = F32(max(steps.huber_k * sigma, 1e-6))
+    lam_c = F32(4.0 * sigma * sigma * steps.lam_k)
     if fin is None:
-        fp, outs = _NO_FP, (_NO_AMB, _NO_F2, _NO_AMB, _NO_F2, _NO_F2, _NO_AMB)
-        noise_info = False
+        fp, outs, noise_info = _NO_FP, (_NO_AMB, _NO_F2, _NO_AMB, _NO_F2, _NO_F2, _NO_AMB), False
     else:
-        fp = np.array([fin.noise_G, fin.var_k, fin.floor2, fin.trunc2, fin.low_thr, fin.occ_px2, fin.occ_thr,
-                       fin.orient_min, fin.rho_far, fin.max_rel_std], F32)
-        outs = (_NO_AMB, fin.std, fin.flags, fin.rng, fin.conf, fin.amb.view(np.uint8))
-        noise_info = fin.noise_info
-    if io is not None:
-        outs = (io,) + outs[1:]
-    nv, ni = K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, ks, lam_c,
-                        lv.cap is not None, lv.rho_hi, int(prm["window"]), int(prm["occ_window"]), prm["shift_px"],
-                        prm["shift_ratio"], fin is not None,
-                        inf_mode, amb_in, fp, noise_info, new, *outs)
+        fp, outs, noise_info = fin.thresholds(), (_NO_AMB, fin.std, fin.flags, fin.rng, fin.conf,
+                                                  fin.amb.view(np.uint8)), fin.noise_info
+    if inf_out is not None:
+        outs = (inf_out,) + outs[1:]
+    nv, ni = _K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, ks, lam_c, lv.use_cap,
+                         lv.rho_hi, int(steps.window), int(steps.occ_window), shift_px, steps.shift_ratio,
+                         fin is not None, inf_mode, amb_in, fp, noise_info, new, *outs)
     if fin is not None:
         fin.n_val += nv
         fin.n_inf += ni
 
 
-_NO_FP = np.zeros(10, F32)
-_NO_F2 = np.empty((0, 0), F32)
+def _plane_pair(size: int, range_m: float = 20.0, seed: int = 0) -> tuple[View, View]:
+    """A textured wall ``range_m`` ahead of camera a, seen again by camera b 1 m nearer and 0.3 m to the right: a
+    pair with known geometry for ``prepare_kernels``. Image b is image a through the homography the plane induces:
+    a pixel's m = [1, (u - cx) / f, (v - cy) / f] goes to X_b / x_c = (R + rho t e0^T) m at the wall's rho (eqs.
+    25-26), then to b's pixel. Both images carry unit sensor noise."""
+    f = 0.8 * size
+    c = (size - 1) / 2.0
+    cam = Camera("plane", size, size, f, f, c, c)
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.standard_normal((size, size)).astype(F32), (0, 0), 1.5) * F32(150.0) + F32(128.0)
+    a = View(cam, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), texture)
+    st_b = VehicleState.from_ypr([1.0, 0.3, 0.0], [0.0, 0.0, 0.0])
+    geo = pair_geometry(a, View(cam, st_b, texture))
+    to_m = np.array([[0.0, 0.0, 1.0], [1.0 / f, 0.0, -c / f], [0.0, 1.0 / f, -c / f]])
+    to_px = np.array([[c, f, 0.0], [c, 0.0, f], [1.0, 0.0, 0.0]])
+    H = to_px @ (geo.R_ba + np.outer(geo.t_ba_m, [1.0 / range_m, 0.0, 0.0])) @ to_m
+    img_b = cv2.warpPerspective(texture, H, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    noisy = lambda img: (img + rng.standard_normal(img.shape)).astype(F32)
+    return View(cam, a.state, noisy(texture)), View(cam, st_b, noisy(img_b))
 
 
-def prepare_kernels() -> bool:
-    """Compile (or load from numba's cache) the fused kernels now, for the argument types locate_dense passes them,
-    instead of in the first locate: ~15-25 s cold (once per install), ~2 s from the cache on the bench machine, which a
-    service should spend before its first frame (a first pair delayed by it went stale). False without numba."""
-    K = optional_kernels("_dense_kernels")
-    if K is None:
-        return False
-    # every kernel of a locate, with the argument types it passes them: two small simulated pairs, without a
-    # level 1 (the infinity test at level 0) and with one (its verdict carried down to level 0)
-    from eonav.sim.presets import make_pair
-    for size in (96, 160):
-        locate_dense(*make_pair("turning", size=size, supersample=1).views)
-    # the fill's passes: a 64 x 64 plane with a hole, with and without an exclusion mask
-    rho = np.full((64, 64), 0.05, F32)
-    for ex in (None, np.zeros((64, 64), bool)):
-        flags = np.full((64, 64), VALID, np.uint8)
-        flags[20:30, 20:30] = LOW_TEXTURE
-        fill_unmeasured(rho.copy(), np.full((64, 64), 1e-3, F32), flags, np.zeros_like(rho), np.zeros_like(rho), 0.34,
-                        exclude=ex)
-    return True
+def prepare_kernels() -> None:
+    """Compile the kernels (or load them from numba's cache) now, for the argument types locate_dense passes them,
+    instead of in the first locate: a service spends this before its first frame (compiling takes seconds, tens of
+    seconds on a fresh install). numba compiles per argument type, and every locate passes each kernel the same
+    types (C-contiguous float32 / uint8 arrays, the same scalar types) whatever the image size or the options: one
+    small plane pair (``_plane_pair``) reaches them all, the fill's included."""
+    locate_dense(*_plane_pair(96))
 
 
 __all__ = ["locate_dense", "prepare_kernels"]

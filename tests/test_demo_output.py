@@ -1,0 +1,177 @@
+"""The demo's output: the picture (estimate and truth side by side, a colour bar in metres, obstacle boxes at their
+bbox with their range; checked pixel by pixel against a synthetic map of known ranges), the ok / degraded / failed
+verdict on both sides of its threshold, and where a run writes (per-user cache, per-run folder where it is run)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from eonav.app import demo as D
+from eonav.io import viz as V
+
+NEAR_M, FAR_M = 5.0, 150.0
+
+
+def _colour(range_m):
+    """The colour the scale gives ``range_m`` (one pixel through inverse_range_colours)."""
+    return V.inverse_range_colours(np.array([[range_m]], np.float32), np.ones((1, 1), bool), NEAR_M, FAR_M)[0, 0]
+
+
+def _scene():
+    """A 64 x 64 map on the half-resolution grid of a 128 x 128 frame: 100 m background, a 10 m block at map pixels
+    (20..35, 12..27), a hole (no estimate) at rows 50..55; the truth: the same, 120 m background."""
+    r = np.full((64, 64), 100.0, np.float32)
+    r[12:28, 20:36] = 10.0
+    valid = np.ones((64, 64), bool)
+    valid[50:56, :] = False
+    truth = np.where(r == 10.0, 10.0, 120.0).astype(np.float32)
+    # the obstacle list is in frame pixels (2x the map's): the block is frame pixels 40..71 x 24..55
+    obstacle = {"id": 3, "distance_m": 10.4, "bbox_px": [40, 24, 71, 55]}
+    return r, valid, truth, obstacle
+
+
+def test_picture_has_estimate_truth_colour_bar_and_obstacle_boxes():
+    r, valid, truth, ob = _scene()
+    pic, lay = V.estimate_truth_picture(r, valid, truth, obstacles=[ob], frame_size=(128, 128), near_m=NEAR_M,
+                                        far_m=FAR_M)
+    k, top, (x_est, x_truth), bar_x = lay["scale"], lay["title_px"], lay["tiles"], lay["bar_x"]
+    assert k == 6 and pic.shape[0] == top + 64 * k                     # 64 rows enlarged to >= 384
+    px = lambda x0, u, v: pic[top + v * k + k // 2, x0 + u * k + k // 2]   # centre of map pixel (u, v)
+    # the tiles: estimate and truth on one scale, black where there is no estimate
+    assert np.array_equal(px(x_est, 5, 5), _colour(100.0)) and np.array_equal(px(x_truth, 5, 5), _colour(120.0))
+    assert np.array_equal(px(x_est, 28, 20), _colour(10.0)) and np.array_equal(px(x_truth, 28, 20), _colour(10.0))
+    assert not px(x_est, 5, 52).any() and px(x_truth, 5, 52).any()
+    # the colour bar: each row the colour of the range it stands for, near (top) to far (bottom), labelled in metres
+    bar_h = 64 * k
+    for r_m in (NEAR_M, 10.0, 20.0, 50.0, 100.0, FAR_M):
+        y = top + int(round(V.bar_row(r_m, bar_h, NEAR_M, FAR_M)))
+        np.testing.assert_allclose(pic[y, bar_x + 4].astype(int), _colour(r_m).astype(int), atol=3)
+    labels = pic[top:, bar_x + V.BAR_WIDTH_PX + 6:]
+    ticks = V.bar_ticks(bar_h, NEAR_M, FAR_M)
+    for r_m, y in ticks:
+        assert (labels[max(0, y - 6):y + 6] > 200).all(axis=2).any(), f"no label at {r_m} m"
+    # 1-2-5 steps; 100 m is 7 px from 150 m on this bar: left out, so no two labels overlap
+    assert V.nice_ticks_m(NEAR_M, FAR_M) == [5.0, 10.0, 20.0, 50.0, 100.0, 150.0]
+    assert [r_m for r_m, _ in ticks] == [5.0, 10.0, 20.0, 50.0, 150.0]
+    assert not (labels[ticks[-2][1] + 8:ticks[-1][1] - 10] > 200).all(axis=2).any()   # nothing between 50 and 150
+    # the obstacle box: frame bbox [40, 24, 71, 55] -> map pixels 20..35 x 12..27 -> picture pixels x k, both tiles
+    u0, v0, u1, v1 = 20 * k, 12 * k, 36 * k - 1, 28 * k - 1
+    for x0 in (x_est, x_truth):
+        t = pic[top:, x0:x0 + 64 * k]
+        for edge in (t[v0, u0:u1 + 1], t[v1, u0:u1 + 1], t[v0:v1 + 1, u0], t[v0:v1 + 1, u1]):
+            assert (edge == V.BOX_BGR).all()
+        assert np.array_equal(t[v0 + 1, u0 + 1], _colour(10.0))          # just inside: the map, not the box
+        outside = _colour(100.0 if x0 == x_est else 120.0)
+        assert np.array_equal(t[(v0 + v1) // 2, u0 - 1], outside)        # just outside: the map
+        assert np.array_equal(t[(v0 + v1) // 2, u1 + 1], outside)
+        label = t[v0 - 14:v0 - 1, u0:u0 + 60]
+        assert (label > 200).all(axis=2).sum() > 20                      # "10.4 m" above the box
+    # without the obstacle list the same pixels are the map's
+    bare, _ = V.estimate_truth_picture(r, valid, truth, frame_size=(128, 128), near_m=NEAR_M, far_m=FAR_M)
+    assert np.array_equal(bare[top + v0, x_est + u0 + 5], _colour(10.0))
+    assert not (bare[top + v0 - 14:top + v0 - 1, x_est + u0:x_est + u0 + 60] > 200).all(axis=2).any()
+
+
+def test_demo_range_picture_boxes_the_obstacles_on_the_messages_grid():
+    # a range map message at the locate scale (its arrays 64 x 64, frame 128 x 128): the box lands as above
+    from eonav.ranging.rangemap import VALID
+    r, valid, truth, ob = _scene()
+    msg = {"range_m": r, "flags": np.where(valid, VALID, 0).astype(np.uint8), "frame_width": 128,
+           "frame_height": 128}
+    far = [dict(ob, id=10 + i, distance_m=60.0 + i, bbox_px=[2 * i, 100, 2 * i + 1, 101]) for i in range(8)]
+    pic = D.range_picture(msg, truth, obstacles=far + [ob], max_boxes=3)
+    k, top = 6, 20
+    assert (pic[top + 12 * k, 20 * k:36 * k] == V.BOX_BGR).all()        # the nearest obstacle is boxed
+    boxed = [(pic[top + 50 * k, i * k] == V.BOX_BGR).all() for i in range(8)]
+    assert boxed == [True, True] + [False] * 6                           # and the next two nearest only
+    assert not pic[top + 52 * k, 10 * k + 3].any()                       # flags: no estimate in the hole
+
+
+# ---- verdict ----------------------------------------------------------------------------------------------
+
+def test_verdict_on_both_sides_of_the_threshold():
+    # 16 frames recorded, 15 can have a range map (the first has no earlier frame to pair with); threshold 80 %
+    assert D.MIN_FRACTION == 0.8
+    assert D.verdict(16, 16, 15) == ("ok", [])
+    assert D.verdict(16, 13, 12) == ("ok", [])            # 13 >= 12.8 frames, 12 >= 12.0 maps
+    state, why = D.verdict(16, 12, 12)                    # 12 < 12.8 frames
+    assert state == "degraded" and len(why) == 1 and "12/16 frames seen" in why[0]
+    state, why = D.verdict(16, 16, 11)                    # 11 < 12.0 maps
+    assert state == "degraded" and len(why) == 1 and "11 range maps for 15" in why[0]
+    state, why = D.verdict(16, 12, 7)                     # the run of the issue: both
+    assert state == "degraded" and len(why) == 2
+
+
+def _summary(seen, maps, recorded=16):
+    return {"frames_recorded": recorded, "frames_seen": seen, "range_maps": maps}
+
+
+def test_outcome_exit_codes_and_the_summary_line():
+    ok = D.outcome(_summary(16, 15), 0, "replay ended, every frame ranged")
+    assert ok == {"verdict": "ok", "verdict_reasons": [], "exit_code": 0}
+    bad = D.outcome(_summary(12, 7), 0, "replay ended, pipeline drained")
+    assert bad["verdict"] == "degraded" and bad["exit_code"] == 1
+    assert D.outcome(_summary(16, 15), 1, "replay ended")["verdict"] == "failed"
+    assert D.outcome(_summary(16, 15), 0, "timeout 180 s")["exit_code"] == 1
+    assert D.outcome(_summary(16, 0), 0, "replay ended")["verdict"] == "failed"
+    s = {"recording": "r", "frames_seen": 12, "frames_recorded": 16, "range_maps": 7, "median_rel_error": 0.01,
+         "worst_map_median_rel_error": 0.02, "coverage": 0.5, "obstacle_lists": 7, "nearest_box": "pole",
+         "nearest_box_found": "6/7", "nearest_box_median_rel_error": 0.02, "compute_ms_p50": 30.0,
+         "latency_capture_to_range_ms": {"p50": 40.0, "p99": 50.0, "n": 7},
+         "latency_capture_to_obstacles_ms": {"p50": 45.0, "p99": 55.0, "n": 7},
+         "drops": {}, "service_states": {}, "exit_codes": {}, "stop_reason": "replay ended", **bad}
+    line = D.format_summary(s).splitlines()[-1]
+    assert line.split()[:2] == ["verdict", "degraded:"] and "12/16 frames seen" in line
+    s.update(D.outcome(_summary(16, 15), 0, "replay ended"))
+    assert D.format_summary(s).splitlines()[-1].split()[:2] == ["verdict", "ok"]
+
+
+# ---- where a run writes ---------------------------------------------------------------------------------------
+
+def test_cache_is_per_user_and_run_folders_are_per_run(tmp_path, monkeypatch):
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    recs = {}
+    for user in ("alice", "bob"):
+        home = tmp_path / user
+        home.mkdir()
+        monkeypatch.setenv("HOME", str(home))
+        assert D.default_cache_dir() == home / ".cache" / "eonav" / "demo"
+        recs[user] = D.recording(n_frames=2, rate_hz=5.0, size=48)
+        files = {p for p in recs[user].rglob("*") if p.is_file()}
+        assert files and all(p.is_relative_to(home) for p in files)
+    assert recs["alice"] != recs["bob"] and recs["alice"].name == recs["bob"].name   # same key, own copies
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert D.default_cache_dir() == tmp_path / "xdg" / "eonav" / "demo"
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/cache")                # not absolute: ignored, as the spec says
+    assert D.default_cache_dir() == tmp_path / "bob" / ".cache" / "eonav" / "demo"
+    # two runs in one place never share a folder
+    a, b = D.new_run_dir(tmp_path / "out"), D.new_run_dir(tmp_path / "out")
+    assert a != b and a.parent == b.parent == tmp_path / "out" and a.name.startswith("eonav-demo-")
+    monkeypatch.chdir(tmp_path / "alice")
+    assert D.new_run_dir().parent == tmp_path / "alice"
+
+
+def test_demo_command_writes_its_run_folder_where_it_is_run(tmp_path):
+    pytest.importorskip("zenoh")
+    home, work = tmp_path / "home", tmp_path / "work"
+    home.mkdir()
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "XDG_CACHE_HOME"}
+    env.update(HOME=str(home), PYTHONUNBUFFERED="1")
+    out = subprocess.run([sys.executable, "-m", "eonav.app.demo", "--frames", "8", "--size", "128", "--json"],
+                         cwd=work, env=env, capture_output=True, text=True, timeout=150)
+    assert out.returncode == 0, out.stdout + out.stderr
+    (run,) = list(work.iterdir())
+    assert run.name.startswith("eonav-demo-")
+    assert {p.name for p in run.iterdir()} == {"range.png", "summary.json", "logs"}
+    assert {"camera.log", "mavlink.log", "sync.log", "locator.log", "obstacles.log"} <= {
+        p.name for p in (run / "logs").iterdir()}
+    s = json.loads((run / "summary.json").read_text())
+    assert s["verdict"] == "ok" and s["png"] == str(run / "range.png") and s["range_maps"] >= 6
+    assert s["recording"].startswith(str(home / ".cache" / "eonav" / "demo"))       # the cache: this user's
+    assert "verdict              ok" in out.stdout

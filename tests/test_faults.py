@@ -1,0 +1,202 @@
+"""Faults in a running pipeline, with real processes: ``eonav run``'s launcher (embedded router, camera and MAVLink
+replays, sync, locator, obstacles) on a looped lap of the simulated turning flight at 5 fps; the tests kill -9 the
+camera replay, the MAVLink replay and the locator, and stall the locator for 2 s (SIGSTOP / SIGCONT), one after the
+other in this module's pipeline. Each checks that the services downstream report ``degraded`` naming the silent
+input within its budget (plus scheduling slack), that the pipeline recovers, and that no range map or obstacle list
+older than its stage's age limit is ever published and none goes back in stamp."""
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from eonav.app.bench_soak import BusWatch, lap_recording, looped_spec  # noqa: E402
+from eonav.app.demo import _wait_port, replay_shift_us  # noqa: E402
+from eonav.app.launcher import run_pipeline  # noqa: E402
+from eonav.app.processes import free_port, wait_until  # noqa: E402
+
+VEHICLE = "faults"
+FPS = 5.0
+MAP_MAX_AGE_MS = 800.0          # the locator's default --max-input-age-ms
+LIST_MAX_AGE_MS = 1000.0        # the obstacle service's
+TRANSPORT_SLACK_MS = 150.0      # put -> the test's subscriber, on a loaded 2-core machine
+FRAMES_BUDGET_S, NAV_BUDGET_S, MAPS_BUDGET_S = 1.0, 0.5, 1.0     # the services' default input timeouts
+SCHED_SLACK_S = 1.0             # the health timer's 0.1 s period + transport + a loaded machine
+
+
+class Pipe:
+    def __init__(self, watch: BusWatch, status: dict, thread: threading.Thread):
+        self.w, self.status, self.thread = watch, status, thread
+
+    def pid(self, name: str) -> int:
+        st = self.status[name]
+        assert st["state"] == "running" and st["pid"], st
+        return st["pid"]
+
+    def health_after(self, t0: float, service: str, pred):
+        """The first health message of ``service`` received after ``t0`` that satisfies ``pred`` (t, msg) or None."""
+        for t, m in self.w.snapshot()["health"]:
+            if t >= t0 and m["service"] == service and pred(m):
+                return t, m
+        return None
+
+    def wait_flowing(self, timeout: float = 30.0) -> float:
+        """Until sync, locator and obstacles report ok and obstacle lists arrive; returns the time."""
+        def ok():
+            now = time.monotonic()
+            h = self.w.latest_health()
+            fresh_ok = all(n in h and now - h[n][0] < 1.5 and h[n][1]["state"] == "ok"
+                           for n in ("sync", "locator", "obstacles"))
+            lists = self.w.snapshot()["lists"]
+            return fresh_ok and lists and now - lists[-1]["t"] < 0.6 and now
+        assert self.thread.is_alive()
+        return wait_until(ok, timeout, 0.1, "sync, locator and obstacles ok with obstacle lists flowing")
+
+    def assert_fresh_and_ordered(self, since_t: float = 0.0) -> dict:
+        """No map or list past its age limit (as published, and as received); stamps never go back per camera."""
+        snap = self.w.snapshot()
+        for kind, limit in (("maps", MAP_MAX_AGE_MS), ("lists", LIST_MAX_AGE_MS)):
+            got = snap[kind]
+            assert got, f"no {kind} at all"
+            for x in got:
+                if x["t"] >= since_t:
+                    assert x["frame_age_ms"] <= limit, (kind, x)
+                    assert (x["rx_us"] - x["stamp_us"]) / 1e3 <= limit + TRANSPORT_SLACK_MS, (kind, x)
+            last = {}
+            for x in got:
+                assert x["stamp_us"] >= last.get(x["camera_id"], 0), (kind, "went back", x, last)
+                last[x["camera_id"]] = x["stamp_us"]
+        return snap
+
+    def counters(self, service: str) -> dict:
+        return self.w.latest_health().get(service, (0, {}))[1].get("counters", {})
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory):
+    from eonav.ranging.methods.dense import prepare_kernels
+    rec = lap_recording(FPS, (160, 160), nav_s=300.0)       # rendered once, cached in the system temp directory
+    prepare_kernels()
+    shift = replay_shift_us(rec, start_in_s=4.0)
+    port = free_port()
+    stop = threading.Event()
+    status: dict = {}
+    logs = tmp_path_factory.mktemp("fault-logs")
+
+    def run():
+        run_pipeline(looped_spec(rec, shift), vehicle=VEHICLE, port=port, on_status=status.update, stop_event=stop,
+                     quiet=True, log_dir=str(logs))
+
+    th = threading.Thread(target=run, name="pipeline")
+    th.start()
+    try:
+        _wait_port(port, th, 30.0)
+        with BusWatch(f"tcp/127.0.0.1:{port}", VEHICLE) as w:
+            p = Pipe(w, status, th)
+            p.wait_flowing(60.0)
+            yield p
+    finally:
+        stop.set()
+        th.join(60.0)
+        for f in sorted(logs.iterdir()):                      # shown by pytest when a test failed
+            print(f"---- {f.name}\n{f.read_text()[-3000:]}")
+
+
+def _degraded_naming(what):
+    return lambda m: m["state"] == "degraded" and what in m["detail"]
+
+
+def _assert_reported(p: Pipe, t_kill: float, service: str, what: str, budget_s: float, period_s: float):
+    """``service`` said degraded naming ``what`` no earlier than the budget after the last sample could have come
+    (the kill minus one period) and no later than the budget plus the slack."""
+    hit = p.health_after(t_kill, service, _degraded_naming(what))
+    assert hit is not None, (service, what, p.w.latest_health().get(service))
+    dt = hit[0] - t_kill
+    assert budget_s - period_s - 0.05 <= dt <= budget_s + SCHED_SLACK_S, (service, what, dt, hit[1]["detail"])
+    return dt
+
+
+def test_camera_replay_killed(pipe):
+    pipe.wait_flowing()
+    frames_before = pipe.w.snapshot()["frames"]
+    t_kill = time.monotonic()
+    os.kill(pipe.pid("camera"), signal.SIGKILL)
+    wait_until(lambda: pipe.health_after(t_kill, "obstacles", _degraded_naming("no range maps")), 10, 0.05,
+               "obstacles degraded")
+    dt = {"sync": _assert_reported(pipe, t_kill, "sync", "no frames", FRAMES_BUDGET_S, 1 / FPS),
+          "locator": _assert_reported(pipe, t_kill, "locator", "no posed frames", FRAMES_BUDGET_S, 1 / FPS),
+          "obstacles": _assert_reported(pipe, t_kill, "obstacles", "no range maps", MAPS_BUDGET_S, 1 / FPS)}
+    print("degraded after the kill (s):", dt)
+    t_back = pipe.wait_flowing(30.0)                                   # restarted by the launcher, resumed
+    time.sleep(2.0)
+    snap = pipe.assert_fresh_and_ordered()
+    after = [f for f in snap["frames"] if f["t"] > t_kill]
+    assert after and after[0]["seq"] > frames_before[-1]["seq"] and after[0]["stamp_us"] > frames_before[-1]["stamp_us"]
+    # the replay resumed where the clock is: its first frame is current, and the frames it passed over show as a
+    # seq gap of about the outage (not a restart from seq 0)
+    assert (after[0]["rx_us"] - after[0]["stamp_us"]) / 1e3 < 250.0, after[0]
+    gap_s = (after[0]["stamp_us"] - frames_before[-1]["stamp_us"]) / 1e6
+    assert after[0]["seq"] - frames_before[-1]["seq"] == pytest.approx(gap_s * FPS, abs=1.5)
+    assert pipe.status["camera"]["restarts"] == 1
+    print(f"camera: outage {gap_s:.2f} s, flowing again {t_back - t_kill:.2f} s after the kill")
+
+
+def test_mavlink_replay_killed(pipe):
+    pipe.wait_flowing()
+    t_kill = time.monotonic()
+    os.kill(pipe.pid("mavlink"), signal.SIGKILL)
+    wait_until(lambda: pipe.health_after(t_kill, "obstacles", _degraded_naming("no range maps")), 10, 0.05,
+               "obstacles degraded")
+    dt = {"sync": _assert_reported(pipe, t_kill, "sync", "no nav", NAV_BUDGET_S, 0.02),
+          "obstacles": _assert_reported(pipe, t_kill, "obstacles", "no nav", NAV_BUDGET_S, 0.02)}
+    print("degraded after the kill (s):", dt)
+    t_back = pipe.wait_flowing(30.0)
+    time.sleep(2.0)
+    pipe.assert_fresh_and_ordered()
+    assert pipe.status["mavlink"]["restarts"] == 1
+    print(f"mavlink: flowing again {t_back - t_kill:.2f} s after the kill; sync drops",
+          {k: v for k, v in pipe.counters("sync").items() if k.startswith("dropped.")},
+          "; obstacles nav_incomplete", pipe.counters("obstacles").get("nav_incomplete"))
+
+
+def test_locator_stalled_2s(pipe):
+    pipe.wait_flowing()
+    n_before = len(pipe.w.snapshot()["maps"])
+    too_old_before = pipe.counters("locator").get("dropped.too_old", 0)
+    pid = pipe.pid("locator")
+    os.kill(pid, signal.SIGSTOP)
+    t_stop = time.monotonic()
+    try:
+        time.sleep(2.0)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    t_cont = time.monotonic()
+    _assert_reported(pipe, t_stop, "obstacles", "no range maps", MAPS_BUDGET_S, 1 / FPS)
+    wait_until(lambda: len(pipe.w.snapshot()["maps"]) > n_before + 3, 15, 0.05, "range maps after the stall")
+    snap = pipe.assert_fresh_and_ordered()
+    first = next(x for x in snap["maps"][n_before:] if x["t"] > t_cont)
+    first_list = next(x for x in snap["lists"] if x["t"] > t_cont)
+    print(f"after the stall: first map {first['frame_age_ms']:.0f} ms old, first list "
+          f"{first_list['frame_age_ms']:.0f} ms old; locator dropped.too_old "
+          f"{pipe.counters('locator').get('dropped.too_old', 0) - too_old_before}")
+    assert first["frame_age_ms"] <= MAP_MAX_AGE_MS and first_list["frame_age_ms"] <= LIST_MAX_AGE_MS
+
+
+def test_locator_killed(pipe):
+    pipe.wait_flowing()
+    t_kill = time.monotonic()
+    os.kill(pipe.pid("locator"), signal.SIGKILL)
+    wait_until(lambda: pipe.health_after(t_kill, "obstacles", _degraded_naming("no range maps")), 10, 0.05,
+               "obstacles degraded")
+    print("degraded after the kill (s):",
+          _assert_reported(pipe, t_kill, "obstacles", "no range maps", MAPS_BUDGET_S, 1 / FPS))
+    t_back = pipe.wait_flowing(40.0)
+    time.sleep(2.0)
+    pipe.assert_fresh_and_ordered()
+    assert pipe.status["locator"]["restarts"] == 1
+    print(f"locator: flowing again {t_back - t_kill:.2f} s after the kill")

@@ -1,0 +1,413 @@
+"""Autopilot links that are not up yet (eonav.nav.links): malformed strings are configuration errors, everything else
+is retried with back-off. Real bytes: a TCP autopilot that starts late (and drops once), a serial link over a pty
+whose device appears late, a silent UDP peer; then the MAVLink ingest as a real process over both, its health
+degraded until the autopilot is heard."""
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+import tty
+
+import pytest
+
+from eonav import InputError
+from eonav.nav.links import MavLink, parse_connection
+from eonav.nav.mavlink_in import mavlink2_dialect
+
+
+def free_tcp_port() -> int:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+def free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+class Autopilot:
+    """An autopilot stand-in on a byte transport (``write(bytes)``, ``read() -> bytes``): HEARTBEAT at 5 Hz and
+    ATTITUDE at 50 Hz on its boot clock, encoded by pymavlink; it parses what it receives (the companion's
+    HEARTBEATs)."""
+
+    def __init__(self, write, read):
+        ap = mavlink2_dialect()
+        self.mav = ap.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.parser = ap.MAVLink(None)
+        self.write, self.read = write, read
+        self.stop = threading.Event()
+        self.received = []
+        self.t0 = time.monotonic()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+
+    def run(self):
+        ap = mavlink2_dialect()
+        next_hb = next_att = time.monotonic()
+        while not self.stop.is_set():
+            t = time.monotonic()
+            try:
+                if t >= next_hb:
+                    self.write(self.mav.heartbeat_encode(ap.MAV_TYPE_QUADROTOR, ap.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                         0, 0, ap.MAV_STATE_ACTIVE).pack(self.mav))
+                    next_hb = t + 0.2
+                if t >= next_att:
+                    boot_ms = int((t - self.t0) * 1000) + 1000
+                    self.write(self.mav.attitude_encode(boot_ms, 0.01, 0.02, 0.5, 0, 0, 0).pack(self.mav))
+                    next_att = t + 0.02
+                data = self.read()
+            except OSError:
+                return
+            if data:
+                self.received += [m for m in (self.parser.parse_buffer(data) or []) if m.get_type() != "BAD_DATA"]
+            time.sleep(0.005)
+
+    def start(self):
+        self.thread.start()
+        return self
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(5)
+
+    def companion_heartbeats(self):
+        return [m for m in self.received if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 191]
+
+
+class TcpAutopilot:
+    """A TCP server (like SITL or mavlink-router) that accepts one client and runs an ``Autopilot`` on it."""
+
+    def __init__(self, port: int):
+        self.srv = socket.socket()
+        self.srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.srv.bind(("127.0.0.1", port))
+        self.srv.listen(1)
+        self.srv.settimeout(10)
+        self.ap = None
+        self.client = None
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        try:
+            self.client, _ = self.srv.accept()
+        except OSError:
+            return
+        self.client.setblocking(False)
+
+        def read():
+            try:
+                return self.client.recv(4096)
+            except BlockingIOError:
+                return b""
+        self.ap = Autopilot(self.client.sendall, read).start()
+
+    def companion_heartbeats(self):
+        return self.ap.companion_heartbeats() if self.ap is not None else []
+
+    def drop(self):
+        """Close the client connection (autopilot reboot) and accept the next one."""
+        self.ap.close()
+        self.client.close()
+        self.ap = self.client = None
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def close(self):
+        if self.ap is not None:
+            self.ap.close()
+        for s in (self.client, self.srv):
+            if s is not None:
+                s.close()
+
+
+def pump(link: MavLink, until, timeout: float, what: str):
+    """Receive on ``link`` until ``until(link, msgs)`` is true; returns the messages."""
+    msgs = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        m = link.recv(0.05)
+        if m is not None:
+            msgs.append(m)
+        if until(link, msgs):
+            return msgs
+    raise AssertionError(f"timeout waiting for {what}: status {link.status()}")
+
+
+# ---- connection strings -----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("s,expect", [
+    ("tcp:127.0.0.1:5760", ("tcp", "127.0.0.1:5760", None)),
+    ("udpin:0.0.0.0:14550", ("udpin", "0.0.0.0:14550", None)),
+    ("udpout:10.0.0.1:14551", ("udpout", "10.0.0.1:14551", None)),
+    ("localhost:14550", ("udpin", "localhost:14550", None)),
+    ("/dev/ttyACM0", ("serial", "/dev/ttyACM0", None)),
+    ("/dev/serial/by-id/usb-ArduPilot_fmuv3-if00,921600", ("serial", "/dev/serial/by-id/usb-ArduPilot_fmuv3-if00", 921600)),
+    ("COM3,57600", ("serial", "COM3", 57600)),
+])
+def test_connection_strings_accepted(s, expect):
+    assert parse_connection(s) == expect
+
+
+@pytest.mark.parametrize("s", ["tcp:localhost", "tcp:host:port", "udpin:0.0.0.0:99999", "ttyACM0", "", "serial",
+                               "tcp://127.0.0.1:5760", "/dev/ttyACM0,fast"])
+def test_malformed_connection_strings_are_configuration_errors(s):
+    with pytest.raises(InputError, match="--source .*(not a MAVLink connection string|port 99999)"):
+        MavLink(s, what="--source")
+
+
+# ---- back-off -----------------------------------------------------------------------------------------------------
+
+def test_back_off_doubles_up_to_its_limit_and_says_down():
+    t = {"now": 100.0}
+    port = free_tcp_port()                                # nothing listens: refused at once
+    counts = {}
+    link = MavLink(f"tcp:127.0.0.1:{port}", clock=lambda: t["now"], backoff_s=(0.5, 4.0),
+                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
+    tries = []
+    while t["now"] < 120.0:
+        before = counts.get("link.attempts", 0)
+        assert link.poll() is None
+        if counts.get("link.attempts", 0) > before:
+            tries.append(t["now"])
+        t["now"] = round(t["now"] + 0.25, 2)
+    gaps = [round(b - a, 2) for a, b in zip(tries, tries[1:])]
+    assert gaps[:5] == [0.5, 1.0, 2.0, 4.0, 4.0] and set(gaps[3:]) == {4.0}
+    state, detail = link.status()
+    assert state == "down" and "ConnectionRefusedError" in detail and "next attempt in" in detail
+
+
+# ---- real links ---------------------------------------------------------------------------------------------------
+
+def test_tcp_autopilot_that_starts_late_and_drops_once():
+    port = free_tcp_port()
+    link = MavLink(f"tcp:127.0.0.1:{port}", backoff_s=(0.1, 0.4), silent_s=0.5)
+    ap = None
+    try:
+        pump(link, lambda lk, m: lk.status()[0] == "down", 2, "refused")
+        time.sleep(0.5)                                                 # still refused a while
+        assert link.status()[0] == "down" and link.conn is None
+        ap = TcpAutopilot(port)                                         # the autopilot comes up
+        msgs = pump(link, lambda lk, m: lk.status()[0] == "up" and len(m) >= 10, 5, "messages over TCP")
+        assert {m.get_type() for m in msgs} >= {"HEARTBEAT", "ATTITUDE"}
+        assert link.send(lambda c: c.mav.heartbeat_send(18, 8, 0, 0, 4))
+        deadline = time.monotonic() + 3
+        while not ap.ap.companion_heartbeats() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert ap.ap.companion_heartbeats()                              # and hears us
+        ap.drop()                                                        # connection reset: lost, re-opened
+        pump(link, lambda lk, m: lk.status()[0] == "up" and ap.ap is not None and len(m) >= 5, 8, "re-connect")
+    finally:
+        link.close()
+        if ap is not None:
+            ap.close()
+
+
+def test_serial_device_that_appears_late_over_a_pty(tmp_path):
+    master, slave = os.openpty()
+    tty.setraw(slave)                            # no echo / line discipline before pyserial configures the port
+    dev = tmp_path / "ttyAP"                     # like /dev/serial/by-id/...: a link udev creates later
+    link = MavLink(f"{dev},921600", backoff_s=(0.1, 0.4), silent_s=0.5)
+    os.set_blocking(master, False)
+
+    def read():
+        try:
+            return os.read(master, 4096)
+        except BlockingIOError:
+            return b""
+    ap = Autopilot(lambda b: os.write(master, b), read)
+    try:
+        pump(link, lambda lk, m: lk.status()[0] == "down", 2, "absent device")
+        assert "No such file" in link.status()[1] or "could not open" in link.status()[1]
+        os.symlink(os.ttyname(slave), dev)
+        ap.start()
+        msgs = pump(link, lambda lk, m: lk.status()[0] == "up" and len(m) >= 10, 5, "messages over the pty")
+        assert {m.get_type() for m in msgs} >= {"HEARTBEAT", "ATTITUDE"} and link.baud == 921600
+        assert link.send(lambda c: c.mav.heartbeat_send(18, 8, 0, 0, 4))
+        deadline = time.monotonic() + 3
+        while not ap.companion_heartbeats() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert ap.companion_heartbeats()
+    finally:
+        ap.close()
+        link.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_udp_peer_silent_then_heard():
+    port = free_udp_port()
+    link = MavLink(f"udpin:127.0.0.1:{port}", silent_s=0.3)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        pump(link, lambda lk, m: lk.conn is not None, 2, "bound")
+        time.sleep(0.4)
+        link.recv(0.05)
+        state, detail = link.status()
+        assert state == "silent" and "no MAVLink for" in detail
+        ap = Autopilot(lambda b: tx.sendto(b, ("127.0.0.1", port)), lambda: b"").start()
+        try:
+            pump(link, lambda lk, m: lk.status()[0] == "up", 3, "the peer")
+        finally:
+            ap.close()
+        while link.recv(0.05) is not None:                               # what the peer sent before it stopped
+            pass
+        time.sleep(0.4)
+        assert link.status()[0] == "silent"                              # and silent again once it stops
+    finally:
+        tx.close()
+        link.close()
+
+
+# ---- the MAVLink ingest service, real processes ------------------------------------------------------------------
+
+def _service(source, vehicle, port):
+    from eonav.app.processes import start_service
+    from eonav.bus.session import endpoint
+    return start_service(["-m", "eonav.services.mavlink_ingest", "--source", source, "--vehicle", vehicle,
+                          "--connect", endpoint(port), "--health-period-s", "0.1", "--clock", "receive",
+                          "--timesync-hz", "0"])
+
+
+def _ingest_recovers(source, vehicle, bring_up):
+    """Start the ingest on a link that is not up; check its health says degraded and nothing is published; bring
+    the autopilot up; check nav states flow, the health says ok and the companion HEARTBEAT reaches the autopilot."""
+    zenoh = pytest.importorskip("zenoh")
+    from eonav.app.processes import drain, free_port, stop_service, wait_until
+    from eonav.bus import keys as K
+    from eonav.bus import schema
+    from eonav.bus.session import listener_session
+    port = free_port()
+    health, nav = [], []
+    with listener_session(port) as s:
+        hsub = s.declare_subscriber(K.health(vehicle, "mavlink"), zenoh.handlers.FifoChannel(10000))
+        nsub = s.declare_subscriber(K.nav_state(vehicle), zenoh.handlers.FifoChannel(10000))
+        proc = _service(source, vehicle, port)
+        ap = None
+        try:
+            def seen(pred):
+                health.extend(schema.decode(m.payload.to_bytes()) for m in drain(hsub))
+                return any(pred(h) for h in health)
+            wait_until(lambda: seen(lambda h: h["state"] == "degraded" and "down" in h["detail"]), 20,
+                       what="degraded health while the link is down")
+            time.sleep(1.0)
+            assert proc.poll() is None and not drain(nsub)                # still running, nothing published
+            ap = bring_up()
+            wait_until(lambda: seen(lambda h: h["state"] == "ok" and h["counters"].get("nav_published", 0) >= 10),
+                       10, what="ok health and nav states once the autopilot is up")
+            nav = [schema.decode(m.payload.to_bytes()) for m in drain(nsub)]
+            wait_until(lambda: ap.companion_heartbeats(), 3, what="the companion HEARTBEAT at the autopilot")
+        finally:
+            code, err = stop_service(proc)
+            if ap is not None:
+                ap.close()
+    assert code == 0, err
+    assert len(nav) >= 10 and all(m["source"] == "ATTITUDE" for m in nav)
+    last = health[-1]["counters"]
+    assert last["link.attempts"] >= 2 and last["link.opened"] >= 1
+
+
+def test_ingest_waits_for_a_late_tcp_autopilot():
+    port = free_tcp_port()
+    _ingest_recovers(f"tcp:127.0.0.1:{port}", "lk1", lambda: TcpAutopilot(port))
+
+
+def test_ingest_waits_for_a_late_serial_device(tmp_path):
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    dev = tmp_path / "ttyACM0"
+
+    def read():
+        try:
+            return os.read(master, 4096)
+        except BlockingIOError:
+            return b""
+    ap = Autopilot(lambda b: os.write(master, b), read)
+
+    def up():
+        os.symlink(os.ttyname(slave), dev)
+        return ap.start()
+    try:
+        _ingest_recovers(f"{dev},115200", "lk2", up)
+    finally:
+        ap.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_ingest_malformed_connection_string_is_a_configuration_error():
+    from eonav.app.processes import free_port
+    proc = _service("tcp:localhost", "lk3", free_port())
+    code = proc.wait(30)
+    assert code == 2 and "not a MAVLink connection string" in proc.stderr.read()
+
+
+# ---- OBSTACLE_DISTANCE out to an autopilot that starts late ---------------------------------------------------------
+
+def test_obstacle_distance_sender_waits_for_a_late_tcp_autopilot():
+    import numpy as np
+
+    from eonav.nav.mavlink_out import ObstacleDistanceSender
+    from eonav.obstacles.detect import N_SECTORS, Sectors
+    port = free_tcp_port()
+    tx = ObstacleDistanceSender(f"tcp:127.0.0.1:{port}", rate_hz=10.0)
+    sectors = Sectors(np.full(N_SECTORS, 1234, np.int64), 5.0, 0.0, 50, 15000)
+    ap = None
+    try:
+        t_end = time.monotonic() + 0.6
+        while time.monotonic() < t_end:
+            tx.update(sectors, time.time_ns() // 1000)
+            time.sleep(min(tx.tick(), 0.05))
+        state, detail = tx.link_status()
+        assert state == "down" and "ConnectionRefusedError" in detail and tx.counters["od_sent_fresh"] == 0
+        ap = TcpAutopilot(port)
+        deadline = time.monotonic() + 8
+        while time.monotonic() < deadline:
+            tx.update(sectors, time.time_ns() // 1000)
+            time.sleep(min(tx.tick(), 0.05))
+            od = [m for m in (ap.ap.received if ap.ap else []) if m.get_type() == "OBSTACLE_DISTANCE"]
+            if len(od) >= 3 and ap.companion_heartbeats() and tx.link_status()[0] == "up":
+                break
+        else:
+            raise AssertionError(f"no OBSTACLE_DISTANCE after the autopilot came up: {tx.link_status()}")
+        assert all(list(m.distances) == [1234] * N_SECTORS and m.get_srcComponent() == 191 for m in od)
+    finally:
+        tx.close()
+        if ap is not None:
+            ap.close()
+
+
+def test_obstacles_service_degraded_until_its_tcp_autopilot_is_up():
+    zenoh = pytest.importorskip("zenoh")
+    from eonav.app.processes import drain, free_port, start_service, stop_service, wait_until
+    from eonav.bus import keys as K
+    from eonav.bus import schema
+    from eonav.bus.session import endpoint, listener_session
+    port, ap_port = free_port(), free_tcp_port()
+    health = []
+    with listener_session(port) as s:
+        hsub = s.declare_subscriber(K.health("lk4", "obstacles"), zenoh.handlers.FifoChannel(10000))
+        proc = start_service(["-m", "eonav.services.obstacles", "--vehicle", "lk4", "--connect", endpoint(port),
+                              "--health-period-s", "0.1", "--mavlink-out", f"tcp:127.0.0.1:{ap_port}"])
+        ap = None
+        try:
+            def seen(pred):
+                health.extend(schema.decode(m.payload.to_bytes()) for m in drain(hsub))
+                return any(pred(h) for h in health)
+            wait_until(lambda: seen(lambda h: h["state"] == "degraded" and "down" in h["detail"]), 30,
+                       what="degraded while the autopilot refuses")
+            assert proc.poll() is None
+            ap = TcpAutopilot(ap_port)
+            wait_until(lambda: seen(lambda h: h["state"] == "ok"), 10, what="ok once the autopilot is heard")
+            wait_until(lambda: ap.companion_heartbeats(), 5, what="the service's HEARTBEAT at the autopilot")
+        finally:
+            code, err = stop_service(proc)
+            if ap is not None:
+                ap.close()
+    assert code == 0, err

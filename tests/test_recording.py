@@ -1,0 +1,421 @@
+"""MCAP recordings (eonav.recording): record -> replay over a real zenoh bus, the Foxglove channels read back with
+the ``mcap`` reader and decoded from the schemas stored in the file, rotation by size and time, the replay's wait
+for subscribers, ``eonav run --record``, and bad input."""
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from mcap.reader import make_reader  # noqa: E402
+from mcap_protobuf.decoder import DecoderFactory  # noqa: E402
+
+from eonav.bus import keys as K  # noqa: E402
+from eonav.bus import schema  # noqa: E402
+from eonav.bus.session import client_session  # noqa: E402
+from eonav.app.processes import router_process, start_service, stop_service, wait_until  # noqa: E402
+from eonav.geometry.frames import T_PAPERCAM_OPTICAL, rotation_from_quat_wxyz  # noqa: E402
+from eonav.ranging.rangemap import AT_INFINITY, FILLED, VALID  # noqa: E402
+from eonav.recording.foxglove import FoxgloveConverter, point_stride  # noqa: E402
+from eonav.recording.recorder import Recorder, parse_size  # noqa: E402
+from eonav.recording.replayer import read_records, rewrite_vehicle  # noqa: E402
+from eonav.recording.writer import RecordingWriter, part_path  # noqa: E402
+
+MSGPACK = "application/msgpack"
+
+
+def raw_messages(path):
+    """(key, zenoh encoding, payload) of the raw channels of a recording, in file order."""
+    return [(r.key, r.encoding, r.payload, r.attachment) for r in read_records([path], exclude=["eonav/*/health/*"])]
+
+
+def bus_messages(vehicle: str, rng) -> list:
+    """(key, zenoh encoding, payload, attachment): the project's messages and two foreign encodings, one with an
+    attachment."""
+    out = []
+    for i in range(6):
+        img = rng.integers(0, 256, (48, 64), dtype=np.uint8)
+        out.append((K.frame(vehicle, "nose"), MSGPACK,
+                    schema.encode("frame", camera_id="nose", seq=i, stamp_us=1_000_000 + 100_000 * i, image=img), None))
+        out.append((K.nav_state(vehicle), MSGPACK,
+                    schema.encode("nav_state", stamp_us=1_000_000 + 100_000 * i + 50_000,
+                                  position_ned_m=[float(i), 0.0, -10.0], q_wxyz=[1.0, 0.0, 0.0, 0.0]), None))
+    out.append((f"eonav/{vehicle}/custom/raw", "application/octet-stream;bgr8", rng.bytes(3000), b"attachment-1"))
+    out.append((f"eonav/{vehicle}/custom/json", "application/json", b'{"a": 1}', None))
+    return out
+
+
+def wait_recorded(health_sub, n: int, timeout: float = 20.0):
+    """Wait until the recorder's health says it wrote ``n`` messages."""
+    def done():
+        for s in iter(health_sub.try_recv, None):
+            m = schema.decode(s.payload.to_bytes(), expect="health")
+            if m["service"] == "recorder" and m["counters"].get("messages", 0) >= n:
+                return True
+        return False
+    wait_until(done, timeout, what=f"recorder to write {n} messages")
+
+
+# --------------------------------------------------------------------------------------------------
+# round trip over the bus
+
+def test_record_then_replay_gives_identical_payloads_in_order(tmp_path):
+    veh = "rt"
+    sent = bus_messages(veh, np.random.default_rng(0))
+    out = tmp_path / "rt.mcap"
+    with router_process() as ep, client_session(ep) as s:
+        health = s.declare_subscriber(K.health(veh, "recorder"), zenoh.handlers.FifoChannel(256))
+        rec = start_service(["-m", "eonav.recording.recorder", str(out), "--vehicle", veh, "--connect", ep,
+                             "--images", "raw", "--health-period-s", "0.2", "--exclude", f"eonav/{veh}/excluded/**"])
+        pubs = {k: s.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK) for k, *_ in sent}
+        wait_until(lambda: all(p.matching_status.matching for p in pubs.values()), 30, what="recorder subscribed")
+        time.sleep(0.1)
+        t_put0 = time.time_ns()
+        for i, (key, enc, payload, att) in enumerate(sent):
+            pubs[key].put(payload, encoding=zenoh.Encoding(enc), attachment=att)
+            if i == 3:
+                s.put(f"eonav/{veh}/excluded/x", b"not recorded")          # --exclude: left out
+        t_put1 = time.time_ns()
+        wait_recorded(health, len(sent))
+        code, err = stop_service(rec)
+        assert code == 0, err
+
+        # the file: one raw channel per key with its zenoh encoding, log and publish times, a Foxglove image channel
+        with open(out, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            assert summary is not None                           # finished (summary and index written) on SIGINT
+            raw = {c.topic: c for c in summary.channels.values() if c.metadata.get("eonav.role") == "raw"}
+            assert raw[K.frame(veh, "nose")].message_encoding == "msgpack"
+            assert raw[K.frame(veh, "nose")].metadata["eonav.kind"] == "frame"
+            assert raw[f"eonav/{veh}/custom/raw"].metadata["zenoh.encoding"] == "application/octet-stream;bgr8"
+            assert raw[f"eonav/{veh}/custom/json"].message_encoding == "json"
+            images = [c for c in summary.channels.values() if c.topic == "/camera/nose/image"]
+            assert len(images) == 1 and summary.schemas[images[0].schema_id].name == "foxglove.RawImage"
+            times = [(m.log_time, m.publish_time) for _, c, m in reader.iter_messages(log_time_order=False)
+                     if c.metadata.get("eonav.role") == "raw" and "/health/" not in c.topic]
+        logs = [t for t, _ in times]
+        assert logs == sorted(logs) and t_put0 <= logs[0] and logs[-1] <= t_put1 + 5e9
+        # publish time: the router's timestamp (HLC, set when the sample passed it), before the recorder got it
+        assert all(-1e6 <= lt - pt < 1e9 for lt, pt in times), times[:3]
+        assert raw_messages(out) == sent
+
+        # replay onto the bus: the same keys, encodings, payloads and attachments, in the same order
+        got = s.declare_subscriber(f"eonav/{veh}/**", zenoh.handlers.FifoChannel(1024))
+        rp = start_service(["-m", "eonav.recording.replayer", str(out), "--vehicle", "replayer", "--connect", ep,
+                            "--as-fast-as-possible"])
+        rc, err = rp.wait(30), rp.stderr.read()
+        assert rc == 0, err
+        received = []
+        wait_until(lambda: received.extend(iter(got.try_recv, None)) or len(received) >= len(sent), 10,
+                   what="replayed samples")
+        time.sleep(0.3)
+        received.extend(iter(got.try_recv, None))
+        replayed = [(str(x.key_expr), str(x.encoding), x.payload.to_bytes(),
+                     x.attachment.to_bytes() if x.attachment is not None else None) for x in received]
+        assert replayed == sent
+
+
+def test_rewrite_vehicle():
+    assert rewrite_vehicle("eonav/a/camera/nose/frame", "b") == "eonav/b/camera/nose/frame"
+    assert rewrite_vehicle("other/a/x", "b") == "other/a/x"
+
+
+# --------------------------------------------------------------------------------------------------
+# Foxglove channels
+
+CAM = {"name": "nose", "width": 40, "height": 30, "fx": 50.0, "fy": 50.0, "cx": 19.5, "cy": 14.5,
+       "l_m": [1.0, 0.0, 0.0], "eps_deg": [0.0, 0.0, 0.0]}
+
+
+def plane_range_map():
+    """A 40 x 30 map of a wall at x_c = 20 m: rows 0-4 no estimate (NaN), 5-9 at infinity, 10-14 FILLED, the rest
+    VALID."""
+    r = np.full((30, 40), 20.0, np.float32)
+    flags = np.full((30, 40), VALID, np.uint8)
+    r[0:5], flags[0:5] = np.nan, 0
+    r[5:10], flags[5:10] = np.inf, AT_INFINITY
+    flags[10:15] = FILLED
+    return r, flags
+
+
+def fixture_messages():
+    img = np.zeros((24, 32, 3), np.uint8)
+    img[:, :, 2] = np.arange(32, dtype=np.uint8)[None, :] * 8            # red ramp left -> right
+    r, flags = plane_range_map()
+    q = [math.cos(0.25), 0.0, 0.0, math.sin(0.25)]                        # yaw 0.5 rad
+    obstacles = [{"id": 3, "distance_m": 20.5, "bearing_deg": -5.0, "position_ned_m": [20.0, -2.0, -3.0],
+                  "extent_ned_m": [0.1, 2.0, 4.0]},
+                 {"id": 7, "distance_m": 60.0, "bearing_deg": 10.0, "position_ned_m": [55.0, 12.0, -1.0],
+                  "extent_ned_m": [3.0, 3.0, 6.0]}]
+    return [
+        schema.encode("frame", camera_id="nose", seq=0, stamp_us=1_000_000, encoding="bgr8", image=img),
+        schema.encode("nav_state", stamp_us=1_010_000, q_wxyz=q),                      # attitude only
+        schema.encode("nav_state", stamp_us=1_020_000, position_ned_m=[5.0, 6.0, -7.0]),  # position only
+        schema.encode("posed_frame", camera_id="nose", seq=0, stamp_us=1_000_000, encoding="mono8",
+                      image=np.zeros((30, 40), np.uint8), camera=CAM, position_ned_m=[5.0, 6.0, -7.0], q_wxyz=q),
+        schema.encode("range_map", camera_id="nose", seq=1, stamp_us=1_200_000, method="dense", range_m=r,
+                      confidence=np.ones_like(r), flags=flags, camera=CAM, position_ned_m=[5.0, 6.0, -7.0],
+                      q_wxyz=q),
+        schema.encode("obstacle_list", stamp_us=1_200_000, camera_id="nose", obstacles=obstacles),
+    ]
+
+
+def record_fixture(path, image_format="raw", max_points=20000):
+    w = RecordingWriter(path)
+    rec = Recorder(w, FoxgloveConverter(image_format, near_m=5.0, far_m=150.0, max_points=max_points))
+    keys = [K.frame("fx", "nose"), K.nav_state("fx"), K.nav_state("fx"), K.posed_frame("fx", "nose"),
+            K.range_map("fx", "nose"), K.obstacles("fx")]
+    for i, (key, payload) in enumerate(zip(keys, fixture_messages())):
+        rec.record(key, MSGPACK, payload, 1_000_000_000 + i * 1_000_000)
+    rec.close()
+
+
+def decoded(path) -> dict:
+    """topic -> [(schema name, schema encoding, message encoding, decoded protobuf)] of the Foxglove channels."""
+    out = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        topics = sorted({c.topic for c in reader.get_summary().channels.values()
+                         if c.metadata.get("eonav.role") == "foxglove"})
+        for sch, ch, _msg, dec in reader.iter_decoded_messages(topics=topics, log_time_order=False):
+            out.setdefault(ch.topic, []).append((sch.name, sch.encoding, ch.message_encoding, dec))
+    return out
+
+
+def test_foxglove_channels_have_their_schemas_and_decode(tmp_path):
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    d = decoded(path)
+    names = {t: {(n, se, me) for n, se, me, _ in v} for t, v in d.items()}
+    assert names == {
+        "/camera/nose/image": {("foxglove.RawImage", "protobuf", "protobuf")},
+        "/camera/nose/calibration": {("foxglove.CameraCalibration", "protobuf", "protobuf")},
+        "/pose": {("foxglove.PoseInFrame", "protobuf", "protobuf")},
+        "/tf": {("foxglove.FrameTransform", "protobuf", "protobuf")},
+        "/range/nose/image": {("foxglove.RawImage", "protobuf", "protobuf")},
+        "/range/nose/points": {("foxglove.PointCloud", "protobuf", "protobuf")},
+        "/obstacles": {("foxglove.SceneUpdate", "protobuf", "protobuf")},
+    }
+    # the frame: same size and pixels
+    img = d["/camera/nose/image"][0][3]
+    assert (img.width, img.height, img.encoding, img.step) == (32, 24, "bgr8", 96)
+    px = np.frombuffer(img.data, np.uint8).reshape(24, 32, 3)
+    assert px[5, 10].tolist() == [0, 0, 80] and img.frame_id == "cam_nose_optical"
+    assert (img.timestamp.seconds, img.timestamp.nanos) == (1, 0)
+    # the pose: only once attitude AND position are known (the attitude-only state gives none)
+    poses = d["/pose"]
+    assert len(poses) == 1
+    p = poses[0][3].pose
+    assert [p.position.x, p.position.y, p.position.z] == [5.0, 6.0, -7.0]
+    assert [p.orientation.w, p.orientation.z] == pytest.approx([math.cos(0.25), math.sin(0.25)])
+    tf = {(t.parent_frame_id, t.child_frame_id): t for *_, t in d["/tf"]}
+    assert set(tf) == {("ned", "body"), ("body", "cam_nose"), ("cam_nose", "cam_nose_optical")}
+    mount = tf[("body", "cam_nose")]
+    assert [mount.translation.x, mount.translation.y, mount.translation.z] == [1.0, 0.0, 0.0]
+    opt = tf[("cam_nose", "cam_nose_optical")].rotation
+    R = rotation_from_quat_wxyz([opt.w, opt.x, opt.y, opt.z])
+    assert np.allclose(R, T_PAPERCAM_OPTICAL)
+    assert np.allclose(R @ [0, 0, 1], [1, 0, 0])          # the optical z axis (into the image) is the paper's Xc
+    cal = d["/camera/nose/calibration"][0][3]
+    assert (cal.width, cal.height) == (40, 30) and list(cal.K) == [50.0, 0, 19.5, 0, 50.0, 14.5, 0, 0, 1]
+    # the range picture: the map's size; no estimate and infinity black; FILLED at half the brightness of VALID
+    rimg = d["/range/nose/image"][0][3]
+    assert (rimg.width, rimg.height, rimg.encoding) == (40, 30, "bgr8")
+    rp = np.frombuffer(rimg.data, np.uint8).reshape(30, 40, 3).astype(int)
+    assert rp[0:10].max() == 0
+    assert rp[20, 7].max() > 0 and (rp[12, 7] == rp[20, 7] // 2).all()
+    # the point cloud: every VALID or FILLED finite pixel (30 x 40 minus 10 rows), in the camera frame
+    cloud = d["/range/nose/points"][0][3]
+    assert cloud.frame_id == "cam_nose" and cloud.point_stride == 16
+    assert [f.name for f in cloud.fields] == ["x", "y", "z", "range"]
+    pts = np.frombuffer(cloud.data, "<f4").reshape(-1, 4)
+    assert len(pts) == 20 * 40
+    assert np.all(pts[:, 0] == 20.0) and np.all(pts[:, 3] == 20.0)
+    # pixel (u=0, v=29): y = 20 (0 - 19.5) / 50 = -7.8, z = 20 (29 - 14.5) / 50 = 5.8 (hand-derived)
+    assert pts[-40, 1:3] == pytest.approx([-7.8, 5.8])
+    assert pts[0, 1:3] == pytest.approx([-7.8, 20 * (10 - 14.5) / 50])   # first point: u=0 on row 10
+    # the obstacles: one cube per obstacle at its NED point, extent (at least 0.3 m), all older entities deleted
+    upd = d["/obstacles"][0][3]
+    assert len(upd.deletions) == 1 and len(upd.entities) == 2
+    e = {x.id: x for x in upd.entities}
+    c = e["obstacle/3"].cubes[0]
+    assert [c.pose.position.x, c.pose.position.y, c.pose.position.z] == [20.0, -2.0, -3.0]
+    assert [c.size.x, c.size.y, c.size.z] == pytest.approx([0.3, 2.0, 4.0])
+    assert e["obstacle/3"].frame_id == "ned" and "20.5 m" in e["obstacle/3"].texts[0].text
+
+
+def test_foxglove_layout_shows_recorded_topics(tmp_path):
+    # every topic docs/foxglove-layout.json shows is one a recording of camera "nose" has
+    from pathlib import Path
+    layout = json.loads((Path(__file__).parents[1] / "docs" / "foxglove-layout.json").read_text())
+    shown = set()
+    for cfg in layout["configById"].values():
+        shown |= {v for k, v in cfg.get("imageMode", {}).items() if k.endswith("Topic")}
+        shown |= set(cfg.get("topics", {}))
+        shown |= {p["value"].split(".", 1)[0] for p in cfg.get("paths", [])}
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    recorded = set(decoded(path))
+    assert shown and shown <= recorded, shown - recorded
+    assert layout["configById"]["3D!scene"]["followTf"] == "body"
+
+
+def test_point_cloud_subsampling_and_compressed_images(tmp_path):
+    # at most 100 points: stride 4 (ceil(30/4) x ceil(40/4) = 80 cells; stride 3 would be 140); the rows kept are
+    # v = 0, 4, ..., 28, of which 12, 16, 20, 24, 28 have a range: 5 rows x 10 columns
+    assert point_stride(30, 40, 100) == 4 and point_stride(30, 40, 1200) == 1 and point_stride(30, 40, 1199) == 2
+    path = tmp_path / "fx.mcap"
+    record_fixture(path, image_format="jpeg", max_points=100)
+    d = decoded(path)
+    cloud = d["/range/nose/points"][0][3]
+    assert len(cloud.data) // 16 == 50
+    import cv2
+    name, *_, img = d["/camera/nose/image"][0]
+    assert name == "foxglove.CompressedImage" and img.format == "jpeg"
+    assert cv2.imdecode(np.frombuffer(img.data, np.uint8), cv2.IMREAD_COLOR).shape == (24, 32, 3)
+
+
+# --------------------------------------------------------------------------------------------------
+# rotation
+
+def write_random(path, n, log_step_ns, **kw):
+    rng = np.random.default_rng(1)
+    w = RecordingWriter(path, **kw)
+    rec = Recorder(w)
+    sent = []
+    for i in range(n):
+        key = f"eonav/rot/k{i % 2}"
+        payload, att = rng.bytes(4000), (b"a%d" % i if i % 7 == 0 else None)
+        rec.record(key, "application/octet-stream", payload, i * log_step_ns, attachment=att)
+        sent.append((key, "application/octet-stream", payload, att))
+    rec.close()
+    return w, sent
+
+
+def test_rotation_by_size(tmp_path):
+    split = 64 * 1024
+    w, sent = write_random(tmp_path / "big.mcap", 300, 1_000_000, split_bytes=split)    # 1.2 MB, incompressible
+    assert w.files == [part_path(tmp_path / "big.mcap", i) for i in range(len(w.files))]
+    assert w.files[0].name == "big_000.mcap" and not (tmp_path / "big.mcap").exists()
+    assert len(w.files) >= 12
+    for p in w.files:
+        with open(p, "rb") as f:
+            s = make_reader(f).get_summary()
+        assert s is not None and s.statistics.message_count > 0                # each part complete on its own
+        assert p.stat().st_size <= split + w.chunk_bytes + 16 * 1024
+    assert [m for p in w.files for m in raw_from(p)] == sent                  # nothing lost, same order
+    # below the threshold: one part
+    w2, _ = write_random(tmp_path / "small.mcap", 10, 1_000_000, split_bytes=split)
+    assert [p.name for p in w2.files] == ["small_000.mcap"]
+
+
+def raw_from(path):
+    return [(r.key, r.encoding, r.payload, r.attachment) for r in read_records([path])]
+
+
+def test_rotation_by_time(tmp_path):
+    # 100 messages 0.1 s apart (log time 0 .. 9.9 s), a new part every 3 s: [0, 3), [3, 6), [6, 9), [9, 9.9]
+    w, sent = write_random(tmp_path / "t.mcap", 100, 100_000_000, split_s=3.0)
+    firsts = []
+    for p in w.files:
+        with open(p, "rb") as f:
+            st = make_reader(f).get_summary().statistics
+        firsts += [st.message_start_time / 1e9, st.message_end_time / 1e9]
+    assert firsts == pytest.approx([0.0, 2.9, 3.0, 5.9, 6.0, 8.9, 9.0, 9.9])
+    assert [m for p in w.files for m in raw_from(p)] == sent
+    w2, _ = write_random(tmp_path / "t2.mcap", 100, 100_000_000, split_s=10.0)
+    assert len(w2.files) == 1
+
+
+def test_parse_size_and_writer_input_errors(tmp_path):
+    from eonav import InputError
+    assert parse_size("64K") == 65536 and parse_size("2M") == 2 * 1024 ** 2 and parse_size("1000") == 1000
+    assert parse_size(None) is None and parse_size("0") is None
+    with pytest.raises(InputError, match="expected bytes"):
+        parse_size("lots")
+    (tmp_path / "x.mcap").write_bytes(b"old")
+    with pytest.raises(InputError, match="already exists"):
+        RecordingWriter(tmp_path / "x.mcap")
+    with pytest.raises(InputError, match="ending in .mcap"):
+        RecordingWriter(tmp_path / "x.bag")
+    with pytest.raises(InputError, match="at least 64 KiB"):
+        RecordingWriter(tmp_path / "y.mcap", split_bytes=1000)
+
+
+# --------------------------------------------------------------------------------------------------
+# replay: waiting for subscribers
+
+def write_sequence(path, n=40, step_s=0.05, vehicle="w"):
+    rec = Recorder(RecordingWriter(path))
+    for i in range(n):
+        rec.record(f"eonav/{vehicle}/data", "text/plain", b"msg-%03d" % i, int(i * step_s * 1e9))
+    rec.close()
+    return [b"msg-%03d" % i for i in range(n)]
+
+
+def replay_with_late_subscriber(ep, path, wait_timeout: float, late_s: float) -> list:
+    """Start a real-time replay; declare the data subscriber ``late_s`` after the replay's first health message
+    (the process is up); return the payloads it got."""
+    with client_session(ep) as s:
+        health = s.declare_subscriber(K.health("w", "replay"), zenoh.handlers.FifoChannel(64))
+        rp = start_service(["-m", "eonav.recording.replayer", str(path), "--vehicle", "w", "--connect", ep,
+                            "--wait-timeout-s", str(wait_timeout)])
+        try:
+            wait_until(lambda: health.try_recv() is not None, 30, what="replay up")
+            time.sleep(late_s)
+            sub = s.declare_subscriber("eonav/w/data", zenoh.handlers.FifoChannel(256))
+            assert rp.wait(30) == 0, rp.stderr.read()
+            time.sleep(0.3)
+            return [x.payload.to_bytes() for x in iter(sub.try_recv, None)]
+        finally:
+            if rp.poll() is None:
+                stop_service(rp)
+
+
+def test_replay_waits_for_subscribers_before_the_first_message(tmp_path):
+    path = tmp_path / "seq.mcap"
+    sent = write_sequence(path)                          # 40 messages over 2 s
+    with router_process() as ep:
+        # waiting: the subscriber joins 0.7 s after the replay came up and still gets every message from the first
+        assert replay_with_late_subscriber(ep, path, wait_timeout=20, late_s=0.7) == sent
+        # not waiting: the same late subscriber misses the first messages (the rest arrives, in order)
+        got = replay_with_late_subscriber(ep, path, wait_timeout=0, late_s=0.7)
+        assert 0 < len(got) < len(sent) and got == sent[len(sent) - len(got):]
+
+
+# --------------------------------------------------------------------------------------------------
+# eonav run --record, and bad input
+
+def test_run_with_record_records_the_run(tmp_path):
+    from eonav.app.launcher import run_pipeline
+    src = tmp_path / "src.mcap"
+    sent = write_sequence(src, n=20, step_s=0.02, vehicle="runrec")
+    out = tmp_path / "run.mcap"
+    spec = {"services": [{"name": "replay", "module": "eonav.recording.replayer", "restart": False,
+                          "args": [str(src), "--as-fast-as-possible"]}]}
+    code = run_pipeline(spec, vehicle="runrec", exit_when_done="replay", quiet=True, record=str(out),
+                        log_dir=str(tmp_path / "logs"))
+    assert code == 0, (tmp_path / "logs" / "recorder.log").read_text()
+    # the replay waited for the recorder (its only subscriber), so nothing was lost; the file was finished on stop
+    assert [p for k, _, p, _ in raw_messages(out) if k == "eonav/runrec/data"] == sent
+    with open(out, "rb") as f:
+        s = make_reader(f).get_summary()
+    assert any(c.topic == "eonav/runrec/alive/replay" for c in s.channels.values())   # liveliness recorded too
+
+
+def test_cli_bad_input_is_a_configuration_error(tmp_path):
+    (tmp_path / "exists.mcap").write_bytes(b"")
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all")
+    p = start_service(["-m", "eonav.app.cli", "record", str(tmp_path / "exists.mcap"), "--listen", "tcp/127.0.0.1:0"])
+    code, err = p.wait(30), p.stderr.read()
+    assert code == 2 and "already exists" in err, err
+    p = start_service(["-m", "eonav.app.cli", "replay", str(tmp_path / "junk.mcap"), "--listen", "tcp/127.0.0.1:0"])
+    code, err = p.wait(30), p.stderr.read()
+    assert code == 2 and "not an MCAP file" in err, err
