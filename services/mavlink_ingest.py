@@ -1,12 +1,14 @@
-"""MAVLink ingest: an autopilot link, live or a recorded .tlog -> ``nav_state`` and ``clock_offset`` on the bus.
+"""MAVLink ingest: an autopilot link, live or recorded -> ``nav_state`` and ``clock_offset`` on the bus.
 
 Live or recorded is one flag: ``--source`` takes any pymavlink connection string (``udpin:0.0.0.0:14550``,
-``tcp:127.0.0.1:5760``, ``/dev/ttyACM0`` with ``--baud``) or a ``.tlog`` path. Out: one schema ``nav_state`` on
+``tcp:127.0.0.1:5760``, ``/dev/ttyACM0`` with ``--baud``), a ``.tlog`` path, or an ArduPilot dataflash log
+(``.BIN``, known by its first bytes; its ATT, XKQ, XKF1 and POS messages go in as the MAVLink messages that carry
+the same quantities, ``eonav.nav.dataflash``). Out: one schema ``nav_state`` on
 ``keys.nav_state(vehicle)`` per accepted navigation message (each message type its own stream, absent quantities
 NaN), and ``clock_offset`` on ``keys.nav_clock(vehicle)``. Every ``stamp_us`` is autopilot time mapped onto the
 companion clock by the estimated offset; decoding, validation and the clock estimators are ``eonav.nav.mavlink_in``
-(docs/mavlink.md). A tlog replays at real time or a speed factor with its header times moved onto the current clock
-(exit 0 at its end); a live link also gets a companion HEARTBEAT and TIMESYNC requests. A live link that is not up yet or drops
+(docs/mavlink.md). A log replays at real time or a speed factor with its times (tlog record headers, dataflash
+GPS-based times) moved onto the current clock (exit 0 at its end); a live link also gets a companion HEARTBEAT and TIMESYNC requests. A live link that is not up yet or drops
 (serial device absent, TCP refused, UDP peer silent) is re-opened with back-off (``eonav.nav.links``) and the
 health says ``degraded`` until the autopilot is heard; only a malformed connection string is a configuration
 error (exit 2).
@@ -22,6 +24,7 @@ from pathlib import Path
 from eonav import InputError
 from eonav.bus import keys as K
 from eonav.bus.node import Node, add_flag, restart_count, service_main
+from eonav.nav.dataflash import DataflashReader, is_dataflash
 from eonav.nav.links import MavLink
 from eonav.nav.mavlink_in import (ClockMapper, NavDecoder, NavIngest, TlogReader, mavutil_v2)
 
@@ -32,6 +35,7 @@ STREAM_IDS = {"ATTITUDE": 30, "ATTITUDE_QUATERNION": 31, "LOCAL_POSITION_NED": 3
               "SYSTEM_TIME": 2}
 CLOCK_PUBLISH_PERIOD_US = 1_000_000
 RESUME_LATE_US = 100_000     # a joint replay (re)starts at its first record due no more than this long ago
+MAX_UNKNOWN_IDS = 1024       # distinct unknown message ids told apart (unknown_msg_ids stops growing there)
 
 
 def now_us() -> int:
@@ -39,7 +43,19 @@ def now_us() -> int:
 
 
 def is_tlog(source: str) -> bool:
-    return source.lower().endswith((".tlog", ".tlog.raw")) or (Path(source).is_file() and not source.startswith("/dev/"))
+    """A recorded log (tlog or dataflash) rather than a live link."""
+    return source.lower().endswith((".tlog", ".tlog.raw", ".bin")) or (Path(source).is_file()
+                                                                       and not source.startswith("/dev/"))
+
+
+def open_log(path):
+    """The reader of a recorded log: ``DataflashReader`` for a dataflash log (first bytes A3 95), else
+    ``TlogReader``; both yield ``(stamp_us, message)`` and keep ``stats``."""
+    if is_dataflash(path):
+        return DataflashReader(path)
+    if str(path).lower().endswith(".bin"):
+        raise InputError(f"--source {path}: a .bin that is not a dataflash log (its first bytes are not A3 95)")
+    return TlogReader(path)
 
 
 def parse_origin(s: str | None):
@@ -83,9 +99,18 @@ class Publisher:
         self._last_clock = None
         self._last_clock_us = None
         self._reported: Counter = Counter()
+        self._unknown_ids: set = set()
 
     def feed(self, msg, rx_us: int) -> None:
         t = msg.get_type()
+        if t.startswith("UNKNOWN_"):
+            # an id the dialect does not define (pymavlink cannot check its CRC): corrupt bytes, mostly. Two
+            # counters, not one per id: messages (msg.unknown) and distinct ids (unknown_msg_ids, at most 1024)
+            self.node.count("msg.unknown")
+            if t not in self._unknown_ids and len(self._unknown_ids) < MAX_UNKNOWN_IDS:
+                self._unknown_ids.add(t)
+                self.node.count("unknown_msg_ids")
+            return
         self.node.count(f"msg.{t}")
         if t == "BAD_DATA":
             self.node.count("bad_data")
@@ -135,7 +160,8 @@ class Publisher:
 
 def replay_tlog(path, feed, *, speed: float, stop: threading.Event, keep_stamps: bool = False,
                 clock=now_us, sleep=None, shift_us: int | None = None, skip=None) -> TlogReader:
-    """Replay a tlog into ``feed(msg, rx_us)``: header times shifted onto the current clock, paced at
+    """Replay a log (a path, or a reader from ``open_log``) into ``feed(msg, rx_us)``: its times shifted onto the
+    current clock, paced at
     ``speed`` x real time (0 = as fast as possible). With ``shift_us`` (joint replays, see the camera
     ingest), each record is stamped header + shift_us and released when the clock reaches that stamp; records
     already due more than ``RESUME_LATE_US`` when the replay starts go to ``skip(msg, rx_us)`` instead (default:
@@ -145,7 +171,7 @@ def replay_tlog(path, feed, *, speed: float, stop: threading.Event, keep_stamps:
         if keep_stamps or speed != 1.0:
             raise InputError("--replay-shift-us replays at real time: it excludes --keep-stamps and --speed != 1")
         resume_us = clock() - RESUME_LATE_US
-        with TlogReader(path) as reader:
+        with (open_log(path) if isinstance(path, (str, Path)) else path) as reader:
             for header_us, msg in reader:
                 if stop.is_set():
                     break
@@ -158,7 +184,7 @@ def replay_tlog(path, feed, *, speed: float, stop: threading.Event, keep_stamps:
                     sleep(wait_s)
                 feed(msg, header_us + shift_us)
         return reader
-    reader = TlogReader(path)
+    reader = open_log(path) if isinstance(path, (str, Path)) else path
     shift = None
     t_start_mono = time.monotonic()
     first = None
@@ -222,8 +248,10 @@ def body(node: Node, args) -> None:
     if not args.source:
         raise InputError("--source is required (a pymavlink connection string or a .tlog path)")
     tlog = is_tlog(args.source)
+    if tlog and not Path(args.source).exists():
+        raise InputError(f"--source {args.source}: no such log file")
     if tlog and not Path(args.source).is_file():
-        raise InputError(f"--source {args.source}: no such tlog file")
+        raise InputError(f"--source {args.source}: not a regular file (expected a .tlog or dataflash .BIN log)")
     if tlog and args.replay_shift_us is None and restart_count():
         # no fixed time reference: it would start over with the recording's beginning presented as now
         node.log.warning("tlog replay of %s restarted without --replay-shift-us: it cannot resume where it was, so "
@@ -239,15 +267,17 @@ def body(node: Node, args) -> None:
     node.log.info("mavlink %s source %s -> %s", "tlog" if tlog else "live", args.source,
                   K.nav_state(node.vehicle))
     if tlog:
-        node.worker(_run_tlog, node, args, pub, name="replay")
+        reader = open_log(args.source)        # a dataflash log is indexed here: an unreadable one fails now
+        node.log.info("%s log %s", "dataflash" if isinstance(reader, DataflashReader) else "tlog", args.source)
+        node.worker(_run_tlog, node, args, pub, reader, name="replay")
     else:
         _start_live(node, args, pub)
 
 
-def _run_tlog(node: Node, args, pub: Publisher) -> None:
+def _run_tlog(node: Node, args, pub: Publisher, reader) -> None:
     if args.wait_subscribers_s > 0:
         node.wait_matching(pub.nav_pub, args.wait_subscribers_s)
-    reader = replay_tlog(args.source, pub.feed, speed=args.speed, stop=node.stop_event, keep_stamps=args.keep_stamps,
+    reader = replay_tlog(reader, pub.feed, speed=args.speed, stop=node.stop_event, keep_stamps=args.keep_stamps,
                          shift_us=args.replay_shift_us, skip=pub.fast_forward)
     if node.stop_event.is_set():
         return
@@ -255,6 +285,15 @@ def _run_tlog(node: Node, args, pub: Publisher) -> None:
         rest = pub.ingest.flush()
     pub.publish(rest, now_us())
     st = reader.stats
+    if isinstance(reader, DataflashReader):
+        for k, v in vars(st).items():
+            if v:
+                node.count(f"dataflash_{k}", v)
+        node.log.info("end of dataflash log: %d messages, %d navigation, published %s, rejected %s",
+                      st.records, st.nav, dict(pub.ingest.published), dict(pub.ingest.rejected))
+        node.stop_event.wait(0.3)
+        node.stop("end of log")
+        return
     node.count("tlog_records", st.records)
     if st.bad_data:
         node.count("bad_data", st.bad_data)

@@ -122,7 +122,7 @@ def pack_array(a: np.ndarray) -> dict:
 
 
 def unpack_array(d, name: str) -> np.ndarray:
-    if not isinstance(d, dict) or set(d) < {"dtype", "shape", "data"}:
+    if not isinstance(d, dict) or not {"dtype", "shape", "data"} <= set(d):
         raise SchemaError(f"field {name}: expected an array map with dtype, shape, data", "array")
     dtype, shape, data = d["dtype"], d["shape"], d["data"]
     if dtype not in ARRAY_DTYPES:
@@ -229,11 +229,11 @@ def decode(payload, expect: str | None = None) -> dict:
     if not isinstance(doc, dict):
         raise SchemaError("payload is not a msgpack map", "msgpack")
     kind, v = doc.get("kind"), doc.get("v")
-    if kind not in FIELDS:
+    if not isinstance(kind, str) or kind not in FIELDS:        # (a list or map here is unhashable)
         raise SchemaError(f"unknown message kind {kind!r}", "kind")
     if expect is not None and kind != expect:
         raise SchemaError(f"expected a {expect} message, got {kind}", "kind")
-    if v not in SUPPORTED_VERSIONS:
+    if isinstance(v, bool) or not isinstance(v, int) or v not in SUPPORTED_VERSIONS:     # (True == 1, 1.0 == 1)
         raise SchemaError(f"{kind}: unsupported schema version {v!r}; this build reads {SUPPORTED_VERSIONS}",
                           "version")
     out = {"kind": kind, "v": v}

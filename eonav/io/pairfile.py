@@ -13,6 +13,7 @@ Every error names the field and what was expected; so does a key the contract do
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,11 @@ from eonav import InputError
 from eonav.geometry.camera import Camera, VehicleState, View
 from eonav.io.calibration import (DistortedCamera, Undistorter, check_distortion, load_calibration,
                                  mount_from_T_cam_imu)
-from eonav.io.images import load_grey
+from eonav.io.files import read_regular_file
+from eonav.io.images import ImageSizeError, load_grey
+
+MAX_PAIR_FILE_BYTES = 16 << 20     # a pair file is a few kB per frame: 16 MiB is tens of thousands of frames
+MAX_TOTAL_PIXELS = 1 << 28         # decoded images of one pair file: 1 GiB of float32 grey
 
 PAIR_KEYS = ("cameras", "frames")
 INTRINSIC_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
@@ -45,17 +50,29 @@ class PairFile:
     frames: list          # list of dicts with keys: image_path (Path), camera (str), t (float), state (VehicleState)
     undistorters: dict = field(default_factory=dict)     # camera name -> Undistorter (distorted cameras only)
 
-    def views(self, load_images: bool = True) -> list:
-        """Views in file order (frame 0 first). Images are loaded, checked against the camera size and, for a
+    def views(self, load_images: bool = True, indices=None) -> list:
+        """Views of the frames ``indices`` (default all, in file order). Images are loaded, checked against the
+        camera size (from the file header, before decoding; at most ``MAX_TOTAL_PIXELS`` decoded in all) and, for a
         camera with a lens model, undistorted."""
+        idx = range(len(self.frames)) if indices is None else list(indices)
+        total = sum(self.cameras[self.frames[i]["camera"]].width * self.cameras[self.frames[i]["camera"]].height
+                    for i in idx)
+        if load_images and total > MAX_TOTAL_PIXELS:
+            raise InputError(f"frames: {len(idx)} images of {total} pixels in all, more than the "
+                             f"{MAX_TOTAL_PIXELS} eonav decodes for one pair file")
         out = []
-        for i, fr in enumerate(self.frames):
+        for i in idx:
+            fr = self.frames[i]
             cam = self.cameras[fr["camera"]]
-            img = load_grey(fr["image_path"]) if load_images else np.zeros((cam.height, cam.width), np.float32)
-            if img.shape != (cam.height, cam.width):
-                raise InputError(f"frames[{i}].image {fr['image_path'].name}: image is {img.shape[1]}x{img.shape[0]} "
-                                 f"but camera {fr['camera']!r} declares {cam.width}x{cam.height}")
-            if load_images and fr["camera"] in self.undistorters:
+            if not load_images:
+                out.append(View(cam, fr["state"], np.zeros((cam.height, cam.width), np.float32)))
+                continue
+            try:
+                img = load_grey(fr["image_path"], expect_wh=(cam.width, cam.height))
+            except ImageSizeError as e:
+                raise InputError(f"frames[{i}].image {fr['image_path'].name}: image is {e.size[0]}x{e.size[1]} "
+                                 f"but camera {fr['camera']!r} declares {cam.width}x{cam.height}") from None
+            if fr["camera"] in self.undistorters:
                 img = self.undistorters[fr["camera"]](img)
             out.append(View(cam, fr["state"], img))
         return out
@@ -73,7 +90,11 @@ def _num(obj, key, where, positive=False, integer=False):
     v = obj[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise InputError(f"{where}.{key}: expected a number, got {v!r}")
-    if not np.isfinite(v):
+    try:
+        f = float(v)                                    # (JSON integers have no limit; floats do)
+    except OverflowError:
+        raise InputError(f"{where}.{key}: expected a finite number, got an integer of {v.bit_length()} bits") from None
+    if not math.isfinite(f):
         raise InputError(f"{where}.{key}: expected a finite number, got {v!r}")
     if integer and int(v) != v:
         raise InputError(f"{where}.{key}: expected a whole number, got {v!r}")
@@ -89,7 +110,10 @@ def _vec(obj, key, n, where):
     if (not isinstance(v, (list, tuple)) or len(v) != n
             or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
         raise InputError(f"{where}.{key}: expected a list of {n} numbers, got {v!r}")
-    a = np.asarray(v, float)
+    try:
+        a = np.array([float(x) for x in v])
+    except OverflowError:
+        raise InputError(f"{where}.{key}: expected finite numbers, got an integer beyond the float range") from None
     if not np.all(np.isfinite(a)):
         raise InputError(f"{where}.{key}: expected finite numbers, got {v!r}")
     return a
@@ -164,7 +188,7 @@ def parse_frame(i: int, fr: dict, cameras: dict, base: Path) -> dict:
     if not isinstance(img, str) or not img:
         raise InputError(f"{where}.image: expected a path relative to the pair file, got {img!r}")
     cam = fr.get("camera")
-    if cam not in cameras:
+    if not isinstance(cam, str) or cam not in cameras:
         raise InputError(f"{where}.camera: {cam!r} is not one of the cameras {sorted(cameras)}")
     t = _num(fr, "t", where) if "t" in fr else 0.0
     pos = _vec(fr, "position_ned_m", 3, where)
@@ -195,13 +219,18 @@ def parse_pair(doc: dict, base: Path) -> PairFile:
 
 
 def read_json(path, what: str = "pair file"):
-    """A JSON document, with errors that say which file (``what``) and why."""
+    """A JSON document (UTF-8, or UTF-16/32 with its byte order), with errors that say which file (``what``) and
+    why. The file must be a regular file of at most ``MAX_PAIR_FILE_BYTES``."""
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{what} not found: {p}")
+    data = read_regular_file(p, what, MAX_PAIR_FILE_BYTES)
     try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as e:
+        return json.loads(data)
+    except UnicodeDecodeError as e:
+        raise InputError(f"{what} {p}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); "
+                         "expected a JSON document in UTF-8") from None
+    except RecursionError:
+        raise InputError(f"{what} {p}: not valid JSON (nested too deeply)") from None
+    except ValueError as e:          # json.JSONDecodeError, and integers of more digits than Python converts
         raise InputError(f"{what} {p}: not valid JSON ({e})") from None
 
 

@@ -228,7 +228,7 @@ class NavDecoder:
     def decode(self, msg) -> NavSample | None:
         """A NavSample for a valid navigation message of the selected autopilot, else None."""
         t = msg.get_type()
-        self.seen[t] += 1
+        self.seen["UNKNOWN" if t.startswith("UNKNOWN_") else t] += 1      # one key for every undefined id
         if t not in NAV_TYPES:
             return None
         if not self.is_autopilot(msg):
@@ -669,6 +669,7 @@ class TlogReader:
         self._eof = False
         self._chunk = chunk
         self._last_header: int | None = None
+        self._resyncing = False      # after garbage or a bad packet, until the next good record
         dialect = mavlink2_dialect()
         self._mav = dialect.MAVLink(None)
         self._mav.robust_parsing = True
@@ -698,6 +699,12 @@ class TlogReader:
         recording), else replaced. Keeps replay pacing and min-filter clock estimates sane."""
         st, last = self.stats, self._last_header
         if last is None:
+            # the first record has no previous one to be checked against: the next two records (the buffer holds
+            # what follows it) vote; one corrupt first header would otherwise become the time base of the replay
+            nxt = self._next_headers(2)
+            if len(nxt) == 2 and abs(nxt[0] - nxt[1]) <= self.max_step and abs(h - nxt[0]) > self.max_step:
+                st.header_jumps += 1
+                h = nxt[0]
             self._last_header = h
             return h
         if abs(h - last) > self.max_step:
@@ -726,13 +733,42 @@ class TlogReader:
             return 8 + 10 + b[i + 9] + 2 + (13 if b[i + 10] & 1 else 0)
         return None
 
+    def _next_headers(self, k: int) -> list:
+        """Header times of the next ``k`` records in the buffer (from its start), while their packets decode."""
+        out, i = [], 0
+        while len(out) < k and self._fill(i + 11) and self._record_len(i) is not None and self._decodes(i):
+            out.append(int.from_bytes(self._buf[i:i + 8], "big"))
+            i += self._record_len(i)
+        return out
+
+    def _decodes(self, i: int) -> bool:
+        """The record at buffer index i holds a packet that decodes and whose CRC checks out (pymavlink does not
+        check the CRC of an id its dialect does not define: such a packet is no evidence)."""
+        n = self._record_len(i)
+        if n is None or not self._fill(i + n):
+            return False
+        try:
+            msg = self._mav.decode(bytearray(self._buf[i + 8:i + n]))
+        except (self._MAVError, struct.error, IndexError, ValueError, TypeError):
+            return False
+        return not msg.get_type().startswith("UNKNOWN_")
+
     def _plausible(self, i: int) -> bool:
+        """A record may start at buffer index i: a packet marker, and a header time near the last one, or (a header
+        far from it: corrupt, or a corrupt last one; or garbage before the file's first good record) a packet that
+        decodes with its CRC."""
         if not self._fill(i + 11):
             return False
         h = int.from_bytes(self._buf[i:i + 8], "big")
         if self._buf[i + 8] not in (0xFE, 0xFD):
             return False
-        return self._last_header is None or abs(h - self._last_header) <= self.max_jump
+        if not self._fill(i + self._record_len(i)):
+            return False                  # runs past the end: a truncated tail, or a corrupt length byte
+        if self._last_header is None and not self._resyncing:
+            return True                   # the file's first record
+        if self._last_header is not None and abs(h - self._last_header) <= self.max_jump:
+            return True
+        return self._decodes(i)
 
     def __iter__(self):
         st = self.stats
@@ -743,6 +779,7 @@ class TlogReader:
                 return
             if not self._plausible(0):
                 # garbage: skip to the next plausible record start
+                self._resyncing = True
                 j = 1
                 while self._fill(j + 11) and not self._plausible(j):
                     j += 1
@@ -772,9 +809,19 @@ class TlogReader:
                 log.debug("tlog bad packet at header %d: %s", header_us, e)
                 # the length byte may itself be corrupt: resync from the next byte
                 del self._buf[:1]
+                self._resyncing = True
+                st.resync_bytes += 1
+                continue
+            if msg.get_type().startswith("UNKNOWN_") and self._fill(n + 11) and not self._plausible(n):
+                # an id the dialect does not define has no CRC check: believed only when a record follows it
+                # (a corrupt id or length byte would otherwise swallow the records after it)
+                st.bad_data += 1
+                del self._buf[:1]
+                self._resyncing = True
                 st.resync_bytes += 1
                 continue
             del self._buf[:n]
+            self._resyncing = False
             header_us = self._check_header(header_us)
             st.records += 1
             msg._timestamp = header_us / 1e6

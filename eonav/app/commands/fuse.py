@@ -50,6 +50,19 @@ def stereo_rig(pf, max_dt_s: float):
     return None
 
 
+def check_output_dir(path):
+    """--out-dir: a folder that exists or can be made, in which a file can be created."""
+    from pathlib import Path
+
+    from eonav import InputError
+    from eonav.io.files import check_output
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        raise InputError(f"--out-dir {d}: exists and is not a directory")
+    check_output(d / "range_0000.npz", "--out-dir")
+    return d
+
+
 def run(args) -> int:
     from pathlib import Path
 
@@ -58,8 +71,10 @@ def run(args) -> int:
     from eonav import InputError
     from eonav.fusion.schedule import ScheduleConfig
     from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+    from eonav.io.files import check_output, write_npz
     from eonav.io.pairfile import parse_pair, read_json
 
+    check_output(args.out, "--out")                     # before any work: a path that cannot be written fails now
     doc = read_json(args.seq, "sequence file")
     check_sequence(doc)
     pf = parse_pair(doc, Path(args.seq).parent)
@@ -72,9 +87,7 @@ def run(args) -> int:
     rig = stereo_rig(pf, args.max_stereo_dt_s)
     runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=rig, max_stereo_dt_s=args.max_stereo_dt_s)))
     views = pf.views()
-    out_dir = Path(args.out_dir) if args.out_dir else None
-    if out_dir:
-        out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = check_output_dir(args.out_dir) if args.out_dir else None
     ref = pf.frames[0]["camera"]
     last = None
     n_maps = 0
@@ -83,14 +96,12 @@ def run(args) -> int:
             arrays = dict(m.result.arrays(), n_fused=m.n_fused.astype(np.uint16))
             n_maps += 1
             if out_dir:
-                np.savez_compressed(out_dir / f"range_{m.frame.seq:04d}.npz", **arrays)
+                write_npz(out_dir / f"range_{m.frame.seq:04d}.npz", arrays, "--out-dir")
             if m.frame.camera_id == ref:
                 last = (m.frame.seq, arrays)
     if last is None:
         raise InputError(f"no fused map for camera {ref!r}: no frame pair of the sequence had enough parallax")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out, **last[1])
+    out = write_npz(args.out, last[1], "--out")
     r = last[1]["range_m"]
     print(f"fused {len(pf.frames)} frames ({n_maps} maps): frame {last[0]} of camera {ref!r}: "
           f"{int(np.isfinite(r).sum())}/{r.size} pixels with a finite range ({100.0 * np.isfinite(r).mean():.1f} %), "

@@ -49,26 +49,67 @@ def accuracy_summary(range_m, truth_m, confidence=None) -> dict:
     return out
 
 
-def run(args) -> int:
-    import json
-    import statistics
-    import time
-    from pathlib import Path
+def check_png_output(path) -> None:
+    """--png: a writable path whose extension OpenCV can write (.png, .jpg, ...)."""
+    import cv2
+
+    from eonav import InputError
+    from eonav.io.files import check_output
+    check_output(path, "--png")
+    if not cv2.haveImageWriter(str(path)):
+        raise InputError(f"--png {path}: no image writer for this file name (expected e.g. range.png)")
+
+
+def load_npz_array(path, name: str, what: str):
+    """Array ``name`` of an .npz file (a regular file, no pickles), with errors that name the file."""
+    import io
+    import zipfile
 
     import numpy as np
 
     from eonav import InputError
-    from eonav.ranging.locate import get_method
+    from eonav.io.files import read_regular_file
+    data = read_regular_file(path, what, 1 << 30)
+    if data[:4] != b"PK\x03\x04":
+        raise InputError(f"{what} {path}: not an .npz file (expected the .npz of 'eonav sim' holding {name!r})")
+    try:
+        t = np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+        raise InputError(f"{what} {path}: not a readable .npz ({e})") from None
+    if not isinstance(t, np.lib.npyio.NpzFile):
+        raise InputError(f"{what} {path}: a single array, expected an .npz holding {name!r}")
+    with t:
+        if name not in t.files:
+            raise InputError(f"{what} {path}: no {name!r} array (it has {t.files})")
+        try:
+            return t[name]
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(f"{what} {path}: cannot read {name!r} ({e})") from None
+
+
+def run(args) -> int:
+    import json
+    import statistics
+    import time
+
+    import numpy as np
+
+    from eonav import InputError
+    from eonav.io.files import check_output, write_npz
     from eonav.io.pairfile import load_pair_file
+    from eonav.ranging.locate import get_method
 
     if args.cv_threads >= 0:
         import cv2
         cv2.setNumThreads(args.cv_threads)
+    check_output(args.out, "--out")                     # before any work: a path that cannot be written fails now
+    if args.png:
+        check_png_output(args.png)
+    truth = load_npz_array(args.truth, "range_m", "--truth") if args.truth else None
     pf = load_pair_file(args.pair)
     if not 1 <= args.other < len(pf.frames):
         raise InputError(f"--other {args.other}: the pair file has frames 0..{len(pf.frames) - 1}")
-    views = pf.views()
-    a, b = views[0], views[args.other]
+    a, b = pf.views(indices=(0, args.other))
     fn = get_method(args.method)
     if args.measured_only:
         if args.method != "dense":
@@ -76,18 +117,12 @@ def run(args) -> int:
         import functools
         fn = functools.partial(fn, fill=False)
     res = fn(a, b)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out, **res.arrays())
+    out = write_npz(args.out, res.arrays(), "--out")
     r = res.range_m
     n = r.size
     print(f"{args.method}: {int(np.isfinite(r).sum())}/{n} pixels with a finite range "
           f"({100.0 * np.isfinite(r).sum() / n:.1f} %), {int(np.isposinf(r).sum())} at infinity -> {out}")
-    if args.truth:
-        with np.load(args.truth) as t:
-            if "range_m" not in t:
-                raise InputError(f"--truth {args.truth}: no 'range_m' array")
-            truth = t["range_m"]
+    if truth is not None:
         if truth.shape != r.shape:
             raise InputError(f"--truth {args.truth}: shape {truth.shape} differs from the range map {r.shape}")
         s = accuracy_summary(r, truth, res.confidence)

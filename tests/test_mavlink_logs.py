@@ -1,0 +1,199 @@
+"""Recorded autopilot logs through the MAVLink ingest service as a real process on a real zenoh session: an
+ArduPilot dataflash log (tests/data/arducopter_sitl_short.bin, made by the real ArduCopter SITL, see
+tests/data/make_dataflash_bin.py), the two real tlogs replayed in full (counts from pymavlink's own reader), a
+.bin that is not a dataflash log refused, and corrupt MAVLink of many unknown ids kept to two counters."""
+from __future__ import annotations
+
+import math
+import os
+import struct
+import subprocess
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eonav.bus import keys as K
+from eonav.bus import schema
+from eonav.geometry.frames import T_body_ned_from_quat
+from eonav.nav.dataflash import DataflashReader
+from eonav.nav.mavlink_in import ClockMapper, NavDecoder, NavIngest, mavlink2_dialect, mavutil_v2
+
+BIN = Path(__file__).resolve().parent / "data" / "arducopter_sitl_short.bin"
+TLOGS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tlogs"
+REAL = {"copter": TLOGS / "arducopter_real_flight_dronekit.tlog",
+        "sub": TLOGS / "ardusub_real_dive_qgc_mavlink2_small.tlog"}
+
+
+def dfreader_messages(path):
+    """Every message of a dataflash log, read with pymavlink's DFReader directly."""
+    from pymavlink import DFReader
+    r = DFReader.DFReader_binary(str(path), zero_time_base=False)
+    out = []
+    while (m := r.recv_msg()) is not None:
+        out.append(m)
+    return out
+
+
+def _angle(q_a, q_b):
+    R = T_body_ned_from_quat(q_a) @ T_body_ned_from_quat(q_b).T
+    return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+
+
+def run_ingest(source, *extra, vehicle="lg", timeout=120):
+    """The ingest service replaying ``source`` as fast as it can; returns (exit code, stderr, nav states, the last
+    health counters)."""
+    import zenoh
+
+    from eonav.app.processes import drain, free_port, start_service
+    from eonav.bus.session import endpoint, listener_session
+    port = free_port()
+    with listener_session(port) as s:
+        nav_sub = s.declare_subscriber(K.nav_state(vehicle), zenoh.handlers.FifoChannel(100_000))
+        h_sub = s.declare_subscriber(K.health(vehicle, "mavlink"), zenoh.handlers.FifoChannel(10_000))
+        proc = start_service(["-m", "eonav.services.mavlink_ingest", "--source", str(source), "--rate", "0",
+                              "--vehicle", vehicle, "--connect", endpoint(port), "--health-period", "0.2",
+                              "--wait-subscribers", "10", *extra])
+        nav, health = [], []
+        try:
+            _, err = proc.communicate(timeout=timeout)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        import time
+        time.sleep(0.3)
+        nav = [schema.decode(m.payload.to_bytes()) for m in drain(nav_sub)]
+        health = [schema.decode(m.payload.to_bytes()) for m in drain(h_sub)]
+    return proc.returncode, err, nav, (health[-1]["counters"] if health else {})
+
+
+# -- dataflash ----------------------------------------------------------------------------------------------------
+def test_dataflash_reader_gives_what_dfreader_reads():
+    msgs = dfreader_messages(BIN)
+    types = Counter(m.get_type() for m in msgs)
+    first_orgn = next(i for i, m in enumerate(msgs) if m.get_type() == "ORGN")
+    n_xkf1_after = sum(1 for m in msgs[first_orgn:] if m.get_type() == "XKF1" and m.C == 0)
+    r = DataflashReader(BIN)
+    got = list(r)
+    kinds = Counter(m.get_type() for _, m in got)
+    assert kinds == {"ATTITUDE": types["ATT"], "ATTITUDE_QUATERNION": types["XKQ"],
+                     "GLOBAL_POSITION_INT": types["POS"], "LOCAL_POSITION_NED": n_xkf1_after}
+    assert r.stats.records == len(msgs) and r.stats.truncated_bytes == 0 and r.stats.resync_bytes == 0
+    assert r.stats.no_origin == sum(1 for m in msgs[:first_orgn] if m.get_type() == "XKF1")
+    # field by field against the DFReader messages (same order)
+    src = [m for m in msgs if m.get_type() in ("ATT", "XKQ", "POS") or (m.get_type() == "XKF1" and
+                                                                       msgs.index(m) > first_orgn)]
+    assert len(src) == len(got)
+    for m, (stamp, g) in zip(src, got):
+        assert stamp == round(m._timestamp * 1e6) and g.time_boot_ms == m.TimeUS // 1000
+        if m.get_type() == "ATT":
+            yaw = math.degrees(g.yaw) % 360
+            assert (math.degrees(g.roll), math.degrees(g.pitch)) == pytest.approx((m.Roll, m.Pitch), abs=1e-9)
+            assert min(abs(yaw - m.Yaw), 360 - abs(yaw - m.Yaw)) < 1e-6 and -math.pi <= g.yaw < math.pi
+        elif m.get_type() == "XKF1":
+            assert (g.x, g.y, g.z, g.vx, g.vy, g.vz) == (m.PN, m.PE, m.PD, m.VN, m.VE, m.VD)
+        elif m.get_type() == "POS":
+            assert abs(g.lat - m.Lat * 1e7) <= 0.5 and abs(g.alt - m.Alt * 1000) <= 0.5
+
+
+def test_service_replays_a_dataflash_log():
+    msgs = dfreader_messages(BIN)
+    first_orgn = next(i for i, m in enumerate(msgs) if m.get_type() == "ORGN")
+    xkf1 = [m for m in msgs[first_orgn:] if m.get_type() == "XKF1"]
+    n_att = sum(1 for m in msgs if m.get_type() == "ATT")
+    n_xkq = sum(1 for m in msgs if m.get_type() == "XKQ")
+    code, err, nav, c = run_ingest(BIN, "--position-source", "LOCAL_POSITION_NED")
+    assert code == 0, err[-3000:]
+    assert "end of dataflash log" in err and "Traceback" not in err
+    by = Counter(m["source"] for m in nav)
+    assert by == {"ATTITUDE": n_att, "ATTITUDE_QUATERNION": n_xkq, "LOCAL_POSITION_NED": len(xkf1)}
+    assert c["dataflash_records"] == len(msgs) and c["nav_published"] == len(nav)
+    pos = [m for m in nav if m["source"] == "LOCAL_POSITION_NED"]
+    np.testing.assert_allclose([p["position_ned_m"] for p in pos], [[m.PN, m.PE, m.PD] for m in xkf1], atol=1e-5)
+    assert np.linalg.norm(pos[-1]["position_ned_m"][:2] - [20, 10]) < 1.5     # the flight: 20 m N, 10 m E
+    # the AHRS attitude (ATT, degrees) and the EKF quaternion (XKQ) of the same instant agree
+    att = {m["autopilot_time_us"]: m["q_wxyz"] for m in nav if m["source"] == "ATTITUDE"}
+    xkq = {m["autopilot_time_us"]: m["q_wxyz"] for m in nav if m["source"] == "ATTITUDE_QUATERNION"}
+    common = sorted(set(att) & set(xkq))
+    assert len(common) > 0.9 * n_att
+    assert max(_angle(att[t], xkq[t]) for t in common) < math.radians(1.0)
+    # stamps: the log's GPS-based times moved onto now by one shift (+- the 1 ms of time_boot_ms)
+    for src in by:
+        s = np.array([m["stamp_us"] - m["autopilot_time_us"] for m in nav if m["source"] == src])
+        assert np.ptp(s) <= 1000, src
+
+
+def test_a_bin_that_is_not_a_dataflash_log_is_refused(tmp_path):
+    bad = tmp_path / "flight.bin"
+    bad.write_bytes(b"\x00" * 1000)
+    code, err, nav, _ = run_ingest(bad, timeout=60)
+    assert code == 2, err[-2000:]
+    assert "flight.bin: a .bin that is not a dataflash log" in err and "Traceback" not in err and not nav
+
+
+# -- unknown message ids: two counters, not one per id -------------------------------------------------------------
+def test_unknown_message_ids_are_two_counters(tmp_path):
+    ML = mavlink2_dialect()
+    mav = ML.MAVLink(None, srcSystem=1, srcComponent=1)
+    t0 = 1_700_000_000_000_000
+    n_unknown, n_att = 1500, 60
+    recs = []
+    ids = [0x100000 + k for k in range(n_unknown)]                # not defined by the dialect
+    assert not any(i in ML.mavlink_map for i in ids)
+    for k in range(n_unknown):
+        payload = bytes([k & 0xFF, 7, 7])
+        pkt = struct.pack("<BBBBBBB", 0xFD, len(payload), 0, 0, k & 0xFF, 1, 1) + ids[k].to_bytes(3, "little")
+        recs.append(struct.pack(">Q", t0 + k * 1000) + pkt + payload + b"\x00\x00")
+    for k in range(n_att):
+        recs.append(struct.pack(">Q", t0 + (n_unknown + k) * 1000)
+                    + ML.MAVLink_attitude_message(1000 + k * 20, 0.1, 0, 0, 0, 0, 0).pack(mav))
+    p = tmp_path / "unknown.tlog"
+    p.write_bytes(b"".join(recs))
+    code, err, nav, c = run_ingest(p)
+    assert code == 0, err[-3000:]
+    assert c["msg.unknown"] == n_unknown and c["unknown_msg_ids"] == 1024
+    assert not [k for k in c if "UNKNOWN" in k] and len(c) < 30, sorted(c)
+    assert c["msg.ATTITUDE"] == n_att and len(nav) == n_att
+
+
+# -- the real tlogs, replayed in full ------------------------------------------------------------------------------
+def pymavlink_reading(path):
+    """Message counts by type, and the nav states NavIngest makes from the messages, both from pymavlink's own tlog
+    reader (mavutil's mavlogfile: its own framing, BAD_DATA included)."""
+    mavutil = mavutil_v2()
+    conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega", robust_parsing=True)
+    ing = NavIngest(NavDecoder(), ClockMapper(prefer=("receive",)))
+    types, states = Counter(), []
+    while (m := conn.recv_match()) is not None:
+        types[m.get_type()] += 1
+        if m.get_type() != "BAD_DATA":
+            states += ing.feed(m, int(round(m._timestamp * 1e6)))
+    states += ing.flush()
+    return types, Counter(s["source"] for s in states)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("name", sorted(REAL))
+def test_real_tlog_replays_in_full_through_the_service(name):
+    path = REAL[name]
+    if not path.is_file():
+        pytest.skip(f"real tlog not found: {path} (shared data absent)")
+    types, states = pymavlink_reading(path)
+    code, err, nav, c = run_ingest(path)
+    assert code == 0, err[-3000:]
+    assert "end of tlog" in err and "Traceback" not in err
+    for t, n in types.items():
+        if t == "BAD_DATA":
+            assert c["bad_data"] == n
+        else:
+            assert c.get(f"msg.{t}") == n, t
+    assert c["tlog_records"] == sum(types.values()) - types["BAD_DATA"]
+    assert Counter(m["source"] for m in nav) == states
+    assert c["nav_published"] == sum(states.values()) == len(nav)
+    if name == "copter":        # the data's README: these counts, 1314 corrupted radio packets
+        assert (types["ATTITUDE"], types["GLOBAL_POSITION_INT"], types["LOCAL_POSITION_NED"],
+                types["SYSTEM_TIME"], types["BAD_DATA"]) == (2829, 2833, 1161, 2812, 1314)
+    else:
+        assert (types["ATTITUDE"], types["GLOBAL_POSITION_INT"], types["LOCAL_POSITION_NED"]) == (5245, 792, 792)
