@@ -371,7 +371,7 @@ def test_pipeline_under_eonav_run_access_control(tmp_path):
     without access control, and no forged sample reaches the operator or guidance."""
     from eonav.app.demo import Monitor, Truth, pipeline_spec, recording, replay_shift_us
     from eonav.app.launcher import run_pipeline
-    from eonav.ranging.methods.dense import prepare_kernels
+    from eonav.fusion.sequence import prepare_kernels
     vehicle = V + "run"
     rec = recording(n_frames=10, rate_hz=5.0, size=256, seed=0, cache_dir=tmp_path / "rec")
     prepare_kernels()

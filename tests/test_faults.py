@@ -79,7 +79,7 @@ class Pipe:
 
 @pytest.fixture(scope="module")
 def pipe(tmp_path_factory):
-    from eonav.ranging.methods.dense import prepare_kernels
+    from eonav.fusion.sequence import prepare_kernels
     rec = lap_recording(FPS, (160, 160), nav_s=300.0)       # rendered once, cached in the system temp directory
     prepare_kernels()
     shift = replay_shift_us(rec, start_in_s=4.0)
@@ -126,13 +126,23 @@ def test_camera_replay_killed(pipe):
     frames_before = pipe.w.snapshot()["frames"]
     t_kill = time.monotonic()
     os.kill(pipe.pid("camera"), signal.SIGKILL)
-    wait_until(lambda: pipe.health_after(t_kill, "obstacles", _degraded_naming("no range maps")), 10, 0.05,
-               "obstacles degraded")
-    dt = {"sync": _assert_reported(pipe, t_kill, "sync", "no frames", FRAMES_BUDGET_S, 1 / FPS),
-          "locator": _assert_reported(pipe, t_kill, "locator", "no posed frames", FRAMES_BUDGET_S, 1 / FPS),
-          "obstacles": _assert_reported(pipe, t_kill, "obstacles", "no range maps", MAPS_BUDGET_S, 1 / FPS)}
-    print("degraded after the kill (s):", dt)
-    t_back = pipe.wait_flowing(30.0)                                   # restarted by the launcher, resumed
+    def restarted():                  # frames of the restarted replay: seqs beyond the last one before the kill
+        fr = pipe.w.snapshot()["frames"]
+        last = max(f["seq"] for f in fr if f["t"] <= t_kill)
+        return [f["t"] for f in fr if f["seq"] > last and f["t"] > t_kill]
+    outage_s = min(wait_until(restarted, 30.0, 0.05, "frames of the restarted camera replay")) - t_kill
+    t_back = pipe.wait_flowing(30.0)
+    # a service must say degraded when its input was silent for longer than its budget; a replay restarted and
+    # resumed within the budget (a quiet machine: ~0.9 s) rightly leaves it ok
+    dt = {}
+    for service, what, budget in (("sync", "no frames", FRAMES_BUDGET_S), ("locator", "no posed frames",
+                                                                             FRAMES_BUDGET_S),
+                                  ("obstacles", "no range maps", MAPS_BUDGET_S)):
+        if outage_s > budget + SCHED_SLACK_S:
+            dt[service] = _assert_reported(pipe, t_kill, service, what, budget, 1 / FPS)
+        elif pipe.health_after(t_kill, service, _degraded_naming(what)) is not None:
+            dt[service] = _assert_reported(pipe, t_kill, service, what, budget, 1 / FPS)
+    print(f"frames again {outage_s:.2f} s after the kill; degraded after the kill (s):", dt)
     time.sleep(2.0)
     snap = pipe.assert_fresh_and_ordered()
     after = [f for f in snap["frames"] if f["t"] > t_kill]
@@ -150,8 +160,9 @@ def test_mavlink_replay_killed(pipe):
     pipe.wait_flowing()
     t_kill = time.monotonic()
     os.kill(pipe.pid("mavlink"), signal.SIGKILL)
-    wait_until(lambda: pipe.health_after(t_kill, "obstacles", _degraded_naming("no range maps")), 10, 0.05,
-               "obstacles degraded")
+    for service in ("sync", "obstacles"):
+        wait_until(lambda: pipe.health_after(t_kill, service, _degraded_naming("no nav")), 10, 0.05,
+                   f"{service} degraded")
     dt = {"sync": _assert_reported(pipe, t_kill, "sync", "no nav", NAV_BUDGET_S, 0.02),
           "obstacles": _assert_reported(pipe, t_kill, "obstacles", "no nav", NAV_BUDGET_S, 0.02)}
     print("degraded after the kill (s):", dt)

@@ -183,7 +183,7 @@ def test_eonav_run_poses_and_ranges_every_frame_of_a_recording(rec, tmp_path, so
     from eonav.bus import keys as K
     from eonav.bus import schema
     from eonav.bus.session import client_session
-    from eonav.ranging.methods.dense import prepare_kernels
+    from eonav.fusion.sequence import prepare_kernels
     prepare_kernels()                  # numba's cache, shared with the run's own preparation and the locator
     port, vehicle = free_port(), f"run{source[:3]}"
     proc = start_service(["-m", "eonav.app.cli", "run", "--camera", f"nose={rec / source}",

@@ -113,7 +113,7 @@ def _recording(tmp_dir: Path) -> Path:
 
 def test_pipeline_across_two_hosts_survives_a_link_cut(hosts, tmp_path):
     from eonav.app.demo import recording_start_us
-    from eonav.ranging.methods.dense import prepare_kernels
+    from eonav.fusion.sequence import prepare_kernels
     ns, veth = hosts
     rec = _recording(tmp_path)
     man = json.loads((rec / "manifest.json").read_text())

@@ -208,7 +208,7 @@ def run_soak(*, minutes: float = 10.0, fps: float = 30.0, size=(320, 240), metho
     rec = lap_recording(fps, size, nav_s=NAV_LEAD_S + 600.0 * math.ceil((minutes + 1.0) / 10.0), cache_dir=cache_dir)
     man = json.loads((rec / "manifest.json").read_text())
     if method == "dense":                          # compiled / loaded once here, not in the locator's first pair
-        from eonav.ranging.methods.dense import prepare_kernels
+        from eonav.fusion.sequence import prepare_kernels
         prepare_kernels()
     shift = replay_shift_us(rec, start_in_s=6.0)
     port = free_port()

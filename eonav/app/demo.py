@@ -437,7 +437,7 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         # the locator compiles its numba kernels (or loads them from numba's cache, ~2 s) before it subscribes, and
         # the replays wait for it: on a fresh install ~15-25 s. Compiled here first (the cache is shared) with a word
         # to the newcomer, the locator only loads them.
-        from eonav.ranging.methods.dense import prepare_kernels
+        from eonav.fusion.sequence import prepare_kernels
         t = time.monotonic()
         if not quiet:
             print("eonav demo: preparing the dense locator's kernels (compiled once per install)", file=stream,

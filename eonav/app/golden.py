@@ -114,7 +114,7 @@ def run_services(inputs_mcap, work_dir, *, speed: float = 1.0, timeout_s: float 
     from eonav.bus import schema
     from eonav.bus.session import client_session
     from eonav.app.processes import router_process, start_service, stop_service, wait_until
-    from eonav.ranging.methods.dense import prepare_kernels
+    from eonav.fusion.sequence import prepare_kernels
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     cams = cameras_file(inputs_mcap, work / CAMERAS_ATTACHMENT)
