@@ -96,37 +96,29 @@ class BusWatch:
         self._session, self._subs, self._threads = None, [], []
 
     def __enter__(self):
-        import zenoh
         from eonav.bus import keys as K
-        from eonav.bus.session import client_session
+        from eonav.bus.session import client_session, consume_in_threads
         self._session = client_session(self.endpoint)
-        for key, n, fn in ((K.frames_all(self.vehicle), 256, self._frame),
-                           (K.range_maps_all(self.vehicle), 256, self._map),
-                           (K.obstacles(self.vehicle), 256, self._list),
-                           (K.health_all(self.vehicle), 1024, self._health)):
-            sub = self._session.declare_subscriber(key, zenoh.handlers.FifoChannel(n))
-            t = threading.Thread(target=self._consume, args=(sub, fn), name=f"watch-{fn.__name__}")
-            self._subs.append(sub)
-            self._threads.append(t)
-            t.start()
+
+        def stamped(fn):              # the handlers take the payload and both arrival times
+            return lambda sample, t: fn(sample.payload.to_bytes(), t, time.time_ns() // 1000)
+        self._subs, self._threads = consume_in_threads(
+            self._session, ((K.frames_all(self.vehicle), 256, stamped(self._frame)),
+                            (K.range_maps_all(self.vehicle), 256, stamped(self._map)),
+                            (K.obstacles(self.vehicle), 256, stamped(self._list)),
+                            (K.health_all(self.vehicle), 1024, stamped(self._health))),
+            name="watch", on_error=self._bad)
         return self
 
     def __exit__(self, *exc):
         from eonav.bus.session import close_subscribers
         close_subscribers(self._subs, self._threads, self._session, 10.0)
 
-    def _consume(self, sub, fn):
-        try:
-            for sample in sub:
-                t, rx = time.monotonic(), time.time_ns() // 1000
-                try:
-                    fn(sample.payload.to_bytes(), t, rx)
-                except Exception as e:  # a malformed message is counted, the watch keeps going
-                    with self.lock:
-                        self.bad += 1
-                    log.warning("bus watch: %s on %s: %s", type(e).__name__, sample.key_expr, e)
-        except Exception:
-            pass                                   # channel closed at shutdown
+    def _bad(self, sample, e):
+        """A malformed message is counted; the watch keeps going."""
+        with self.lock:
+            self.bad += 1
+        log.warning("bus watch: %s on %s: %s", type(e).__name__, sample.key_expr, e)
 
     def _frame(self, payload, t, rx):
         import msgpack

@@ -174,38 +174,26 @@ class Monitor:
         self._subs, self._threads = [], []
 
     def __enter__(self):
-        import zenoh
-        from eonav.bus.session import client_session
         from eonav.bus import keys as K
+        from eonav.bus.session import client_session, consume_in_threads
         self._session = client_session(self.endpoint, self.zenoh_config)
-        s = self._session
-        for key, handler, fn in ((K.frames_all(self.vehicle), zenoh.handlers.FifoChannel(256), self._on_frame),
-                                 (K.range_maps_all(self.vehicle), zenoh.handlers.FifoChannel(64), self._on_range),
-                                 (K.obstacles(self.vehicle), zenoh.handlers.FifoChannel(256), self._on_obstacles),
-                                 (K.health_all(self.vehicle), zenoh.handlers.FifoChannel(1024), self._on_health)):
-            sub = s.declare_subscriber(key, handler)
-            t = threading.Thread(target=self._consume, args=(sub, fn), name=f"monitor-{fn.__name__}")
-            self._subs.append(sub)
-            self._threads.append(t)
-            t.start()
+        self._subs, self._threads = consume_in_threads(
+            self._session, ((K.frames_all(self.vehicle), 256, self._on_frame),
+                            (K.range_maps_all(self.vehicle), 64, self._on_range),
+                            (K.obstacles(self.vehicle), 256, self._on_obstacles),
+                            (K.health_all(self.vehicle), 1024, self._on_health)),
+            name="monitor", on_error=self._bad)
         return self
 
     def __exit__(self, *exc):
         from eonav.bus.session import close_subscribers
         close_subscribers(self._subs, self._threads, self._session, 10.0)
 
-    def _consume(self, sub, fn):
-        try:
-            for sample in sub:
-                t = time.monotonic()
-                try:
-                    fn(sample, t)
-                except Exception as e:  # a malformed message is counted, the monitor keeps going
-                    with self.lock:
-                        self.bad_messages += 1
-                    log.warning("monitor: %s on %s: %s", type(e).__name__, sample.key_expr, e)
-        except Exception:
-            pass                                       # channel closed at shutdown
+    def _bad(self, sample, e):
+        """A malformed message is counted; the monitor keeps going."""
+        with self.lock:
+            self.bad_messages += 1
+        log.warning("monitor: %s on %s: %s", type(e).__name__, sample.key_expr, e)
 
     def _on_frame(self, sample, t):
         import msgpack

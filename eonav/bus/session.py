@@ -62,6 +62,36 @@ def add_flag(p, *names, env: str, default=None, help: str = "", aliases=(), old_
     return action
 
 
+def consume_in_threads(session, subscriptions, *, name: str, on_error) -> tuple[list, list]:
+    """For each ``(key, depth, fn)`` a FIFO subscriber and a thread calling ``fn(sample, t_monotonic_s)`` for every
+    sample; whatever ``fn`` raises goes to ``on_error(sample, exc)`` and the thread keeps going. Returns
+    ``(subscribers, threads)`` for ``close_subscribers``."""
+    import threading
+    import time
+
+    import zenoh
+
+    def run(sub, fn):
+        try:
+            for sample in sub:
+                t = time.monotonic()
+                try:
+                    fn(sample, t)
+                except Exception as e:  # noqa: BLE001  (a malformed message is that message's failure)
+                    on_error(sample, e)
+        except Exception:  # noqa: BLE001  (the channel closed at shutdown)
+            pass
+
+    subs, threads = [], []
+    for key, depth, fn in subscriptions:
+        sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(depth))
+        t = threading.Thread(target=run, args=(sub, fn), name=f"{name}-{getattr(fn, '__name__', 'consume')}")
+        subs.append(sub)
+        threads.append(t)
+        t.start()
+    return subs, threads
+
+
 def close_subscribers(subs, threads, session, join_timeout_s: float) -> None:
     """Shut down a session's consumer threads: undeclare every subscriber (which ends each thread's ``for sample
     in sub`` loop; an already-closed one is ignored), join the threads (at most ``join_timeout_s`` each), then close
