@@ -258,27 +258,28 @@ class ArduPilot:
     def proximity_faces(self, max_distance_m: float, window_s: float = 0.3) -> dict:
         """(layer, sector) -> raw distance (m) of the faces of ArduPilot's 3D proximity boundary that hold an
         obstacle, from the newest ``PRXR`` records of its dataflash log (needs ``LOG_DISARMED 1`` and
-        ``PRX_LOG_RAW 1``): per layer the latest record within ``window_s`` of log time of the newest one (a layer
-        with no obstacle is not logged). Layers 0..4 are elevations -75..-45, -45..-15, -15..15, 15..45, 45..75 deg;
+        ``PRX_LOG_RAW 1``): per layer the latest record within ``window_s`` of the log's end (a layer with no
+        obstacle is not logged). Layers 0..4 are elevations -75..-45, -45..-15, -15..15, 15..45, 45..75 deg;
         sectors 0..7 are 45-degree bearings centred on 45 k deg. Empty faces are logged at the sensor's max
         (``max_distance_m``)."""
         from pymavlink import DFReader
         logs = sorted((self.workdir / "logs").glob("*.BIN")) if self.workdir else []
         if not logs:
             return {}
-        recs = []
+        recs, t_end = [], None
         r = DFReader.DFReader_binary(str(logs[-1]))
-        while True:
+        while True:                       # ATT (10 Hz, always logged) is the log's clock: PRXR stops when all is empty
             try:
-                m = r.recv_match(type="PRXR")
+                m = r.recv_match(type=["PRXR", "ATT"])
             except Exception:  # noqa: BLE001  (the log's last record may be half-written)
                 break
             if m is None:
                 break
-            recs.append(m)
+            t_end = m.TimeUS
+            if m.get_type() == "PRXR":
+                recs.append(m)
         if not recs:
             return {}
-        t_end = recs[-1].TimeUS
         latest = {}
         for m in recs:
             if m.TimeUS >= t_end - window_s * 1e6:

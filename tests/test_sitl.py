@@ -257,6 +257,23 @@ def test_ardupilot_files_tracked_obstacles_in_its_3d_boundary(ardupilot_3d):
         wait_for(lambda: ap.proximity_bits() == (True, True, True), 1.0, "proximity healthy")
         # the horizontal layer also comes out as DISTANCE_SENSOR (sectors 7 and 0: the poles)
         assert set(ap.distance_sensors(0.3)) == {7, 0}
+        # nothing left to track (an empty scene): the tracks die, ArduPilot's faces time out, and the end messages
+        # keep the sensor healthy throughout (no confirmed track is data, not a stall)
+        ap.link.keep.add("SYS_STATUS")
+        t_empty = time.monotonic()
+        loop.show(scene_of(), make_camera(0.0), vehicle_state(alt=OD3D_ALT_M))
+        try:
+            wait_for(lambda: watch.latest is not None and not watch.latest["tracks"] and not ap.distance_sensors(0.3)
+                     and not ap.proximity_faces(MAX_DISTANCE_M), 5.0, "no track, no face", period=0.5)
+        except AssertionError:
+            raise AssertionError(f"tracks {len(watch.latest['tracks'])}, DISTANCE_SENSOR {ap.distance_sensors(0.3)}, "
+                                 f"faces {ap.proximity_faces(MAX_DISTANCE_M)}")
+        time.sleep(1.0)
+        health = [bool(m.onboard_control_sensors_health & sitl.MAV_SYS_STATUS_SENSOR_PROXIMITY)
+                  for _, m in ap.link.since("SYS_STATUS", t_empty)]
+        assert len(health) >= 10 and all(health), f"proximity health while nothing is tracked: {health}"
+        loop.show(scene, make_camera(0.0), vehicle_state(alt=OD3D_ALT_M))
+        wait_for(lambda: set(ap.distance_sensors(0.3)) == {7, 0}, 5.0, "the poles back")
         # stall: No Data within 1 s (as OBSTACLE_DISTANCE), the faces gone from DISTANCE_SENSOR after ArduPilot's
         # 1 s face timeout
         ap.link.keep.add("SYS_STATUS")
@@ -384,6 +401,33 @@ def test_px4_fused_map_holds_the_obstacles_and_no_phantom(px4_loop, case):
     # in view and no pole: clear (max + 1, which PX4 keeps as >= max) or a pole's neighbour bin at the pole's range
     assert np.all(d[others] >= MAX_DISTANCE_M * 100), {int(k) * 5: int(d[k]) for k in np.flatnonzero(others)
                                                         if d[k] < MAX_DISTANCE_M * 100}
+
+
+@needs_px4
+def test_px4_ignores_obstacle_distance_3d(px4_loop):
+    """PX4 does not know OBSTACLE_DISTANCE_3D (ardupilotmega dialect): a service sending only it leaves PX4's
+    collision prevention without data; one sending both gives the same fused map as OBSTACLE_DISTANCE alone."""
+    loop, px4 = px4_loop, px4_loop.ap
+    loop.feeder.pause()                                   # the fixture's service goes silent (flush, then nothing)
+    scene, cam = scene_of(pole("p", 0.0, 6.0, 0.1), pole("q", 30.0, 8.0, 0.3)), make_camera(0.0)
+    for messages in ("obstacle_distance_3d", "both"):
+        other = Loop(px4, px4.sysid, extra=["--mavlink-messages", messages])
+        try:
+            t0 = time.monotonic()
+            other.show(scene, cam)
+            if messages == "both":
+                wait_for(lambda: fused_when(px4, lambda d: d[0] == 600 and d[6] == 800), 5.0,
+                         "the poles in PX4's map")
+            else:
+                time.sleep(3.0)
+                d = fused(px4)
+                assert d is None or np.all(d == UINT16_MAX), f"PX4 made something of OBSTACLE_DISTANCE_3D: {d}"
+                assert px4.console_since(t0, "No obstacle data")
+        finally:
+            other.feeder.pause()
+            code, err = other.close()
+        assert code == 0, err[-3000:]
+    time.sleep(1.0)                                      # PX4 drops the bins 0.5 s after their last reading
 
 
 @needs_px4
