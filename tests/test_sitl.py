@@ -157,19 +157,28 @@ def test_ardupilot_stall_is_no_data_within_1s_and_recovers(ardupilot_loop):
 OD3D_ALT_M = 5.0
 
 
-def od3d_scene():
-    """Vehicle level at 5 m, heading north, camera ahead. Truth: (layer, sector) of ArduPilot's boundary -> distance
-    (m) from the vehicle to the object's nearest point, and the object's horizontal distance (what OBSTACLE_DISTANCE
-    carries). Layers by elevation (-45..-15, -15..15, 15..45 deg -> 1, 2, 3), sectors by bearing (45-degree, 0 ahead).
+def od3d_scene(heading_deg=0.0):
+    """Vehicle level at 5 m, heading ``heading_deg`` (0 or a multiple of 90, so that boxes square to the vehicle are
+    square to NED too). Positions below are body FRD (x ahead, y right, z down) from the vehicle. Truth:
+    (layer, sector) of ArduPilot's boundary -> distance (m) from the vehicle to the object's nearest point, and the
+    object's horizontal distance (what OBSTACLE_DISTANCE carries). Layers by elevation (-45..-15, -15..15, 15..45 deg
+    -> 1, 2, 3), sectors by bearing (45-degree, 0 ahead).
     - a 0.1 m pole at -30 deg, 6 m (sector 7) and one at +12 deg, 9 m (sector 0): nearest point level, layer 2;
-    - a 1 m box floating 3.5 m above the vehicle, its near face 6 m ahead: nearest point (6, 0, -3.5) in FRD,
-      elevation 30.3 deg, layer 3 sector 0, 6.95 m;
+    - a 1 m box floating 3.5 m above the vehicle, its near face 6 m ahead: nearest point (6, 0, -3.5), elevation
+      30.3 deg, layer 3 sector 0, 6.95 m;
     - a 2 m box on the ground, its near corner at (5.5, 4.5) (bearing 39.3 deg, sector 1) 3 m below the vehicle:
       elevation -22.9 deg, layer 1, 7.71 m."""
     from eonav.sim.scene import Box
-    above = Box("above", (6.5, 0.0, -(OD3D_ALT_M + 3.5 + 1.0)), (1.0, 1.0, 2.0))
-    low = Box.on_ground("low", 6.0, 5.0, 1.0, 1.0, 2.0)
-    scene = scene_of(pole("pA", -30.0, 6.0, 0.1), pole("pB", 12.0, 9.0, 0.1), above, low)
+    c, s = math.cos(math.radians(heading_deg)), math.sin(math.radians(heading_deg))
+
+    def ne(x, y):                                        # body horizontal -> NED north, east (vehicle at 0, 0)
+        return c * x - s * y, s * x + c * y
+    n, e = ne(6.5, 0.0)
+    above = Box("above", (n, e, -(OD3D_ALT_M + 3.5 + 1.0)), (1.0, 1.0, 2.0), yaw_rad=math.radians(heading_deg))
+    n, e = ne(6.0, 5.0)
+    low = Box.on_ground("low", n, e, 1.0, 1.0, 2.0, yaw_deg=heading_deg)
+    scene = scene_of(pole("pA", -30.0, 6.0, 0.1, yaw0_deg=heading_deg), pole("pB", 12.0, 9.0, 0.1, yaw0_deg=heading_deg),
+                     above, low)
     faces = {(2, 7): 6.0, (2, 0): 9.0, (3, 0): math.sqrt(6.0 ** 2 + 3.5 ** 2),
              (1, 1): math.sqrt(5.5 ** 2 + 4.5 ** 2 + 3.0 ** 2)}
     horizontal = {7: 6.0, 0: 6.0, 1: math.hypot(5.5, 4.5)}   # sector -> nearest horizontal distance (box above: 6 m)
@@ -184,13 +193,14 @@ def ardupilot_face(xyz_frd):
     return layer, ardupilot_sector(math.degrees(math.atan2(y, x)))
 
 
-def faces_from_tracks(msg, vehicle_ned, off_middle=False):
+def faces_from_tracks(msg, state, off_middle=False):
     """Per face the nearest distance of the published tracks' nearest points (centre +- extent / 2, clipped to the
-    vehicle; the vehicle is level and heading north, so body FRD = NED offsets): what our messages should say."""
+    vehicle, rotated into body FRD by ``state``'s T_body_ned): what our messages should say."""
     out = {}
+    vehicle_ned = np.asarray(state.position_ned_m)
     for t in msg["tracks"]:
         c, half = np.asarray(t["position_ned_m"]), 0.5 * np.abs(np.asarray(t["extent_ned_m"]))
-        p = c + np.clip(vehicle_ned - c, -half, half) - vehicle_ned
+        p = state.T_body_ned @ (c + np.clip(vehicle_ned - c, -half, half) - vehicle_ned)
         f = ardupilot_face(p)
         if off_middle and f[0] == 2:
             continue
@@ -223,23 +233,26 @@ def _od3d_loop(ap, messages):
 
 
 @needs_ardupilot
-def test_ardupilot_files_tracked_obstacles_in_its_3d_boundary(ardupilot_3d):
+@pytest.mark.parametrize("heading_deg, camera_yaw_deg", [(0.0, 0.0), (90.0, 15.0)])
+def test_ardupilot_files_tracked_obstacles_in_its_3d_boundary(ardupilot_3d, heading_deg, camera_yaw_deg):
     """``--mavlink-messages obstacle_distance_3d``: ArduPilot's boundary (its PRXR log) holds each obstacle in the
-    face of its true elevation layer and bearing sector, at the distance our message carried (from the published
-    tracks, to 3 cm) and near the true nearest point; the sensor is healthy; a stall is No Data within 1 s and the
-    obstacles leave its DISTANCE_SENSOR output."""
+    face of its true elevation layer and body bearing sector (the vehicle heading north, or east with the camera
+    yawed 15 deg right on the body), at the distance our message carried (from the published tracks, to 3 cm) and
+    near the true nearest point; the sensor is healthy, also with nothing tracked; a stall is No Data within 1 s and
+    the obstacles leave its DISTANCE_SENSOR output."""
     ap = ardupilot_3d
-    scene, truth, _ = od3d_scene()
+    scene, truth, _ = od3d_scene(heading_deg)
     loop, watch = _od3d_loop(ap, "obstacle_distance_3d")
-    vehicle_ned = np.array([0.0, 0.0, -OD3D_ALT_M])
+    state = vehicle_state(alt=OD3D_ALT_M, yaw_deg=heading_deg)
+    camera = make_camera(camera_yaw_deg)
     try:
-        loop.show(scene, make_camera(0.0), vehicle_state(alt=OD3D_ALT_M))
+        loop.show(scene, camera, state)
 
         def settled():
             msg = watch.latest
             if msg is None or len(msg["tracks"]) != len(truth):
                 return None
-            want, got = faces_from_tracks(msg, vehicle_ned), ap.proximity_faces(MAX_DISTANCE_M)
+            want, got = faces_from_tracks(msg, state), ap.proximity_faces(MAX_DISTANCE_M)
             ok = set(got) == set(want) and all(abs(got[f] - want[f]) <= 0.03 for f in want)
             return (want, got) if ok else None
         try:
@@ -247,7 +260,7 @@ def test_ardupilot_files_tracked_obstacles_in_its_3d_boundary(ardupilot_3d):
         except AssertionError:
             msg = watch.latest
             raise AssertionError(f"ArduPilot faces {ap.proximity_faces(MAX_DISTANCE_M)}, tracks say "
-                                 f"{None if msg is None else faces_from_tracks(msg, vehicle_ned)}, truth {truth}")
+                                 f"{None if msg is None else faces_from_tracks(msg, state)}, truth {truth}")
         print(f"ArduPilot 3D faces (layer, sector): m {got}; truth {truth}")
         assert set(got) == set(truth)
         for f, d in truth.items():
@@ -261,7 +274,7 @@ def test_ardupilot_files_tracked_obstacles_in_its_3d_boundary(ardupilot_3d):
         # keep the sensor healthy throughout (no confirmed track is data, not a stall)
         ap.link.keep.add("SYS_STATUS")
         t_empty = time.monotonic()
-        loop.show(scene_of(), make_camera(0.0), vehicle_state(alt=OD3D_ALT_M))
+        loop.show(scene_of(), camera, state)
         try:
             wait_for(lambda: watch.latest is not None and not watch.latest["tracks"] and not ap.distance_sensors(0.3)
                      and not ap.proximity_faces(MAX_DISTANCE_M), 5.0, "no track, no face", period=0.5)
@@ -272,7 +285,7 @@ def test_ardupilot_files_tracked_obstacles_in_its_3d_boundary(ardupilot_3d):
         health = [bool(m.onboard_control_sensors_health & sitl.MAV_SYS_STATUS_SENSOR_PROXIMITY)
                   for _, m in ap.link.since("SYS_STATUS", t_empty)]
         assert len(health) >= 10 and all(health), f"proximity health while nothing is tracked: {health}"
-        loop.show(scene, make_camera(0.0), vehicle_state(alt=OD3D_ALT_M))
+        loop.show(scene, camera, state)
         wait_for(lambda: set(ap.distance_sensors(0.3)) == {7, 0}, 5.0, "the poles back")
         # stall: No Data within 1 s (as OBSTACLE_DISTANCE), the faces gone from DISTANCE_SENSOR after ArduPilot's
         # 1 s face timeout
@@ -300,16 +313,16 @@ def test_ardupilot_both_keeps_sectors_level_and_tracks_above_below(ardupilot_3d)
     ap = ardupilot_3d
     scene, truth, horizontal = od3d_scene()
     loop, watch = _od3d_loop(ap, "both")
-    vehicle_ned = np.array([0.0, 0.0, -OD3D_ALT_M])
+    state = vehicle_state(alt=OD3D_ALT_M)
     try:
-        loop.show(scene, make_camera(0.0), vehicle_state(alt=OD3D_ALT_M))
+        loop.show(scene, make_camera(0.0), state)
         want_h = {s: round(d * 100) for s, d in horizontal.items()}
 
         def settled():
             msg = watch.latest
             if msg is None or len(msg["tracks"]) != len(truth):
                 return None
-            want3d = faces_from_tracks(msg, vehicle_ned, off_middle=True)
+            want3d = faces_from_tracks(msg, state, off_middle=True)
             got = ap.proximity_faces(MAX_DISTANCE_M)
             off = {f: d for f, d in got.items() if f[0] != 2}
             level = ap.distance_sensors(0.3)
@@ -322,7 +335,7 @@ def test_ardupilot_both_keeps_sectors_level_and_tracks_above_below(ardupilot_3d)
         except AssertionError:
             raise AssertionError(f"ArduPilot faces {ap.proximity_faces(MAX_DISTANCE_M)}, DISTANCE_SENSOR "
                                  f"{ap.distance_sensors(0.3)}; want level {want_h}, tracks "
-                                 f"{faces_from_tracks(watch.latest, vehicle_ned, True) if watch.latest else None}")
+                                 f"{faces_from_tracks(watch.latest, state, True) if watch.latest else None}")
         print(f"ArduPilot both: level (sector: cm) {level}, above / below (layer, sector: m) {off}")
         wait_for(lambda: ap.proximity_bits() == (True, True, True), 1.0, "proximity healthy")
     finally:
