@@ -2,7 +2,9 @@
 to the autopilot) feeding a real ArduCopter SITL and a real PX4 SITL, and what each autopilot made of it read back
 from its own outputs (tests/sitl.py): ArduPilot's DISTANCE_SENSOR per 45-degree sector, SYS_STATUS proximity health
 and STATUSTEXT; PX4's fused collision-prevention map (``obstacle_distance_fused``), its console and, in Position mode
-with full forward stick towards a wall, where the vehicle goes.
+with full forward stick towards a wall, where the vehicle goes. With ``--mavlink-messages obstacle_distance_3d`` /
+``both``: ArduPilot's 3D boundary, layer by layer, from the PRXR records of its dataflash log, and that PX4 ignores
+OBSTACLE_DISTANCE_3D.
 
 The range maps are the renderer's exact ranges of scenes with known geometry (poles whose nearest point is at a
 known bearing and distance), so the truth is independent of the code under test. Skipped when the SITL tools are
