@@ -222,3 +222,55 @@ def test_sender_obstacle_distance_only_sends_no_3d():
     finally:
         tx.close()
         rx.conn.close()
+
+
+def test_obstacles_service_sends_the_tracks_as_obstacle_distance_3d():
+    """The real obstacles service (a process, range maps over a real zenoh session) with ``--mavlink-messages both``
+    to a UDP socket: OBSTACLE_DISTANCE, then per cycle OBSTACLE_DISTANCE_3D of the confirmed track above the vehicle
+    (the level pole is left to OBSTACLE_DISTANCE) at the nearest point of its published box, and the end message."""
+    import sitl
+    from eonav.app.processes import free_port, start_service, stop_service
+    from eonav.bus import guidance_msg, keys as K
+    from eonav.bus.session import endpoint, listener_session
+    from eonav.sim.scene import Box, Scene
+
+    port, udp = free_port(), _free_udp_port()
+    rx = Rx(udp)
+    latest = {}
+    state = VehicleState.from_ypr([0.0, 0.0, -5.0], [0.0, 0.0, 0.0])
+    scene = Scene(boxes=(sitl.pole("p", 0.0, 9.0, 0.1), Box("above", (6.5, -3.0, -9.5), (1.0, 1.0, 2.0))), runway=None)
+    with listener_session(port) as session:
+        sub = session.declare_subscriber(K.obstacle_tracks("od3d"), lambda s: latest.__setitem__(
+            "m", guidance_msg.decode(s.payload.to_bytes())))
+        proc = start_service(["-m", "eonav.services.obstacles", "--vehicle", "od3d", "--connect", endpoint(port),
+                              "--ground-down-m", "0", "--no-nav", "--max-distance-m", "40",
+                              "--mavlink-out", f"udpout:127.0.0.1:{udp}", "--mavlink-messages", "both"])
+        feeder = sitl.MapFeeder(session, K.range_map("od3d", "nose"))
+        try:
+            feeder.set(scene, sitl.make_camera(0.0), state)
+            feeder.resume()
+            got, deadline = [], time.monotonic() + 15.0
+            while time.monotonic() < deadline:
+                got += rx.drain()
+                if sum(m.get_type() == "OBSTACLE_DISTANCE_3D" and m.obstacle_id != 65535 for m in got) >= 10:
+                    break
+        finally:
+            feeder.close()
+            code, err = stop_service(proc)
+            sub.undeclare()
+            rx.conn.close()
+    assert code == 0, err[-2000:]
+    tracks = latest["m"]["tracks"]
+    assert len(tracks) == 2
+    above = next(t for t in tracks if t["position_ned_m"][2] < -7.0)
+    d3 = [m for m in got if m.get_type() == "OBSTACLE_DISTANCE_3D" and m.obstacle_id != 65535]
+    assert len(d3) >= 10 and {m.obstacle_id for m in d3} == {above["id"]}     # the level pole is not sent in 3D
+    c, half = np.asarray(above["position_ned_m"]), 0.5 * np.asarray(above["extent_ned_m"])
+    want = c + np.clip(state.position_ned_m - c, -half, half) - state.position_ned_m     # heading north, level
+    np.testing.assert_allclose([d3[-1].x, d3[-1].y, d3[-1].z], want, atol=0.02)
+    assert want[2] < -3.0 and want[1] < -2.0                                  # above and to the left
+    # each 3D message follows an OBSTACLE_DISTANCE of its cycle and is followed by the end message (stamp + 1)
+    for i, m in enumerate(got):
+        if m.get_type() == "OBSTACLE_DISTANCE_3D" and m.obstacle_id != 65535 and i + 1 < len(got):
+            assert got[i - 1].get_type() == "OBSTACLE_DISTANCE"
+            assert got[i + 1].obstacle_id == 65535 and got[i + 1].time_boot_ms == m.time_boot_ms + 1
