@@ -330,3 +330,23 @@ def slant_g2(rho, var, y, x):
     if y == h - 1:
         ed = nan
     return np.fmax(np.fmin(el, er), np.float32(0.0)) + np.fmax(np.fmin(eu, ed), np.float32(0.0))
+
+
+@njit(**_JIT)
+def prior_arrays(rho, var, a, b, n, eta_inlier, n_min, o_rho, o_std):
+    """The state as the dense method's prior (``eonav.fusion.sequence``): rho and its sigma where the cell holds an
+    estimate of at least n_min measurements whose evidence agrees (E[inlier ratio] >= eta_inlier), else NaN / inf.
+    Returns the number of such cells."""
+    cnt = 0
+    for y in range(rho.shape[0]):
+        for x in range(rho.shape[1]):
+            r = rho[y, x]
+            A = a[y, x]
+            if r == r and n[y, x] >= n_min and A >= eta_inlier * (A + b[y, x]):
+                o_rho[y, x] = r
+                o_std[y, x] = np.float32(math.sqrt(var[y, x]))
+                cnt += 1
+            else:
+                o_rho[y, x] = np.float32(np.nan)
+                o_std[y, x] = np.float32(np.inf)
+    return cnt
