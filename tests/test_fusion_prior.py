@@ -46,7 +46,7 @@ def wall_flight(n=12, step_m=0.25):
 
 def config(full_every):
     return FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(ref_range_m=WALL_M)),
-                        prior=PriorConfig(full_every=full_every))
+                        prior=PriorConfig(full_every=full_every, kinds=("near", "wide")))
 
 
 class Recorder:

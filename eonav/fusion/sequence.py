@@ -32,7 +32,7 @@ from eonav.ranging.pair_policy import PosedFrameInfo
 from eonav.ranging.rangemap import RangeResult
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.predict import ProcessNoise, predict
-from eonav.fusion.schedule import ScheduleConfig, Scheduler
+from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
 from eonav.fusion.update import UpdateConfig, update
 
@@ -53,10 +53,13 @@ def dense_measurement(view_a: View, view_b: View, **prior) -> RangeResult:
 class PriorConfig:
     """The predicted state as the measurement's prior (``locate_dense(prior=...)``: where it is converged the
     refinement starts from it at a finer level, skipping the coarse search): cells of at least ``min_fused``
-    measurements whose evidence agrees (the fused map's ``eta_inlier``). Every ``full_every``-th measurement of a
-    camera (and the one after a measurement whose prior fitted badly) searches in full, so that a new object, a
-    region the prior does not hold and a cell whose prior is wrong are found by the search; 1: always."""
-    full_every: int = 3
+    measurements whose evidence agrees (the fused map's ``eta_inlier``), on the measurements of ``kinds`` only:
+    a wide partner's baseline takes more pixels beyond the refinement's reach and leaves more of them occluded, so
+    it searches in full. Every ``full_every``-th measurement of a camera at least searches in full, so that a new
+    object, a region the prior does not hold and a cell whose prior is wrong are found by the search (1: always);
+    so does one whose prior holds less than ``min_fraction`` x what the last full search measured."""
+    full_every: int = 1            # off by default: see docs/methods.md, "Fusion" (a full search every 3rd: 3)
+    kinds: tuple = ("near",)       # the measurements that may start from the prior (the wide ones search in full)
     level: int = 1                 # the pyramid level the refinement starts at from the prior
     min_fused: int = 2
     min_fraction: float = 0.8      # the prior seeds at least this x the last full search's measured pixels
@@ -66,6 +69,10 @@ class PriorConfig:
             raise InputError(f"fusion prior: full_every must be an integer >= 1, got {self.full_every!r}")
         if not (isinstance(self.min_fused, int) and self.min_fused >= 1):
             raise InputError(f"fusion prior: min_fused must be an integer >= 1, got {self.min_fused!r}")
+        kinds = tuple(self.kinds)
+        if any(k not in (NEAR, WIDE, STEREO) for k in kinds):
+            raise InputError(f"fusion prior: kinds must name {NEAR!r}, {WIDE!r} or {STEREO!r}, got {self.kinds!r}")
+        object.__setattr__(self, "kinds", kinds)
         if not 0 <= self.min_fraction <= 1:
             raise InputError(f"fusion prior: min_fraction must be in [0, 1], got {self.min_fraction!r}")
 
@@ -172,7 +179,7 @@ class FusionRunner:
         for i, m in enumerate(live):
             ref = m.a.camera_id
             t1 = time.perf_counter()
-            prior = self.prior(ref)
+            prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
             res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
                                 prior_min_fraction=prior[2])
                    if prior is not None else self.measure(m.a.payload, m.b.payload))
