@@ -161,7 +161,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
     w = rho.shape[1]
     max_rel_std, s, rho_max, a_init, b_init, cap, eta_outlier = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
     inv_u = np.float32(1.0) / rho_max
-    two_pi = np.float32(2.0 * math.pi)
+    inv_2pi = np.float32(1.0 / (2.0 * math.pi))
     one = np.float32(1.0)
     for x in range(w):
         fm = flags_m[y, x]
@@ -191,23 +191,28 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         s2 = var[y, x]
         A = a[y, x]
         B = b[y, x]
+        # (the update's arithmetic with its divisions shared: 1 / S, 1 / (A + B), 1 / (A + B + 1), 1 / f)
         S = s2 + tau2
+        iS = one / S
         d = xm - mu
-        c1 = A / (A + B) * np.exp(np.float32(-0.5) * d * d / S) / np.sqrt(two_pi * S)
-        c2 = B / (A + B) * inv_u
+        iab = one / (A + B)
+        c1 = A * iab * np.exp(np.float32(-0.5) * d * d * iS) * np.sqrt(iS * inv_2pi)
+        c2 = B * iab * inv_u
         c1 = c1 / (c1 + c2)
         c2 = one - c1
-        sp2 = s2 * tau2 / S
-        m = mu + sp2 / tau2 * d
+        g = s2 * iS                                  # s'^2 / tau^2
+        sp2 = g * tau2
+        m = mu + g * d
         mu_new = c1 * m + c2 * mu
         dm = m - mu
         s2_new = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
         ab1 = A + B + one
-        ab2 = ab1 + one
-        f = (c1 * (A + one) + c2 * A) / ab1
-        e = (c1 * (A + one) * (A + np.float32(2.0)) + c2 * A * (A + one)) / (ab1 * ab2)
-        a_new = (e - f) / (f - e / f)
-        b_new = a_new * (one - f) / f
+        iab1 = one / ab1
+        f = (c1 * (A + one) + c2 * A) * iab1
+        e = (c1 * (A + one) * (A + np.float32(2.0)) + c2 * A * (A + one)) * iab1 / (ab1 + one)
+        i_f = one / f
+        a_new = (e - f) / (f - e * i_f)
+        b_new = a_new * (one - f) * i_f
         tot = a_new + b_new
         if tot > cap:
             k = cap / tot
