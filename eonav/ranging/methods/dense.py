@@ -24,6 +24,9 @@ the method in four stages (docs/methods.md describes it):
 4. fill: the pixels without a measurement get an inverse range from plane fits of the measured ones around them
    (``fill.fill_unmeasured``), flagged FILLED.
 
+With a prior (``prior``: a fused state predicted into image a) stage 1 and the coarse levels can be skipped where it
+is converged, the refinement starting from it (``_prior_start``, ``_prior_finish``).
+
 The per-pixel work runs in numba kernels (``_dense_kernels``): one pass per Gauss-Newton step of a level, three
 kernels for the search. They are the only implementation (numba is a dependency of eonav; importing this module
 without it fails, naming numba); tests/dense_reference.py holds an independent OpenCV formulation of the same
@@ -472,6 +475,14 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     1.41 %, share of pixels off by > 5 %: teddy 22.5 -> 17.2 %, venus 25.6 -> 19.8 %), but on the paper
     preset it pulls the small far vehicles into their background at the coarse level (vehicle2 +2.7 ->
     +8.8 %, vehicle1 -0.0 -> -1.3 %), whatever the penalties (0.2/2 .. 1/8, tau 1 .. 8).
+    prior: (rho, sigma) on view a's grid (NaN / inf: none), e.g. a fused state predicted into view a (REMODE and SVO
+    search only mu +- 2-3 sigma of a converged depth filter). Where its prior_k-sigma interval spans at most
+    prior_reach_px pixels of displacement at level prior_level (``_prior_ok``: the Gauss-Newton steps' reach), the
+    refinement starts there from the prior, and the search and the coarser levels are skipped, when that holds at
+    least prior_min_fraction of the level's pixels (else the search as usual). The pixels it does not seed are not
+    measured (rho NaN, sigma inf, not VALID: a prior never stands in for a measurement); where more than
+    prior_max_bad of the seeded pixels fit badly (OCCLUDED: the prior is wrong there, or the scene moved) the whole
+    pair is searched again without the prior. ``info["prior"]``: seeded_fraction, bad_fraction, level, full_search.
     """
     call = dict(locals())                  # (the full search again, when the prior fits badly)
     t_start = time.perf_counter()
