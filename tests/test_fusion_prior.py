@@ -132,3 +132,15 @@ def test_a_wrong_converged_block_is_found_by_the_full_searches():
     never, log = wrong_frames(1000)
     assert [o for k, o, _ in log if k == 6] == [True]
     assert next(i for i, w in enumerate(never) if w < 0.05) <= n_plain
+
+
+def test_prior_config_errors_name_the_field():
+    import pytest
+
+    from eonav import InputError
+    for kw, field in (({"full_every": 0}, "full_every"), ({"kinds": ("sideways",)}, "kinds"),
+                      ({"min_fused": 0}, "min_fused"), ({"min_fraction": 1.5}, "min_fraction")):
+        with pytest.raises(InputError, match=field):
+            PriorConfig(**kw)
+    assert PriorConfig(full_every=1, kinds=["near", "wide"]).kinds == ("near", "wide")
+    assert FusionConfig().prior.full_every == 1          # off by default (docs/methods.md, "Fusion")
