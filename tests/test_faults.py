@@ -223,7 +223,7 @@ def test_locator_killed(pipe):
 
 
 ROUTER_LOST_S = 0.1 + 0.05      # the health timer's check period, plus the link's close reaching zenoh
-RECOVERY_S = 2.0                # router back -> obstacle lists through it again (reconnect retry at most 1 s)
+RECOVERY_S = 1.5                # router back -> obstacle lists through it again (a retry every 0.5 s, a frame, work)
 
 
 def _listening(endpoint: str) -> bool:

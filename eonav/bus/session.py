@@ -7,7 +7,7 @@ flags ``--mode``, ``--connect``, ``--listen``, ``--multicast``, ``--shm``. Two d
   ``--connect`` but no ``--listen`` (and no file) listens on ``tcp/127.0.0.1:0`` (the router-per-host pattern);
 - shared memory is off unless ``--shm`` (with a config file and neither flag, the file decides): with it on, range
   maps were lost between same-host services;
-- a lost connection is retried every 0.25 s, then 0.5 s, at most every 1 s (``CONNECT_RETRY``, unless the file sets
+- a lost connection is retried after 0.25 s, then every 0.5 s (``CONNECT_RETRY``, unless the file sets
   ``connect/retry``): with zenoh's own schedule (1 s, doubling to 4 s) a peer found a restarted router up to 3.5 s
   late. Clients and peers reconnect by themselves (docs/zenoh.md, "Router restarts").
 
@@ -23,7 +23,7 @@ from eonav import InputError
 
 MODES = ("peer", "client", "router")
 _TRUE = ("1", "true", "yes", "on")
-CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}
 
 
 def env_default(var: str, default=None, old_env=()):
