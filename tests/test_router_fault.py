@@ -1,8 +1,8 @@
 """kill -9 of a router that ``eonav run`` did not start (the deploy layout: the router is a unit of its own, restarted
 by its supervisor, systemd's ``Restart=on-failure``). The test plays the supervisor: it runs the router process,
-kills it and starts it again on the same port after ``RESTART_AFTER_S``. The services run as zenoh clients, so
-everything, data included, goes through the router (the access-controlled deploy's sessions are clients too): the
-pipeline stops for the outage. They must keep running (none exits or restarts), say the router was lost, reconnect
+kills it and starts it again on the same port after ``RESTART_AFTER_S``. The services run as zenoh clients, plain or
+under access control (the deploy's sessions, each with its own user), so everything, data included, goes through
+the router: the pipeline stops for the outage. They must keep running (none exits or restarts), say the router was lost, reconnect
 by themselves, and publish nothing stale once it is back; the launcher (``run_pipeline(router=EP)``) reports the lost
 router in its status."""
 from __future__ import annotations
@@ -32,9 +32,9 @@ SERVICES = ("camera", "mavlink", "sync", "locator", "obstacles")
 class Supervisor:
     """The router as systemd runs it: started, and started again ``RESTART_AFTER_S`` after it died."""
 
-    def __init__(self, port: int):
-        self.port = port
-        self.proc, self.ep = start_router(port)
+    def __init__(self, port: int, zenoh_config: str | None = None):
+        self.port, self.zenoh_config = port, zenoh_config
+        self.proc, self.ep = start_router(port, zenoh_config=zenoh_config)
         self.stop = threading.Event()
         self.restarted_at: list[float] = []
         self.thread = threading.Thread(target=self._run, name="router-supervisor")
@@ -45,7 +45,7 @@ class Supervisor:
             if self.proc.poll() is not None:
                 if self.stop.wait(RESTART_AFTER_S):
                     return
-                self.proc, _ = start_router(self.port)
+                self.proc, _ = start_router(self.port, zenoh_config=self.zenoh_config)
                 self.restarted_at.append(time.monotonic())
 
     def close(self):
@@ -54,13 +54,23 @@ class Supervisor:
         stop_processes([self.proc], 5.0)
 
 
-@pytest.fixture(scope="module")
-def pipe(tmp_path_factory):
+@pytest.fixture(scope="module", params=["clients", "access-control"])
+def pipe(request, tmp_path_factory):
+    """The pipeline on a router of its own: services as plain clients, or under access control (the deploy's
+    layout: each service a client with its own user; the router enforces the ACL after its restart too)."""
+    from eonav.app.launcher import parse_spec, secure_sessions
+    from eonav.bus import acl
     from eonav.fusion.sequence import prepare_kernels
     rec = lap_recording(FPS, (160, 160), nav_s=300.0)
     prepare_kernels()
     shift = replay_shift_us(rec, start_in_s=4.0)
-    router = Supervisor(free_port())
+    spec = looped_spec(rec, shift)
+    acl_dir = watch_config = None
+    if request.param == "access-control":
+        acl_dir = tmp_path_factory.mktemp("router-fault-acl")
+        _, watch_config = secure_sessions(acl_dir, parse_spec(spec), write=True)
+        watch_config = str(watch_config)
+    router = Supervisor(free_port(), zenoh_config=str(acl_dir / acl.ROUTER_FILE) if acl_dir else None)
     stop = threading.Event()
     status, history = {}, []
     logs = tmp_path_factory.mktemp("router-fault-logs")
@@ -70,15 +80,16 @@ def pipe(tmp_path_factory):
         history.append((time.monotonic(), copy.deepcopy(st)))
 
     def run():
-        run_pipeline(looped_spec(rec, shift), vehicle=VEHICLE, router=router.ep, on_status=on_status,
-                     stop_event=stop, quiet=True, log_dir=str(logs), extra_env={"EONAV_ZENOH_MODE": "client"})
+        run_pipeline(spec, vehicle=VEHICLE, router=router.ep, on_status=on_status, stop_event=stop, quiet=True,
+                     log_dir=str(logs), acl_dir=str(acl_dir) if acl_dir else None,
+                     extra_env=None if acl_dir else {"EONAV_ZENOH_MODE": "client"})
 
     th = threading.Thread(target=run, name="pipeline")
     th.start()
     try:
-        with BusWatch(router.ep, VEHICLE) as w:
+        with BusWatch(router.ep, VEHICLE, zenoh_config=watch_config) as w:
             p = Pipe(w, status, th, history, router.ep)
-            p.router, p.logs = router, logs
+            p.router, p.logs, p.variant = router, logs, request.param
             p.wait_flowing(60.0)
             yield p
     finally:
@@ -117,7 +128,7 @@ def test_separate_router_killed_and_restarted_by_its_supervisor(pipe):
         assert "zenoh router lost" in text and "zenoh router back" in text, n
     first = next(x for x in snap["lists"] if x["t"] > t_listen)
     recovery_s = first_list - t_listen
-    print(f"separate router: listening again {t_listen - t_kill:.2f} s after the kill, obstacle lists through it "
+    print(f"separate router ({pipe.variant}): listening again {t_listen - t_kill:.2f} s after the kill, obstacle lists through it "
           f"{recovery_s:.2f} s after that (first list {first['frame_age_ms']:.0f} ms old), pipeline ok "
           f"{t_flow - t_listen:.2f} s after its return")
     assert recovery_s <= RECOVERY_S, recovery_s
