@@ -132,6 +132,18 @@ def test_separate_router_killed_and_restarted_by_its_supervisor(pipe):
           f"{recovery_s:.2f} s after that (first list {first['frame_age_ms']:.0f} ms old), pipeline ok "
           f"{t_flow - t_listen:.2f} s after its return")
     assert recovery_s <= RECOVERY_S, recovery_s
+    # a session without credentials: refused by the restarted router under access control (it enforces the ACL
+    # again), let in without
+    import json
+    cfg = zenoh.Config()
+    for k, v in (("mode", "client"), ("connect/endpoints", [pipe.endpoint]), ("connect/timeout_ms", 0),
+                 ("connect/exit_on_failure", True), ("scouting/multicast/enabled", False)):
+        cfg.insert_json5(k, json.dumps(v))
+    if pipe.variant == "access-control":
+        with pytest.raises(Exception):
+            zenoh.open(cfg).close()
+    else:
+        zenoh.open(cfg).close()
 
 
 class _Info:
