@@ -409,7 +409,7 @@ class EmbeddedRouter:
                     p.exit_code = None
                     self._down(time.monotonic())
                     return p.state == "failed"
-            self._health("degraded", f"router down for {now - self.down_since:.1f} s; restart {p.restarts}/"
+            self._health("degraded", f"down {now - self.down_since:.1f} s; restart {p.restarts}/"
                                      f"{p.spec.max_restarts} in {max(0.0, p.next_start_mono - now):.1f} s")
         return False
 
@@ -424,7 +424,7 @@ class EmbeddedRouter:
         delay = min(BACKOFF_MAX_S, BACKOFF_INITIAL_S * 2 ** p.restarts)
         p.restarts += 1
         p.state, p.next_start_mono = "restarting", now + delay
-        self._health("degraded", f"router down for {now - self.down_since:.1f} s; restart {p.restarts}/"
+        self._health("degraded", f"down {now - self.down_since:.1f} s; restart {p.restarts}/"
                                  f"{p.spec.max_restarts} in {delay:.1f} s")
         log.warning("embedded router: restart %d/%d in %.1f s", p.restarts, p.spec.max_restarts, delay)
 
