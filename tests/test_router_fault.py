@@ -199,3 +199,18 @@ def test_embedded_router_restarts_with_back_off_then_gives_up():
         assert p.state == "failed" and p.health["state"] == "error" and "gave up" in p.health["detail"]
     finally:
         rt.stop(2.0)
+
+
+def test_sessions_retry_a_lost_router_every_half_second_unless_the_file_says(tmp_path):
+    import argparse
+    import json
+    from eonav.bus.session import CONNECT_RETRY, build_config
+    args = argparse.Namespace(mode="client", connect="tcp/127.0.0.1:7447", listen=None, zenoh_config=None,
+                              multicast=False)
+    assert json.loads(build_config(args).get_json("connect/retry")) == CONNECT_RETRY
+    assert CONNECT_RETRY["period_max_ms"] == 500
+    f = tmp_path / "z.json5"
+    f.write_text('{connect: {retry: {period_init_ms: 2000, period_max_ms: 8000, period_increase_factor: 3}}}')
+    args.zenoh_config = str(f)
+    assert json.loads(build_config(args).get_json("connect/retry")) == {
+        "period_init_ms": 2000, "period_max_ms": 8000, "period_increase_factor": 3.0}
