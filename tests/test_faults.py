@@ -1,10 +1,10 @@
 """Faults in a running pipeline, with real processes: ``eonav run``'s launcher (embedded router, camera and MAVLink
 replays, sync, locator, obstacles) on a looped lap of the simulated turning flight at 5 fps; the tests kill -9 the
-camera replay, the MAVLink replay and the locator, stall the locator for 2 s (SIGSTOP / SIGCONT), and last kill -9 the
-embedded router, one after the other in this module's pipeline. Each checks that the services downstream report
-``degraded`` naming the silent input (or the lost router) within its budget (plus scheduling slack), that the
-pipeline recovers, and that no range map or obstacle list older than its stage's age limit is ever published and
-none goes back in stamp."""
+camera replay, the MAVLink replay, the locator, the sync and the obstacle service, stall the locator for 2 s (SIGSTOP
+/ SIGCONT), and last kill -9 the embedded router, one after the other in this module's pipeline. Each checks that the
+services downstream report ``degraded`` naming the silent input (or the lost router) within its budget (plus
+scheduling slack), that the pipeline recovers, and that no range map or obstacle list older than its stage's age
+limit is ever published and none goes back in stamp."""
 from __future__ import annotations
 
 import copy
@@ -220,6 +220,39 @@ def test_locator_killed(pipe):
     pipe.assert_fresh_and_ordered()
     assert pipe.status["locator"]["restarts"] == 1
     print(f"locator: flowing again {t_back - t_kill:.2f} s after the kill")
+
+
+
+def test_sync_killed(pipe):
+    pipe.wait_flowing()
+    t_kill = time.monotonic()
+    os.kill(pipe.pid("sync"), signal.SIGKILL)
+    for service, what in (("locator", "no posed frames"), ("obstacles", "no range maps")):
+        wait_until(lambda: pipe.health_after(t_kill, service, _degraded_naming(what)), 10, 0.05,
+                   f"{service} degraded")
+    dt = {"locator": _assert_reported(pipe, t_kill, "locator", "no posed frames", FRAMES_BUDGET_S, 1 / FPS),
+          "obstacles": _assert_reported(pipe, t_kill, "obstacles", "no range maps", MAPS_BUDGET_S, 1 / FPS)}
+    t_back = pipe.wait_flowing(40.0)
+    time.sleep(2.0)
+    pipe.assert_fresh_and_ordered()
+    assert pipe.status["sync"]["restarts"] == 1
+    print(f"sync: degraded after the kill (s) {dt}; flowing again {t_back - t_kill:.2f} s after the kill")
+
+
+def test_obstacles_killed(pipe):
+    pipe.wait_flowing()
+    n_lists = len(pipe.w.snapshot()["lists"])
+    t_kill = time.monotonic()
+    os.kill(pipe.pid("obstacles"), signal.SIGKILL)
+    first = wait_until(lambda: next((x for x in pipe.w.snapshot()["lists"][n_lists:] if x["t"] > t_kill + 0.1),
+                                    None), 40, 0.05, "an obstacle list of the restarted service")
+    t_back = pipe.wait_flowing(40.0)
+    time.sleep(2.0)
+    pipe.assert_fresh_and_ordered()
+    assert first["frame_age_ms"] <= LIST_MAX_AGE_MS
+    assert pipe.status["obstacles"]["restarts"] == 1
+    print(f"obstacles: first list {first['t'] - t_kill:.2f} s after the kill ({first['frame_age_ms']:.0f} ms old), "
+          f"ok {t_back - t_kill:.2f} s after it")
 
 
 ROUTER_LOST_S = 0.1 + 0.05      # the health timer's check period, plus the link's close reaching zenoh
