@@ -214,3 +214,11 @@ def test_sessions_retry_a_lost_router_every_half_second_unless_the_file_says(tmp
     args.zenoh_config = str(f)
     assert json.loads(build_config(args).get_json("connect/retry")) == {
         "period_init_ms": 2000, "period_max_ms": 8000, "period_increase_factor": 3.0}
+
+
+def test_a_service_may_not_take_the_routers_name():
+    from eonav import InputError
+    from eonav.app.launcher import parse_spec
+    with pytest.raises(InputError, match="'router' is the launcher's own"):
+        parse_spec([{"name": "router", "module": "sync"}])
+    assert [s.name for s in parse_spec([{"name": "router2", "module": "sync"}])] == ["router2"]
