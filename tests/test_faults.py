@@ -1,11 +1,13 @@
 """Faults in a running pipeline, with real processes: ``eonav run``'s launcher (embedded router, camera and MAVLink
 replays, sync, locator, obstacles) on a looped lap of the simulated turning flight at 5 fps; the tests kill -9 the
-camera replay, the MAVLink replay and the locator, and stall the locator for 2 s (SIGSTOP / SIGCONT), one after the
-other in this module's pipeline. Each checks that the services downstream report ``degraded`` naming the silent
-input within its budget (plus scheduling slack), that the pipeline recovers, and that no range map or obstacle list
-older than its stage's age limit is ever published and none goes back in stamp."""
+camera replay, the MAVLink replay, the locator, the sync and the obstacle service, stall the locator for 2 s (SIGSTOP
+/ SIGCONT), and last kill -9 the embedded router, one after the other in this module's pipeline. Each checks that the
+services downstream report ``degraded`` naming the silent input (or the lost router) within its budget (plus
+scheduling slack), that the pipeline recovers, and that no range map or obstacle list older than its stage's age
+limit is ever published and none goes back in stamp."""
 from __future__ import annotations
 
+import copy
 import os
 import signal
 import threading
@@ -30,8 +32,10 @@ SCHED_SLACK_S = 1.0             # the health timer's 0.1 s period + transport + 
 
 
 class Pipe:
-    def __init__(self, watch: BusWatch, status: dict, thread: threading.Thread):
+    def __init__(self, watch: BusWatch, status: dict, thread: threading.Thread, history: list, endpoint: str):
         self.w, self.status, self.thread = watch, status, thread
+        self.history = history          # (t, status dict) of every on_status call
+        self.endpoint = endpoint
 
     def pid(self, name: str) -> int:
         st = self.status[name]
@@ -86,10 +90,15 @@ def pipe(tmp_path_factory):
     port = free_port()
     stop = threading.Event()
     status: dict = {}
+    history: list = []
     logs = tmp_path_factory.mktemp("fault-logs")
 
+    def on_status(st):
+        status.update(st)
+        history.append((time.monotonic(), copy.deepcopy(st)))
+
     def run():
-        run_pipeline(looped_spec(rec, shift), vehicle=VEHICLE, port=port, on_status=status.update, stop_event=stop,
+        run_pipeline(looped_spec(rec, shift), vehicle=VEHICLE, port=port, on_status=on_status, stop_event=stop,
                      quiet=True, log_dir=str(logs))
 
     th = threading.Thread(target=run, name="pipeline")
@@ -97,7 +106,7 @@ def pipe(tmp_path_factory):
     try:
         _wait_port(port, th, 30.0)
         with BusWatch(f"tcp/127.0.0.1:{port}", VEHICLE) as w:
-            p = Pipe(w, status, th)
+            p = Pipe(w, status, th, history, f"tcp/127.0.0.1:{port}")
             p.wait_flowing(60.0)
             yield p
     finally:
@@ -211,3 +220,137 @@ def test_locator_killed(pipe):
     pipe.assert_fresh_and_ordered()
     assert pipe.status["locator"]["restarts"] == 1
     print(f"locator: flowing again {t_back - t_kill:.2f} s after the kill")
+
+
+
+def test_sync_killed(pipe):
+    pipe.wait_flowing()
+    t_kill = time.monotonic()
+    os.kill(pipe.pid("sync"), signal.SIGKILL)
+    for service, what in (("locator", "no posed frames"), ("obstacles", "no range maps")):
+        wait_until(lambda: pipe.health_after(t_kill, service, _degraded_naming(what)), 10, 0.05,
+                   f"{service} degraded")
+    dt = {"locator": _assert_reported(pipe, t_kill, "locator", "no posed frames", FRAMES_BUDGET_S, 1 / FPS),
+          "obstacles": _assert_reported(pipe, t_kill, "obstacles", "no range maps", MAPS_BUDGET_S, 1 / FPS)}
+    t_back = pipe.wait_flowing(40.0)
+    time.sleep(2.0)
+    pipe.assert_fresh_and_ordered()
+    assert pipe.status["sync"]["restarts"] == 1
+    print(f"sync: degraded after the kill (s) {dt}; flowing again {t_back - t_kill:.2f} s after the kill")
+
+
+def test_obstacles_killed(pipe):
+    pipe.wait_flowing()
+    n_lists = len(pipe.w.snapshot()["lists"])
+    t_kill = time.monotonic()
+    os.kill(pipe.pid("obstacles"), signal.SIGKILL)
+    first = wait_until(lambda: next((x for x in pipe.w.snapshot()["lists"][n_lists:] if x["t"] > t_kill + 0.1),
+                                    None), 40, 0.05, "an obstacle list of the restarted service")
+    t_back = pipe.wait_flowing(40.0)
+    time.sleep(2.0)
+    pipe.assert_fresh_and_ordered()
+    assert first["frame_age_ms"] <= LIST_MAX_AGE_MS
+    assert pipe.status["obstacles"]["restarts"] == 1
+    print(f"obstacles: first list {first['t'] - t_kill:.2f} s after the kill ({first['frame_age_ms']:.0f} ms old), "
+          f"ok {t_back - t_kill:.2f} s after it")
+
+
+ROUTER_LOST_S = 0.1 + 0.05      # the health timer's check period, plus the link's close reaching zenoh
+RECOVERY_S = 1.5                # router back -> obstacle lists through it again (a retry every 0.5 s, a frame, work)
+
+
+def _listening(endpoint: str) -> bool:
+    import socket
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    with socket.socket() as s:
+        return s.connect_ex((host, int(port))) == 0
+
+
+class PeerWatch:
+    """A peer session on the router, as the services are: through the router's gossip it opens direct links to them,
+    so it hears their health and obstacle lists while the router is down."""
+
+    def __init__(self, endpoint: str):
+        from eonav.bus import keys as K
+        from eonav.bus.session import _open
+        self.lock, self.health, self.lists = threading.Lock(), [], []
+        self.session = _open("peer", connect=endpoint)
+        self.subs = [
+            self.session.declare_subscriber(K.health_all(VEHICLE), self._health),
+            self.session.declare_subscriber(K.obstacles(VEHICLE), lambda s: self._add(self.lists, time.monotonic()))]
+
+    def _add(self, into, item):
+        with self.lock:
+            into.append(item)
+
+    def _health(self, sample):
+        from eonav.bus import schema
+        self._add(self.health, (time.monotonic(), schema.decode(sample.payload.to_bytes(), expect="health")))
+
+    def close(self):
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+def test_router_killed(pipe):
+    """kill -9 of the embedded router: the launcher restarts it on the same port, no service crashes or restarts,
+    each says degraded (router lost) while it is down and ok after, the launcher's status shows the outage, the
+    bus through the router carries obstacle lists again within RECOVERY_S of its return, and nothing stale is
+    published after. Runs last: it cuts this module's watch off the bus for the outage."""
+    pipe.wait_flowing()
+    services = ("camera", "mavlink", "sync", "locator", "obstacles")
+    pw = PeerWatch(pipe.endpoint)
+    try:
+        wait_until(lambda: {m["service"] for t, m in pw.health if m["state"] == "ok"} >= set(services[2:]), 10, 0.1,
+                   "health of sync, locator and obstacles on the peer watch")
+        time.sleep(1.0)                                   # the gossip's direct links settle
+        before = {n: (pipe.pid(n), pipe.status[n]["restarts"]) for n in services}
+        old_pid = pipe.status["router"]["pid"]
+        t_kill = time.monotonic()
+        os.kill(old_pid, signal.SIGKILL)
+        t_closed = wait_until(lambda: not _listening(pipe.endpoint) and time.monotonic(), 5, 0.01,
+                              "the router's port closed")
+        t_listen = wait_until(lambda: _listening(pipe.endpoint) and time.monotonic(), 15, 0.01,
+                              "the router's port open again")
+
+        def back():                                       # the launcher's status: running again, a new process
+            return next((t for t, st in pipe.history if t > t_kill and st["router"]["state"] == "running"
+                         and st["router"]["pid"] != old_pid), None)
+        t_back = wait_until(back, 15, 0.05, "the router restarted by the launcher")
+        # the status showed the outage while it lasted (reported at once when the router went down)
+        down = [(t, st["router"]) for t, st in pipe.history if t_kill < t < t_back]
+        assert down and all(r["state"] == "restarting" and r["health"]["state"] == "degraded" for _, r in down), down
+        assert down[0][1]["health"]["detail"].startswith("down 0.")
+        assert down[0][0] - t_kill < 0.5, down[0]
+        # every service noticed the lost router at once, and said ok again once it was back
+        lost_s = {}
+        for n in services[2:]:
+            hit = next(((t, m) for t, m in pw.health if t > t_kill and m["service"] == n
+                        and m["state"] == "degraded" and "no zenoh router" in m["detail"]), None)
+            assert hit is not None, (n, [m for t, m in pw.health if t > t_kill and m["service"] == n][:5])
+            lost_s[n] = round(hit[0] - t_kill, 3)
+            assert lost_s[n] < ROUTER_LOST_S + SCHED_SLACK_S, (n, lost_s[n])
+        t_flow = pipe.wait_flowing(15.0)                  # through the router: the client watch reconnected
+        first_list = wait_until(lambda: min((x["t"] for x in pipe.w.snapshot()["lists"] if x["t"] > t_kill),
+                                            default=None), 10, 0.05, "an obstacle list through the router")
+        assert first_list > t_listen
+        for n in services[2:]:
+            wait_until(lambda: any(t > t_back and m["service"] == n and "no zenoh router" not in m["detail"]
+                                   for t, m in pw.health), 10, 0.1, f"{n} reports the router back")
+        lists_in_outage = sum(1 for t in pw.lists if t_kill < t < t_back)
+    finally:
+        pw.close()
+    time.sleep(2.0)
+    pipe.assert_fresh_and_ordered(since_t=t_kill)
+    after = {n: (pipe.pid(n), pipe.status[n]["restarts"]) for n in services}
+    assert after == before, (before, after)               # no service crashed, none was restarted
+    assert pipe.status["router"]["restarts"] == 1 and pipe.status["router"]["state"] == "running"
+    recovery_s = first_list - t_listen
+    print(f"router: gone {t_closed - t_kill:.2f} s after the kill, listening again {t_listen - t_kill:.2f} s after "
+          f"it (back-off 0.5 s + start), obstacle "
+          f"lists through it {recovery_s:.2f} s after that, pipeline ok {t_flow - t_kill:.2f} s after the kill; "
+          f"{lists_in_outage} lists peer to peer during the outage; degraded after the kill (s): {lost_s}")
+    assert recovery_s <= RECOVERY_S, recovery_s
+    # the services are peers: their direct links (opened through the router's gossip) carried the pipeline meanwhile
+    assert lists_in_outage >= 1, lists_in_outage

@@ -86,10 +86,11 @@ class BusWatch:
 
     ``frames``, ``maps``, ``lists``: lists of dicts (``t`` monotonic arrival, ``rx_us`` arrival on the realtime
     clock, ``stamp_us``, ``seq``, ``camera_id``, and for maps and lists ``frame_age_ms``); ``health``: (t, message).
-    A context manager (a client session on ``endpoint``)."""
+    A context manager (a client session on ``endpoint``; ``zenoh_config``: a session config applied first, e.g. the
+    operator's credentials under access control)."""
 
-    def __init__(self, endpoint: str, vehicle: str):
-        self.endpoint, self.vehicle = endpoint, vehicle
+    def __init__(self, endpoint: str, vehicle: str, zenoh_config: str | None = None):
+        self.endpoint, self.vehicle, self.zenoh_config = endpoint, vehicle, zenoh_config
         self.lock = threading.Lock()
         self.frames, self.maps, self.lists, self.health = [], [], [], []
         self.bad = 0
@@ -98,7 +99,7 @@ class BusWatch:
     def __enter__(self):
         from eonav.bus import keys as K
         from eonav.bus.session import client_session, consume_in_threads
-        self._session = client_session(self.endpoint)
+        self._session = client_session(self.endpoint, self.zenoh_config)
 
         def stamped(fn):              # the handlers take the payload and both arrival times
             return lambda sample, t: fn(sample.payload.to_bytes(), t, time.time_ns() // 1000)

@@ -501,8 +501,8 @@ def run_demo(*, flight: str = DEFAULT_FLIGHT, n_frames: int = DEFAULT_FRAMES, ra
         th.join(60.0)
     summary.update(recording=str(rec), stop_reason=reason, pipeline_exit=result["code"],
                    replay_shift_us=shift.get("us"),
-                   exit_codes={k: v.get("exit_code") for k, v in status.items()},
-                   service_states={k: v.get("state") for k, v in status.items()})
+                   exit_codes={k: v.get("exit_code") for k, v in status.items() if k != "router"},
+                   service_states={k: v.get("state") for k, v in status.items() if k != "router"})
     if last is not None and png is not None:
         import cv2
         m, i = last

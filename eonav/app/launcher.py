@@ -4,9 +4,10 @@
 every service of a pipeline spec as its own OS process (``sys.executable -m eonav.services.<module>``: spawned, never
 forked from a process holding a zenoh session), all connected to the router with the same ``--vehicle``. It
 supervises them (exit 0 = finished, exit 2 = configuration error: neither restarted; anything else restarted with
-back-off), shows a status line from the health topic and stops everything cleanly on Ctrl-C or SIGTERM (SIGINT to
-each service, then SIGKILL after a grace period; the router last). The spec format and the exit codes: docs/bus.md,
-"Running".
+back-off), the router too (:class:`EmbeddedRouter`: restarted on the same port with the same back-off; the services
+reconnect by themselves), shows a status line from the health topic and stops everything cleanly on Ctrl-C or SIGTERM
+(SIGINT to each service, then SIGKILL after a grace period; the router last). The spec format and the exit codes:
+docs/bus.md, "Running".
 """
 from __future__ import annotations
 
@@ -91,6 +92,9 @@ def parse_spec(spec, spec_dir: str | None = None) -> list[ServiceSpec]:
         name = check_chunk(str(it["name"]), f"pipeline spec services[{i}].name")
         if name in seen:
             raise InputError(f"pipeline spec: service name {name!r} used twice; give instances distinct names")
+        if name == ROUTER_NAME:
+            raise InputError(f"pipeline spec services[{i}]: the name {ROUTER_NAME!r} is the launcher's own (the zenoh "
+                             "router's status entry); name the service otherwise")
         seen.add(name)
         args = it.get("args", [])
         if not isinstance(args, list) or not all(isinstance(a, (str, int, float)) for a in args):
@@ -179,6 +183,7 @@ class Proc:
     health: dict | None = None
     health_mono: float = 0.0
     alive: bool = False
+    router: bool = False       # the zenoh router's entry (EmbeddedRouter, ExternalRouter), not a service
 
     @property
     def name(self):
@@ -330,6 +335,134 @@ class Supervisor:
 
 
 # --------------------------------------------------------------------------------------------------
+# the router
+
+ROUTER_NAME = "router"
+ROUTER_START_TIMEOUT_S = 10.0
+
+
+class EmbeddedRouter:
+    """The embedded router as a supervised process: exited for any reason, it is restarted on the same port after the
+    services' back-off (0.5 s, 1 s, 2 s ... 10 s; the count reset after 30 s of stable running), at most
+    ``max_restarts`` times. ``proc`` (a :class:`Proc` named "router") carries its state and a health of its own for
+    the status line and ``on_status``: ``ok`` while it runs, ``degraded`` with the outage while it is down. A start
+    that fails (the port taken meanwhile) counts as an exit."""
+
+    def __init__(self, port: int, zenoh_config: str | None = None, max_restarts: int = DEFAULT_MAX_RESTARTS):
+        self.port, self.zenoh_config = port, zenoh_config
+        self.proc = Proc(ServiceSpec(name=ROUTER_NAME, module="eonav.bus.router", max_restarts=max_restarts),
+                         router=True)
+        self.down_since: float | None = None
+
+    @property
+    def popen(self):
+        return self.proc.popen
+
+    def start(self) -> str:
+        """Start it (raises EonavError if it does not come up); returns its endpoint."""
+        p = self.proc
+        p.popen, ep = start_router(self.port, zenoh_config=self.zenoh_config, timeout_s=ROUTER_START_TIMEOUT_S)
+        p.state, p.started_mono, p.exit_code, p.alive = "running", time.monotonic(), None, True
+        if self.down_since is not None:
+            log.warning("embedded router back (pid %d) %.2f s after it went down", p.popen.pid,
+                        time.monotonic() - self.down_since)
+        self.down_since = None
+        self._health("ok", "")
+        return ep
+
+    def stop(self, grace_s: float) -> None:
+        """SIGINT, SIGKILL after ``grace_s`` (after the services: they stop through it)."""
+        p = self.proc
+        if p.popen is not None and p.popen.poll() is None:
+            stop_processes([p.popen], grace_s)
+            p.exit_code = p.popen.returncode
+        if p.state in ("running", "restarting"):
+            p.state = "stopped"
+
+    def _health(self, state: str, detail: str) -> None:
+        self.proc.health = {"service": ROUTER_NAME, "state": state, "detail": detail}
+        self.proc.health_mono = time.monotonic()
+
+    def poll(self, now: float | None = None) -> bool:
+        """Reap and restart; returns whether its state changed (went down, came back or failed for good)."""
+        now = time.monotonic() if now is None else now
+        p = self.proc
+        if p.state == "running":
+            rc = p.popen.poll()
+            if rc is None:
+                if p.restarts and now - p.started_mono > STABLE_RESET_S:
+                    p.restarts = 0
+                self._health("ok", "")
+                return False
+            p.exit_code = rc
+            self.down_since = now
+            log.error("embedded router exited (%s)", rc)
+            self._down(now)
+            return True
+        if p.state == "restarting":
+            if now >= p.next_start_mono:
+                try:
+                    self.start()
+                    return True
+                except EonavError as e:
+                    log.error("%s", e)
+                    p.exit_code = None
+                    self._down(time.monotonic())
+                    return p.state == "failed"
+            self._health("degraded", f"down {now - self.down_since:.1f} s; restart {p.restarts}/"
+                                     f"{p.spec.max_restarts} in {max(0.0, p.next_start_mono - now):.1f} s")
+        return False
+
+    def _down(self, now: float) -> None:
+        p = self.proc
+        p.alive = False
+        if p.restarts >= p.spec.max_restarts:
+            p.state = "failed"
+            self._health("error", f"router gave up after {p.restarts} restarts")
+            log.error("embedded router: gave up after %d restarts", p.restarts)
+            return
+        delay = min(BACKOFF_MAX_S, BACKOFF_INITIAL_S * 2 ** p.restarts)
+        p.restarts += 1
+        p.state, p.next_start_mono = "restarting", now + delay
+        self._health("degraded", f"down {now - self.down_since:.1f} s; restart {p.restarts}/"
+                                 f"{p.spec.max_restarts} in {delay:.1f} s")
+        log.warning("embedded router: restart %d/%d in %.1f s", p.restarts, p.spec.max_restarts, delay)
+
+
+class ExternalRouter:
+    """A router this launcher did not start (``--router EP``, e.g. zenohd under systemd): not supervised here, but
+    reported, from the status monitor's own session (:class:`eonav.bus.session.RouterWatch`), ``degraded`` while
+    the monitor reaches no router."""
+
+    def __init__(self, endpoint: str):
+        self.endpoint = endpoint
+        self.proc = Proc(ServiceSpec(name=ROUTER_NAME, module="", restart=False), state="external", router=True)
+        self.watch = None
+        self._lost = False
+
+    popen = None
+
+    def attach(self, session) -> None:
+        from eonav.bus.session import RouterWatch
+        self.watch = RouterWatch(session)
+
+    def poll(self, now: float | None = None) -> bool:
+        if self.watch is None:
+            return False
+        lost = self.watch.check(now)
+        p = self.proc
+        p.alive = bool(self.watch.seen and not lost)
+        p.health = {"service": ROUTER_NAME, "state": "degraded" if lost else ("ok" if p.alive else "degraded"),
+                    "detail": lost or ("" if p.alive else f"not connected to {self.endpoint} yet")}
+        p.health_mono = time.monotonic()
+        changed = bool(lost) != self._lost
+        if changed:
+            (log.warning if lost else log.info)("router %s %s", self.endpoint, "lost" if lost else "back")
+        self._lost = bool(lost)
+        return changed
+
+
+# --------------------------------------------------------------------------------------------------
 # status
 
 class HealthMonitor:
@@ -401,6 +534,9 @@ class HealthMonitor:
 
 def _fmt_service(p: Proc, now: float) -> str:
     h = p.health
+    if p.router and h is not None:
+        state = h["state"] + (f"({h['detail'][:STATUS_DETAIL_CHARS]})" if h.get("detail") else "")
+        return f"{p.name} {state}" + (f" r{p.restarts}" if p.restarts else "")
     if p.state == "remote":
         if h is None or not p.alive:
             return f"{p.name} remote {'alive' if p.alive else 'gone'}"
@@ -501,8 +637,9 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
 
     ``spec``: dict / list / JSON file path. ``port``: embedded router port (None = a free one).
     ``router``: connect to this existing router endpoint instead of starting one. ``duration``: stop
-    after that many seconds. ``on_status(status_dict)``: called about once a second with
-    {service: {state, pid, restarts, exit_code, alive, health}}. ``stop_event``: set it to stop
+    after that many seconds. ``on_status(status_dict)``: called about once a second, and at once when the router
+    goes down or comes back, with {service: {state, pid, restarts, exit_code, alive, health}}, the zenoh router under
+    ``"router"`` (its health made here: ``degraded`` while it is down). ``stop_event``: set it to stop
     (SIGINT/SIGTERM also stop when called from the main thread). ``log_dir``: one log file per
     service instead of inheriting stderr. ``extra_env``: added to every service's environment. ``record``: also run
     the recorder (``eonav.recording.recorder``) writing this MCAP file. ``acl_dir``: run with access control
@@ -548,7 +685,7 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, on_signal)
 
-    router_proc = None
+    rt = None
     printer = StatusPrinter(status_stream)
     t0 = time.monotonic()
     code = 0
@@ -556,15 +693,18 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
         if router is None:
             tries = 1 if port else 3
             for attempt in range(tries):
-                p = port or free_port()
+                rt = EmbeddedRouter(port or free_port(), zenoh_config=router_config)
                 try:
-                    router_proc, router = start_router(p, zenoh_config=router_config)
+                    router = rt.start()
                     break
                 except EonavError as e:
+                    rt = None
                     if attempt == tries - 1:
                         log.error("%s", e)
                         return 2
-            log.info("embedded router on %s (pid %d)", router, router_proc.pid)
+            log.info("embedded router on %s (pid %d)", router, rt.popen.pid)
+        else:
+            rt = ExternalRouter(router)
         ctx = {"spec_dir": spec_dir or os.getcwd(), "vehicle": vehicle, "router": router,
                "port": router.rsplit(":", 1)[-1], **(substitutions or {})}
         sup = Supervisor(services, vehicle=vehicle, router=router, ctx=ctx, grace_s=grace_s, log_dir=log_dir,
@@ -573,20 +713,26 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
         missing = [p.name for p in sup.procs if p.state == "missing"]
         if missing:
             log.warning("not started (module not found): %s", ", ".join(missing))
-        with HealthMonitor(vehicle, router, sup.procs, zenoh_config=monitor_config):
+
+        def report():
+            if on_status:
+                try:
+                    on_status(status_dict([rt.proc, *sup.procs]))
+                except Exception as e:  # a status consumer must not kill the pipeline
+                    log.warning("on_status raised %s: %s", type(e).__name__, e)
+
+        with HealthMonitor(vehicle, router, sup.procs, zenoh_config=monitor_config) as monitor:
+            if isinstance(rt, ExternalRouter):
+                rt.attach(monitor.session)
             sup.start_all()
             last_status = 0.0
             while not stop.wait(0.1):
                 exited = sup.poll()
                 sup.start_waiting()
-                if router_proc is not None and router_proc.poll() is not None:
-                    log.error("embedded router exited (%s); restarting it", router_proc.returncode)
-                    try:
-                        router_proc, _ = start_router(int(ctx["port"]), zenoh_config=router_config)
-                    except EonavError as e:
-                        log.error("%s", e)
-                        reason["why"], code = "router failed", 1
-                        break
+                router_changed = rt.poll()
+                if rt.proc.state == "failed":
+                    reason["why"], code = "router failed", 1
+                    break
                 now = time.monotonic()
                 if exit_when_done:
                     p = next(p for p in sup.procs if p.name == exit_when_done)
@@ -605,36 +751,31 @@ def run_pipeline(spec, *, vehicle: str = "demo", port: int | None = None, durati
                     else:
                         reason["why"] = "no service left running"
                     break
-                if now - last_status >= 1.0:
+                if router_changed or now - last_status >= 1.0:     # at once when the router went down or back
                     last_status = now
-                    if on_status:
-                        try:
-                            on_status(status_dict(sup.procs))
-                        except Exception as e:  # a status consumer must not kill the pipeline
-                            log.warning("on_status raised %s: %s", type(e).__name__, e)
+                    report()
                     if not quiet:
-                        printer(status_line(sup.procs, vehicle, now - t0))
+                        printer(status_line([rt.proc, *sup.procs], vehicle, now - t0), force=router_changed)
             if not quiet:
-                printer(status_line(sup.procs, vehicle, time.monotonic() - t0), force=True)
+                printer(status_line([rt.proc, *sup.procs], vehicle, time.monotonic() - t0), force=True)
                 printer.end()
             log.info("stopping (%s)", reason["why"] or "stop requested")
             sup.stop_all()
-            if on_status:
-                try:
-                    on_status(status_dict(sup.procs))
-                except Exception:
-                    pass
+            if isinstance(rt, EmbeddedRouter):
+                rt.stop(grace_s)
+            report()
         bad = [p for p in sup.procs if p.state in ("failed", "config_error")]
         if bad:
             code = code or 1
+        shown = [rt.proc, *sup.procs] if rt.proc.restarts or rt.proc.state == "failed" else sup.procs
         summary = ", ".join(f"{p.name}={p.state}" + (f"({p.exit_code})" if p.exit_code not in (None, 0) else "")
-                            + (f" r{p.restarts}" if p.restarts else "") for p in sup.procs)
+                            + (f" r{p.restarts}" if p.restarts else "") for p in shown)
         log.info("pipeline stopped: %s", summary)
         if not quiet:
             print(f"eonav run: {reason['why'] or 'stopped'}; {summary}", file=status_stream or sys.stderr)
         return code
     finally:
-        if router_proc is not None:
-            stop_processes([router_proc], grace_s)
+        if rt is not None and rt.popen is not None and rt.popen.poll() is None:
+            stop_processes([rt.popen], grace_s)
         for sig, h in old.items():
             signal.signal(sig, h)

@@ -36,7 +36,7 @@ from typing import Callable
 from eonav import EonavError
 from eonav.bus import schema
 from eonav.bus import keys as K
-from eonav.bus.session import add_flag, add_session_arguments, env_default, open_session
+from eonav.bus.session import RouterWatch, add_flag, add_session_arguments, env_default, open_session
 
 __all__ = ["Node", "service_main", "add_common_arguments", "add_flag", "env_default",
            "RateMeter", "LatencyWindow", "STATES", "EXIT_OK", "EXIT_ERROR", "EXIT_CONFIG", "DEFAULT_INPUT_GRACE_S",
@@ -213,6 +213,8 @@ class Node:
         self._gc_cb = None
         self._inputs: dict[str, dict] = {}      # expect_input: name -> timeout_s, grace_s, since, seen, silent
         self._silent: list[str] = []            # details of the inputs silent at the last check
+        self._router = None                     # RouterWatch of the session (declared with the health timer)
+        self._router_lost: str | None = None    # its detail while the router is lost
 
     # ---- garbage collector ------------------------------------------------------------------------
     def watch_gc(self) -> None:
@@ -402,10 +404,28 @@ class Node:
         with self._lock:
             return list(self._silent)
 
-    def _reported_state(self) -> tuple[str, str]:
-        """The state and detail to report: the service's own, made ``degraded`` while a watched input is silent."""
+    def check_router(self, now: float | None = None) -> bool:
+        """Re-evaluate the link to the zenoh router (``RouterWatch``: lost once it was there); logs the loss and the
+        return. Returns whether it changed."""
+        if self._router is None:
+            return False
+        lost = self._router.check(now)
+        changed = (lost is None) != (self._router_lost is None)
+        if changed:
+            if lost:
+                self.log.warning("zenoh router lost; reconnecting")
+            else:
+                self.log.info("zenoh router back")
         with self._lock:
-            state, detail, silent = self._state, self._detail, list(self._silent)
+            self._router_lost = lost
+        return changed
+
+    def _reported_state(self) -> tuple[str, str]:
+        """The state and detail to report: the service's own, made ``degraded`` while a watched input is silent or
+        the router is lost."""
+        with self._lock:
+            state, detail = self._state, self._detail
+            silent = list(self._silent) + ([self._router_lost] if self._router_lost else [])
         if not silent or state == "error":
             return state, detail
         return "degraded", "; ".join(silent + ([detail] if detail else []))
@@ -510,6 +530,7 @@ class Node:
 
     def _declare_infrastructure(self) -> None:
         import zenoh
+        self._router = RouterWatch(self.session)
         self._health_pub = self.session.declare_publisher(
             K.health(self.vehicle, self.name), encoding=zenoh.Encoding("application/msgpack"),
             congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA_LOW)
@@ -529,15 +550,16 @@ class Node:
                     raise
 
         def publish_health():
-            # every --health-period-s, and at once when a watched input falls silent or flows again
+            # every --health-period-s, and at once when a watched input or the router is lost or back
             period = float(self.args.health_period_s)
             due = time.monotonic()
             while True:
                 now = time.monotonic()
-                if (self._inputs and self.check_inputs(now)) or now >= due:
+                changed = bool(self._inputs) and self.check_inputs(now)
+                if self.check_router(now) or changed or now >= due:
                     self.publish_health()
                     due = now + period
-                wait = min(INPUT_CHECK_S, period) if self._inputs else max(0.0, due - time.monotonic())
+                wait = min(INPUT_CHECK_S, period)
                 if self.stop_event.wait(wait):
                     return
 
