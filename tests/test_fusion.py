@@ -4,6 +4,7 @@ import copy
 import numpy as np
 import pytest
 
+from eonav import InputError
 from eonav.geometry.camera import Camera, VehicleState, View
 from eonav.fusion.fused_map import MapConfig, fused_map
 from eonav.fusion.predict import ProcessNoise, predict
@@ -11,7 +12,7 @@ from eonav.fusion.schedule import ScheduleConfig
 from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
 from eonav.fusion.state import InverseRangeState, optional_kernels
 from eonav.fusion.update import UpdateConfig, update
-from eonav.ranging.rangemap import ILL_CONDITIONED, LOW_TEXTURE, VALID
+from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, TRUNCATION, VALID
 
 NO_NOISE = ProcessNoise(0.0, 0.0, 0.0)
 PATHS = [False] + ([True] if optional_kernels() is not None else [])
@@ -336,6 +337,37 @@ def test_slant_term_of_a_tilted_plane_and_at_a_depth_edge_derived_by_hand(kernel
     m2 = fused_map(st, MapConfig(fill=False, slant_px=1.5), kernels=kernels)
     assert np.allclose(m2.inv_range_std_per_m[19], want, rtol=1e-4)
     assert np.isinf(m2.inv_range_std_per_m[20]).all()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_an_empty_cell_is_filled_from_converged_neighbours_unless_its_last_pair_saw_it_occluded(kernels):
+    # a converged plane rho = 0.05 + 0.0004 u - 0.0003 v with a 6 x 6 hole of empty cells: the fill's plane through
+    # the neighbours gives the hole the plane's own rho (FILLED, a finite sigma); the hole's last measurement
+    # flagged TRUNCATION (one pair's verdict on its step): filled; OCCLUDED (a depth edge in that pair): not filled,
+    # nor TRUNCATION when the config names it too
+    c = cam(64, 48)
+    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
+    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
+    st = planar_state(c, plane, var=1e-8)
+    hole = (slice(20, 26), slice(30, 36))
+    st.rho[hole], st.var[hole], st.a[hole], st.b[hole], st.n[hole] = np.nan, np.inf, 0.0, 0.0, 0
+    for bits, cfg, filled in ((TRUNCATION, MapConfig(), True), (OCCLUDED, MapConfig(), False),
+                              (TRUNCATION, MapConfig(no_fill=OCCLUDED | TRUNCATION), False)):
+        st.flags[...] = 0
+        st.flags[hole] = bits
+        m = fused_map(st, cfg, kernels=kernels)
+        got = m.flags[hole]
+        if filled:
+            assert ((got & FILLED) != 0).all() and ((got & bits) != 0).all()
+            assert np.allclose(m.inv_range_per_m[hole], plane[hole], rtol=1e-3)
+            assert np.isfinite(m.inv_range_std_per_m[hole]).all()
+        else:
+            assert not ((got & FILLED) != 0).any() and not np.isfinite(m.range_m[hole]).any()
+
+
+def test_map_config_rejects_bad_no_fill_bits():
+    with pytest.raises(InputError, match="no_fill"):
+        MapConfig(no_fill=256)
 
 
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")

@@ -16,7 +16,8 @@ within 2 sigma of 0 and 2 sigma below the state's far limit). A cell whose evide
 (no range: never a confident range where the measurements contradict each other); an empty cell keeps the last
 measurement's reason bits (LOW_TEXTURE, OUT_OF_VIEW, OCCLUDED, ...). Then, as a single pair does, pixels without a
 fused range are filled from the VALID ones around them (``eonav.ranging.methods.fill``, flagged FILLED, with their own
-sigma); cells whose evidence disagrees are not filled.
+sigma); cells whose evidence disagrees are not filled, nor empty cells the last measurement saw OCCLUDED
+(``NO_FILL_FUSED``).
 """
 from __future__ import annotations
 
@@ -35,6 +36,11 @@ from eonav.fusion.update import (UpdateConfig, counts_dict, kernel_params, measu
                                  update_rho_far)
 
 METHOD = "fused"
+# empty cells never filled: those the last measurement saw hidden in its image b (a depth edge, where a plane
+# through the neighbours mixes two surfaces). Not TRUNCATION, which a single pair does not fill either: in the
+# fused map it is one pair's verdict on its own Gauss-Newton step, and the fill's sigma (the plane's residual and
+# its disagreement across scales) judges the neighbours, which the stream has converged
+NO_FILL_FUSED = OCCLUDED
 REASON_BITS = np.uint8(TRUNCATION | ILL_CONDITIONED | OUT_OF_VIEW | LOW_TEXTURE | OCCLUDED)
 _BITS = np.array([REASON_BITS, ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION,
                   AT_INFINITY, VALID], np.uint8)       # for _kernels.classify_state
@@ -46,6 +52,7 @@ class MapConfig:
     max_rel_std: float = 0.34      # largest relative sigma of a VALID cell (the dense method's rule)
     fill: bool = True              # fill the cells without a fused range from the VALID ones around them
     slant_px: float = 1.5          # spread (px) of the window's effective centre: sigma^2 += slant_px^2 |grad rho|^2
+    no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells never filled (module docstring)
 
     def __post_init__(self):
         if not 0 < self.eta_inlier < 1:
@@ -54,6 +61,8 @@ class MapConfig:
             raise InputError(f"fused map: max_rel_std must be > 0, got {self.max_rel_std!r}")
         if not (math.isfinite(self.slant_px) and self.slant_px >= 0):
             raise InputError(f"fused map: slant_px must be a finite number >= 0, got {self.slant_px!r}")
+        if not (isinstance(self.no_fill, int) and 0 <= self.no_fill <= 255):
+            raise InputError(f"fused map: no_fill must be flag bits (an integer 0..255), got {self.no_fill!r}")
 
 
 def slant_g2(rho: np.ndarray, var: np.ndarray) -> np.ndarray:
@@ -137,7 +146,7 @@ def _outputs(shape, reuse):
 def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude) -> RangeResult:
     # a cell whose measurements disagree gets no range from its neighbours either
     n_filled = (fill_unmeasured(rho, std, flags, rng, conf, cfg.max_rel_std, rho_far=state.rho_far,
-                                exclude=exclude) if cfg.fill else 0)
+                                exclude=exclude, no_fill=cfg.no_fill) if cfg.fill else 0)
     size = max(rho.size, 1)
     info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(np.count_nonzero(exclude)) / size,
             "filled_fraction": n_filled / size, "n_fused": state.n.copy()}
