@@ -489,7 +489,8 @@ def test_locator_publishes_fused_maps(flight_frames):
         # the locate's CPU apart from the fusion's
         lat = wait_until(lambda: (lambda x: x if x.get("cpu.publish", {}).get("n") == N_FRAMES - 1 else None)(
             latest_health(drain(health_sub, health))["locator"]["latency_ms"]), timeout=5, what="stage latencies")
-        for name in ("age.fused", "locate", "fusion", "publish", "cpu.locate", "cpu.fusion", "cpu.publish"):
+        for name in ("age.fused", "frame_time", "locate", "fusion", "publish", "cpu.locate", "cpu.fusion",
+                     "cpu.publish"):
             assert lat[name]["n"] == N_FRAMES - 1, name
         # every frame is dequeued and pushed (the first one only starts the state: no map)
         assert lat["age.dequeued"]["n"] == lat["cpu.ingest"]["n"] == lat["age.locate_start"]["n"] == N_FRAMES

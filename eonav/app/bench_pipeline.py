@@ -4,7 +4,10 @@ Starts the embedded router and the locator and obstacle services as processes, t
 simulated flight at a fixed rate straight onto the posed-frame key (camera ingest and sync are not in the loop). A
 frame's ``stamp_us`` is the moment it is put; the bench's subscriber stamps the arrival of the range map and of the
 obstacle list carrying that stamp on the same host clock. Per case it prints latency p50/p99 (capture -> range map,
-capture -> obstacles), throughput, drops, the locator's compute time and the scales the maps came at.
+capture -> obstacles), throughput, drops, the locator's compute time and the scales the maps came at; then per stage
+the services' own health latencies (ages at each point of a frame's way, each stage's wall and CPU time) and each
+process's share of a core (/proc), with the load average (the machine may be shared: CPU times are the figures
+other load moves least). ``--json`` adds every measured frame's timeline.
 ``--accuracy`` instead measures, in process, what a locate scale costs against the simulator's truth.
 ``run_bench(cases, seconds=...)`` is the pipeline function under the command.
 """
@@ -51,7 +54,8 @@ AGES = (("capture -> locator dequeues the frame", "locator", "age.dequeued"),
         ("capture -> range map put", "locator", "capture_to_published"),
         ("capture -> obstacles dequeue the map", "obstacles", "age.dequeued"),
         ("capture -> obstacle list put", "obstacles", "capture_to_obstacles"))
-DURATIONS = (("locator: decode + grey image (CPU)", "locator", "cpu.ingest"),
+DURATIONS = (("locator: frame taken -> map put (wall)", "locator", "frame_time"),
+             ("locator: decode + grey image (CPU)", "locator", "cpu.ingest"),
              ("locator: locate (wall)", "locator", "locate"), ("locator: locate (CPU)", "locator", "cpu.locate"),
              ("locator: fusion (wall)", "locator", "fusion"), ("locator: fusion (CPU)", "locator", "cpu.fusion"),
              ("locator: map fields + encode + put (wall)", "locator", "publish"),

@@ -10,10 +10,10 @@ budget for ``up_after`` pairs in a row: between the two nothing changes, so a co
 oscillate. ``calibrate`` takes one timed locate per rung, made before the camera's first pair, to choose the starting
 rung and seed the cost ratios. No zenoh, no images: the locator owns one controller per camera.
 
-A compute budget alone does not bound what guidance sees: a map's age when it is put also holds the wait behind the
-previous frame and the time the locator lost to other processes. With ``latency_target_s`` the controller also gets
-each published map's age (``observe_latency``: capture -> map put) and steps down one rung when the recent ``latency_q``
-quantile (0.9) of ``latency_window`` maps (30) exceeds the target; it steps up only when both the compute and the
+A median compute budget does not bound the tail guidance sees: the locator's time per frame also holds the decode,
+the encode and put, and the time it lost to other processes. With ``latency_target_s`` the controller also gets that
+time for each published map (``observe_latency``: frame taken off the ring -> map put) and steps down one rung when
+the recent ``latency_q`` quantile (0.9) of ``latency_window`` maps (30) exceeds the target; it steps up only when both the compute and the
 latency predicted at the rung above (the current quantile, over a whole window, times the rungs' cost ratio) stay
 below ``up_margin`` of their limits.
 """
@@ -87,7 +87,7 @@ class ScaleController:
             raise InputError(f"--latency-target-ms must be > 0, got {latency_target_s * 1e3!r}")
         self.latency_target_s = latency_target_s
         self.latency_min_samples, self.latency_q = latency_min_samples, latency_q
-        self._ages = deque(maxlen=latency_window)   # ages of the maps published at the current rung
+        self._times = deque(maxlen=latency_window)  # per-frame times of the maps at the current rung
         self.fixed = fixed
         self.ladder = (fixed,) if fixed is not None else ladder(min_scale)
         self._i = 0                                  # index into the ladder: start at full scale
@@ -189,25 +189,25 @@ class ScaleController:
         return c / self.ratio(cur, scale)
 
     def latency_s(self, full: bool = False) -> float | None:
-        """The ``latency_q`` quantile of the current rung's recent map ages; None before ``latency_min_samples``
+        """The ``latency_q`` quantile of the current rung's recent per-frame times; None before ``latency_min_samples``
         (``full``: before a whole ``latency_window``)."""
-        if len(self._ages) < (self._ages.maxlen if full else self.latency_min_samples):
+        if len(self._times) < (self._times.maxlen if full else self.latency_min_samples):
             return None
-        v = sorted(self._ages)
+        v = sorted(self._times)
         return v[min(len(v) - 1, int(math.ceil(self.latency_q * len(v))) - 1)]
 
     # -- decision -----------------------------------------------------------------------------
-    def observe_latency(self, scale: float, age_s: float) -> ScaleChange | None:
-        """Record the age (capture -> put) of a map published at ``scale``; returns the change it causes, if any:
+    def observe_latency(self, scale: float, frame_s: float) -> ScaleChange | None:
+        """Record the time (frame taken -> map put) of a map published at ``scale``; returns the change it causes, if any:
         one rung down when the recent quantile exceeds ``latency_target_s`` (nothing without a target)."""
         if self.latency_target_s is None or self.fixed is not None or scale != self.scale:
             return None
-        if not (math.isfinite(age_s) and age_s >= 0):
+        if not (math.isfinite(frame_s) and frame_s >= 0):
             return None
-        self._ages.append(age_s)
+        self._times.append(frame_s)
         lat = self.latency_s()
         if lat is not None and lat > self.latency_target_s and self._i + 1 < len(self.ladder):
-            return self._change(self._i + 1, f"map age p{round(100 * self.latency_q)} {lat * 1e3:.1f} ms over the "
+            return self._change(self._i + 1, f"time per frame p{round(100 * self.latency_q)} {lat * 1e3:.1f} ms over the "
                                 f"latency target {self.latency_target_s * 1e3:.1f} ms")
         return None
 
@@ -257,5 +257,5 @@ class ScaleController:
         self._i = i
         self._up_streak = 0
         self._cost[self.scale].clear()               # the new rung is judged on fresh samples only
-        self._ages.clear()
+        self._times.clear()
         return ScaleChange(old, self.scale, reason)
