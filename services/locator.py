@@ -324,9 +324,11 @@ def fusion_runner(args, params: dict):
     schedule = ScheduleConfig(policy=replace(pol, stereo_rig=None), stereo_rig=pol.stereo_rig,
                               max_stereo_dt_s=pol.max_stereo_dt_s)
     measure_params = dict(params, fill=False)
-    # fresh_measurements: the runner may write the fused map into a measurement's arrays (nothing else keeps them)
-    return FusionRunner(FusionConfig(schedule=schedule), fresh_measurements=True,
-                        measure=CpuTimed(lambda va, vb: locate(va, vb, method=args.method, **measure_params)))
+    # fresh_measurements: the runner may write the fused map into a measurement's arrays (nothing else keeps them);
+    # takes_prior: the dense method starts from the predicted state between full searches (FusionConfig.prior)
+    return FusionRunner(FusionConfig(schedule=schedule), fresh_measurements=True, takes_prior=args.method == "dense",
+                        measure=CpuTimed(lambda va, vb, **prior: locate(va, vb, method=args.method, **measure_params,
+                                                                        **prior)))
 
 
 class CpuTimed:

@@ -3,8 +3,9 @@
 In: schema ``range_map`` on ``keys.range_maps_all(vehicle)`` (RingChannel: the newest map of each camera wins) and
 ``nav_state`` (only the latest pose matters). Out: schema ``obstacle_list`` on ``keys.obstacles(vehicle)``
 (``eonav.obstacles.detect.analyse``: 72 sectors and the obstacle list, referred to the map's capture stamp and
-pose; a small, reliable, express message), and with ``--mavlink-out`` OBSTACLE_DISTANCE plus a companion HEARTBEAT
-(``eonav.nav.mavlink_out``, docs/mavlink.md).
+pose; a small, reliable, express message), and with ``--mavlink-out`` OBSTACLE_DISTANCE (and / or, with
+``--mavlink-messages``, OBSTACLE_DISTANCE_3D of the confirmed tracks) plus a companion HEARTBEAT
+(``eonav.nav.mavlink_out``, docs/mavlink.md, docs/autopilot.md).
 
 Decisions: the sectors sent to the autopilot are re-referenced to the latest navigation pose newer than the map
 (the autopilot applies them where it is on arrival); a stall sends one all-unknown message and then silence, so the
@@ -35,6 +36,10 @@ def add_arguments(p):
     d = ObstacleConfig()                         # the extraction defaults are the library's
     add_flag(p, "--mavlink-out", env="EONAV_OBSTACLES_MAVLINK_OUT", default=None, metavar="CONNECTION",
              help="send OBSTACLE_DISTANCE on this pymavlink connection, e.g. udpout:127.0.0.1:14560")
+    add_flag(p, "--mavlink-messages", env="EONAV_OBSTACLES_MAVLINK_MESSAGES", default="obstacle_distance",
+             choices=("obstacle_distance", "obstacle_distance_3d", "both"),
+             help="what --mavlink-out sends: OBSTACLE_DISTANCE sectors, OBSTACLE_DISTANCE_3D of the confirmed tracks "
+                  "(ArduPilot only), or both (docs/autopilot.md)")
     add_flag(p, "--mavlink-source-system", env="EONAV_OBSTACLES_MAVLINK_SOURCE_SYSTEM", default=1, type=int,
              help="our MAVLink system id (the vehicle's, as mavlink_ingest --source-system); component is 191 "
                   "(onboard computer)", aliases="--mavlink-sysid", old_env="EONAV_OBSTACLES_MAVLINK_SYSID")
@@ -171,6 +176,7 @@ class Guidance:
         self.publisher = GuidancePublisher(self.tracker, rate_hz=rate_hz, stale_after_s=stale_after_s)
         self.pub = node.publisher(K.obstacle_tracks(node.vehicle))
         self.last_state, self.last_stamp_us = None, -1      # the newest map's capture pose (no nav: the ownship)
+        self.latest = None                                   # the newest map-triggered message (OBSTACLE_DISTANCE_3D)
 
     def put(self, msg) -> None:
         from eonav.bus import guidance_msg
@@ -203,6 +209,7 @@ class Guidance:
             ids = self.tracker.label(single) if len(single) == len(res.obstacles) else [0] * len(res.obstacles)
             own = self.nav.ownship(state, msg["stamp_us"])
             out = self.publisher.on_map(now_us(), own)
+            self.latest = out
         return ids, out
 
     def timer_loop(self) -> None:
@@ -225,7 +232,8 @@ def body(node: Node, args) -> None:
             node.log.warning("--mavlink-rate-hz %.1f is below the 10 Hz the autopilots are tuned for",
                              args.mavlink_rate_hz)
         sender = ObstacleDistanceSender(args.mavlink_out, system_id=args.mavlink_source_system,
-                                        rate_hz=args.mavlink_rate_hz, stale_s=args.stale_s)
+                                        rate_hz=args.mavlink_rate_hz, stale_s=args.stale_s,
+                                        messages=args.mavlink_messages)
     pub = node.publisher(K.obstacles(node.vehicle))          # reliable, small, express
     maps = node.subscribe(K.range_maps_all(node.vehicle), ring=2)
     nav = LatestNav()
@@ -404,6 +412,10 @@ def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav
         sender.update(res.sectors_now if res.sectors_now is not None else res.sectors, msg["stamp_us"],
                       source=msg["camera_id"])
         node.count("mavlink.nav_compensated" if res.sectors_now is not None else "mavlink.capture_pose")
+        if sender.send_3d and guidance.latest is not None:      # the confirmed tracks, from the pose the sectors use
+            pose = now_state if res.sectors_now is not None else state
+            sender.update_tracks(guidance.latest["tracks"], guidance.latest["stamp_us"], pose.position_ned_m,
+                                 pose.T_body_ned, cfg.min_distance_m, cfg.max_distance_m)
 
 
 if __name__ == "__main__":

@@ -255,6 +255,44 @@ class ArduPilot:
             return {o: m.current_distance for o, (t, m) in self.link.distance.items()
                     if now - t <= max_age_s and m.current_distance < m.max_distance}
 
+    def proximity_faces(self, max_distance_m: float, window_s: float = 0.3) -> dict:
+        """(layer, sector) -> raw distance (m) of the faces of ArduPilot's 3D proximity boundary that hold an
+        obstacle, from the newest ``PRXR`` records of its dataflash log (needs ``LOG_DISARMED 1`` and
+        ``PRX_LOG_RAW 1``): per layer the latest record within ``window_s`` of the log's end (a layer with no
+        obstacle is not logged). Layers 0..4 are elevations -75..-45, -45..-15, -15..15, 15..45, 45..75 deg;
+        sectors 0..7 are 45-degree bearings centred on 45 k deg. Empty faces are logged at the sensor's max
+        (``max_distance_m``)."""
+        from pymavlink import DFReader
+        logs = sorted((self.workdir / "logs").glob("*.BIN")) if self.workdir else []
+        if not logs:
+            return {}
+        recs, t_end = [], None
+        r = DFReader.DFReader_binary(str(logs[-1]))
+        while True:                       # ATT (10 Hz, always logged) is the log's clock: PRXR stops when all is empty
+            try:
+                m = r.recv_match(type=["PRXR", "ATT"])
+            except Exception:  # noqa: BLE001  (the log's last record may be half-written)
+                break
+            if m is None:
+                break
+            t_end = m.TimeUS
+            if m.get_type() == "PRXR":
+                recs.append(m)
+        if not recs:
+            return {}
+        latest = {}
+        for m in recs:
+            if m.TimeUS >= t_end - window_s * 1e6:
+                latest[m.Layer] = m
+        names = ("D0", "D45", "D90", "D135", "D180", "D225", "D270", "D315")
+        out = {}
+        for layer, m in latest.items():
+            for sector, n in enumerate(names):
+                v = getattr(m, n)
+                if v < max_distance_m - 1e-3:
+                    out[(layer, sector)] = v
+        return out
+
     def __exit__(self, *exc):
         if self.link is not None:
             self.link.close()

@@ -560,3 +560,76 @@ def test_without_numba_the_import_fails_naming_it():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.startswith("ImportError:") and "needs numba, a dependency of eonav" in out.stdout, out.stdout
+
+
+# --- a prior (the fused state) as the refinement's start
+
+
+@lru_cache(maxsize=1)
+def wall_pair():
+    """The warm-up wall at 20 m (rho = 0.05 /m everywhere, derived in dense._plane_pair), 256 px: search level 2."""
+    return dense._plane_pair(256, range_m=20.0)
+
+
+def test_a_right_prior_skips_the_search_and_measures_as_the_search_does():
+    a, b = wall_pair()
+    full = locate_dense(a, b, fill=False)
+    shape = a.image.shape
+    res = locate_dense(a, b, fill=False, prior=(np.full(shape, 0.0502, np.float32), np.full(shape, 2e-4, np.float32)))
+    info = res.info["prior"]
+    assert info["full_search"] is False and info["level"] == 1 and info["seeded_fraction"] > 0.99
+    assert res.info["n_hypotheses"] == 0                      # no search ran
+    fv = (full.flags & VALID) != 0
+    both = ((res.flags & VALID) != 0) & fv
+    assert both.sum() > 0.99 * fv.sum() and fv.mean() > 0.85     # (the border rows leave b's view)
+    # the refinement, not the prior, decides: the prior's 0.4 % offset is gone, as accurate as the full search
+    assert abs(np.median(res.inv_range_per_m[both]) / 0.05 - 1) < 0.002
+    assert np.median(np.abs(res.inv_range_per_m[both] / full.inv_range_per_m[both] - 1)) < 0.002
+
+
+def test_a_wrong_prior_is_not_locked_in():
+    # a tight prior at 10 m on a wall at 20 m (10 px of disparity off at level 0): its fits are bad, so the search runs
+    a, b = wall_pair()
+    shape = a.image.shape
+    res = locate_dense(a, b, fill=False, prior=(np.full(shape, 0.1, np.float32), np.full(shape, 1e-4, np.float32)))
+    assert res.info["prior"]["full_search"] is True and res.info["prior"]["bad_fraction"] > 0.1
+    ok = (res.flags & VALID) != 0
+    assert ok.mean() > 0.85 and abs(np.median(res.inv_range_per_m[ok]) / 0.05 - 1) < 0.002
+    # the same wrong prior where only a 48 x 48 block holds it (below the bad share that forces the search): the
+    # block's pixels are not VALID at 10 m -- their fit says OCCLUDED -- and the rest is measured right
+    rho = np.full(shape, 0.0502, np.float32)
+    rho[100:148, 100:148] = 0.1
+    res = locate_dense(a, b, fill=False, prior=(rho, np.full(shape, 1e-4, np.float32)))
+    assert res.info["prior"]["full_search"] is False
+    blk = np.zeros(shape, bool)
+    blk[108:140, 108:140] = True
+    val = (res.flags & VALID) != 0
+    assert not np.any(val[blk] & (np.abs(res.inv_range_per_m[blk] - 0.1) < 0.02))
+    assert val[~blk].mean() > 0.85 and abs(np.median(res.inv_range_per_m[val & ~blk]) / 0.05 - 1) < 0.002
+
+
+def test_pixels_the_prior_does_not_hold_are_not_measured():
+    a, b = wall_pair()
+    shape = a.image.shape
+    rho = np.full(shape, 0.05, np.float32)
+    std = np.full(shape, 2e-4, np.float32)
+    rho[:, :96] = np.nan                       # no prior on the left
+    std[:, 96:128] = 0.05                      # a prior too loose for the refinement's reach
+    res = locate_dense(a, b, fill=False, prior=(rho, std))
+    assert res.info["prior"]["full_search"] is False
+    left = np.s_[:, :120]
+    assert not np.any((res.flags[left] & VALID) != 0) and np.all(np.isnan(res.inv_range_per_m[left]))
+    assert np.all(np.isinf(res.inv_range_std_per_m[left]))
+    assert ((res.flags[:, 136:] & VALID) != 0).mean() > 0.9
+    assert res.info["valid_fraction"] == pytest.approx(((res.flags & VALID) != 0).mean())
+    # too little prior: the search as usual
+    rho[:, :240] = np.nan
+    res = locate_dense(a, b, fill=False, prior=(rho, std))
+    assert res.info["prior"]["full_search"] is True and res.info["n_hypotheses"] > 0
+
+
+def test_a_prior_on_another_grid_is_an_input_error():
+    from eonav import InputError
+    a, b = wall_pair()
+    with pytest.raises(InputError, match="image a's grid"):
+        locate_dense(a, b, prior=(np.zeros((10, 10), np.float32), np.zeros((10, 10), np.float32)))

@@ -2,7 +2,9 @@
 to the autopilot) feeding a real ArduCopter SITL and a real PX4 SITL, and what each autopilot made of it read back
 from its own outputs (tests/sitl.py): ArduPilot's DISTANCE_SENSOR per 45-degree sector, SYS_STATUS proximity health
 and STATUSTEXT; PX4's fused collision-prevention map (``obstacle_distance_fused``), its console and, in Position mode
-with full forward stick towards a wall, where the vehicle goes.
+with full forward stick towards a wall, where the vehicle goes. With ``--mavlink-messages obstacle_distance_3d`` /
+``both``: ArduPilot's 3D boundary, layer by layer, from the PRXR records of its dataflash log, and that PX4 ignores
+OBSTACLE_DISTANCE_3D.
 
 The range maps are the renderer's exact ranges of scenes with known geometry (poles whose nearest point is at a
 known bearing and distance), so the truth is independent of the code under test. Skipped when the SITL tools are
@@ -50,14 +52,15 @@ class Loop:
     """An autopilot + a zenoh session listening on a free port + the obstacles service connected to it with
     ``--mavlink-out`` to the autopilot + a MapFeeder publishing range maps to it."""
 
-    def __init__(self, autopilot, sysid):
+    def __init__(self, autopilot, sysid, extra=()):
         self.ap = autopilot
         self.port = free_port()
         self.session = listener_session(self.port).__enter__()
         self.proc = start_service(["-m", "eonav.services.obstacles", "--vehicle", VEHICLE,
                                    "--connect", endpoint(self.port), "--health-period-s", "0.5", "--ground-down-m", "0",
                                    "--no-nav", "--max-distance-m", str(MAX_DISTANCE_M),
-                                   "--mavlink-out", autopilot.companion_url, "--mavlink-source-system", str(sysid)])
+                                   "--mavlink-out", autopilot.companion_url, "--mavlink-source-system", str(sysid),
+                                   *extra])
         self.feeder = MapFeeder(self.session, K.range_map(VEHICLE, "nose"))
 
     def show(self, scene, camera, state=None):
@@ -151,6 +154,197 @@ def test_ardupilot_stall_is_no_data_within_1s_and_recovers(ardupilot_loop):
     wait_for(lambda: ap.distance_sensors(0.3).get(0) == 600, 3.0, "the pole back in sector 0")
 
 
+# ---- OBSTACLE_DISTANCE_3D (confirmed tracks) into ArduPilot's 3D boundary ----------------------------------------
+
+OD3D_ALT_M = 5.0
+
+
+def od3d_scene(heading_deg=0.0):
+    """Vehicle level at 5 m, heading ``heading_deg`` (0 or a multiple of 90, so that boxes square to the vehicle are
+    square to NED too). Positions below are body FRD (x ahead, y right, z down) from the vehicle. Truth:
+    (layer, sector) of ArduPilot's boundary -> distance (m) from the vehicle to the object's nearest point, and the
+    object's horizontal distance (what OBSTACLE_DISTANCE carries). Layers by elevation (-45..-15, -15..15, 15..45 deg
+    -> 1, 2, 3), sectors by bearing (45-degree, 0 ahead).
+    - a 0.1 m pole at -30 deg, 6 m (sector 7) and one at +12 deg, 9 m (sector 0): nearest point level, layer 2;
+    - a 1 m box floating 3.5 m above the vehicle, its near face 6 m ahead: nearest point (6, 0, -3.5), elevation
+      30.3 deg, layer 3 sector 0, 6.95 m;
+    - a 2 m box on the ground, its near corner at (5.5, 4.5) (bearing 39.3 deg, sector 1) 3 m below the vehicle:
+      elevation -22.9 deg, layer 1, 7.71 m."""
+    from eonav.sim.scene import Box
+    c, s = math.cos(math.radians(heading_deg)), math.sin(math.radians(heading_deg))
+
+    def ne(x, y):                                        # body horizontal -> NED north, east (vehicle at 0, 0)
+        return c * x - s * y, s * x + c * y
+    n, e = ne(6.5, 0.0)
+    above = Box("above", (n, e, -(OD3D_ALT_M + 3.5 + 1.0)), (1.0, 1.0, 2.0), yaw_rad=math.radians(heading_deg))
+    n, e = ne(6.0, 5.0)
+    low = Box.on_ground("low", n, e, 1.0, 1.0, 2.0, yaw_deg=heading_deg)
+    scene = scene_of(pole("pA", -30.0, 6.0, 0.1, yaw0_deg=heading_deg), pole("pB", 12.0, 9.0, 0.1, yaw0_deg=heading_deg),
+                     above, low)
+    faces = {(2, 7): 6.0, (2, 0): 9.0, (3, 0): math.sqrt(6.0 ** 2 + 3.5 ** 2),
+             (1, 1): math.sqrt(5.5 ** 2 + 4.5 ** 2 + 3.0 ** 2)}
+    horizontal = {7: 6.0, 0: 6.0, 1: math.hypot(5.5, 4.5)}   # sector -> nearest horizontal distance (box above: 6 m)
+    return scene, faces, horizontal
+
+
+def ardupilot_face(xyz_frd):
+    """(layer, sector) ArduPilot files a body FRD point in (AP_Proximity_Boundary_3D::get_face)."""
+    x, y, z = xyz_frd
+    pitch = math.degrees(math.atan2(-z, math.hypot(x, y)))
+    layer = int((min(max(pitch, -75.0), 74.9) + 75.0) // 30.0)
+    return layer, ardupilot_sector(math.degrees(math.atan2(y, x)))
+
+
+def faces_from_tracks(msg, state, off_middle=False):
+    """Per face the nearest distance of the published tracks' nearest points (centre +- extent / 2, clipped to the
+    vehicle, rotated into body FRD by ``state``'s T_body_ned): what our messages should say."""
+    out = {}
+    vehicle_ned = np.asarray(state.position_ned_m)
+    for t in msg["tracks"]:
+        c, half = np.asarray(t["position_ned_m"]), 0.5 * np.abs(np.asarray(t["extent_ned_m"]))
+        p = state.T_body_ned @ (c + np.clip(vehicle_ned - c, -half, half) - vehicle_ned)
+        f = ardupilot_face(p)
+        if off_middle and f[0] == 2:
+            continue
+        out[f] = min(out.get(f, math.inf), float(np.linalg.norm(p)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def ardupilot_3d():
+    if AP_MISSING:
+        pytest.skip(f"ArduPilot SITL: {AP_MISSING}")
+    with ArduPilot(params={"LOG_DISARMED": 1, "PRX_LOG_RAW": 1}) as ap:
+        ap.request_message_interval(DISTANCE_SENSOR_ID, 50_000)
+        yield ap
+
+
+class TrackWatch:
+    """The newest message of the obstacle-track topic the service publishes."""
+
+    def __init__(self, session):
+        from eonav.bus import guidance_msg
+        self.latest = None
+        self.sub = session.declare_subscriber(K.obstacle_tracks(VEHICLE), lambda s: setattr(
+            self, "latest", guidance_msg.decode(s.payload.to_bytes())))
+
+
+def _od3d_loop(ap, messages):
+    loop = Loop(ap, 1, extra=["--mavlink-messages", messages])
+    return loop, TrackWatch(loop.session)
+
+
+@needs_ardupilot
+@pytest.mark.parametrize("heading_deg, camera_yaw_deg", [(0.0, 0.0), (90.0, 15.0)])
+def test_ardupilot_files_tracked_obstacles_in_its_3d_boundary(ardupilot_3d, heading_deg, camera_yaw_deg):
+    """``--mavlink-messages obstacle_distance_3d``: ArduPilot's boundary (its PRXR log) holds each obstacle in the
+    face of its true elevation layer and body bearing sector (the vehicle heading north, or east with the camera
+    yawed 15 deg right on the body), at the distance our message carried (from the published tracks, to 3 cm) and
+    near the true nearest point; the sensor is healthy, also with nothing tracked; a stall is No Data within 1 s and
+    the obstacles leave its DISTANCE_SENSOR output."""
+    ap = ardupilot_3d
+    scene, truth, _ = od3d_scene(heading_deg)
+    loop, watch = _od3d_loop(ap, "obstacle_distance_3d")
+    state = vehicle_state(alt=OD3D_ALT_M, yaw_deg=heading_deg)
+    camera = make_camera(camera_yaw_deg)
+    try:
+        loop.show(scene, camera, state)
+
+        def settled():
+            msg = watch.latest
+            if msg is None or len(msg["tracks"]) != len(truth):
+                return None
+            want, got = faces_from_tracks(msg, state), ap.proximity_faces(MAX_DISTANCE_M)
+            ok = set(got) == set(want) and all(abs(got[f] - want[f]) <= 0.03 for f in want)
+            return (want, got) if ok else None
+        try:
+            want, got = wait_for(settled, 10.0, "ArduPilot's boundary = the tracks' nearest points", period=0.5)
+        except AssertionError:
+            msg = watch.latest
+            raise AssertionError(f"ArduPilot faces {ap.proximity_faces(MAX_DISTANCE_M)}, tracks say "
+                                 f"{None if msg is None else faces_from_tracks(msg, state)}, truth {truth}")
+        print(f"ArduPilot 3D faces (layer, sector): m {got}; truth {truth}")
+        assert set(got) == set(truth)
+        for f, d in truth.items():
+            # the track's box is its 5..95 % extent about the median point: its nearest point is at most ~8 % nearer
+            # than the object's (a box seen from below), never farther than the object's nearest surface + 2 %
+            assert 0.9 * d <= got[f] <= 1.02 * d, (f, got[f], d)
+        wait_for(lambda: ap.proximity_bits() == (True, True, True), 1.0, "proximity healthy")
+        # the horizontal layer also comes out as DISTANCE_SENSOR (sectors 7 and 0: the poles)
+        assert set(ap.distance_sensors(0.3)) == {7, 0}
+        # nothing left to track (an empty scene): the tracks die, ArduPilot's faces time out, and the end messages
+        # keep the sensor healthy throughout (no confirmed track is data, not a stall)
+        ap.link.keep.add("SYS_STATUS")
+        t_empty = time.monotonic()
+        loop.show(scene_of(), camera, state)
+        try:
+            wait_for(lambda: watch.latest is not None and not watch.latest["tracks"] and not ap.distance_sensors(0.3)
+                     and not ap.proximity_faces(MAX_DISTANCE_M), 5.0, "no track, no face", period=0.5)
+        except AssertionError:
+            raise AssertionError(f"tracks {len(watch.latest['tracks'])}, DISTANCE_SENSOR {ap.distance_sensors(0.3)}, "
+                                 f"faces {ap.proximity_faces(MAX_DISTANCE_M)}")
+        time.sleep(1.0)
+        health = [bool(m.onboard_control_sensors_health & sitl.MAV_SYS_STATUS_SENSOR_PROXIMITY)
+                  for _, m in ap.link.since("SYS_STATUS", t_empty)]
+        assert len(health) >= 10 and all(health), f"proximity health while nothing is tracked: {health}"
+        loop.show(scene, camera, state)
+        wait_for(lambda: set(ap.distance_sensors(0.3)) == {7, 0}, 5.0, "the poles back")
+        # stall: No Data within 1 s (as OBSTACLE_DISTANCE), the faces gone from DISTANCE_SENSOR after ArduPilot's
+        # 1 s face timeout
+        ap.link.keep.add("SYS_STATUS")
+        last = loop.feeder.pause()
+        wait_for(lambda: ap.proximity_bits() == (True, True, False), 3.0, "proximity health bit cleared")
+        t_unhealthy = next(t for t, m in ap.link.since("SYS_STATUS", last)
+                           if not m.onboard_control_sensors_health & sitl.MAV_SYS_STATUS_SENSOR_PROXIMITY)
+        wait_for(lambda: not ap.distance_sensors(0.3), 3.0, "no DISTANCE_SENSOR")
+        t_gone = time.monotonic() - last
+        print(f"ArduPilot 3D stall: No Data {t_unhealthy - last:.2f} s after the last range map; DISTANCE_SENSOR gone "
+              f"after {t_gone:.2f} s")
+        assert t_unhealthy - last < 1.0, f"No Data after {t_unhealthy - last:.2f} s"
+        assert t_gone < 2.0
+    finally:
+        code, err = loop.close()
+    assert code == 0, err[-3000:]
+
+
+@needs_ardupilot
+def test_ardupilot_both_keeps_sectors_level_and_tracks_above_below(ardupilot_3d):
+    """``--mavlink-messages both``: ArduPilot's horizontal layer is OBSTACLE_DISTANCE's (every obstacle at its
+    horizontal distance, the box above included, as DISTANCE_SENSOR), the layers above and below hold the tracked
+    boxes from OBSTACLE_DISTANCE_3D (OBSTACLE_DISTANCE alone resets them on every message)."""
+    ap = ardupilot_3d
+    scene, truth, horizontal = od3d_scene()
+    loop, watch = _od3d_loop(ap, "both")
+    state = vehicle_state(alt=OD3D_ALT_M)
+    try:
+        loop.show(scene, make_camera(0.0), state)
+        want_h = {s: round(d * 100) for s, d in horizontal.items()}
+
+        def settled():
+            msg = watch.latest
+            if msg is None or len(msg["tracks"]) != len(truth):
+                return None
+            want3d = faces_from_tracks(msg, state, off_middle=True)
+            got = ap.proximity_faces(MAX_DISTANCE_M)
+            off = {f: d for f, d in got.items() if f[0] != 2}
+            level = ap.distance_sensors(0.3)
+            ok = (set(off) == set(want3d) == {(3, 0), (1, 1)} and all(abs(off[f] - want3d[f]) <= 0.03 for f in off)
+                  and set(level) == set(want_h) and all(abs(level[s] - want_h[s]) <= 3 for s in want_h)
+                  and {f[1] for f in got if f[0] == 2} == set(want_h))
+            return (off, level) if ok else None
+        try:
+            off, level = wait_for(settled, 10.0, "ArduPilot: sectors level, tracks above / below", period=0.5)
+        except AssertionError:
+            raise AssertionError(f"ArduPilot faces {ap.proximity_faces(MAX_DISTANCE_M)}, DISTANCE_SENSOR "
+                                 f"{ap.distance_sensors(0.3)}; want level {want_h}, tracks "
+                                 f"{faces_from_tracks(watch.latest, state, True) if watch.latest else None}")
+        print(f"ArduPilot both: level (sector: cm) {level}, above / below (layer, sector: m) {off}")
+        wait_for(lambda: ap.proximity_bits() == (True, True, True), 1.0, "proximity healthy")
+    finally:
+        code, err = loop.close()
+    assert code == 0, err[-3000:]
+
+
 @pytest.fixture(scope="module")
 def px4_loop():
     if PX4_MISSING:
@@ -222,6 +416,33 @@ def test_px4_fused_map_holds_the_obstacles_and_no_phantom(px4_loop, case):
     # in view and no pole: clear (max + 1, which PX4 keeps as >= max) or a pole's neighbour bin at the pole's range
     assert np.all(d[others] >= MAX_DISTANCE_M * 100), {int(k) * 5: int(d[k]) for k in np.flatnonzero(others)
                                                         if d[k] < MAX_DISTANCE_M * 100}
+
+
+@needs_px4
+def test_px4_ignores_obstacle_distance_3d(px4_loop):
+    """PX4 does not know OBSTACLE_DISTANCE_3D (ardupilotmega dialect): a service sending only it leaves PX4's
+    collision prevention without data; one sending both gives the same fused map as OBSTACLE_DISTANCE alone."""
+    loop, px4 = px4_loop, px4_loop.ap
+    loop.feeder.pause()                                   # the fixture's service goes silent (flush, then nothing)
+    scene, cam = scene_of(pole("p", 0.0, 6.0, 0.1), pole("q", 30.0, 8.0, 0.3)), make_camera(0.0)
+    for messages in ("obstacle_distance_3d", "both"):
+        other = Loop(px4, px4.sysid, extra=["--mavlink-messages", messages])
+        try:
+            t0 = time.monotonic()
+            other.show(scene, cam)
+            if messages == "both":
+                wait_for(lambda: fused_when(px4, lambda d: d[0] == 600 and d[6] == 800), 5.0,
+                         "the poles in PX4's map")
+            else:
+                time.sleep(3.0)
+                d = fused(px4)
+                assert d is None or np.all(d == UINT16_MAX), f"PX4 made something of OBSTACLE_DISTANCE_3D: {d}"
+                assert px4.console_since(t0, "No obstacle data")
+        finally:
+            other.feeder.pause()
+            code, err = other.close()
+        assert code == 0, err[-3000:]
+    time.sleep(1.0)                                      # PX4 drops the bins 0.5 s after their last reading
 
 
 @needs_px4

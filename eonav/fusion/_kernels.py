@@ -25,46 +25,56 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
     cells written."""
     h, w = rho.shape
     h1, w1 = o_rho.shape
-    for y in range(h1):
-        for x in range(w1):
-            o_rho[y, x] = np.nan
-            o_var[y, x] = np.inf
-            o_a[y, x] = 0.0
-            o_b[y, x] = 0.0
-            o_n[y, x] = 0
-            o_du[y, x] = 0.0
-            o_dv[y, x] = 0.0
-            o_flags[y, x] = 0
+    o_rho[:] = np.nan            # (whole-array fills: memset speed)
+    o_var[:] = np.inf
+    o_a[:] = 0.0
+    o_b[:] = 0.0
+    o_n[:] = 0
+    o_du[:] = 0.0
+    o_dv[:] = 0.0
+    o_flags[:] = 0
+    f32 = np.float32
     fx0, fy0, cx0, cy0 = cam0[0], cam0[1], cam0[2], cam0[3]
     fx1, fy1, cx1, cy1 = cam1[0], cam1[1], cam1[2], cam1[3]
+    # the rotation and the thresholds as float32 locals (no reloads, no float64 comparisons per pixel)
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
+    eps = f32(1e-3)
+    half = f32(0.5)
+    zero = f32(0.0)
+    wmax = f32(w1 - 1)
+    hmax = f32(h1 - 1)
     written = 0
     for y in range(h):
         for x in range(w):
             r = rho[y, x]
             if not math.isfinite(r):
                 continue
-            m1 = (np.float32(x) + du[y, x] - cx0) / fx0
-            m2 = (np.float32(y) + dv[y, x] - cy0) / fy0
-            A0 = R[0, 0] + R[0, 1] * m1 + R[0, 2] * m2
-            A1 = R[1, 0] + R[1, 1] * m1 + R[1, 2] * m2
-            A2 = R[2, 0] + R[2, 1] * m1 + R[2, 2] * m2
-            den = A0 + t[0] * r
-            if not (den > 1e-3 and A0 > 1e-3):
+            m1 = (f32(x) + du[y, x] - cx0) / fx0
+            m2 = (f32(y) + dv[y, x] - cy0) / fy0
+            A0 = r00 + r01 * m1 + r02 * m2
+            A1 = r10 + r11 * m1 + r12 * m2
+            A2 = r20 + r21 * m1 + r22 * m2
+            den = A0 + t0 * r
+            if not (den > eps and A0 > eps):
                 continue
-            inv = np.float32(1.0) / den
-            un = cx1 + fx1 * (A1 + t[1] * r) * inv
-            vn = cy1 + fy1 * (A2 + t[2] * r) * inv
-            ui = np.float32(math.floor(un + np.float32(0.5)))      # nearest pixel (halves up, as predict)
-            vi = np.float32(math.floor(vn + np.float32(0.5)))
-            if not (ui >= 0 and ui <= w1 - 1 and vi >= 0 and vi <= h1 - 1):
+            inv = f32(1.0) / den
+            un = cx1 + fx1 * (A1 + t1 * r) * inv
+            vn = cy1 + fy1 * (A2 + t2 * r) * inv
+            ui = np.floor(un + half)      # nearest pixel (halves up, as predict)
+            vi = np.floor(vn + half)
+            if not (ui >= zero and ui <= wmax and vi >= zero and vi <= hmax):
                 continue
-            X = int(ui)
-            Y = int(vi)
+            X = np.int64(ui)
+            Y = np.int64(vi)
             rn = r * inv
             cur = o_rho[Y, X]
-            if math.isfinite(cur) and not rn > cur:
-                continue
-            if not math.isfinite(cur):
+            if cur == cur:                # occupied already: the nearer point wins
+                if not rn > cur:
+                    continue
+            else:
                 written += 1
             j = A0 * inv * inv
             o_rho[Y, X] = rn
@@ -151,7 +161,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
     w = rho.shape[1]
     max_rel_std, s, rho_max, a_init, b_init, cap, eta_outlier = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
     inv_u = np.float32(1.0) / rho_max
-    two_pi = np.float32(2.0 * math.pi)
+    inv_2pi = np.float32(1.0 / (2.0 * math.pi))
     one = np.float32(1.0)
     for x in range(w):
         fm = flags_m[y, x]
@@ -181,23 +191,28 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         s2 = var[y, x]
         A = a[y, x]
         B = b[y, x]
+        # (the update's arithmetic with its divisions shared: 1 / S, 1 / (A + B), 1 / (A + B + 1), 1 / f)
         S = s2 + tau2
+        iS = one / S
         d = xm - mu
-        c1 = A / (A + B) * np.exp(np.float32(-0.5) * d * d / S) / np.sqrt(two_pi * S)
-        c2 = B / (A + B) * inv_u
+        iab = one / (A + B)
+        c1 = A * iab * np.exp(np.float32(-0.5) * d * d * iS) * np.sqrt(iS * inv_2pi)
+        c2 = B * iab * inv_u
         c1 = c1 / (c1 + c2)
         c2 = one - c1
-        sp2 = s2 * tau2 / S
-        m = mu + sp2 / tau2 * d
+        g = s2 * iS                                  # s'^2 / tau^2
+        sp2 = g * tau2
+        m = mu + g * d
         mu_new = c1 * m + c2 * mu
         dm = m - mu
         s2_new = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
         ab1 = A + B + one
-        ab2 = ab1 + one
-        f = (c1 * (A + one) + c2 * A) / ab1
-        e = (c1 * (A + one) * (A + np.float32(2.0)) + c2 * A * (A + one)) / (ab1 * ab2)
-        a_new = (e - f) / (f - e / f)
-        b_new = a_new * (one - f) / f
+        iab1 = one / ab1
+        f = (c1 * (A + one) + c2 * A) * iab1
+        e = (c1 * (A + one) * (A + np.float32(2.0)) + c2 * A * (A + one)) * iab1 / (ab1 + one)
+        i_f = one / f
+        a_new = (e - f) / (f - e * i_f)
+        b_new = a_new * (one - f) * i_f
         tot = a_new + b_new
         if tot > cap:
             k = cap / tot
@@ -320,3 +335,23 @@ def slant_g2(rho, var, y, x):
     if y == h - 1:
         ed = nan
     return np.fmax(np.fmin(el, er), np.float32(0.0)) + np.fmax(np.fmin(eu, ed), np.float32(0.0))
+
+
+@njit(**_JIT)
+def prior_arrays(rho, var, a, b, n, eta_inlier, n_min, o_rho, o_std):
+    """The state as the dense method's prior (``eonav.fusion.sequence``): rho and its sigma where the cell holds an
+    estimate of at least n_min measurements whose evidence agrees (E[inlier ratio] >= eta_inlier), else NaN / inf.
+    Returns the number of such cells."""
+    cnt = 0
+    for y in range(rho.shape[0]):
+        for x in range(rho.shape[1]):
+            r = rho[y, x]
+            A = a[y, x]
+            if r == r and n[y, x] >= n_min and A >= eta_inlier * (A + b[y, x]):
+                o_rho[y, x] = r
+                o_std[y, x] = np.float32(math.sqrt(var[y, x]))
+                cnt += 1
+            else:
+                o_rho[y, x] = np.float32(np.nan)
+                o_std[y, x] = np.float32(np.inf)
+    return cnt

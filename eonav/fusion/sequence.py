@@ -23,6 +23,8 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from eonav import InputError
 from eonav.geometry.camera import View, pair_geometry
 from eonav.ranging.methods._common import far_inverse_range
@@ -30,8 +32,8 @@ from eonav.ranging.pair_policy import PosedFrameInfo
 from eonav.ranging.rangemap import RangeResult
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.predict import ProcessNoise, predict
-from eonav.fusion.schedule import ScheduleConfig, Scheduler
-from eonav.fusion.state import InverseRangeState
+from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
+from eonav.fusion.state import F32, InverseRangeState, optional_kernels
 from eonav.fusion.update import UpdateConfig, update
 
 
@@ -40,10 +42,39 @@ def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrame
     return PosedFrameInfo(str(camera_id), int(seq), int(stamp_us), view.camera, view.state, payload=view)
 
 
-def dense_measurement(view_a: View, view_b: View) -> RangeResult:
-    """The default measurement: the dense method, measured pixels only (the fused map fills once, at the end)."""
+def dense_measurement(view_a: View, view_b: View, **prior) -> RangeResult:
+    """The default measurement: the dense method, measured pixels only (the fused map fills once, at the end);
+    ``prior``: ``prior=(rho, sigma)`` on view a's grid (the predicted state) and its options (``locate_dense``)."""
     from eonav.ranging.methods.dense import locate_dense
-    return locate_dense(view_a, view_b, fill=False)
+    return locate_dense(view_a, view_b, fill=False, **prior)
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """The predicted state as the measurement's prior (``locate_dense(prior=...)``: where it is converged the
+    refinement starts from it at a finer level, skipping the coarse search): cells of at least ``min_fused``
+    measurements whose evidence agrees (the fused map's ``eta_inlier``), on the measurements of ``kinds`` only:
+    a wide partner's baseline takes more pixels beyond the refinement's reach and leaves more of them occluded, so
+    it searches in full. Every ``full_every``-th measurement of a camera at least searches in full, so that a new
+    object, a region the prior does not hold and a cell whose prior is wrong are found by the search (1: always);
+    so does one whose prior holds less than ``min_fraction`` x what the last full search measured."""
+    full_every: int = 1            # off by default: see docs/methods.md, "Fusion" (a full search every 3rd: 3)
+    kinds: tuple = ("near",)       # the measurements that may start from the prior (the wide ones search in full)
+    level: int = 1                 # the pyramid level the refinement starts at from the prior
+    min_fused: int = 2
+    min_fraction: float = 0.8      # the prior seeds at least this x the last full search's measured pixels
+
+    def __post_init__(self):
+        if not (isinstance(self.full_every, int) and self.full_every >= 1):
+            raise InputError(f"fusion prior: full_every must be an integer >= 1, got {self.full_every!r}")
+        if not (isinstance(self.min_fused, int) and self.min_fused >= 1):
+            raise InputError(f"fusion prior: min_fused must be an integer >= 1, got {self.min_fused!r}")
+        kinds = tuple(self.kinds)
+        if any(k not in (NEAR, WIDE, STEREO) for k in kinds):
+            raise InputError(f"fusion prior: kinds must name {NEAR!r}, {WIDE!r} or {STEREO!r}, got {self.kinds!r}")
+        object.__setattr__(self, "kinds", kinds)
+        if not 0 <= self.min_fraction <= 1:
+            raise InputError(f"fusion prior: min_fraction must be in [0, 1], got {self.min_fraction!r}")
 
 
 @dataclass(frozen=True)
@@ -52,6 +83,7 @@ class FusionConfig:
     noise: ProcessNoise = field(default_factory=ProcessNoise)
     update: UpdateConfig = field(default_factory=UpdateConfig)
     output: MapConfig = field(default_factory=MapConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
     max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
 
@@ -76,12 +108,18 @@ class FusedMap:
 class FusionRunner:
     """Per-camera inverse-range states fed by a stream of posed frames (module docstring). One thread."""
 
-    def __init__(self, config: FusionConfig = FusionConfig(), measure=None, fresh_measurements: bool | None = None):
+    def __init__(self, config: FusionConfig = FusionConfig(), measure=None, fresh_measurements: bool | None = None,
+                 takes_prior: bool | None = None):
         """fresh_measurements: ``measure`` returns results nobody else holds, so their arrays may become the fused
-        map's (no fresh memory per frame); None: True for the default measurement only."""
+        map's (no fresh memory per frame); takes_prior: ``measure`` takes ``prior=(rho, sigma)`` (as
+        ``dense_measurement``); None: True for the default measurement only."""
         self.config = config
         self.measure = measure or dense_measurement
         self.fresh = (self.measure is dense_measurement) if fresh_measurements is None else bool(fresh_measurements)
+        self.takes_prior = (self.measure is dense_measurement) if takes_prior is None else bool(takes_prior)
+        self._since_full: dict[str, int] = {}                # measurements since the last full search, per camera
+        self._prior_bufs: dict[str, tuple] = {}
+        self._full_measured: dict[str, int] = {}             # pixels the last full search measured, per camera
         self.scheduler = Scheduler(config.schedule)
         self.states: dict[str, InverseRangeState] = {}
         self.frames: dict[str, PosedFrameInfo] = {}          # the frame each state is on
@@ -97,6 +135,8 @@ class FusionRunner:
             self.states.pop(cid, None)
             self.frames.pop(cid, None)
             self._spare.pop(cid, None)
+            self._since_full.pop(cid, None)
+            self._full_measured.pop(cid, None)
 
     def remember(self, f: PosedFrameInfo) -> None:
         """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
@@ -139,8 +179,12 @@ class FusionRunner:
         for i, m in enumerate(live):
             ref = m.a.camera_id
             t1 = time.perf_counter()
-            res = self.measure(m.a.payload, m.b.payload)
+            prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
+            res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
+                                prior_min_fraction=prior[2])
+                   if prior is not None else self.measure(m.a.payload, m.b.payload))
             t2 = time.perf_counter()
+            used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
             args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
             if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
@@ -149,6 +193,8 @@ class FusionRunner:
                                                    reuse=res if self.fresh else None)
             else:
                 counts = update(*args, rho_far=rho_far)
+            if not used:
+                self._full_measured[ref] = counts["measured"]
             fusion_s += time.perf_counter() - t2
             locate_s += t2 - t1
             self.count(f"measurements.{m.kind}")
@@ -163,6 +209,41 @@ class FusionRunner:
             dt = time.perf_counter() - t3
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
+
+
+    def prior(self, camera_id: str):
+        """The prior of the next measurement of ``camera_id``'s state (``PriorConfig``) as (rho, sigma, the least
+        share of the pixels it must seed), or None: a full search."""
+        cfg = self.config.prior
+        st = self.states.get(camera_id)
+        n_full = self._full_measured.get(camera_id, 0)
+        if (not self.takes_prior or st is None or n_full == 0
+                or self._since_full.get(camera_id, 0) + 1 >= cfg.full_every):
+            return None
+        K = optional_kernels()
+        bufs = self._prior_bufs.get(camera_id)
+        if bufs is None or bufs[0].shape != st.shape:
+            bufs = self._prior_bufs[camera_id] = (np.empty(st.shape, F32), np.empty(st.shape, F32))
+        if K is not None:
+            n = K.prior_arrays(st.rho, st.var, st.a, st.b, st.n, F32(self.config.output.eta_inlier),
+                               int(cfg.min_fused), *bufs)
+        else:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ok = (st.occupied() & (st.n >= cfg.min_fused)
+                      & (st.a >= F32(self.config.output.eta_inlier) * (st.a + st.b)))
+            bufs[0][...] = np.where(ok, st.rho, np.nan)
+            bufs[1][...] = np.where(ok, np.sqrt(st.var), np.inf)
+            n = int(ok.sum())
+        need = cfg.min_fraction * n_full          # the prior must hold most of what a full search measures
+        if n < need:
+            return None
+        return bufs + (need / st.rho.size,)
+
+    def _after_measure(self, camera_id: str, prior, res) -> bool:
+        used = prior is not None and not (res.info.get("prior") or {}).get("full_search", True)
+        self._since_full[camera_id] = self._since_full.get(camera_id, 0) + 1 if used else 0
+        self.count("prior_seeded" if used else "full_search")
+        return used
 
 
 def run_frames(frames, config: FusionConfig = FusionConfig(), measure=None) -> list:
@@ -186,6 +267,11 @@ def prepare_kernels() -> None:
     probe = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01))))
     for k, v in enumerate((va, vb, va)):
         probe.push(frame("warmup", v, 1_000_000 + k * 100_000, k))
+    st = probe.states["warmup"]
+    K = optional_kernels()
+    if K is not None:       # the prior of a measurement (``FusionRunner.prior``), whether the probe reached it or not
+        K.prior_arrays(st.rho, st.var, st.a, st.b, st.n, F32(0.65), 2, np.empty(st.shape, F32),
+                       np.empty(st.shape, F32))
 
 
-__all__ = ["FusionRunner", "prepare_kernels", "FusionConfig", "FusedMap", "frame", "dense_measurement", "run_frames"]
+__all__ = ["FusionRunner", "prepare_kernels", "FusionConfig", "PriorConfig", "FusedMap", "frame", "dense_measurement", "run_frames"]

@@ -815,3 +815,62 @@ def pack_b4p(img, b4p_o):
             o[ux, 1] = ox[x]
             o[ux, 2] = oy[x]
             o[ux, 3] = _ONE
+
+
+# --- a prior as the refinement's start (dense._prior_start / _prior_finish)
+
+
+@njit(**_JIT)
+def prior_gate(rw, kc, B0, rho, std, k, reach, ok_o):
+    """dense._prior_ok per pixel into ok_o (uint8): finite rho >= 0, den = A0 + B0 rho > 0.05 and
+    k std |C| / den^2 <= reach (rw / kc: a _Level's affine rows, C / 2 in rows 3 and 4). Returns the number of
+    pixels passed."""
+    h, w = rho.shape
+    n = 0
+    for y in range(h):
+        a0c, c1c, c2c = kc[0, y], kc[3, y], kc[4, y]
+        for x in range(w):
+            r = rho[y, x]
+            c1 = rw[3, x] + c1c
+            c2 = rw[4, x] + c2c
+            den = _fma(r, B0, rw[0, x] + a0c)
+            lim = k * std[y, x] * (_TWO * np.sqrt(c1 * c1 + c2 * c2))
+            ok = (r >= _ZERO) & (den > F32(0.05)) & (lim <= reach * (den * den))    # (NaN: False)
+            ok_o[y, x] = np.uint8(1) if ok else np.uint8(0)
+            n += 1 if ok else 0
+    return n
+
+
+@njit(**_JIT)
+def prior_unmeasure(ok_lev, s, rho_p, bad_bits, rho, std, flags, rng, conf):
+    """After a refinement started from a prior seeded on a level of scale s (ok_lev: its gate): the level-0 pixels
+    it did not seed (ok_lev[y // s, x // s] == 0, or no finite prior of their own) made unmeasured in place: rho
+    NaN, std inf, range NaN, confidence 0, VALID and AT_INFINITY cleared. Returns (seeded pixels, those of them
+    whose flags hold any of bad_bits, VALID pixels cleared (not at infinity), AT_INFINITY pixels cleared)."""
+    h, w = rho.shape
+    n_ok = 0
+    n_bad = 0
+    d_val = 0
+    d_inf = 0
+    clear = ~(_VAL | np.uint8(AT_INFINITY))
+    inf_bit = np.uint8(AT_INFINITY)
+    okx = np.empty(w, np.uint8)
+    for y in range(h):
+        okr = ok_lev[y // s]
+        for x in range(w):
+            okx[x] = okr[x // s]
+        rp, fr, rr, sr, gr, cr = rho_p[y], flags[y], rho[y], std[y], rng[y], conf[y]
+        for x in range(w):             # branch-free (selects: numba vectorises it)
+            f = fr[x]
+            keep = (okx[x] != 0) & np.isfinite(rp[x])
+            n_ok += 1 if keep else 0
+            n_bad += 1 if keep & ((f & bad_bits) != 0) else 0
+            isinf = (f & inf_bit) != 0
+            d_inf += 1 if (not keep) & isinf else 0
+            d_val += 1 if (not keep) & (not isinf) & ((f & _VAL) != 0) else 0
+            fr[x] = f if keep else f & clear
+            rr[x] = rr[x] if keep else _NAN
+            sr[x] = sr[x] if keep else _INF
+            gr[x] = gr[x] if keep else _NAN
+            cr[x] = cr[x] if keep else _ZERO
+    return n_ok, n_bad, d_val, d_inf

@@ -24,6 +24,9 @@ the method in four stages (docs/methods.md describes it):
 4. fill: the pixels without a measurement get an inverse range from plane fits of the measured ones around them
    (``fill.fill_unmeasured``), flagged FILLED.
 
+With a prior (``prior``: a fused state predicted into image a) stage 1 and the coarse levels can be skipped where it
+is converged, the refinement starting from it (``_prior_start``, ``_prior_finish``).
+
 The per-pixel work runs in numba kernels (``_dense_kernels``): one pass per Gauss-Newton step of a level, three
 kernels for the search. They are the only implementation (numba is a dependency of eonav; importing this module
 without it fails, naming numba); tests/dense_reference.py holds an independent OpenCV formulation of the same
@@ -46,7 +49,7 @@ from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.methods._common import (F32, EpipolarMap, far_inverse_range, make_result, no_motion_result,
                                            numba_kernels, pyr_up_to, pyramid)
 from eonav.ranging.methods.fill import fill_unmeasured
-from eonav.ranging.rangemap import RangeResult
+from eonav.ranging.rangemap import AT_INFINITY, OCCLUDED, TRUNCATION, VALID, RangeResult
 
 _K = numba_kernels("_dense_kernels")
 
@@ -379,7 +382,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  match_floor_px: float = 0.05, sgm: bool = False,
                  tex_noise: str = "image", noise_info: bool = True, per_pixel_search: bool = True,
                  inf_test: bool = True, fill: bool = True,
-                 sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0) -> RangeResult:
+                 sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
+                 prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
+                 prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -470,7 +475,16 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     1.41 %, share of pixels off by > 5 %: teddy 22.5 -> 17.2 %, venus 25.6 -> 19.8 %), but on the paper
     preset it pulls the small far vehicles into their background at the coarse level (vehicle2 +2.7 ->
     +8.8 %, vehicle1 -0.0 -> -1.3 %), whatever the penalties (0.2/2 .. 1/8, tau 1 .. 8).
+    prior: (rho, sigma) on view a's grid (NaN / inf: none), e.g. a fused state predicted into view a (REMODE and SVO
+    search only mu +- 2-3 sigma of a converged depth filter). Where its prior_k-sigma interval spans at most
+    prior_reach_px pixels of displacement at level prior_level (``_prior_ok``: the Gauss-Newton steps' reach), the
+    refinement starts there from the prior, and the search and the coarser levels are skipped, when that holds at
+    least prior_min_fraction of the level's pixels (else the search as usual). The pixels it does not seed are not
+    measured (rho NaN, sigma inf, not VALID: a prior never stands in for a measurement); where more than
+    prior_max_bad of the seeded pixels fit badly (OCCLUDED: the prior is wrong there, or the scene moved) the whole
+    pair is searched again without the prior. ``info["prior"]``: seeded_fraction, bad_fraction, level, full_search.
     """
+    call = dict(locals())                  # (the full search again, when the prior fits badly)
     t_start = time.perf_counter()
     geo = pair_geometry(view_a, view_b)
     ha, wa = view_a.image.shape
@@ -483,13 +497,21 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     pa = _pyramid(view_a.image, "pre_a", L + 1, presmooth_sigma, highpass_sigma, highpass_levels)
     pb = _pyramid(view_b.image, "pre_b", L + 1, presmooth_sigma, highpass_sigma, highpass_levels)
 
-    # 1. search along the epipolar curves at level L, and the seed of the refinement
-    found = _search_epipolar(geo, pa[L], pb[L], L, (ha, wa), max_disp_px, min_range_m, per_pixel_search,
-                             search_step_px, search_window, sgm_p1, sgm_p2 if sgm else 0.0, sgm_tau)
-    if found is None:
-        return no_motion_result((ha, wa), METHOD, "no parallax at any range")
-    rho, conf, rho_max, n_hyp = found
-    rho = _seed(rho, conf, median, fill_sigma, fill_c)
+    # 1. search along the epipolar curves at level L, and the seed of the refinement -- or, with a prior that
+    # holds most of the image, the prior itself as the seed of a finer level (``_prior_start``)
+    start, first_lv, ok_lev = L, None, None
+    if prior is not None:
+        fast = _prior_start(geo, pa, pb, L, (ha, wa), prior, max_disp_px, min_range_m, per_pixel_search,
+                            search_step_px, prior_level, prior_k, prior_reach_px, prior_min_fraction, fill_sigma)
+        if fast is not None:
+            start, first_lv, rho, ok_lev, rho_max, n_hyp = fast
+    if first_lv is None:
+        found = _search_epipolar(geo, pa[L], pb[L], L, (ha, wa), max_disp_px, min_range_m, per_pixel_search,
+                                 search_step_px, search_window, sgm_p1, sgm_p2 if sgm else 0.0, sgm_tau)
+        if found is None:
+            return no_motion_result((ha, wa), METHOD, "no parallax at any range")
+        rho, conf, rho_max, n_hyp = found
+        rho = _seed(rho, conf, median, fill_sigma, fill_c)
 
     # 2. refine per level, coarse to fine; 3. classify in level 0's last step
     steps = _Steps(window=window, occ_window=min(int(occ_window), window), huber_k=huber_k,
@@ -505,12 +527,12 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     inf_at_level1 = inf_test and L >= 1 and iters[L - 1] >= 1
     inf_mask = None
     rho_hi = F32(rho_max * 1.25)
-    for lev in range(L, -1, -1):
+    for lev in range(start, -1, -1):
         rho = _to_level(rho, pa[lev].shape)
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
         if n_it == 0:
             continue
-        lv = _Level(geo, lev, pa[lev], pb[lev], rho_hi)
+        lv = first_lv if lev == start and first_lv is not None else _Level(geo, lev, pa[lev], pb[lev], rho_hi)
         # shiftable windows at the coarser levels, where a pixel's estimate settles on one surface or the other;
         # level 0 refines within a pixel, and its sigma and flags are those of the pixel's own (centred) window
         shift = int(shift_px) if bias and lev >= 1 else 0
@@ -521,13 +543,83 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         else:
             rho, fin = _refine_level(lv, rho, n_it, steps, shift, rules=rules, inf_mask=inf_mask)
 
+    prior_info = None
+    if first_lv is not None:
+        # the pixels the prior did not seed are not measured; too many bad fits where it did: the full search
+        prior_info = _prior_finish(prior, ok_lev, start, rho, fin)
+        if prior_info["bad_fraction"] > prior_max_bad:
+            res = locate_dense(**dict(call, prior=None))
+            res.info["prior"] = dict(prior_info, full_search=True)
+            return res
     # 4. fill the pixels without a measurement
     n_filled = fill_unmeasured(rho, fin.std, fin.flags, fin.rng, fin.conf, max_rel_std, rho_far=fin.rho_far,
                                exclude=fin.amb) if fill else 0
     info = {"seconds": time.perf_counter() - t_start, "noise_sigma": fin.sigma, "rho_max_per_m": rho_max,
             "n_hypotheses": n_hyp, "search_level": L, "baseline_m": geo.baseline_m,
             "filled_fraction": n_filled / max(rho.size, 1)}
+    if prior is not None:
+        info["prior"] = prior_info if prior_info is not None else {"seeded_fraction": 0.0, "full_search": True}
     return make_result(rho, fin.std, fin.flags, fin.rng, fin.conf, METHOD, fin.n_val, fin.n_inf, info)
+
+
+def _prior_ok(lv: _Level, rho, std, k: float, reach_px: float) -> tuple:
+    """Where a prior (rho, its sigma; on lv's grid) can seed lv's refinement: finite, in front of camera b, and its
+    k-sigma interval no longer than ``reach_px`` level pixels of displacement along the epipolar curve (|d map /
+    d rho| = |C| / den^2, the rows of ``_Level``): within the Gauss-Newton steps' reach, so that the steps, not the
+    prior, decide the match. Returns (uint8 mask, count) (``_dense_kernels.prior_gate``)."""
+    ok = np.empty(rho.shape, np.uint8)
+    return ok, _K.prior_gate(lv.rw, lv.kc, lv.B0, rho, std, F32(k), F32(reach_px), ok)
+
+
+def _prior_start(geo, pa, pb, L: int, shape0, prior, max_disp_px, min_range_m, per_pixel_search: bool,
+                 search_step_px: float, prior_level: int, prior_k: float, reach_px: float, min_fraction: float,
+                 fill_sigma: float):
+    """The refinement's start from a prior instead of the search: (level, its _Level, seed, seeded mask, largest rho
+    of the search range, 0 hypotheses), or None (the search as usual) when the prior seeds less than min_fraction
+    of the level's pixels. The seed is the prior where ``_prior_ok``, elsewhere the seeded pixels around it
+    (normalised convolution; those pixels are not measured, ``_prior_finish``)."""
+    rho_p, std_p = (np.asarray(x, F32) for x in prior)
+    if rho_p.shape != tuple(shape0) or std_p.shape != tuple(shape0):
+        raise InputError(f"dense prior: (rho, sigma) must both be on image a's grid {tuple(shape0)}, "
+                         f"got {rho_p.shape} and {std_p.shape}")
+    lev = max(0, min(int(prior_level), L))
+    if not per_pixel_search:
+        return None
+    em, sub, md = _search_scale(geo, L, pa[L].shape, pb[L].shape, shape0, max_disp_px)
+    rng = _per_pixel_range(geo, em, sub, md, min_range_m, search_step_px)
+    if rng is None:
+        return None
+    rho_max = rng[2]
+    lv = _Level(geo, lev, pa[lev], pb[lev], F32(rho_max * 1.25))
+    s = 2 ** lev                        # (pyrDown alignment: level pixel i is level-0 pixel s i)
+    r, sd = np.ascontiguousarray(rho_p[::s, ::s]), np.ascontiguousarray(std_p[::s, ::s])
+    ok, n = _prior_ok(lv, r, sd, prior_k, reach_px)
+    if n < min_fraction * ok.size or n == 0:
+        return None
+    okb = ok.view(bool)
+    seed = np.where(okb, r, F32(0)).astype(F32)
+    if n < ok.size:
+        wsum = _blur(ok.astype(F32), fill_sigma)
+        nc = _blur(seed, fill_sigma) / np.maximum(wsum, F32(1e-6))
+        seed = np.where(okb, seed, nc).astype(F32)
+    return lev, lv, np.ascontiguousarray(seed), ok, rho_max, 0
+
+
+_PRIOR_BAD = np.uint8(OCCLUDED)
+
+
+def _prior_finish(prior, ok_lev, lev: int, rho, fin) -> dict:
+    """After a refinement started from the prior at level ``lev``: the pixels it did not seed made unmeasured (rho
+    NaN, sigma inf, VALID / AT_INFINITY cleared), in place (``_dense_kernels.prior_unmeasure``); returns the seeded
+    fraction and the fraction of seeded pixels whose final fit is bad (OCCLUDED or TRUNCATION: the prior was
+    wrong there, or the scene moved)."""
+    rho_p = np.ascontiguousarray(prior[0], F32)
+    n_ok, bad, d_val, d_inf = _K.prior_unmeasure(ok_lev, 2 ** lev, rho_p, _PRIOR_BAD, rho, fin.std, fin.flags,
+                                                 fin.rng, fin.conf)
+    fin.n_val -= d_val
+    fin.n_inf -= d_inf
+    return {"seeded_fraction": n_ok / max(rho.size, 1), "bad_fraction": bad / max(n_ok, 1), "level": lev,
+            "full_search": False}
 
 
 def _default_search_level(shape_a, shape_b) -> int:
@@ -556,19 +648,13 @@ def _search_epipolar(geo, a, b, L: int, shape0, max_disp_px, min_range_m, per_pi
     """Stage 1: the search at level L (images a, b) over displacements up to max_disp_px (level-0 pixels; default
     0.3 x the larger side of shape0). Returns (rho, confidence, largest rho searched, number of hypotheses), or
     None when no range gives parallax."""
-    em = EpipolarMap.build(geo, L, a.shape, b.shape)
-    sub = _sparse(em)
-    md = (float(max_disp_px) if max_disp_px is not None else 0.3 * max(shape0[1], shape0[0])) / 2.0 ** L
+    em, sub, md = _search_scale(geo, L, a.shape, b.shape, shape0, max_disp_px)
     sgm_kw = dict(sgm_p1=sgm_p1, sgm_p2=sgm_p2, sgm_tau=sgm_tau)
     if per_pixel_search:
-        if not math.isfinite(_find_rho_max(sub, md)):
+        rng = _per_pixel_range(geo, em, sub, md, min_range_m, search_step_px)
+        if rng is None:
             return None
-        # nothing nearer than min_range_m, or than 5 % of the baseline (near the focus of contraction of a camera
-        # moving away, a pixel's displacement is reached only at absurd rho; the den cap only binds moving towards)
-        near_m = float(min_range_m) if min_range_m is not None else 0.05 * geo.baseline_m
-        cap = np.minimum(em.rho_cap, F32(1.0 / near_m))
-        disp = np.arange(0.0, md + 0.5 * search_step_px, search_step_px)
-        rho_max = _largest_rho(em, disp, cap)
+        disp, cap, rho_max = rng
         rho, conf = _search(a, b, em, disp, search_window, noise=2.0, disp=disp, cap=cap, **sgm_kw)
         return rho, conf, rho_max, int(len(disp))
     if min_range_m is not None:
@@ -580,6 +666,26 @@ def _search_epipolar(geo, a, b, L: int, shape0, max_disp_px, min_range_m, per_pi
     rhos = _hypotheses(sub, rho_max, search_step_px)
     rho, conf = _search(a, b, em, rhos, search_window, noise=2.0, **sgm_kw)
     return rho, conf, rho_max, int(len(rhos))
+
+
+def _per_pixel_range(geo, em: EpipolarMap, sub: EpipolarMap, md: float, min_range_m, search_step_px: float):
+    """The per-pixel search's hypotheses (displacements up to md level pixels), each pixel's rho cap and the largest
+    rho searched anywhere; None when no range gives parallax."""
+    if not math.isfinite(_find_rho_max(sub, md)):
+        return None
+    # nothing nearer than min_range_m, or than 5 % of the baseline (near the focus of contraction of a camera
+    # moving away, a pixel's displacement is reached only at absurd rho; the den cap only binds moving towards)
+    near_m = float(min_range_m) if min_range_m is not None else 0.05 * geo.baseline_m
+    cap = np.minimum(em.rho_cap, F32(1.0 / near_m))
+    disp = np.arange(0.0, md + 0.5 * search_step_px, search_step_px)
+    return disp, cap, _largest_rho(em, disp, cap)
+
+
+def _search_scale(geo, L: int, shape_a, shape_b, shape0, max_disp_px) -> tuple:
+    """The map at the search level L, its sparse grid and the largest displacement searched (level-L pixels)."""
+    em = EpipolarMap.build(geo, L, shape_a, shape_b)
+    md = (float(max_disp_px) if max_disp_px is not None else 0.3 * max(shape0[1], shape0[0])) / 2.0 ** L
+    return em, _sparse(em), md
 
 
 def _largest_rho(em: EpipolarMap, disp, cap) -> float:
@@ -759,8 +865,11 @@ def prepare_kernels() -> None:
     instead of in the first locate: a service spends this before its first frame (compiling takes seconds, tens of
     seconds on a fresh install). numba compiles per argument type, and every locate passes each kernel the same
     types (C-contiguous float32 / uint8 arrays, the same scalar types) whatever the image size or the options: one
-    small plane pair (``_plane_pair``) reaches them all, the fill's included."""
-    locate_dense(*_plane_pair(96))
+    small plane pair (``_plane_pair``) reaches them all, the fill's included, and once more with a prior (its
+    gate and its finish)."""
+    a, b = _plane_pair(96)
+    locate_dense(a, b)
+    locate_dense(a, b, fill=False, prior=(np.full(a.image.shape, 0.05, F32), np.full(a.image.shape, 1e-4, F32)))
 
 
 __all__ = ["locate_dense", "prepare_kernels"]
