@@ -49,8 +49,14 @@ def add_arguments(p):
              help="auto: per camera and pair, the largest scale of the ladder (1, 0.5, ... --min-scale) whose "
                   "compute time fits --budget-ms (eonav.ranging.scale_control); a number FACTOR in (0, 1]: always "
                   "locate on images resized by FACTOR (0.5 = half resolution, ~4x less work). See --publish-grid")
-    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.5, type=float, metavar="FACTOR",
-             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (FACTOR itself is the last rung)")
+    add_flag(p, "--min-scale", env="EONAV_LOCATOR_MIN_SCALE", default=0.3, type=float, metavar="FACTOR",
+             help="--scale auto: lowest rung of the ladder 1, 0.5, 0.25, ... (FACTOR itself is the last rung; "
+                  "default 0.3: 1, 0.5, 0.3)")
+    add_flag(p, "--latency-target-ms", env="EONAV_LOCATOR_LATENCY_TARGET_MS", default=25.0, type=float, metavar="MS",
+             help="--scale auto: step down a rung when the p90 of the locator's recent time per frame (frame taken "
+                  "off the ring -> range map put) exceeds this; a frame also waits up to one such time in the ring, "
+                  "so the default bounds the locator's share of a 100 ms capture -> obstacle list at about 50 ms; "
+                  "0: compute budget only")
     add_flag(p, "--budget-ms", env="EONAV_LOCATOR_BUDGET_MS", default=None, type=float, metavar="MS",
              help="--scale auto: compute-time budget per pair; default 60 %% of the camera's measured frame interval, "
                   "clamped to [20, 200] ms")
@@ -285,7 +291,7 @@ def body(node: Node, args) -> None:
     policy = PairPolicy(policy_config(args))
     if args.ring < 1:
         raise InputError(f"--ring must be >= 1, got {args.ring}")
-    new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms)
+    new_controller = scale_controllers(args.scale, args.min_scale, args.budget_ms, args.latency_target_ms)
     new_controller()                            # bad --scale / --min-scale / --budget-ms: configuration error
     runner = fusion_runner(args, params)
     if runner is not None:
@@ -321,7 +327,23 @@ def fusion_runner(args, params: dict):
     # fresh_measurements: the runner may write the fused map into a measurement's arrays (nothing else keeps them);
     # takes_prior: the dense method starts from the predicted state between full searches (FusionConfig.prior)
     return FusionRunner(FusionConfig(schedule=schedule), fresh_measurements=True, takes_prior=args.method == "dense",
-                        measure=lambda va, vb, **prior: locate(va, vb, method=args.method, **measure_params, **prior))
+                        measure=CpuTimed(lambda va, vb, **prior: locate(va, vb, method=args.method, **measure_params,
+                                                                        **prior)))
+
+
+class CpuTimed:
+    """``fn`` with the CPU time of its calls (this thread's) summed in ``cpu_s``: the locate share of a fused
+    frame's CPU, reported apart from the fusion's (health latency ``cpu.locate``)."""
+
+    def __init__(self, fn):
+        self.fn, self.cpu_s = fn, 0.0
+
+    def __call__(self, *args, **kw):
+        c0 = time.thread_time()
+        try:
+            return self.fn(*args, **kw)
+        finally:
+            self.cpu_s += time.thread_time() - c0
 
 
 def warm_up_fusion(node: Node, runner) -> None:
@@ -346,16 +368,20 @@ def warm_up_fusion(node: Node, runner) -> None:
     node.log.info("fusion warm-up: %.0f ms, %d fused maps", (time.perf_counter() - t0) * 1e3, len(maps))
 
 
-def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None):
-    """A factory of per-camera ``ScaleController``s for ``--scale`` (``auto`` or a number), ``--min-scale`` and
-    ``--budget-ms``. Raises InputError on a bad value."""
+def scale_controllers(scale="auto", min_scale: float = 0.5, budget_ms: float | None = None,
+                      latency_target_ms: float | None = None):
+    """A factory of per-camera ``ScaleController``s for ``--scale`` (``auto`` or a number), ``--min-scale``,
+    ``--budget-ms`` and ``--latency-target-ms`` (None or 0: none). Raises InputError on a bad value."""
     from eonav.ranging.scale_control import ScaleController, ladder, parse_scale
     fixed = parse_scale(scale)
     ladder(min_scale)
     budget_s = None if budget_ms is None else budget_ms * 1e-3
     if budget_s is not None and not budget_s > 0:
         raise InputError(f"--budget-ms must be > 0, got {budget_ms!r}")
-    return lambda: ScaleController(fixed=fixed, min_scale=min_scale, budget_s=budget_s)
+    if latency_target_ms is not None and not (latency_target_ms >= 0):
+        raise InputError(f"--latency-target-ms must be >= 0, got {latency_target_ms!r}")
+    target_s = latency_target_ms * 1e-3 if latency_target_ms else None
+    return lambda: ScaleController(fixed=fixed, min_scale=min_scale, budget_s=budget_s, latency_target_s=target_s)
 
 
 def drain_latest(first, sub) -> list:
@@ -452,13 +478,14 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
 
     def one(sample, newest) -> None:
         nonlocal errors_in_row
+        t_deq, cpu0, t_rx0 = now_us(), time.thread_time(), time.perf_counter()   # the frame taken off the ring
         msg = node.decode(sample, expect="posed_frame")
         if msg is None or (gate is not None and not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival")):
             return
         node.input_seen("posed frames")
         t_rx = now_us()
-        t_rx0 = time.perf_counter()
         node.latency("capture_to_received", (t_rx - msg["stamp_us"]) * 1e-6)
+        node.latency("age.dequeued", (t_deq - msg["stamp_us"]) * 1e-6)
         try:
             K.check_chunk(msg["camera_id"], "camera id")
             f = frame_info(msg, cameras)
@@ -466,6 +493,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             node.count("bad_frames")
             node.log_limited("bad_frame", logging.WARNING, "bad posed frame on %s: %s", sample.key_expr, e)
             return
+        node.latency("cpu.ingest", time.thread_time() - cpu0)      # decode, grey image
         prev = last_seq.get(f.camera_id)
         if prev is not None and prev + 1 < f.seq <= prev + MAX_SEQ_GAP:
             node.count("frames_skipped", f.seq - prev - 1)        # ring channel dropped them while we computed
@@ -512,12 +540,10 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
         errors_in_row, compute_s = range_pair(node, d, pubs, method, params, scale, range_std, errors_in_row,
                                               t_rx0, cameras, locate, publish_grid, gate)
         if compute_s is not None:
-            change = sc.observe_compute(scale, compute_s)
-            if change is not None:
-                node.count("scale_changes")
-                node.count(f"scale_changes.{change.direction}")
-                show_scale(node, ref, sc, shown)
-                node.log.info("camera %s: locate scale %g -> %g: %s", ref, change.old, change.new, change.reason)
+            stage_s = time.perf_counter() - t_rx0             # (the map was put at the end of range_pair)
+            report_change(node, ref, sc.observe_compute(scale, compute_s))
+            report_change(node, ref, sc.observe_latency(scale, stage_s))
+            show_scale(node, ref, sc, shown)
 
 
     for first in sub:
@@ -541,7 +567,9 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
     camera; a stereo partner's frame returns the rig reference's). The compute time (measurements + fusion) drives
     the camera's scale controller as a single pair's would."""
     scale = sc.scale
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.thread_time()
+    measure_cpu0 = getattr(runner.measure, "cpu_s", 0.0)
+    node.latency("age.locate_start", (now_us() - f.stamp_us) * 1e-6)
     sources[(f.camera_id, f.seq)] = f            # the posed frame behind a fused map (its quaternion, camera map)
     while len(sources) > 64:
         sources.pop(next(iter(sources)))
@@ -554,12 +582,19 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
         node.log_limited("fusion_error", logging.ERROR, "fusion of %s/%d failed (state reset): %s: %s",
                          f.camera_id, f.seq, type(e).__name__, e)
         return
+    cpu_push = time.thread_time() - cpu0
+    cpu_measure = getattr(runner.measure, "cpu_s", 0.0) - measure_cpu0
+    if maps:
+        node.latency("age.fused", (now_us() - f.stamp_us) * 1e-6)
+        node.latency("cpu.locate", cpu_measure)
+        node.latency("cpu.fusion", cpu_push - cpu_measure)
     for name, v in runner.counts.items():
         d = v - reported.get(name, 0)
         if d:
             node.count(f"fusion.{name}", d)
             reported[name] = v
     for m in maps:
+        t_pub, cpu_pub = time.perf_counter(), time.thread_time()
         a = sources.get((m.frame.camera_id, m.frame.seq))
         if a is None:
             node.count("fusion.map_without_frame")
@@ -583,15 +618,27 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
         node.count("maps_fused")
         node.tick("pairs_computed")
         node.latency("compute", compute_s)
+        node.latency("locate", m.locate_s)
         node.latency("fusion", m.fusion_s)
-        node.latency("capture_to_published", (now_us() - a.stamp_us) * 1e-6)
+        node.latency("publish", time.perf_counter() - t_pub)
+        node.latency("cpu.publish", time.thread_time() - cpu_pub)
+        age_s = (now_us() - a.stamp_us) * 1e-6
+        node.latency("capture_to_published", age_s)
         if m.measurements:
-            change = sc.observe_compute(scale, compute_s)
-            if change is not None:
-                node.count("scale_changes")
-                node.count(f"scale_changes.{change.direction}")
-                node.log.info("camera %s: locate scale %g -> %g: %s", a.camera_id, change.old, change.new,
-                              change.reason)
+            report_change(node, a.camera_id, sc.observe_compute(scale, compute_s))
+        # the locator's own time for the frame (taken off the ring -> map put): what the scale controls
+        frame_s = time.perf_counter() - t_rx0
+        node.latency("frame_time", frame_s)
+        report_change(node, a.camera_id, sc.observe_latency(scale, frame_s))
+
+
+def report_change(node: Node, camera_id: str, change) -> None:
+    """Count and log a scale change of ``camera_id``'s controller (None: nothing)."""
+    if change is None:
+        return
+    node.count("scale_changes")
+    node.count(f"scale_changes.{change.direction}")
+    node.log.info("camera %s: locate scale %g -> %g: %s", camera_id, change.old, change.new, change.reason)
 
 
 def range_pair(node: Node, d, pubs: dict, method: str, params: dict, scale: float, range_std: str,

@@ -186,8 +186,9 @@ class Guidance:
         self.node.count("out.obstacle_tracks")
         self.node.tick("out.obstacle_tracks")
 
-    def on_map(self, res, msg, cam, state, cfg) -> list:
-        """Track the map's obstacles; publish the tracks; the track id each listed obstacle supports (0: none)."""
+    def on_map(self, res, msg, cam, state, cfg) -> tuple:
+        """Track the map's obstacles: (the track id each listed obstacle supports (0: none), the track message to
+        ``put`` once the obstacle list is out, or None)."""
         from dataclasses import replace
 
         from eonav.obstacles.tracking import FieldOfView, measurements_from_obstacles, merge_fragments
@@ -203,14 +204,13 @@ class Guidance:
                 self.tracker.update(meas, msg["stamp_us"], view)
             except InputError:                          # older than the last map (another camera's, late)
                 self.node.count("tracker.map_out_of_order")
-                return [0] * len(res.obstacles)
+                return [0] * len(res.obstacles), None
             self.last_state, self.last_stamp_us = state, int(msg["stamp_us"])
             ids = self.tracker.label(single) if len(single) == len(res.obstacles) else [0] * len(res.obstacles)
             own = self.nav.ownship(state, msg["stamp_us"])
             out = self.publisher.on_map(now_us(), own)
             self.latest = out
-        self.put(out)
-        return ids
+        return ids, out
 
     def timer_loop(self) -> None:
         """The fixed-rate messages (guidance sees a stall in ``status`` / ``map_age_s`` even with no map coming)."""
@@ -359,12 +359,15 @@ def warm_up(node: Node, cfg, ob):
 
 def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav, sender, args, cameras, ob,
                 VehicleState):
+    t_deq, cpu0 = now_us(), time.thread_time()
     msg = node.decode(sample, expect="range_map")
     gate = args._freshness
     if msg is None or not screen(node, gate, msg["camera_id"], msg["stamp_us"], "arrival"):
         return
     node.input_seen("range maps")
-    t0 = time.perf_counter()
+    node.latency("age.dequeued", (t_deq - msg["stamp_us"]) * 1e-6)
+    node.latency("cpu.decode", time.thread_time() - cpu0)
+    t0, cpu1 = time.perf_counter(), time.thread_time()
     try:
         K.check_chunk(msg["camera_id"], "camera id")
         cam = cameras.get(msg["camera"])[0]
@@ -379,15 +382,28 @@ def process_map(node: Node, sample, pub, cfg, guidance: Guidance, nav: LatestNav
         node.log_limited("bad_map", logging.WARNING, "range map %s/%s rejected: %s", msg.get("camera_id"),
                          msg.get("seq"), e)
         return
+    t1, cpu2 = time.perf_counter(), time.thread_time()
+    node.latency("analyse", t1 - t0)
+    node.latency("cpu.analyse", cpu2 - cpu1)
     if not screen(node, gate, msg["camera_id"], msg["stamp_us"], "publish"):   # stale by now: no list, no tracks
         return
-    for o, track_id in zip(res.obstacles, guidance.on_map(res, msg, cam, state, cfg)):
+    ids, tracks = guidance.on_map(res, msg, cam, state, cfg)
+    for o, track_id in zip(res.obstacles, ids):
         o.id = track_id
+    t2, cpu3 = time.perf_counter(), time.thread_time()
+    node.latency("track", t2 - t1)
+    node.latency("cpu.track", cpu3 - cpu2)
     node.put(pub, "obstacle_list", stamp_us=msg["stamp_us"], camera_id=msg["camera_id"],
              obstacles=[o.to_msg() for o in res.obstacles], sectors=res.sectors.to_msg(),
              position_ned_m=msg["position_ned_m"], q_wxyz=q, frame_age_ms=age_ms(msg["stamp_us"]))
     gate.commit(msg["camera_id"], msg["stamp_us"])
     compute_s = time.perf_counter() - t0
+    node.latency("publish", time.perf_counter() - t2)
+    node.latency("cpu.publish", time.thread_time() - cpu3)
+    t3, cpu4 = time.perf_counter(), time.thread_time()
+    guidance.put(tracks)                      # guidance's track message, after the obstacle list it labels
+    node.latency("cpu.track_message", time.thread_time() - cpu4)
+    node.latency("track_message", time.perf_counter() - t3)
     node.count("maps_processed")
     node.count("obstacles_published", len(res.obstacles))
     node.latency("compute", compute_s)

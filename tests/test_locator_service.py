@@ -485,8 +485,26 @@ def test_locator_publishes_fused_maps(flight_frames):
         assert max(errs) < 0.05, errs
         c = counters()
         assert c["maps_fused"] == N_FRAMES - 1 and c.get("locate_errors", 0) == 0
+        # per-stage timing (what eonav bench pipeline prints): one sample per fused map, the ages in pipeline order,
+        # the locate's CPU apart from the fusion's
+        lat = wait_until(lambda: (lambda x: x if x.get("cpu.publish", {}).get("n") == N_FRAMES - 1 else None)(
+            latest_health(drain(health_sub, health))["locator"]["latency_ms"]), timeout=5, what="stage latencies")
+        for name in ("age.fused", "frame_time", "locate", "fusion", "publish", "cpu.locate", "cpu.fusion",
+                     "cpu.publish"):
+            assert lat[name]["n"] == N_FRAMES - 1, name
+        # every frame is dequeued and pushed (the first one only starts the state: no map)
+        assert lat["age.dequeued"]["n"] == lat["cpu.ingest"]["n"] == lat["age.locate_start"]["n"] == N_FRAMES
+        for k in ("p50", "max"):                                  # the same frames: fused before put
+            assert lat["age.fused"][k] <= lat["capture_to_published"][k], k
+        assert lat["cpu.locate"]["p50"] > 0 and lat["cpu.fusion"]["p50"] > 0
         wait_until(lambda: latest_health(drain(health_sub, health))["obstacles"]["counters"].get("maps_processed")
                    == N_FRAMES - 1, timeout=5, what="the obstacle service's health counting every fused map")
+        olat = wait_until(lambda: (lambda x: x if x.get("cpu.track_message", {}).get("n") == N_FRAMES - 1 else None)(
+            latest_health(drain(health_sub, health))["obstacles"]["latency_ms"]), timeout=5, what="stage latencies")
+        for name in ("age.dequeued", "analyse", "track", "publish", "cpu.decode", "cpu.analyse", "cpu.track",
+                     "cpu.track_message"):
+            assert olat[name]["n"] == N_FRAMES - 1, name
+        assert olat["age.dequeued"]["max"] <= olat["capture_to_obstacles"]["max"]
         for name in ("locator", "obstacles"):
             code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
             assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"

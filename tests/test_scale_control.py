@@ -252,3 +252,75 @@ def test_calibrated_start_below_full_steps_up_when_the_pairs_show_headroom():
     assert c.calibrate({1.0: 0.045, 0.5: 0.015}) == 0.5
     changes = run(c, {1.0: 0.021, 0.5: 0.007}, 20)             # predicted full 7 x 3 = 21 ms < 28 ms
     assert [x.new for x in changes] == [1.0] and c.scale == 1.0
+
+
+# -- the latency target: published maps' ages (capture -> put) -----------------------------------------------------
+FPS30_US = 33_333
+
+
+def ages(c, age_s, n):
+    """n maps published at the current scale, each ``age_s`` old; the changes."""
+    out = []
+    for _ in range(n):
+        ch = c.observe_latency(c.scale, age_s)
+        if ch is not None:
+            out.append(ch)
+    return out
+
+
+def test_latency_over_the_target_steps_down_after_enough_maps():
+    c = ScaleController(min_scale=0.3, latency_target_s=0.05)
+    feed_frames(c, 10, interval_us=FPS30_US)
+    assert not ages(c, 0.051, 9) and c.scale == 1.0            # 9 maps (fewer than latency_min_samples): no verdict
+    ch = ages(c, 0.051, 1)
+    assert [(x.old, x.new) for x in ch] == [(1.0, 0.5)] and "latency target 50.0 ms" in ch[0].reason
+    assert not ages(c, 0.051, 9) and c.scale == 0.5            # the new rung is judged on its own maps
+    assert [(x.old, x.new) for x in ages(c, 0.051, 1)] == [(0.5, 0.3)]
+    assert not ages(c, 0.2, 100) and c.scale == 0.3            # the floor
+
+
+def test_latency_just_under_the_target_and_rare_late_maps_keep_the_scale():
+    c = ScaleController(latency_target_s=0.05)
+    assert not ages(c, 0.049, 100) and c.scale == 1.0          # under the target: no change
+    c = ScaleController(latency_target_s=0.05)
+    for i in range(300):                                       # 1 map in 15 late (under 10 %): the p90 is not
+        assert c.observe_latency(1.0, 0.12 if i % 15 == 14 else 0.02) is None
+    assert c.scale == 1.0
+    c = ScaleController(latency_target_s=0.05)
+    for i in range(30):                                        # 1 map in 5 late: the p90 is, and it steps down
+        ch = c.observe_latency(1.0, 0.12 if i % 5 == 0 else 0.02)
+    assert c.scale == 0.5
+
+
+def test_no_latency_target_or_a_fixed_scale_ignores_ages():
+    c = ScaleController()
+    assert not ages(c, 10.0, 100) and c.scale == 1.0
+    c = ScaleController(fixed=0.5, latency_target_s=0.05)
+    assert not ages(c, 10.0, 100) and c.scale == 0.5
+    c = ScaleController(latency_target_s=0.05)
+    assert c.observe_latency(0.5, 10.0) is None                # a map of another rung does not decide
+    assert not ages(c, float("nan"), 50) and c.latency_s() is None
+
+
+def test_steps_up_only_when_the_latency_above_is_predicted_to_fit():
+    # compute has headroom at 0.5 (cost 5 ms, full predicted 20 ms < 0.7 x 40 ms budget); the latency decides
+    def down_at_half(age_s):
+        c = ScaleController(budget_s=0.04, latency_target_s=0.05)
+        assert [(x.old, x.new) for x in ages(c, 0.06, 10)] == [(1.0, 0.5)]
+        for _ in range(60):                                    # 60 pairs at 0.5, each with a map of age_s
+            ch = c.observe_compute(0.5, 0.005) or c.observe_latency(0.5, age_s)
+            if ch is not None:
+                return c, ch
+        return c, None
+    # ages 8 ms: predicted at full 8 x 4 (area ratio) = 32 ms < 0.7 x 50 ms: up, once a whole window is seen
+    c, ch = down_at_half(0.008)
+    assert ch is not None and (ch.old, ch.new) == (0.5, 1.0)
+    # ages 9 ms: 36 ms predicted, over 35 ms: it stays at 0.5
+    c, ch = down_at_half(0.009)
+    assert ch is None and c.scale == 0.5
+
+
+def test_bad_latency_target():
+    for bad in (0.0, -0.01, float("nan"), float("inf")):
+        with pytest.raises(InputError):
+            ScaleController(latency_target_s=bad)

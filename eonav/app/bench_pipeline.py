@@ -4,7 +4,10 @@ Starts the embedded router and the locator and obstacle services as processes, t
 simulated flight at a fixed rate straight onto the posed-frame key (camera ingest and sync are not in the loop). A
 frame's ``stamp_us`` is the moment it is put; the bench's subscriber stamps the arrival of the range map and of the
 obstacle list carrying that stamp on the same host clock. Per case it prints latency p50/p99 (capture -> range map,
-capture -> obstacles), throughput, drops, the locator's compute time and the scales the maps came at.
+capture -> obstacles), throughput, drops, the locator's compute time and the scales the maps came at; then per stage
+the services' own health latencies (ages at each point of a frame's way, each stage's wall and CPU time) and each
+process's share of a core (/proc), with the load average (the machine may be shared: CPU times are the figures
+other load moves least). ``--json`` adds every measured frame's timeline.
 ``--accuracy`` instead measures, in process, what a locate scale costs against the simulator's truth.
 ``run_bench(cases, seconds=...)`` is the pipeline function under the command.
 """
@@ -13,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -41,6 +45,67 @@ def _frames(width: int, height: int, n: int = 4, rate_hz: float = 10.0):
 
 def _pct(v, q):
     return float(np.percentile(v, q)) if len(v) else math.nan
+
+
+# (label, service, health latency name): ages are capture -> that point, durations one stage of one frame
+AGES = (("capture -> locator dequeues the frame", "locator", "age.dequeued"),
+        ("capture -> locate starts", "locator", "age.locate_start"),
+        ("capture -> fused map ready", "locator", "age.fused"),
+        ("capture -> range map put", "locator", "capture_to_published"),
+        ("capture -> obstacles dequeue the map", "obstacles", "age.dequeued"),
+        ("capture -> obstacle list put", "obstacles", "capture_to_obstacles"))
+DURATIONS = (("locator: frame taken -> map put (wall)", "locator", "frame_time"),
+             ("locator: decode + grey image (CPU)", "locator", "cpu.ingest"),
+             ("locator: locate (wall)", "locator", "locate"), ("locator: locate (CPU)", "locator", "cpu.locate"),
+             ("locator: fusion (wall)", "locator", "fusion"), ("locator: fusion (CPU)", "locator", "cpu.fusion"),
+             ("locator: map fields + encode + put (wall)", "locator", "publish"),
+             ("locator: map fields + encode + put (CPU)", "locator", "cpu.publish"),
+             ("obstacles: decode (CPU)", "obstacles", "cpu.decode"),
+             ("obstacles: analyse (wall)", "obstacles", "analyse"),
+             ("obstacles: analyse (CPU)", "obstacles", "cpu.analyse"),
+             ("obstacles: track (wall)", "obstacles", "track"),
+             ("obstacles: track (CPU)", "obstacles", "cpu.track"),
+             ("obstacles: obstacle list encode + put (CPU)", "obstacles", "cpu.publish"),
+             ("obstacles: then the track message (CPU)", "obstacles", "cpu.track_message"))
+
+
+def stage_table(health: dict) -> dict:
+    """label -> {p50, p99, n} (ms) of each stage from the services' last health messages (their 10 s windows)."""
+    out = {}
+    gc = [(f"{svc}: garbage collector pause {name[3:]}", svc, name) for svc in ("locator", "obstacles")
+          for name in sorted(health.get(svc, {}).get("latency_ms", {})) if name.startswith("gc.")]
+    for label, svc, name in AGES + DURATIONS + tuple(gc):
+        w = health.get(svc, {}).get("latency_ms", {}).get(name)
+        if w and w.get("n"):
+            out[label] = {"p50": w["p50"], "p99": w["p99"], "n": w["n"]}
+    return out
+
+
+def _frame_row(stamp_us: int, m, o) -> list:
+    r = lambda x: None if x is None or not math.isfinite(x) else round(x, 1)    # noqa: E731
+    return [r(m and m[4]), r(m and (m[0] - stamp_us) / 1e3), r(o and o[1]), r(o and (o[0] - stamp_us) / 1e3),
+            r(m and 1e3 * m[1])]
+
+
+def _cpu_seconds(procs) -> dict:
+    """CPU seconds (user + system) so far of each service process (/proc/PID/stat) and of this process."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {"bench": sum(os.times()[:2])}
+    for name, p in zip(("locator", "obstacles"), procs):
+        try:
+            with open(f"/proc/{p.pid}/stat") as fh:
+                f = fh.read().rsplit(")", 1)[1].split()
+            out[name] = (int(f[11]) + int(f[12])) / tick
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
+def _cpu_share(t0, t1) -> dict:
+    """Each process's share of one core between two ``_cpu_seconds`` readings (with their monotonic times)."""
+    if t0 is None or t1 is None or t1[1] <= t0[1]:
+        return {}
+    return {k: (t1[0][k] - v) / (t1[1] - t0[1]) for k, v in t0[0].items() if k in t1[0]}
 
 
 def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, frames: list, *, method: str = "dense",
@@ -72,11 +137,12 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                         m = schema.decode(smp.payload.to_bytes(), expect=kind)
                         with lock:
                             if kind == "range_map":
-                                rx_map[m["stamp_us"]] = (t, m["compute_s"], m["overhead_s"], m.get("scale", 1.0))
+                                rx_map[m["stamp_us"]] = (t, m["compute_s"], m["overhead_s"], m.get("scale", 1.0),
+                                                         m["frame_age_ms"])
                                 shm["maps"] += 1
                                 shm["maps_shm"] += smp.payload.as_shm() is not None
                             elif kind == "obstacle_list":
-                                rx_obs[m["stamp_us"]] = t
+                                rx_obs[m["stamp_us"]] = (t, m["frame_age_ms"])
                             else:
                                 health[m["service"]] = m
                 except Exception:
@@ -95,7 +161,10 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
             period = 1.0 / fps
             t_next = time.monotonic()
             n_total = int(round((seconds + 2.0) * fps))
+            cpu_t0 = None
             for i in range(n_total):
+                if i == int(2.0 * fps):
+                    cpu_t0 = _cpu_seconds(procs), time.monotonic()
                 fr = frames[i % len(frames)]
                 stamp = time.time_ns() // 1000
                 pub.put(schema.encode("posed_frame", camera_id="nose", seq=i, stamp_us=stamp, encoding="mono8", **fr))
@@ -105,12 +174,13 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                 dt = t_next - time.monotonic()
                 if dt > 0:
                     time.sleep(dt)
+            cpu_t1 = _cpu_seconds(procs), time.monotonic()
             time.sleep(1.5)
             with lock:
                 maps = {k: v for k, v in rx_map.items() if k in set(sent)}
                 obs = {k: v for k, v in rx_obs.items() if k in set(sent)}
             lat_r = [(v[0] - k) / 1e3 for k, v in maps.items()]
-            lat_o = [(v - k) / 1e3 for k, v in obs.items()]
+            lat_o = [(v[0] - k) / 1e3 for k, v in obs.items()]
             comp = [v[1] * 1e3 for v in maps.values()]
             over = [v[2] * 1e3 for v in maps.values() if math.isfinite(v[2])]
             loc = health.get("locator", {}).get("counters", {})
@@ -132,6 +202,11 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                        locator_superseded=loc.get("frames_superseded", 0),
                        obstacles_superseded=obs_h.get("counters", {}).get("maps_superseded", 0),
                        range_map_payloads_via_shm=f"{shm['maps_shm']}/{shm['maps']}",
+                       stages=stage_table(health),
+                       # per measured frame: ms from capture to [map put, map received, obstacle list put, list
+                                       # received], and the map's compute ms (None: no map / no list)
+                                       by_frame_ms=[_frame_row(k, maps.get(k), obs.get(k)) for k in sent],
+                       cpu_share=_cpu_share(cpu_t0, cpu_t1), load_average=os.getloadavg(),
                        payload_bytes_per_frame=len(schema.encode("posed_frame", camera_id="nose", seq=0, stamp_us=0,
                                                                  encoding="mono8", **frames[0])))
             for sub in subs:
@@ -176,7 +251,18 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
                   f"{r['locator_overhead_ms']['p50']:.1f} ms, obstacles p50 "
                   f"{r['obstacles_compute_ms'].get('p50', math.nan):.1f} ms | shm {r['range_map_payloads_via_shm']}",
                   file=stream, flush=True)
+            print_stages(r, stream)
     return out
+
+
+def print_stages(r: dict, stream) -> None:
+    """The per-stage lines of one case: ages, stage durations (wall and CPU), CPU share per process."""
+    load = " / ".join(f"{x:.2f}" for x in r["load_average"])
+    print(f"    per stage, p50 / p99 ms (services' health windows; load average {load} at the end):", file=stream)
+    for label, v in r["stages"].items():
+        print(f"      {label:44s} {v['p50']:7.1f} {v['p99']:7.1f}  (n {v['n']})", file=stream)
+    share = ", ".join(f"{k} {100 * v:.0f} %" for k, v in r["cpu_share"].items())
+    print(f"    CPU over the measured seconds (share of one core): {share}", file=stream, flush=True)
 
 
 def accuracy(size=(640, 480), scales=(1.0, 0.5), n_frames: int = 5, rate_hz: float = 10.0, method: str = "dense",

@@ -9,6 +9,13 @@ the learnt cost ratio of the two rungs, area-proportional until measured) stays 
 budget for ``up_after`` pairs in a row: between the two nothing changes, so a cost at the boundary does not
 oscillate. ``calibrate`` takes one timed locate per rung, made before the camera's first pair, to choose the starting
 rung and seed the cost ratios. No zenoh, no images: the locator owns one controller per camera.
+
+A median compute budget does not bound the tail guidance sees: the locator's time per frame also holds the decode,
+the encode and put, and the time it lost to other processes. With ``latency_target_s`` the controller also gets that
+time for each published map (``observe_latency``: frame taken off the ring -> map put) and steps down one rung when
+the recent ``latency_q`` quantile (0.9) of ``latency_window`` maps (30) exceeds the target; it steps up only when both the compute and the
+latency predicted at the rung above (the current quantile, over a whole window, times the rungs' cost ratio) stay
+below ``up_margin`` of their limits.
 """
 from __future__ import annotations
 
@@ -63,7 +70,9 @@ class ScaleController:
 
     def __init__(self, *, fixed: float | None = None, min_scale: float = 0.5, budget_s: float | None = None,
                  budget_fraction: float = 0.6, budget_bounds_s: tuple = (0.02, 0.2), window: int = 5,
-                 min_samples: int = 3, up_after: int = 5, up_margin: float = 0.7, interval_window: int = 15):
+                 min_samples: int = 3, up_after: int = 5, up_margin: float = 0.7, interval_window: int = 15,
+                 latency_target_s: float | None = None, latency_window: int = 30, latency_min_samples: int = 10,
+                 latency_q: float = 0.9):
         if fixed is not None:
             fixed = parse_scale(fixed)
         if budget_s is not None and not (math.isfinite(budget_s) and budget_s > 0):
@@ -72,8 +81,13 @@ class ScaleController:
         if not (0 < lo <= hi):
             raise InputError(f"budget bounds must be 0 < low <= high, got {budget_bounds_s!r}")
         if not (0 < up_margin < 1 and 0 < budget_fraction and window >= 1 and 1 <= min_samples <= window
-                and up_after >= 1):
+                and up_after >= 1 and 1 <= latency_min_samples <= latency_window and 0 < latency_q <= 1):
             raise InputError("scale controller: bad tuning parameters")
+        if latency_target_s is not None and not (math.isfinite(latency_target_s) and latency_target_s > 0):
+            raise InputError(f"--latency-target-ms must be > 0, got {latency_target_s * 1e3!r}")
+        self.latency_target_s = latency_target_s
+        self.latency_min_samples, self.latency_q = latency_min_samples, latency_q
+        self._times = deque(maxlen=latency_window)  # per-frame times of the maps at the current rung
         self.fixed = fixed
         self.ladder = (fixed,) if fixed is not None else ladder(min_scale)
         self._i = 0                                  # index into the ladder: start at full scale
@@ -174,7 +188,37 @@ class ScaleController:
             return c * self.ratio(scale, cur)
         return c / self.ratio(cur, scale)
 
+    def latency_s(self, full: bool = False) -> float | None:
+        """The ``latency_q`` quantile of the current rung's recent per-frame times; None before ``latency_min_samples``
+        (``full``: before a whole ``latency_window``)."""
+        if len(self._times) < (self._times.maxlen if full else self.latency_min_samples):
+            return None
+        v = sorted(self._times)
+        return v[min(len(v) - 1, int(math.ceil(self.latency_q * len(v))) - 1)]
+
     # -- decision -----------------------------------------------------------------------------
+    def observe_latency(self, scale: float, frame_s: float) -> ScaleChange | None:
+        """Record the time (frame taken -> map put) of a map published at ``scale``; returns the change it causes, if any:
+        one rung down when the recent quantile exceeds ``latency_target_s`` (nothing without a target)."""
+        if self.latency_target_s is None or self.fixed is not None or scale != self.scale:
+            return None
+        if not (math.isfinite(frame_s) and frame_s >= 0):
+            return None
+        self._times.append(frame_s)
+        lat = self.latency_s()
+        if lat is not None and lat > self.latency_target_s and self._i + 1 < len(self.ladder):
+            return self._change(self._i + 1, f"time per frame p{round(100 * self.latency_q)} {lat * 1e3:.1f} ms over the "
+                                f"latency target {self.latency_target_s * 1e3:.1f} ms")
+        return None
+
+    def _latency_headroom(self, up: float) -> bool:
+        """Whether the latency predicted at rung ``up`` (above the current one) stays below ``up_margin`` of the
+        target (True without a target; False before a whole window of maps at the current rung)."""
+        if self.latency_target_s is None:
+            return True
+        lat = self.latency_s(full=True)
+        return lat is not None and lat * self.ratio(up, self.scale) < self.up_margin * self.latency_target_s
+
     def observe_compute(self, scale: float, seconds: float) -> ScaleChange | None:
         """Record the compute time of a pair ranged at ``scale``; returns the change of scale it causes, if any."""
         if scale in self._cost and math.isfinite(seconds) and seconds >= 0:
@@ -197,7 +241,7 @@ class ScaleController:
             return None
         up = self.ladder[self._i - 1]
         pred = self.predicted_s(up)
-        if pred is not None and pred < self.up_margin * budget:
+        if pred is not None and pred < self.up_margin * budget and self._latency_headroom(up):
             self._up_streak += 1
             if self._up_streak >= self.up_after:
                 return self._change(self._i - 1, f"predicted compute at scale {up:g} {pred * 1e3:.1f} ms below "
@@ -213,4 +257,5 @@ class ScaleController:
         self._i = i
         self._up_streak = 0
         self._cost[self.scale].clear()               # the new rung is judged on fresh samples only
+        self._times.clear()
         return ScaleChange(old, self.scale, reason)
