@@ -230,6 +230,98 @@ def test_ground_estimated_from_points_when_not_configured():
     assert res0.ground_down_m == pytest.approx(0.0, abs=0.05)
 
 
+def sloped_ground(slope_deg=0.0, near_bias=0.0, cam=CAM, alt_m=ALT_M):
+    """Range map of a ground plane down = -tan(slope) north (rising ahead), 0 under the vehicle, seen by a level
+    camera looking north at height alt_m: the ray of row v descends by b = (v - cy)/fy per metre of x_c, the plane
+    rises by s = tan(slope) per metre north, so x_c = alt / (b + s) where b + s > 0, +inf above that horizon.
+    ``near_bias``: ranged too near towards the horizon like the dense and fused maps, x_c times
+    1 - near_bias exp(-(b + s) fy / 40) (the full bias at the horizon, 1/e of it 40 rows below)."""
+    s = math.tan(math.radians(slope_deg))
+    v = np.arange(cam.height, dtype=np.float64)[:, None] * np.ones((1, cam.width))
+    d = (v - cam.cy) / cam.fy + s
+    with np.errstate(divide="ignore"):
+        r = np.where(d > 0, alt_m / d, np.inf)
+    r = np.where(d > 0, r * (1.0 - near_bias * np.exp(-d * cam.fy / 40.0)), r)
+    return r.astype(np.float32)
+
+
+def add_post(r, x_c_m, u0, u1, top_m, slope_deg=0.0, cam=CAM, alt_m=ALT_M):
+    """A vertical face at x_c = x_c_m over columns u0..u1-1, standing on the ground of ``sloped_ground`` (its foot at
+    down -tan(slope) x_c_m) up to top_m above its foot."""
+    foot = -math.tan(math.radians(slope_deg)) * x_c_m
+    v = np.arange(cam.height)
+    z_ned = -alt_m + x_c_m * (v - cam.cy) / cam.fy
+    rows = (z_ned <= foot) & (z_ned >= foot - top_m)
+    r = r.copy()
+    r[np.ix_(rows, np.arange(u0, u1))] = x_c_m
+    return r
+
+
+def overconfident_std(r, rel=0.02):
+    """inv_range_std_per_m claiming a 2 % range sigma everywhere (sigma_rho = rel / r): too small for the bias."""
+    with np.errstate(divide="ignore"):
+        return np.where(np.isfinite(r), rel / r, 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("slope_deg", [0.0, 5.0])
+def test_ground_ranged_too_near_towards_the_horizon_is_not_an_obstacle(slope_deg):
+    # up to 50 % too near at the horizon with a 2 % sigma: far ground lifted by metres, tens of sigma of its down;
+    # its range still grows up its rows as the plane's does (the plane law), so it is ground, with the plane
+    # estimated from the map (no ground_down_m) or given
+    r = sloped_ground(slope_deg, near_bias=0.5)
+    std = overconfident_std(r)
+    res = ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=ob.ObstacleConfig())
+    assert res.obstacles == []
+    assert clear_in_view(res.sectors)
+    true_plane = ob.GroundPlane(0.0, -math.tan(math.radians(slope_deg)), 0.0)
+    assert ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=ob.ObstacleConfig(), ground=true_plane).obstacles == []
+    # the sigma-based clearance alone (plane-law test and window term off) lists the lifted ground; the window term
+    # alone does not suffice either: the plane law is what removes it
+    old = ob.ObstacleConfig(plane_law_beta=1e9, ground_window_px=0.0)
+    assert len(ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=old, ground=true_plane).obstacles) >= 1
+    window_only = ob.ObstacleConfig(plane_law_beta=1e9)
+    assert len(ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=window_only, ground=true_plane).obstacles) >= 1
+
+
+def test_sloped_ground_needs_the_fitted_plane():
+    # unbiased ground rising 5 degrees ahead: 2.6 m above the level at 30 m. A level ground (configured at 0 m, as
+    # the old single-height model) makes the far slope an obstacle; the fitted plane does not
+    r = sloped_ground(5.0)
+    res = ob.analyse(r, CAM, LEVEL, cfg=ob.ObstacleConfig())
+    assert res.obstacles == []
+    assert res.ground.b == pytest.approx(-math.tan(math.radians(5.0)), abs=1e-3) and abs(res.ground.c) < 1e-3
+    assert res.ground_down_m == pytest.approx(0.0, abs=0.05)
+    assert ob.analyse(r, CAM, LEVEL, cfg=ob.ObstacleConfig(ground_down_m=0.0, plane_law_beta=1e9)).obstacles
+
+
+@pytest.mark.parametrize("slope_deg", [0.0, 5.0])
+@pytest.mark.parametrize("x_c_m, cols, top_m", [(20.0, (120, 160), 5.0), (30.0, (126, 130), 8.0)])  # box, pole
+def test_box_and_pole_on_biased_ground_are_found(slope_deg, x_c_m, cols, top_m):
+    # on the biased, overconfident ground above: a 5 m box face 40 columns wide at 20 m and an 8 m pole 4 columns
+    # wide at 30 m are vertical structure (constant range up their rows) and stay obstacles, at their range; their
+    # lower metres are within the ground's tolerance (clearance, window, the plane tilted by the bias)
+    r = add_post(sloped_ground(slope_deg, near_bias=0.5), x_c_m, *cols, top_m, slope_deg=slope_deg)
+    res = ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=overconfident_std(r), cfg=ob.ObstacleConfig())
+    assert len(res.obstacles) == 1
+    o = res.obstacles[0]
+    assert o.position_ned_m[0] == pytest.approx(x_c_m, abs=0.01)
+    # its top row: the ray of row v meets the face at down -alt + x_c (v - cy) / fy = foot - top (2 x 2 pooling)
+    v_top = CAM.cy + CAM.fy * (ALT_M - math.tan(math.radians(slope_deg)) * x_c_m - top_m) / x_c_m
+    assert math.ceil(v_top) - 2 <= o.bbox_px[1] <= math.ceil(v_top) + 1
+    assert cols[0] - 2 <= o.bbox_px[0] and o.bbox_px[2] <= cols[1] + 1
+
+
+def test_plane_law_slope_hand_derived():
+    # ground (rho = rho_g / 0.6, any constant bias): beta 1; a wall (constant rho): 0; above the horizon: NaN;
+    # too narrow a span of ln(rho_g): NaN
+    g = np.linspace(0.01, 0.05, 20)
+    rho = np.concatenate([g / 0.6, np.full(20, 0.03), np.full(20, 0.03), np.full(20, 0.03)])
+    rg = np.concatenate([g, g, np.where(np.arange(20) < 5, -0.01, g), np.full(20, 0.02) * (1 + 1e-3 * np.arange(20))])
+    beta = ob.plane_law_slope(rho, rg, np.array([0, 20, 40, 60]), np.array([20, 20, 20, 20]), 0.1)
+    assert beta[0] == pytest.approx(1.0) and beta[1] == pytest.approx(0.0, abs=1e-12)
+    assert np.isnan(beta[2]) and np.isnan(beta[3])
+
+
 def test_bad_inputs_name_the_problem():
     with pytest.raises(InputError, match="2-D"):
         ob.analyse(np.zeros((4, 4, 3)), CAM, LEVEL)

@@ -40,7 +40,13 @@ class ObstacleConfig:
     ground_down_m: float | None = None  # NED down of the ground; None: estimate from the points (docs/methods.md)
     ground_clearance_m: float = 0.6    # points within this of the ground (or below it) are ground ...
     ground_sigma_k: float = 3.0        # ... plus this many 1-sigma of the point's down coordinate (from the range std)
+    ground_window_px: float = 2.0      # ... plus the height a matching window of this many rows spans on the ground
+                                       # at the point's range: x_c k / fy, whatever the map's own sigma
     max_height_above_m: float = 200.0  # points higher than this above the vehicle are ignored (top of the band)
+    ground_max_slope_deg: float = 20.0  # the fitted ground plane's steepest allowed slope (steeper: horizontal)
+    plane_law_beta: float = 0.5        # a component whose inverse range follows the ground plane's with a log-log
+                                       # slope above this is ground ranged too near, not vertical structure ...
+    plane_law_min_span: float = 0.1    # ... when its ln(ground inverse range) spans at least this (5..95 %)
     percentile: float = 5.0            # robust minimum of a sector / an obstacle
     min_sector_pixels: int = 4         # obstacle pixels a sector needs to report a distance
     min_clear_pixels: int = 20         # evidence pixels a sector needs to report "clear"
@@ -76,8 +82,14 @@ class ObstacleConfig:
             raise InputError(f"obstacle config: pool_percentile must be in [0, 100], got {self.pool_percentile}")
         if not (isinstance(self.max_width_px, int) and self.max_width_px >= 0):
             raise InputError(f"obstacle config: max_width_px must be an integer >= 0, got {self.max_width_px!r}")
+        if not 0 <= self.ground_max_slope_deg < 90:
+            raise InputError(f"obstacle config: ground_max_slope_deg must be in [0, 90), got {self.ground_max_slope_deg}")
+        if not (0 < self.plane_law_beta and self.plane_law_min_span > 0):
+            raise InputError("obstacle config: plane_law_beta and plane_law_min_span must be > 0")
         if self.ground_down_m is not None and not math.isfinite(self.ground_down_m):
             raise InputError("obstacle config: ground_down_m must be finite or None")
+        if not (math.isfinite(self.ground_window_px) and self.ground_window_px >= 0):
+            raise InputError(f"obstacle config: ground_window_px must be a finite number >= 0, got {self.ground_window_px}")
         for name in ("min_sector_pixels", "min_clear_pixels", "min_obstacle_pixels", "max_obstacles", "min_fused"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
@@ -322,6 +334,56 @@ def estimate_ground_down_m(pts: Points, state: VehicleState, cfg: ObstacleConfig
     return 0.0
 
 
+@dataclass(frozen=True)
+class GroundPlane:
+    """The ground as a plane in NED: down = a + b north + c east (b = c = 0: level)."""
+    a: float
+    b: float = 0.0
+    c: float = 0.0
+
+    def down_m(self, ned_m) -> np.ndarray:
+        ned_m = np.asarray(ned_m, float)
+        return self.a + self.b * ned_m[..., 0] + self.c * ned_m[..., 1]
+
+    def inverse_range_per_m(self, lens_ned_m, ray_ned) -> np.ndarray:
+        """1 / x_c at which each ray lens + x_c ray (``ray_ned`` = NED direction per metre of x_c) meets the plane;
+        <= 0 where the ray does not descend onto it (at or above the horizon). Linear in the ray: the plane law."""
+        lens = np.asarray(lens_ned_m, float)
+        below = float(self.down_m(lens) - lens[2])               # > 0: the lens above the plane
+        ray = np.asarray(ray_ned, float)
+        descent = ray[..., 2] - self.b * ray[..., 0] - self.c * ray[..., 1]
+        return descent / below if below > 0 else np.zeros(descent.shape)
+
+
+def fit_ground(pts: Points, state: VehicleState, cfg: ObstacleConfig) -> GroundPlane:
+    """The ground plane: ``cfg.ground_down_m`` when configured (level); else a robust least-squares plane through
+    the confident points below the vehicle, from the level plane of the 90th percentile of down, iterated on the
+    points at most 3 m, then 1 m, then 0.5 m above the current plane (obstacles stand above the ground; the ground is
+    the lowest dense surface), its slope capped at
+    ``cfg.ground_max_slope_deg`` (steeper: the level plane of the 90th percentile of down); level 0 m with too few
+    points."""
+    if cfg.ground_down_m is not None:
+        return GroundPlane(float(cfg.ground_down_m))
+    level = GroundPlane(estimate_ground_down_m(pts, state, cfg))
+    sel = pts.ned_m[:, 2] > state.position_ned_m[2] + 0.5
+    if pts.weight[sel].sum() < 50:
+        return level
+    p = pts.ned_m[sel]
+    w = pts.weight[sel]
+    A = np.stack([np.ones(len(p)), p[:, 0], p[:, 1]], axis=1)
+    coef = np.array([level.a, 0.0, 0.0])
+    for tol in (3.0, 3.0, 3.0, 1.0, 1.0, 0.5, 0.5):
+        res = p[:, 2] - A @ coef                          # > 0: below the plane
+        keep = (res >= -tol) & (res <= 3.0 * tol)         # obstacles stand above the ground, not below it
+        if w[keep].sum() < 50:
+            return level
+        sw = np.sqrt(w[keep])
+        coef = np.linalg.lstsq(A[keep] * sw[:, None], p[keep, 2] * sw, rcond=None)[0]
+    if math.hypot(coef[1], coef[2]) > math.tan(math.radians(cfg.ground_max_slope_deg)):
+        return level
+    return GroundPlane(float(coef[0]), float(coef[1]), float(coef[2]))
+
+
 def camera_hfov_deg(camera: Camera) -> tuple:
     """(left, right) body-relative bearings in degrees of the image's outer pixel edges (camera yaw eps1 included)."""
     yaw_cam = math.degrees(float(camera.eps_rad[0]))
@@ -379,11 +441,12 @@ class ObstacleResult:
     n_obstacle_px: int
     sectors_now: Sectors | None = None      # sectors relative to ``now_state`` when one was given
     data_mask: np.ndarray | None = None     # pixels with a usable range: confident (as analysed) or at infinity
+    ground: GroundPlane | None = None       # the ground plane used (``ground_down_m`` is its down under the vehicle)
 
 
 def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags=None, inv_range_std_per_m=None,
             cfg: ObstacleConfig = ObstacleConfig(), now_state: VehicleState | None = None,
-            frame_size=None, n_fused=None) -> ObstacleResult:
+            frame_size=None, n_fused=None, ground: GroundPlane | None = None) -> ObstacleResult:
     """Sectors and obstacle list of one range map (see the module docstring).
 
     ``state`` is the vehicle pose at capture (it places the points, eq. 33). ``now_state``, when given, is
@@ -397,7 +460,9 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     ``eonav.geometry.camera.scaled_camera`` of the frame's) is analysed on that grid with ``frame_size`` = the frame's (width,
     height): each map pixel then counts as the frame pixels it stands for, so the thresholds, ``pixel_count``,
     ``n_confident`` and ``bbox_px`` stay in frame pixels and the result matches that of the same map upsampled to the
-    frame (tests/test_obstacles.py), for a quarter of the pixels at scale 0.5."""
+    frame (tests/test_obstacles.py), for a quarter of the pixels at scale 0.5.
+
+    ``ground``, when given, is the ground plane to use instead of ``fit_ground``'s (a terrain model)."""
     _check_maps(range_m, confidence, flags, inv_range_std_per_m, camera)
     fw, fh, area = frame_grid(camera, frame_size)
     if n_fused is not None and np.shape(n_fused) != np.shape(range_m):
@@ -413,21 +478,27 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     inf_cols = np.count_nonzero(inf_m, axis=0)                              # pixels at infinity per image column
     if area != 1.0:
         inf_cols = inf_cols * area
-    ground = estimate_ground_down_m(pts, state, cfg)
+    plane = ground if ground is not None else fit_ground(pts, state, cfg)
+    ground = float(plane.down_m(state.position_ned_m))
     z = pts.ned_m[:, 2]
+    lens = state.position_ned_m + state.T_body_ned.T @ camera.l_body_m
+    ray = (pts.ned_m - lens) / pts.range_m[:, None]               # NED direction per metre of x_c
     clearance = np.full(z.shape, cfg.ground_clearance_m)
     if pts.sigma_m is not None and cfg.ground_sigma_k > 0:
         # a range error moves a point along its ray: sigma_down = sigma_r |d down / d x_c|. Far ground seen at a
         # grazing angle is lifted by metres for a few per cent of range error, so the clearance grows with it.
-        lens_down = state.position_ned_m[2] + (state.T_body_ned.T @ camera.l_body_m)[2]
-        slope = np.abs(z - lens_down) / pts.range_m
         sig = np.nan_to_num(pts.sigma_m, nan=0.0, posinf=0.0)
-        clearance = clearance + cfg.ground_sigma_k * sig * slope
-    above_ground = z < ground - clearance
+        clearance = clearance + cfg.ground_sigma_k * sig * np.abs(ray[:, 2])
+    # a window of k rows on ground seen at a grazing angle d spans ranges x_c k / (fy tan d): the honest range error
+    # there, whose height error x_c k / fy does not depend on the angle (docs/methods.md, "Obstacles")
+    # (k in frame pixels: a map at a locate scale gives the obstacles of the same map upsampled to the frame)
+    clearance = clearance + cfg.ground_window_px * pts.range_m / (camera.fy * fh / camera.height)
+    above_ground = z < plane.down_m(pts.ned_m) - clearance
+    rho_ground = plane.inverse_range_per_m(lens, ray)
     in_band = above_ground & (z > state.position_ned_m[2] - cfg.max_height_above_m)
     obstacle = in_band & (pts.hdist_m <= cfg.max_distance_m)
     # speckle (small or flat blobs: mismatched ground patches) is neither an obstacle nor in the sectors
-    comps, kept = _components(pts, obstacle, camera, grid, k, state, cfg, (fw, fh))
+    comps, kept = _components(pts, obstacle, camera, grid, k, state, cfg, (fw, fh), rho_ground)
     sectors = _sectors(pts, kept, ~obstacle, camera, inf_cols, cfg)
     obstacles = [o for o in comps if o.distance_m <= cfg.max_obstacle_distance_m][:cfg.max_obstacles]
     for i, o in enumerate(obstacles):
@@ -438,7 +509,7 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
         sectors_now = _sectors(moved, kept & (moved.hdist_m <= cfg.max_distance_m),
                                in_band & (moved.hdist_m > cfg.max_distance_m) | ~in_band, camera, inf_cols, cfg)
     return ObstacleResult(sectors, obstacles, ground, int(round(np.count_nonzero(conf_m) * area)),
-                          int(round(weight[kept].sum())), sectors_now, conf_m | inf_m)
+                          int(round(weight[kept].sum())), sectors_now, conf_m | inf_m, plane)
 
 
 def relative_to(pts: Points, state: VehicleState) -> Points:
@@ -505,8 +576,29 @@ def _sectors(pts: Points, obstacle, evidence, camera, inf_cols, cfg: ObstacleCon
     return Sectors(out, inc, off, min_cm, max_cm, np.round(counts).astype(np.int64))
 
 
+def plane_law_slope(rho_m, rho_ground, starts, n_in, min_span: float) -> np.ndarray:
+    """Per run ``starts[j]:starts[j] + n_in[j]`` of points (one component each): the least-squares slope beta of
+    ln(1 / x_c) on ln(the ground plane's 1 / x_c along the same rays). Ground follows the plane law, whatever a
+    range bias that is constant over the component: beta = 1; vertical structure keeps its range up its rows: beta
+    = 0. NaN where the slope cannot be told: rays at or above the horizon in a fifth of the points or more (ground
+    cannot be there: not ground), or a span of ln(ground inverse range) (5..95 %) below ``min_span``."""
+    out = np.full(len(starts), np.nan)
+    for j, (s0, n) in enumerate(zip(starts, n_in)):
+        g, r = rho_ground[s0:s0 + n], rho_m[s0:s0 + n]
+        ok = g > 0
+        if np.count_nonzero(ok) < max(3, 0.8 * n):
+            continue
+        x, y = np.log(g[ok]), np.log(r[ok])
+        lo, hi = np.percentile(x, [5.0, 95.0])
+        if hi - lo < min_span:
+            continue
+        xc = x - x.mean()
+        out[j] = float(xc @ (y - y.mean()) / (xc @ xc))
+    return out
+
+
 def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: VehicleState, cfg: ObstacleConfig,
-                frame_size: tuple | None = None):
+                frame_size: tuple | None = None, rho_ground: np.ndarray | None = None):
     """Obstacles within ``cfg.max_obstacle_distance_m`` (nearest first; the details of farther components are not
     computed: 4 of the 14 components of a 640 x 480 approach-flight map) and the mask over ``pts`` of the points of all
     the components kept (the sectors use them at any distance). Works on the analysis
@@ -571,7 +663,13 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
     FW, FH = frame_size or (W, H)
     q = cfg.percentile
     out = []
-    for j in np.flatnonzero(height >= cfg.min_obstacle_height_m):
+    real = height >= cfg.min_obstacle_height_m
+    if rho_ground is not None:
+        # ground ranged too near lifts it off the plane by metres near the horizon; its range still grows up its
+        # rows like the ground's (docs/methods.md, "Obstacles")
+        beta = plane_law_slope(1.0 / pts.range_m[pi], rho_ground[pi], starts, n_in, cfg.plane_law_min_span)
+        real &= ~(beta >= cfg.plane_law_beta)
+    for j in np.flatnonzero(real):
         grp_p, grp_px = pi[starts[j]:starts[j] + n_in[j]], px[starts[j]:starts[j] + n_in[j]]
         kept[grp_p] = True                            # in the sectors whatever its distance
         dist_s = np.sort(pts.dist_m[grp_p])
