@@ -227,16 +227,24 @@ def test_sync_killed(pipe):
     pipe.wait_flowing()
     t_kill = time.monotonic()
     os.kill(pipe.pid("sync"), signal.SIGKILL)
-    for service, what in (("locator", "no posed frames"), ("obstacles", "no range maps")):
-        wait_until(lambda: pipe.health_after(t_kill, service, _degraded_naming(what)), 10, 0.05,
-                   f"{service} degraded")
-    dt = {"locator": _assert_reported(pipe, t_kill, "locator", "no posed frames", FRAMES_BUDGET_S, 1 / FPS),
-          "obstacles": _assert_reported(pipe, t_kill, "obstacles", "no range maps", MAPS_BUDGET_S, 1 / FPS)}
+
+    def maps_again():                 # range maps of frames the restarted sync posed
+        return [m["t"] for m in pipe.w.snapshot()["maps"] if m["t"] > t_kill + 0.05]
+    t_again = min(wait_until(maps_again, 40.0, 0.05, "range maps after the restart"))
+    gap_s = t_again - max(m["t"] for m in pipe.w.snapshot()["maps"] if m["t"] <= t_kill)
     t_back = pipe.wait_flowing(40.0)
+    # degraded is required when the outage exceeded the budget (posed frames resume up to a frame before the maps);
+    # a sync restarted within the budget (a quiet machine: ~0.9 s) rightly leaves them ok; a report is always timely
+    dt = {}
+    for service, what, budget, lead in (("locator", "no posed frames", FRAMES_BUDGET_S, 1 / FPS),
+                                        ("obstacles", "no range maps", MAPS_BUDGET_S, 0.0)):
+        if gap_s > budget + SCHED_SLACK_S + lead or pipe.health_after(t_kill, service, _degraded_naming(what)):
+            dt[service] = _assert_reported(pipe, t_kill, service, what, budget, 1 / FPS)
     time.sleep(2.0)
     pipe.assert_fresh_and_ordered()
     assert pipe.status["sync"]["restarts"] == 1
-    print(f"sync: degraded after the kill (s) {dt}; flowing again {t_back - t_kill:.2f} s after the kill")
+    print(f"sync: maps gap {gap_s:.2f} s; degraded after the kill (s) {dt}; flowing again {t_back - t_kill:.2f} s "
+          f"after the kill")
 
 
 def test_obstacles_killed(pipe):
@@ -344,7 +352,9 @@ def test_router_killed(pipe):
     time.sleep(2.0)
     pipe.assert_fresh_and_ordered(since_t=t_kill)
     after = {n: (pipe.pid(n), pipe.status[n]["restarts"]) for n in services}
-    assert after == before, (before, after)               # no service crashed, none was restarted
+    # no service crashed, none was restarted: the same processes, no restart counted (a count may fall back to 0:
+    # the launcher forgets a service's restarts after 30 s up)
+    assert all(after[n][0] == before[n][0] and after[n][1] <= before[n][1] for n in services), (before, after)
     assert pipe.status["router"]["restarts"] == 1 and pipe.status["router"]["state"] == "running"
     recovery_s = first_list - t_listen
     print(f"router: gone {t_closed - t_kill:.2f} s after the kill, listening again {t_listen - t_kill:.2f} s after "

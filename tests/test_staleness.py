@@ -177,6 +177,42 @@ def test_health_timer_publishes_at_once_when_an_input_falls_silent():
     assert len(pub.got) == 2, states
 
 
+def test_health_timer_reports_a_silence_that_ends_before_its_message():
+    # the input resumes between the timer's check and the message it sends (seen on a loaded machine: the
+    # silence was found and then re-checked away inside the message, so no degraded health was ever published)
+    class Pub:
+        def __init__(self):
+            self.got = []
+
+        def put(self, payload):
+            self.got.append(schema.decode(payload, expect="health"))
+
+    n = _node()
+    n.args.health_period_s = 30.0
+    n.expect_input("frames", 0.2)
+    n.input_seen("frames")
+    real_check = n.check_inputs
+
+    def check_then_sample(now=None):                   # a sample lands right after each check that finds a silence
+        changed = real_check(now)
+        if n.silent_inputs():
+            n.input_seen("frames")
+        return changed
+    n.check_inputs = check_then_sample
+    n._health_pub = pub = Pub()
+    loop = _health_loop(n)
+    t = threading.Thread(target=loop)
+    t.start()
+    try:
+        threading.Event().wait(0.6)
+    finally:
+        n.stop_event.set()
+        t.join(5)
+    states = [h["state"] for h in pub.got]
+    assert "degraded" in states, states                             # the silence was published ...
+    assert states[-1] == "ok", states                               # ... and the recovery after it
+
+
 def _health_loop(node):
     """The health worker's body as ``Node._declare_infrastructure`` defines it (declared without a session)."""
     captured = {}

@@ -485,9 +485,11 @@ class Node:
         with self._lock:
             return dict(self._counters)
 
-    def health_fields(self) -> dict:
-        """The fields of this node's health message now."""
-        if self._inputs:
+    def health_fields(self, recheck: bool = True) -> dict:
+        """The fields of this node's health message now. ``recheck=False``: the watched inputs as the last
+        ``check_inputs`` found them (the health timer's own check), so an input that fell silent is reported even
+        when a sample arrives between that check and the message."""
+        if self._inputs and recheck:
             self.check_inputs()
         state, detail = self._reported_state()
         with self._lock:
@@ -557,7 +559,7 @@ class Node:
                 now = time.monotonic()
                 changed = bool(self._inputs) and self.check_inputs(now)
                 if self.check_router(now) or changed or now >= due:
-                    self.publish_health()
+                    self.publish_health(recheck=False)      # the state just evaluated: a change is never lost
                     due = now + period
                 wait = min(INPUT_CHECK_S, period)
                 if self.stop_event.wait(wait):
@@ -566,11 +568,11 @@ class Node:
         self.worker(serve_config, name="config")
         self.worker(publish_health, name="health")
 
-    def publish_health(self) -> None:
+    def publish_health(self, recheck: bool = True) -> None:
         if self._health_pub is None:
             return
         try:
-            self._health_pub.put(schema.encode("health", **self.health_fields()))
+            self._health_pub.put(schema.encode("health", **self.health_fields(recheck)))
         except Exception as e:  # session closing, or a bug in a user metric name
             self.log_limited("health", logging.WARNING, "health publish failed: %s", e)
 
