@@ -150,28 +150,33 @@ def test_silent_input_named_and_combined_with_the_services_own_state():
     assert n.state == "error" and n.health_fields()["detail"] == "worker died"
 
 
-def test_health_timer_publishes_at_once_when_an_input_falls_silent():
-    class Pub:
-        def __init__(self):
-            self.got = []
+class _HealthPub:
+    """A health publisher that keeps what it was given, decoded."""
+    def __init__(self):
+        self.got = []
 
-        def put(self, payload):
-            self.got.append(schema.decode(payload, expect="health"))
+    def put(self, payload):
+        self.got.append(schema.decode(payload, expect="health"))
 
-    n = _node()
-    n.args.health_period_s = 30.0                                         # the periodic message would be far away
-    n._health_pub = pub = Pub()
-    n.expect_input("frames", 0.2)
-    n.input_seen("frames")
-    # run the node's own health loop (the worker body of _declare_infrastructure) for ~0.6 s
-    loop = _health_loop(n)
-    t = threading.Thread(target=loop)
+
+def _run_health_loop(node, seconds: float):
+    """Run the node's own health loop (the worker body of _declare_infrastructure) for ``seconds``."""
+    t = threading.Thread(target=_health_loop(node))
     t.start()
     try:
-        threading.Event().wait(0.6)
+        threading.Event().wait(seconds)
     finally:
-        n.stop_event.set()
+        node.stop_event.set()
         t.join(5)
+
+
+def test_health_timer_publishes_at_once_when_an_input_falls_silent():
+    n = _node()
+    n.args.health_period_s = 30.0                                         # the periodic message would be far away
+    n._health_pub = pub = _HealthPub()
+    n.expect_input("frames", 0.2)
+    n.input_seen("frames")
+    _run_health_loop(n, 0.6)
     states = [h["state"] for h in pub.got]
     assert states[0] == "ok" and "degraded" in states, states          # first message, then the change at once
     assert len(pub.got) == 2, states
@@ -180,13 +185,6 @@ def test_health_timer_publishes_at_once_when_an_input_falls_silent():
 def test_health_timer_reports_a_silence_that_ends_before_its_message():
     # the input resumes between the timer's check and the message it sends (seen on a loaded machine: the
     # silence was found and then re-checked away inside the message, so no degraded health was ever published)
-    class Pub:
-        def __init__(self):
-            self.got = []
-
-        def put(self, payload):
-            self.got.append(schema.decode(payload, expect="health"))
-
     n = _node()
     n.args.health_period_s = 30.0
     n.expect_input("frames", 0.2)
@@ -199,15 +197,8 @@ def test_health_timer_reports_a_silence_that_ends_before_its_message():
             n.input_seen("frames")
         return changed
     n.check_inputs = check_then_sample
-    n._health_pub = pub = Pub()
-    loop = _health_loop(n)
-    t = threading.Thread(target=loop)
-    t.start()
-    try:
-        threading.Event().wait(0.6)
-    finally:
-        n.stop_event.set()
-        t.join(5)
+    n._health_pub = pub = _HealthPub()
+    _run_health_loop(n, 0.6)
     states = [h["state"] for h in pub.got]
     assert "degraded" in states, states                             # the silence was published ...
     assert states[-1] == "ok", states                               # ... and the recovery after it

@@ -156,6 +156,19 @@ def update_classify(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bit
 
 
 @njit(**_FAST)
+def _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init):
+    """Cell (y, x) starts afresh from one measurement: an empty cell, or one whose inlier ratio fell below the
+    outlier threshold (it diverged)."""
+    rho[y, x] = xm
+    var[y, x] = tau2
+    a[y, x] = a_init
+    b[y, x] = b_init
+    n[y, x] = 1
+    du[y, x] = 0.0
+    dv[y, x] = 0.0
+
+
+@njit(**_FAST)
 def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt):
     """One row of ``update``; cnt (int64[5]) gains its counts."""
     w = rho.shape[1]
@@ -179,13 +192,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         tau2 = tau * tau
         mu = rho[y, x]
         if not math.isfinite(mu):
-            rho[y, x] = xm
-            var[y, x] = tau2
-            a[y, x] = a_init
-            b[y, x] = b_init
-            n[y, x] = 1
-            du[y, x] = 0.0
-            dv[y, x] = 0.0
+            _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
             cnt[1] += 1
             continue
         s2 = var[y, x]
@@ -223,13 +230,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         else:
             cnt[3] += 1
         if a_new / (a_new + b_new) < eta_outlier:
-            rho[y, x] = xm
-            var[y, x] = tau2
-            a[y, x] = a_init
-            b[y, x] = b_init
-            n[y, x] = 1
-            du[y, x] = 0.0
-            dv[y, x] = 0.0
+            _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
             cnt[4] += 1
             continue
         rho[y, x] = mu_new
