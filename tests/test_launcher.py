@@ -12,6 +12,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+from service_pkg import install_service_package
 
 from eonav import InputError
 from eonav.app import launcher as L
@@ -50,13 +51,7 @@ SVC = textwrap.dedent('''
 
 @pytest.fixture
 def svc_pkg(tmp_path, monkeypatch):
-    pkg = tmp_path / "lsvc"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text("")
-    (pkg / "t.py").write_text(SVC)
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    monkeypatch.syspath_prepend(str(tmp_path))
-    return "lsvc.t"
+    return install_service_package(tmp_path, monkeypatch, "lsvc", SVC)
 
 
 def _gone(pid):

@@ -3,12 +3,12 @@ returned, or after a timeout) and lazily computed ``{name}`` substitutions, with
 from __future__ import annotations
 
 import json
-import os
 import textwrap
 import threading
 import time
 
 import pytest
+from service_pkg import install_service_package
 
 from eonav import InputError
 from eonav.app import launcher as L
@@ -38,13 +38,7 @@ SVC = textwrap.dedent('''
 
 @pytest.fixture
 def svc(tmp_path, monkeypatch):
-    pkg = tmp_path / "lsvc_after"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text("")
-    (pkg / "t.py").write_text(SVC)
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    monkeypatch.syspath_prepend(str(tmp_path))
-    return "lsvc_after.t"
+    return install_service_package(tmp_path, monkeypatch, "lsvc_after", SVC)
 
 
 def _run(spec, substitutions, until, timeout_s=40.0):
