@@ -189,15 +189,22 @@ def test_unmeasured_pixels_keep_their_prediction_and_the_reason(kernels):
     assert (st.flags == LOW_TEXTURE).all()
 
 
+def _random_state(c, rng, rho_lo: float, var_hi: float):
+    """A state with 80 % of its cells occupied by random estimates (inverse range rho_lo..0.3, variance up to
+    var_hi, Beta evidence); returns it and the occupied mask."""
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    occ = rng.random(st.shape) < 0.8
+    st.rho[occ] = rng.uniform(rho_lo, 0.3, occ.sum())
+    st.var[occ] = rng.uniform(1e-7, var_hi, occ.sum())
+    st.a[occ], st.b[occ] = rng.uniform(1, 6, occ.sum()), rng.uniform(0.5, 3, occ.sum())
+    return st, occ
+
+
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
 def test_numba_and_numpy_paths_agree_on_a_random_state():
     rng = np.random.default_rng(3)
     c = cam(96, 72)
-    st = InverseRangeState.empty(c, pose(), 0.0)
-    occ = rng.random(st.shape) < 0.8
-    st.rho[occ] = rng.uniform(0.01, 0.3, occ.sum())
-    st.var[occ] = rng.uniform(1e-7, 1e-4, occ.sum())
-    st.a[occ], st.b[occ] = rng.uniform(1, 6, occ.sum()), rng.uniform(0.5, 3, occ.sum())
+    st, occ = _random_state(c, rng, rho_lo=0.01, var_hi=1e-4)
     st.du[occ], st.dv[occ] = rng.uniform(-0.5, 0.5, (2, occ.sum()))
     new = VehicleState.from_ypr([1.0, 0.3, -0.2], np.deg2rad([1.0, -0.5, 2.0]), 0.1)
     noise = ProcessNoise(0.02, 0.01, 1e-5)
@@ -373,12 +380,7 @@ def test_map_config_rejects_bad_no_fill_bits():
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
 def test_numba_and_numpy_fused_maps_agree_on_a_random_state():
     rng = np.random.default_rng(5)
-    c = cam(96, 72)
-    st = InverseRangeState.empty(c, pose(), 0.0)
-    occ = rng.random(st.shape) < 0.8
-    st.rho[occ] = rng.uniform(0.0, 0.3, occ.sum())
-    st.var[occ] = rng.uniform(1e-7, 1e-2, occ.sum())
-    st.a[occ], st.b[occ] = rng.uniform(1, 6, occ.sum()), rng.uniform(0.5, 3, occ.sum())
+    st, _ = _random_state(cam(96, 72), rng, rho_lo=0.0, var_hi=1e-2)
     st.flags[...] = rng.choice([0, LOW_TEXTURE, ILL_CONDITIONED, 2 | 4], st.shape)
     st.rho_far = 0.01
     m0, m1 = (fused_map(st, MapConfig(), kernels=k) for k in (False, True))
