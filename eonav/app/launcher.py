@@ -189,6 +189,13 @@ class Proc:
     def name(self):
         return self.spec.name
 
+    def schedule_restart(self, now: float) -> float:
+        """Count one more restart and set it due after the back-off (0.5 s doubling to 10 s); returns the delay."""
+        delay = min(BACKOFF_MAX_S, BACKOFF_INITIAL_S * 2 ** self.restarts)
+        self.restarts += 1
+        self.state, self.next_start_mono = "restarting", now + delay
+        return delay
+
 
 SETTLED = ("done", "failed", "config_error", "missing", "disabled", "stopped")
 
@@ -310,9 +317,7 @@ class Supervisor:
                     log.error("service %s exited %s; %s", p.name, rc,
                               "restart disabled" if not p.spec.restart else f"gave up after {p.restarts} restarts")
                 else:
-                    delay = min(BACKOFF_MAX_S, BACKOFF_INITIAL_S * 2 ** p.restarts)
-                    p.restarts += 1
-                    p.state, p.next_start_mono = "restarting", now + delay
+                    delay = p.schedule_restart(now)
                     log.warning("service %s exited %s; restart %d/%d in %.1f s", p.name, rc, p.restarts,
                                 p.spec.max_restarts, delay)
             elif p.state == "restarting" and now >= p.next_start_mono:
@@ -421,9 +426,7 @@ class EmbeddedRouter:
             self._health("error", f"router gave up after {p.restarts} restarts")
             log.error("embedded router: gave up after %d restarts", p.restarts)
             return
-        delay = min(BACKOFF_MAX_S, BACKOFF_INITIAL_S * 2 ** p.restarts)
-        p.restarts += 1
-        p.state, p.next_start_mono = "restarting", now + delay
+        delay = p.schedule_restart(now)
         self._health("degraded", f"down {now - self.down_since:.1f} s; restart {p.restarts}/"
                                  f"{p.spec.max_restarts} in {delay:.1f} s")
         log.warning("embedded router: restart %d/%d in %.1f s", p.restarts, p.spec.max_restarts, delay)
