@@ -46,11 +46,6 @@ def confirmed_pole(cfg, n=10, rng=None):
     return tr, n
 
 
-def along_ray_sigma(t):
-    los = (t.x[:3] - LENS) / np.linalg.norm(t.x[:3] - LENS)
-    return float(math.sqrt(los @ t.P[:3, :3] @ los)), los
-
-
 def test_see_through_threshold_both_sides_hand_derived():
     """A measurement farther than the track along the ray by e: below k sigma (of the predicted track, along the
     ray) a plain Kalman update; above, the same update with R + (k e)^2 l l^T; nearer: plain whatever e."""
@@ -202,7 +197,8 @@ def test_bench_id_stability_breakdown_counts_each_cause():
     frames = [([(1, near, z)], [near]), ([(1, near, z)], [near]), ([(1, off, z)], [off]), ([(1, near, z)], [near]),
               ([(2, near, z)], [near]), ([], [off]), ([(1, off, z)], []), ([(1, off, z)], [off])]
     rec = [{"stamp_us": us(k / RATE_HZ), "state": st, "scene": scene, "visible_px": {0: 100}, "confirmed": c,
-            "measured": meas, "n_measurements": len(meas), "n_obstacles": len(meas)} for k, (c, meas) in enumerate(frames)]
+            "measured": meas, "n_measurements": len(meas), "n_obstacles": len(meas)}
+           for k, (c, meas) in enumerate(frames)]
     b = B.score(rec, RATE_HZ)["boxes"]["pole"]
     assert (b["frames_in_view"], b["main_id"], b["id_stability"]) == (8, 1, pytest.approx(3 / 8))
     assert (b["main_off"], b["main_gone_other"], b["main_gone_none"], b["measured"]) == (3, 1, 1, 4)
