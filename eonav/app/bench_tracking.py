@@ -21,9 +21,11 @@ Per box (ground truth: the renderer's object ids and the solid box):
 - represented by a confirmed track in a frame when the track's position lies within ``max(2 m, 5 % of the
   distance)`` of the solid box;
 - confirmation delay: from the first frame in view to the first frame represented;
+- measured: a measurement of the map (``measurements_from_obstacles``) lies within that tolerance of the box;
 - id stability: of the frames in view after the first represented one, the fraction in which its most frequent
   track id is among the tracks representing it (``ids_used`` counts every id that ever did: duplicates and
-  replacements);
+  replacements); the frames without the main id are split by cause: the main track is live but off by more than the
+  tolerance (range error), it is not live and another track represents the box, or no track does;
 - a confirmed track that never came near any box is false; false confirmed tracks per minute of flight; a false
   track that lies within 1 m of the ground (or below it) is a ground track;
 - time to contact (head-on): the guidance threat (``eonav.obstacles.tracking.assess``, ``nearest_threat``) against
@@ -33,7 +35,7 @@ Per box (ground truth: the renderer's object ids and the solid box):
 - velocity (moving): over the frames from 1 s after a mover's track is confirmed, |v_track - v_true| / |v_true|.
 
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
-        [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0]
+        [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
 """
 from __future__ import annotations
 
@@ -215,7 +217,8 @@ def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, t
                     "confirmed": [(t.id, R.T @ t.x[:3], R.T @ t.x[3:]) for t in tracker.confirmed()],
                     "surface": {tv.track.id: (tv.surface_distance_m, tv.closing_speed_mps) for tv in views},
                     "threat": None if threat is None else (threat.track.id, threat.time_to_contact_s),
-                    "n_measurements": len(meas), "n_obstacles": len(ob.obstacles)})
+                    "n_measurements": len(meas), "n_obstacles": len(ob.obstacles),
+                    "measured": [R.T @ mm.position_ned_m for mm in meas]})
     return rec, t_track
 
 
@@ -231,7 +234,8 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Sce
     docstring)."""
     if not rec:
         return {}
-    per_box = defaultdict(lambda: {"first_in_view_us": None, "first_confirmed_us": None, "ids": []})
+    per_box = defaultdict(lambda: {"first_in_view_us": None, "first_confirmed_us": None, "ids": [], "tracked": [],
+                                   "measured": []})
     near_box_ids, all_ids, ground_ids = set(), set(), set()
     for r in rec:
         pos = r["state"].position_ned_m
@@ -256,10 +260,13 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Sce
                 s["first_confirmed_us"] = r["stamp_us"]
             if s["first_confirmed_us"] is not None:
                 s["ids"].append(reps)
+                s["tracked"].append({tid for tid, _, _ in r["confirmed"]})
+                s["measured"].append(any(box_distance(b, z) <= tol for z in r.get("measured", ())))
     boxes = {}
     for name, s in per_box.items():
         counts = Counter(i for reps in s["ids"] for i in reps)
         main = counts.most_common(1)[0] if counts else (None, 0)
+        lost = [(main[0] in live, bool(reps)) for reps, live in zip(s["ids"], s["tracked"]) if main[0] not in reps]
         boxes[name] = {
             "frames_in_view": len(s["ids"]),
             "confirm_delay_s": (None if s["first_confirmed_us"] is None
@@ -267,6 +274,13 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Sce
             "id_stability": main[1] / len(s["ids"]) if s["ids"] else 0.0,
             "ids_used": len(counts),
             "main_id": main[0],
+            # the frames of id_stability without the main id, by cause: the main track is live but farther than the
+            # tolerance (range error), it is not live (not yet born or deleted) and another track represents the
+            # box, or no track does; and the frames with a measurement of the box within the tolerance
+            "main_off": sum(1 for live, _ in lost if live),
+            "main_gone_other": sum(1 for live, other in lost if not live and other),
+            "main_gone_none": sum(1 for live, other in lost if not live and not other),
+            "measured": sum(s["measured"]),
         }
     minutes = (rec[-1]["stamp_us"] - rec[0]["stamp_us"]) * 1e-6 / 60.0 + 1.0 / rate_hz / 60.0
     false_ids = all_ids - near_box_ids
@@ -338,6 +352,10 @@ def add_arguments(p) -> None:
     p.add_argument("--slope-deg", type=float, default=5.0, metavar="DEG", help="the slope scenario's ground slope")
     p.add_argument("--min-fused", type=int, default=SERVICE_OBSTACLES.min_fused,
                    help="ObstacleConfig.min_fused: fused-map pixels need this many measurements")
+    p.add_argument("--see-through-k", type=float, default=TrackerConfig().see_through_k, metavar="K",
+                   help="TrackerConfig.see_through_k: farther measurements bearing-only beyond K track sigma (0: off)")
+    p.add_argument("--duplicate-chi2", type=float, default=TrackerConfig().duplicate_chi2, metavar="D2",
+                   help="TrackerConfig.duplicate_chi2: merge confirmed tracks within this 6-dof d^2 (0: off)")
     p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
@@ -346,10 +364,13 @@ def main(argv=None) -> int:
     add_arguments(p)
     args = p.parse_args(argv)
     ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused)
+    tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2)
     print(f"obstacle config: {ocfg}")
+    print(f"tracker: see_through_k {tcfg.see_through_k:g}, duplicate_chi2 {tcfg.duplicate_chi2:g}")
     for maps in [s for s in args.maps.split(",") if s]:
         for name in [s for s in args.scenarios.split(",") if s]:
-            report(scenario(name, args.duration_s, args.slope_deg), args.rate_hz, args.size, maps, args.seed, ocfg)
+            report(scenario(name, args.duration_s, args.slope_deg), args.rate_hz, args.size, maps, args.seed, ocfg,
+                   tcfg)
     return 0
 
 
@@ -358,10 +379,11 @@ def _pct(errs, q):
     return float(np.percentile(a, q, method="nearest")) if a.size else math.nan
 
 
-def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict:
+def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
+           tcfg: TrackerConfig = TrackerConfig()) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
-    rec, tt = track_maps(range_maps(sc, rate, size, maps, seed), sc, ocfg)
+    rec, tt = track_maps(range_maps(sc, rate, size, maps, seed), sc, ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
@@ -370,7 +392,9 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
     for bname, b in sorted(s["boxes"].items()):
         delay = "never" if b["confirm_delay_s"] is None else f"{b['confirm_delay_s']:.2f} s"
         print(f"  {bname:9s} confirmed after {delay:>7s}; id stable in {100 * b['id_stability']:5.1f} % of "
-              f"{b['frames_in_view']} frames ({b['ids_used']} id(s))")
+              f"{b['frames_in_view']} frames ({b['ids_used']} id(s)); without it: {b['main_off']} off by more than "
+              f"the tolerance, {b['main_gone_other']} another id, {b['main_gone_none']} none; measured within the "
+              f"tolerance in {b['measured']}")
     print(f"  false confirmed tracks: {s['false_confirmed']} ({s['false_per_min']:.1f} per minute), "
           f"{s['false_ground']} of them on the ground")
     if "ttc" in s:

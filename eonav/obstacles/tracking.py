@@ -26,6 +26,12 @@ map's ``FieldOfView``: in view and unobstructed = a miss; out of view (behind, o
 distance), occluded (the map sees something nearer at its pixel) or without data there = coasting (prediction
 only: the covariance grows, no miss counted).
 
+Two options, off by default (docs/guidance.md has what they do on the benchmark): ``see_through_k`` > 0 makes a
+measurement that lies farther than a confirmed track along its own ray by more than k of the track's sigma there a
+bearing-only measurement for that track (its range variance grows by (k e)^2, e the excess): a matching window
+wider than a thin object ranges its background. ``duplicate_chi2`` > 0 merges two confirmed tracks whose position and
+velocity agree within that d^2 into the older id.
+
 Life cycle: tentative -> confirmed after ``confirm_hits`` hits; a tentative track dies at its first miss or when not
 confirmed within ``confirm_window_s``; a confirmed track dies after ``max_misses`` consecutive misses, after
 ``max_coast_s`` without a hit, or when its position 1-sigma exceeds ``max_position_sigma_m``.
@@ -55,6 +61,7 @@ VISIBLE, OUT_OF_VIEW, OCCLUDED, NO_DATA = "visible", "out_of_view", "occluded", 
 TENTATIVE, CONFIRMED, COASTING = "tentative", "confirmed", "coasting"
 CHI2_3_999 = 16.266                  # 3-dof chi-square, 99.9 %
 CHI2_3_99 = 11.345                   # 3-dof chi-square, 99 %
+CHI2_6_99 = 16.812                   # 6-dof chi-square, 99 %
 
 
 def _positive(name, v, allow_zero=False):
@@ -85,6 +92,10 @@ class TrackerConfig:
     nav_sigma_m: float = 0.2
     min_range_rel_sigma: float = 0.002     # floor of the range 1-sigma, relative to range
     merge_gap_m: float = 0.5               # obstacles of one list whose boxes come this close are one (0: off)
+    see_through_k: float = 0.0             # a measurement farther than a confirmed track along its ray by more
+                                           # than this many of the track's sigma saw past it: bearing only (0: off)
+    duplicate_chi2: float = 0.0            # two confirmed tracks this close in position and velocity (d^2 of
+                                           # their state difference, 6 dof; CHI2_6_99): one, the older id kept (0: off)
     # visibility
     edge_margin_px: float = 1.0            # map pixels: a track projected this close to the edge is out of view
     occlusion_rel: float = 0.08            # nearer than (1 - this) x_c (and 3 sigma, and the depth extent): the
@@ -97,6 +108,8 @@ class TrackerConfig:
             _positive(name, getattr(self, name))
         for name in ("extent_fraction", "attitude_sigma_rad", "nav_sigma_m", "min_range_rel_sigma",
                      "edge_margin_px", "merge_gap_m"):
+            _positive(name, getattr(self, name), allow_zero=True)
+        for name in ("see_through_k", "duplicate_chi2"):
             _positive(name, getattr(self, name), allow_zero=True)
         for name in ("confirm_hits", "max_misses", "confidence_window"):
             v = getattr(self, name)
@@ -131,9 +144,14 @@ class Measurement:
     pixel_count: int = 0                    # supporting pixels (frame pixels)
     confidence: float = 1.0                 # the estimator's median confidence over those pixels
     camera_id: str = ""
+    lens_ned_m: np.ndarray | None = None    # the camera's lens centre (the ray's origin); None: no see-through test
 
     def __post_init__(self):
         self.position_ned_m = _vec("measurement position_ned_m", self.position_ned_m)
+        if self.lens_ned_m is not None:
+            self.lens_ned_m = _vec("measurement lens_ned_m", self.lens_ned_m)
+            if not np.linalg.norm(self.position_ned_m - self.lens_ned_m) > 0:
+                raise InputError("measurement lens_ned_m: must differ from position_ned_m (the ray's origin)")
         self.extent_ned_m = _vec("measurement extent_ned_m", self.extent_ned_m)
         c = np.asarray(self.cov_ned_m2, float)
         # symmetric as np.allclose(c, c.T, rtol=1e-9, atol=1e-12) would say, without its per-call overhead
@@ -173,7 +191,8 @@ def merge_fragments(measurements, gap_m: float) -> list:
         d = p[idx] - pos
         cov = np.einsum("i,ijk->jk", w, np.stack([meas[i].cov_ned_m2 for i in idx])) + (d * w[:, None]).T @ d
         out.append(Measurement(pos, cov, hi[idx].max(0) - lo[idx].min(0), int(sum(meas[i].pixel_count for i in idx)),
-                               float(w @ [meas[i].confidence for i in idx]), meas[idx[0]].camera_id))
+                               float(w @ [meas[i].confidence for i in idx]), meas[idx[0]].camera_id,
+                               meas[idx[0]].lens_ned_m))
     return out
 
 
@@ -231,6 +250,7 @@ def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, 
     fw, fh = (camera.width, camera.height) if not frame_size or not any(frame_size) else map(int, frame_size)
     fx, fy = camera.fx * fw / camera.width, camera.fy * fh / camera.height       # focal lengths in frame pixels
     R = R_ned_cam(camera, state)
+    lens = lens_ned_m(camera, state)
     out = []
     for o in obstacles:
         p = _vec(f"obstacle {o.id} position_ned_m", o.position_ned_m)
@@ -251,7 +271,7 @@ def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, 
         # camera_covariance takes pixels of ``camera``: convert the frame-pixel sigmas
         cov = camera_covariance(p, camera, state, s_range, s_u * camera.width / fw, s_v * camera.height / fh)
         cov = cov + cfg.nav_sigma_m ** 2 * np.eye(3)
-        out.append(Measurement(p, cov, ext, int(o.pixel_count), float(o.confidence), camera_id))
+        out.append(Measurement(p, cov, ext, int(o.pixel_count), float(o.confidence), camera_id, lens))
     return merge_fragments(out, cfg.merge_gap_m)
 
 
@@ -404,10 +424,10 @@ class Tracker:
             t.x, t.P = predict_state(t.x, t.P, (stamp_us - t.stamp_us) * 1e-6, cfg)
             t.stamp_us = stamp_us
         pairs = self._associate(meas)
-        paired_t = {i for i, _ in pairs}
-        paired_m = {j for _, j in pairs}
-        for i, j in pairs:
-            self._correct(self._tracks[i], meas[j], stamp_us)
+        paired_t = {i for i, _, _ in pairs}
+        paired_m = {j for _, j, _ in pairs}
+        for i, j, R in pairs:
+            self._correct(self._tracks[i], meas[j], stamp_us, R)
         for i, t in enumerate(self._tracks):
             if i in paired_t:
                 continue
@@ -419,6 +439,7 @@ class Tracker:
             else:
                 t.last_outcome = outcome
         self._tracks = [t for t in self._tracks if not self._dead(t, stamp_us)]
+        self._merge_duplicates()
         for j, m in enumerate(meas):
             if j not in paired_m:
                 self._tracks.append(self._new_track(m, stamp_us))
@@ -446,29 +467,88 @@ class Tracker:
         return out
 
     def _associate(self, meas) -> list:
+        """[(track index, measurement index, the measurement's covariance for that pair)]."""
         if not self._tracks or not meas:
             return []
         xs = np.stack([t.x[:3] for t in self._tracks])                     # (nt, 3)
         Ps = np.stack([t.P[:3, :3] for t in self._tracks])                 # (nt, 3, 3)
         zs = np.stack([m.position_ned_m for m in meas])                    # (nm, 3)
-        Rs = np.stack([m.cov_ned_m2 for m in meas])                        # (nm, 3, 3)
-        S = Ps[:, None] + Rs[None]                                         # (nt, nm, 3, 3)
+        Rs = np.broadcast_to(np.stack([m.cov_ned_m2 for m in meas])[None], (len(xs), len(meas), 3, 3))
+        Rs = self._see_through(Rs, xs, Ps, zs, meas)                       # (nt, nm, 3, 3)
+        S = Ps[:, None] + Rs                                               # (nt, nm, 3, 3)
         y = zs[None] - xs[:, None]                                         # (nt, nm, 3)
         d2 = np.einsum("ijk,ijk->ij", y, np.linalg.solve(S, y[..., None])[..., 0])
         cost = d2 + np.linalg.slogdet(S)[1]
         inside = d2 <= self.cfg.gate_chi2
         big = 1e6 + np.abs(cost[inside]).max() if inside.any() else 1e6
         rows, cols = linear_sum_assignment(np.where(inside, cost, big))
-        return [(int(i), int(j)) for i, j in zip(rows, cols) if inside[i, j]]
+        return [(int(i), int(j), Rs[i, j]) for i, j in zip(rows, cols) if inside[i, j]]
 
-    def _correct(self, t: Track, m: Measurement, stamp_us: int) -> None:
+    def _see_through(self, Rs, xs, Ps, zs, meas) -> np.ndarray:
+        """The measurement covariance per (track, measurement) pair. A measurement that lies farther than a
+        confirmed track along its own ray by e > ``see_through_k`` sigma (the track's position sigma along that ray)
+        saw past the object (a matching window wider than a thin object ranges its background; the map's own sigma
+        does not cover that): its range says nothing of the track, its bearing still does, so its variance along
+        the ray grows by (k e)^2. Nearer measurements are used as they are (the conservative side)."""
+        k = self.cfg.see_through_k
+        has_lens = np.array([m.lens_ned_m is not None for m in meas])
+        confirmed = np.array([t.confirmed for t in self._tracks])
+        if k <= 0 or not has_lens.any() or not confirmed.any():
+            return Rs
+        lens = np.stack([m.lens_ned_m if m.lens_ned_m is not None else m.position_ned_m - np.array([1.0, 0.0, 0.0])
+                         for m in meas])
+        los = zs - lens
+        los /= np.linalg.norm(los, axis=1, keepdims=True)                  # (nm, 3) unit rays
+        excess = np.einsum("jk,ijk->ij", los, zs[None] - xs[:, None])      # (nt, nm) > 0: measurement farther
+        var = np.einsum("jk,ikl,jl->ij", los, Ps, los)                     # the track's variance along the ray
+        far = (excess > k * np.sqrt(var)) & confirmed[:, None] & has_lens[None]
+        if not far.any():
+            return Rs
+        grow = np.where(far, (k * excess) ** 2, 0.0)
+        return Rs + grow[..., None, None] * np.einsum("jk,jl->jkl", los, los)[None]
+
+    def _merge_duplicates(self) -> None:
+        """Two confirmed tracks whose states differ by d^2 = dx^T (P_a + P_b)^-1 dx <= ``duplicate_chi2`` (6 dof:
+        position and velocity) are one object seen twice (a re-born track beside the one it replaces, fragments the
+        list did not merge): one track stays, under the older id, with the state of the better-measured of the two
+        (smaller position covariance) and the newer of their detections."""
+        if self.cfg.duplicate_chi2 <= 0:
+            return
+        conf = [t for t in self._tracks if t.confirmed]        # birth order: the older first
+        gone = set()
+        for n, a in enumerate(conf):
+            if a.id in gone:
+                continue
+            for b in conf[n + 1:]:
+                if b.id in gone:
+                    continue
+                dx = b.x - a.x
+                try:
+                    d2 = float(dx @ np.linalg.solve(a.P + b.P, dx))
+                except np.linalg.LinAlgError:
+                    continue
+                if d2 > self.cfg.duplicate_chi2:
+                    continue
+                if np.trace(b.P[:3, :3]) < np.trace(a.P[:3, :3]):
+                    a.x, a.P, a.extent_ned_m = b.x.copy(), b.P.copy(), b.extent_ned_m.copy()
+                if b.last_hit_us > a.last_hit_us:
+                    a.last_hit_us, a.misses, a.last_outcome = b.last_hit_us, b.misses, b.last_outcome
+                    a.pixel_count, a.measurement_confidence, a.camera_id = (b.pixel_count, b.measurement_confidence,
+                                                                            b.camera_id)
+                a.hits = max(a.hits, b.hits)
+                gone.add(b.id)
+        if gone:
+            self._tracks = [t for t in self._tracks if t.id not in gone]
+
+    def _correct(self, t: Track, m: Measurement, stamp_us: int, R: np.ndarray | None = None) -> None:
         cfg = self.cfg
+        R = m.cov_ned_m2 if R is None else R
         H = np.hstack([np.eye(3), np.zeros((3, 3))])
-        S = t.P[:3, :3] + m.cov_ned_m2
+        S = t.P[:3, :3] + R
         K = t.P[:, :3] @ np.linalg.inv(S)
         t.x = t.x + K @ (m.position_ned_m - t.x[:3])
         IKH = np.eye(6) - K @ H
-        t.P = IKH @ t.P @ IKH.T + K @ m.cov_ned_m2 @ K.T              # Joseph form: stays symmetric, PSD
+        t.P = IKH @ t.P @ IKH.T + K @ R @ K.T                          # Joseph form: stays symmetric, PSD
         t.P = 0.5 * (t.P + t.P.T)
         t.hits += 1
         t.misses = 0
