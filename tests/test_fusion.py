@@ -12,7 +12,7 @@ from eonav.fusion.schedule import ScheduleConfig
 from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
 from eonav.fusion.state import InverseRangeState, optional_kernels
 from eonav.fusion.update import UpdateConfig, update
-from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, TRUNCATION, VALID
+from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 
 NO_NOISE = ProcessNoise(0.0, 0.0, 0.0)
 PATHS = [False] + ([True] if optional_kernels() is not None else [])
@@ -431,12 +431,43 @@ def test_a_disagreeing_cell_takes_a_tight_plane_of_its_neighbours_not_a_loose_on
     assert not ((tight.flags[dis] & FILLED) != 0).any()
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_empty_cells_at_the_image_border_are_extrapolated_unless_textureless(kernels):
+    # the converged plane rho = 0.05 + 0.0004 u - 0.0003 v with its last 6 columns empty (content that entered the
+    # view, not measured yet; last pair ILL_CONDITIONED): the 4 columns within border_px (4) of the border take the
+    # plane's own rho, the 2 further in (5-6 px from the border, outside the support: an extrapolation) do not,
+    # but in the top and bottom 4 rows, which are in the ring too; none
+    # with border_px 0, nor where the last pair saw no texture (LOW_TEXTURE: may be sky)
+    c = cam(64, 48)
+    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
+    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
+    st = planar_state(c, plane, var=1e-8)
+    strip = (slice(None), slice(58, 64))
+    st.rho[strip], st.var[strip], st.a[strip], st.b[strip], st.n[strip] = np.nan, np.inf, 0.0, 0.0, 0
+    for bits, cfg, cols in ((ILL_CONDITIONED, MapConfig(), slice(60, 64)), (ILL_CONDITIONED, MapConfig(border_px=0), None),
+                            (LOW_TEXTURE, MapConfig(), None)):
+        st.flags[...] = 0
+        st.flags[strip] = bits
+        m = fused_map(st, cfg, kernels=kernels)
+        filled = (m.flags & FILLED) != 0
+        if cols is None:
+            assert not filled[strip].any()
+            continue
+        assert filled[:, cols].all() and not filled[4:-4, 58:60].any()     # (rows < 4 from top / bottom: ring)
+        np.testing.assert_allclose(m.inv_range_per_m[:, cols], plane[:, cols], rtol=1e-3)
+        assert ((m.flags[:, cols] & OUT_OF_VIEW) == 0).all()      # the flag the fill saw is not reported
+        assert (m.inv_range_std_per_m[:, cols] < 0.34 * plane[:, cols]).all()
+
+
 def test_map_config_rejects_bad_no_fill_bits():
     with pytest.raises(InputError, match="no_fill"):
         MapConfig(no_fill=256)
     for bad in (-0.01, 0.5, float("nan")):                # above max_rel_std (0.34): looser than the rule itself
         with pytest.raises(InputError, match="contested_rel_std"):
             MapConfig(contested_rel_std=bad)
+    for bad in (-1, 2.5):
+        with pytest.raises(InputError, match="border_px"):
+            MapConfig(border_px=bad)
 
 
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")

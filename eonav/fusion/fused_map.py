@@ -20,7 +20,9 @@ sigma). Two kinds of cell are contested -- those whose evidence disagrees, and e
 OCCLUDED (``NO_FILL_FUSED``: hidden in its image b, behind a nearer surface) -- and the neighbours' plane stands in
 for them only where it is far tighter than the rule (relative sigma within ``contested_rel_std``): there the cell's
 neighbourhood is one surface whose plane the stream has pinned down; a looser plane there mixes the two sides of
-the edge that hides or contradicts the cell, and its sigma does not say so.
+the edge that hides or contradicts the cell, and its sigma does not say so. An empty cell within ``border_px`` of
+the image border (content that entered the view and no pair has measured yet) is extrapolated to like a pixel out
+of view of b -- the neighbours' plane carried on for those few pixels -- unless it is LOW_TEXTURE (may be sky).
 """
 from __future__ import annotations
 
@@ -57,6 +59,7 @@ class MapConfig:
     slant_px: float = 1.5          # spread (px) of the window's effective centre: sigma^2 += slant_px^2 |grad rho|^2
     no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells contested (module docstring)
     contested_rel_std: float = 0.05  # largest relative sigma of a contested cell's fill (0: never filled)
+    border_px: int = 4             # empty cells this near the image border are extrapolated to (0: not)
 
     def __post_init__(self):
         if not 0 < self.eta_inlier < 1:
@@ -67,6 +70,8 @@ class MapConfig:
             raise InputError(f"fused map: slant_px must be a finite number >= 0, got {self.slant_px!r}")
         if not (math.isfinite(self.contested_rel_std) and 0 <= self.contested_rel_std <= self.max_rel_std):
             raise InputError(f"fused map: contested_rel_std must be in [0, max_rel_std], got {self.contested_rel_std!r}")
+        if not (isinstance(self.border_px, int) and self.border_px >= 0):
+            raise InputError(f"fused map: border_px must be a whole number of pixels >= 0, got {self.border_px!r}")
         if not (isinstance(self.no_fill, int) and 0 <= self.no_fill <= 255):
             raise InputError(f"fused map: no_fill must be flag bits (an integer 0..255), got {self.no_fill!r}")
 
@@ -154,13 +159,30 @@ def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude
     n_filled = 0
     if cfg.fill:
         strict = (exclude | ((flags & np.uint8(cfg.no_fill)) != 0)) if cfg.contested_rel_std > 0 else None
+        edge = _border_cells(state, flags, cfg) if cfg.border_px else None
+        if edge is not None:
+            flags[edge] |= np.uint8(OUT_OF_VIEW)          # for the fill only: extrapolated to
         n_filled = fill_unmeasured(rho, std, flags, rng, conf, cfg.max_rel_std, rho_far=state.rho_far,
                                    exclude=exclude, no_fill=cfg.no_fill, strict=strict,
                                    strict_rel_std=cfg.contested_rel_std)
+        if edge is not None:
+            flags[edge] &= np.uint8(~OUT_OF_VIEW & 0xFF)
     size = max(rho.size, 1)
     info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(np.count_nonzero(exclude)) / size,
             "filled_fraction": n_filled / size, "n_fused": state.n.copy()}
     return make_result(rho, std, flags, rng, conf, METHOD, int(n_val), int(n_inf), info)
+
+
+def _border_cells(state, flags, cfg):
+    """Empty cells within cfg.border_px of the image border, not yet out of view, with no LOW_TEXTURE and none of
+    the contested bits (bool H x W), or None."""
+    h, w = flags.shape
+    k = min(cfg.border_px, h, w)
+    ring = np.zeros((h, w), np.bool_)
+    ring[:k], ring[h - k:], ring[:, :k], ring[:, w - k:] = True, True, True, True
+    bad = np.uint8(VALID | OUT_OF_VIEW | LOW_TEXTURE | cfg.no_fill)
+    edge = ring & ((flags & bad) == 0) & ~np.isfinite(state.rho)
+    return edge if edge.any() else None
 
 
 def _reusable(r: RangeResult, shape) -> bool:
