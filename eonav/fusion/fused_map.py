@@ -41,8 +41,8 @@ from eonav.fusion.update import (UpdateConfig, counts_dict, kernel_params, measu
                                  update_rho_far)
 
 METHOD = "fused"
-# empty cells never filled: those the last measurement saw hidden in its image b (a depth edge, where a plane
-# through the neighbours mixes two surfaces). Not TRUNCATION, which a single pair does not fill either: in the
+# empty cells contested (filled only from a plane tighter than contested_rel_std): those the last measurement saw
+# hidden in its image b (a depth edge, where a loose plane through the neighbours mixes two surfaces). Not TRUNCATION, which a single pair does not fill either: in the
 # fused map it is one pair's verdict on its own Gauss-Newton step, and the fill's sigma (the plane's residual and
 # its disagreement across scales) judges the neighbours, which the stream has converged
 NO_FILL_FUSED = OCCLUDED
@@ -174,15 +174,21 @@ def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude
 
 
 def _border_cells(state, flags, cfg):
-    """Empty cells within cfg.border_px of the image border, not yet out of view, with no LOW_TEXTURE and none of
-    the contested bits (bool H x W), or None."""
+    """(rows, columns) of the empty cells within cfg.border_px of the image border, not yet out of view, with no
+    LOW_TEXTURE and none of the contested bits, or None. Only the border strips are read."""
     h, w = flags.shape
-    k = min(cfg.border_px, h, w)
-    ring = np.zeros((h, w), np.bool_)
-    ring[:k], ring[h - k:], ring[:, :k], ring[:, w - k:] = True, True, True, True
+    k = min(cfg.border_px, (h + 1) // 2, (w + 1) // 2)
     bad = np.uint8(VALID | OUT_OF_VIEW | LOW_TEXTURE | cfg.no_fill)
-    edge = ring & ((flags & bad) == 0) & ~np.isfinite(state.rho)
-    return edge if edge.any() else None
+    ys, xs = [], []
+    for r0, r1, c0, c1 in ((0, k, 0, w), (h - k, h, 0, w), (k, h - k, 0, k), (k, h - k, w - k, w)):
+        if r1 <= r0 or c1 <= c0:
+            continue
+        y, x = np.nonzero(((flags[r0:r1, c0:c1] & bad) == 0) & ~np.isfinite(state.rho[r0:r1, c0:c1]))
+        ys.append(y + r0)
+        xs.append(x + c0)
+    if not ys or not sum(len(y) for y in ys):
+        return None
+    return np.concatenate(ys), np.concatenate(xs)
 
 
 def _reusable(r: RangeResult, shape) -> bool:
