@@ -96,23 +96,27 @@ def merge(p, v, lev, b, c, xp, yp, pk, vk, lk, bk, ck, xc, yc, lev_max):
 
 
 def to_pixels(p, v, lev, b, c, xs, ys, xp, yp, g1, ref, flags, no_fill, exclude, use_exclude, max_rel_std, rho_far,
-              lev_max, rho, std, rng, conf):
+              lev_max, strict, use_strict, strict_rel_std, rho, std, rng, conf):
     """Every pixel's fill from its cell's plane (in units of ref) carried to it, kept where sigma <= max_rel_std rho,
     rho >= rho_far, the pixel is not VALID, has none of the no_fill bits, is not excluded, and lies within the
     support (leverage <= lev_max) or out of view of b (not occluded): rho, std, range, confidence written and FILLED
-    set. Returns the number filled."""
+    set; a pixel of ``strict`` (use_strict) regardless of its no_fill bits and exclusion, within strict_rel_std.
+    Returns the number filled."""
     shape = rho.shape
     p, v, lev, b, c = (_up(a, shape, g1) for a in (p, v, lev, b, c))
     rho_f = (p + _along(b, c, xs, ys, xp, yp, g1)) * ref
     std_f = np.sqrt(v) * abs(ref)
+    st = np.broadcast_to(strict, shape) if use_strict else np.zeros(shape, bool)
+    lim = np.where(st, np.float32(strict_rel_std), np.float32(max_rel_std))
     with np.errstate(invalid="ignore"):
-        keep = (std_f <= max_rel_std * rho_f) & (rho_f >= rho_far)
+        keep = (std_f <= lim * rho_f) & (rho_f >= rho_far)
         inside = lev <= lev_max
-    keep &= (flags & (np.uint8(VALID) | no_fill)) == 0
+    may = (flags & (np.uint8(VALID) | no_fill)) == 0
+    if use_exclude:
+        may &= ~exclude
+    keep &= np.where(st, (flags & np.uint8(VALID)) == 0, may)
     inside |= (flags & np.uint8(OUT_OF_VIEW | OCCLUDED)) == np.uint8(OUT_OF_VIEW)
     keep &= inside
-    if use_exclude:
-        keep &= ~exclude
     np.copyto(rho, rho_f, where=keep)
     np.copyto(std, std_f, where=keep)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -229,3 +229,36 @@ def test_fill_kernels_match_reference_where_the_noise_floor_binds(monkeypatch):
     # / n) (measured 0.25-0.32 %; without the floor the plane's float rounding alone: 0-0.07 %)
     rel = s1[hole] / rho[hole]
     assert rel.min() > 0.0024 and rel.max() < 0.0035, (rel.min(), rel.max())
+
+
+def test_strict_pixels_are_filled_only_within_their_own_limit_by_kernels_and_reference(turning, monkeypatch):
+    """A caller's strict pixels (here the OCCLUDED ones, never filled otherwise) are filled despite their no_fill
+    bits, but only where the fill's relative sigma is within strict_rel_std; the other pixels exactly as without
+    the mask. Kernels and reference agree."""
+    sp, _ = turning
+    bare = locate_dense(*sp.views[:2], fill=False)
+    occ = (bare.flags & OCCLUDED) != 0
+    runs = {}
+    for reference in (False, True):
+        if reference:
+            fill_reference.use_reference(monkeypatch)
+        for lim in (0.0, 0.05, 0.34):
+            arrs = [a.copy() for a in (bare.inv_range_per_m, bare.inv_range_std_per_m, bare.flags, bare.range_m,
+                                       bare.confidence)]
+            n = fill_unmeasured(*arrs, max_rel_std=0.34, rho_far=1e-4, strict=occ if lim else None,
+                                strict_rel_std=lim)
+            runs[reference, lim] = n, arrs
+    for lim in (0.05, 0.34):
+        (n1, a1), (n0, a0) = runs[False, lim], runs[True, lim]
+        assert abs(n1 - n0) <= 1e-3 * n0
+        f1, f0 = (a1[2] & FILLED) != 0, (a0[2] & FILLED) != 0
+        assert (f1 & occ).sum() > 20 and abs(int((f1 & occ).sum()) - int((f0 & occ).sum())) <= 5
+        assert (a1[1][f1 & occ] <= lim * a1[0][f1 & occ] * (1 + 1e-6)).all()
+        plain = (runs[False, 0.0][1][2] & FILLED) != 0               # the others: as without a strict mask
+        np.testing.assert_array_equal(f1 & ~occ, plain)
+    # both sides of the limit: 0.05 keeps a part of what 0.34 fills, the rest has a sigma between them
+    tight, loose = (((runs[False, lim][1][2] & FILLED) != 0) & occ for lim in (0.05, 0.34))
+    assert (tight <= loose).all() and 0 < tight.sum() < loose.sum()
+    a = runs[False, 0.34][1]
+    rel = a[1][loose & ~tight] / a[0][loose & ~tight]
+    assert (rel > 0.05 * (1 - 1e-6)).all() and (rel <= 0.34 * (1 + 1e-6)).all()

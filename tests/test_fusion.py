@@ -12,7 +12,7 @@ from eonav.fusion.schedule import ScheduleConfig
 from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
 from eonav.fusion.state import InverseRangeState, optional_kernels
 from eonav.fusion.update import UpdateConfig, update
-from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, TRUNCATION, VALID
+from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 
 NO_NOISE = ProcessNoise(0.0, 0.0, 0.0)
 PATHS = [False] + ([True] if optional_kernels() is not None else [])
@@ -347,19 +347,22 @@ def test_slant_term_of_a_tilted_plane_and_at_a_depth_edge_derived_by_hand(kernel
 
 
 @pytest.mark.parametrize("kernels", PATHS)
-def test_an_empty_cell_is_filled_from_converged_neighbours_unless_its_last_pair_saw_it_occluded(kernels):
+def test_an_empty_cell_is_filled_from_converged_neighbours_and_an_occluded_one_only_from_a_tight_plane(kernels):
     # a converged plane rho = 0.05 + 0.0004 u - 0.0003 v with a 6 x 6 hole of empty cells: the fill's plane through
     # the neighbours gives the hole the plane's own rho (FILLED, a finite sigma); the hole's last measurement
-    # flagged TRUNCATION (one pair's verdict on its step): filled; OCCLUDED (a depth edge in that pair): not filled,
-    # nor TRUNCATION when the config names it too
+    # flagged TRUNCATION (one pair's verdict on its step): filled; OCCLUDED (contested): filled too, the plane
+    # being exact (relative sigma ~0 <= contested_rel_std), but not when contested cells are never filled
+    # (contested_rel_std 0), nor TRUNCATION when the config names it among the contested bits then
     c = cam(64, 48)
     vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
     plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
     st = planar_state(c, plane, var=1e-8)
     hole = (slice(20, 26), slice(30, 36))
     st.rho[hole], st.var[hole], st.a[hole], st.b[hole], st.n[hole] = np.nan, np.inf, 0.0, 0.0, 0
-    for bits, cfg, filled in ((TRUNCATION, MapConfig(), True), (OCCLUDED, MapConfig(), False),
-                              (TRUNCATION, MapConfig(no_fill=OCCLUDED | TRUNCATION), False)):
+    never = dict(contested_rel_std=0.0)
+    for bits, cfg, filled in ((TRUNCATION, MapConfig(), True), (OCCLUDED, MapConfig(), True),
+                              (OCCLUDED, MapConfig(**never), False),
+                              (TRUNCATION, MapConfig(no_fill=OCCLUDED | TRUNCATION, **never), False)):
         st.flags[...] = 0
         st.flags[hole] = bits
         m = fused_map(st, cfg, kernels=kernels)
@@ -372,9 +375,99 @@ def test_an_empty_cell_is_filled_from_converged_neighbours_unless_its_last_pair_
             assert not ((got & FILLED) != 0).any() and not np.isfinite(m.range_m[hole]).any()
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_cell_occluded_beside_a_depth_edge_is_not_filled_from_the_plane_across_it(kernels):
+    # a wall at 10 m (rho 0.10, columns < 32) in front of a background at 20 m (0.05); the last pair saw the 6
+    # background columns beside the edge hidden (OCCLUDED), as a nearer surface hides what is behind it. The
+    # neighbours' plane spans both sides: it puts the hole between them, 1.4-1.8 x too near, with a relative sigma
+    # (its residual) of ~0.16 -- inside the rule for an unmeasured cell (0.34), yet the truth (0.05) is ~2 of those
+    # sigmas away. Contested, it is filled only from a plane tighter than contested_rel_std: left empty at 0.05,
+    # filled (and wrong) when the limit is the rule's own
+    c = cam(64, 48)
+    rho = np.where(np.arange(64)[None, :] < 32, 0.10, 0.05).astype(np.float32) * np.ones((48, 1), np.float32)
+    st = planar_state(c, rho, var=1e-8)
+    hole = (slice(18, 30), slice(32, 38))
+    st.rho[hole], st.var[hole], st.a[hole], st.b[hole], st.n[hole] = np.nan, np.inf, 0.0, 0.0, 0
+    st.flags[hole] = OCCLUDED
+    m = fused_map(st, MapConfig(), kernels=kernels)
+    assert not ((m.flags[hole] & FILLED) != 0).any() and not np.isfinite(m.range_m[hole]).any()
+    loose = fused_map(st, MapConfig(contested_rel_std=0.34), kernels=kernels)
+    r, sd = loose.inv_range_per_m[hole], loose.inv_range_std_per_m[hole]
+    assert ((loose.flags[hole] & FILLED) != 0).all()
+    assert (r > 1.3 * 0.05).all() and 0.05 < np.median(sd / r) <= 0.34
+    assert np.median(np.abs(r - 0.05) / sd) > 1.5          # the mixed plane's sigma does not cover its error
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_disagreeing_cell_takes_a_tight_plane_of_its_neighbours_not_a_loose_one(kernels):
+    # a 4 x 4 block of cells whose evidence disagrees (a/(a+b) = 1/6), their own rho 1.5 x the truth, inside a
+    # converged plane: no range of their own (ILL_CONDITIONED); the exact plane of the neighbours (relative sigma
+    # ~0.3 %) stands in for them, with the truth's rho; with noisy neighbours (2 % per cell, so the plane's
+    # scatter gives a sigma well above a 0.1 % limit) they stay empty
+    c = cam(64, 48)
+    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
+    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
+    dis = (slice(20, 24), slice(30, 34))
+    st = planar_state(c, plane, var=1e-8)
+    st.rho[dis] = 1.5 * plane[dis]
+    st.a[dis], st.b[dis] = 1.0, 5.0
+    for cfg, filled in ((MapConfig(), True), (MapConfig(contested_rel_std=0.0), False)):
+        m = fused_map(st, cfg, kernels=kernels)
+        got = m.flags[dis]
+        assert ((got & ILL_CONDITIONED) != 0).all() and not ((got & VALID) != 0).any()
+        if filled:
+            assert ((got & FILLED) != 0).all()
+            np.testing.assert_allclose(m.inv_range_per_m[dis], plane[dis], rtol=1e-3)
+            assert (m.inv_range_std_per_m[dis] < 0.05 * plane[dis]).all()
+        else:
+            assert not ((got & FILLED) != 0).any() and not np.isfinite(m.range_m[dis]).any()
+    noisy = planar_state(c, plane * (1 + 0.02 * np.random.default_rng(3).standard_normal(plane.shape)).astype(
+        np.float32), var=(0.02 * plane) ** 2)
+    noisy.rho[dis] = 1.5 * plane[dis]
+    noisy.a[dis], noisy.b[dis] = 1.0, 5.0
+    loose = fused_map(noisy, MapConfig(), kernels=kernels)
+    assert ((loose.flags[dis] & FILLED) != 0).all()                  # 2 % noise: the plane is still within 5 %
+    tight = fused_map(noisy, MapConfig(contested_rel_std=0.001), kernels=kernels)
+    assert not ((tight.flags[dis] & FILLED) != 0).any()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_empty_cells_at_the_image_border_are_extrapolated_unless_textureless(kernels):
+    # the converged plane rho = 0.05 + 0.0004 u - 0.0003 v with its last 6 columns empty (content that entered the
+    # view, not measured yet; last pair ILL_CONDITIONED): the 4 columns within border_px (4) of the border take the
+    # plane's own rho, the 2 further in (5-6 px from the border, outside the support: an extrapolation) do not,
+    # but in the top and bottom 4 rows, which are in the ring too; none
+    # with border_px 0, nor where the last pair saw no texture (LOW_TEXTURE: may be sky)
+    c = cam(64, 48)
+    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
+    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
+    st = planar_state(c, plane, var=1e-8)
+    strip = (slice(None), slice(58, 64))
+    st.rho[strip], st.var[strip], st.a[strip], st.b[strip], st.n[strip] = np.nan, np.inf, 0.0, 0.0, 0
+    for bits, cfg, cols in ((ILL_CONDITIONED, MapConfig(), slice(60, 64)), (ILL_CONDITIONED, MapConfig(border_px=0), None),
+                            (LOW_TEXTURE, MapConfig(), None)):
+        st.flags[...] = 0
+        st.flags[strip] = bits
+        m = fused_map(st, cfg, kernels=kernels)
+        filled = (m.flags & FILLED) != 0
+        if cols is None:
+            assert not filled[strip].any()
+            continue
+        assert filled[:, cols].all() and not filled[4:-4, 58:60].any()     # (rows < 4 from top / bottom: ring)
+        np.testing.assert_allclose(m.inv_range_per_m[:, cols], plane[:, cols], rtol=1e-3)
+        assert ((m.flags[:, cols] & OUT_OF_VIEW) == 0).all()      # the flag the fill saw is not reported
+        assert (m.inv_range_std_per_m[:, cols] < 0.34 * plane[:, cols]).all()
+
+
 def test_map_config_rejects_bad_no_fill_bits():
     with pytest.raises(InputError, match="no_fill"):
         MapConfig(no_fill=256)
+    for bad in (-0.01, 0.5, float("nan")):                # above max_rel_std (0.34): looser than the rule itself
+        with pytest.raises(InputError, match="contested_rel_std"):
+            MapConfig(contested_rel_std=bad)
+    for bad in (-1, 2.5):
+        with pytest.raises(InputError, match="border_px"):
+            MapConfig(border_px=bad)
 
 
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")

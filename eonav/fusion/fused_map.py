@@ -16,8 +16,13 @@ within 2 sigma of 0 and 2 sigma below the state's far limit). A cell whose evide
 (no range: never a confident range where the measurements contradict each other); an empty cell keeps the last
 measurement's reason bits (LOW_TEXTURE, OUT_OF_VIEW, OCCLUDED, ...). Then, as a single pair does, pixels without a
 fused range are filled from the VALID ones around them (``eonav.ranging.methods.fill``, flagged FILLED, with their own
-sigma); cells whose evidence disagrees are not filled, nor empty cells the last measurement saw OCCLUDED
-(``NO_FILL_FUSED``).
+sigma). Two kinds of cell are contested -- those whose evidence disagrees, and empty cells the last measurement saw
+OCCLUDED (``NO_FILL_FUSED``: hidden in its image b, behind a nearer surface) -- and the neighbours' plane stands in
+for them only where it is far tighter than the rule (relative sigma within ``contested_rel_std``): there the cell's
+neighbourhood is one surface whose plane the stream has pinned down; a looser plane there mixes the two sides of
+the edge that hides or contradicts the cell, and its sigma does not say so. An empty cell within ``border_px`` of
+the image border (content that entered the view and no pair has measured yet) is extrapolated to like a pixel out
+of view of b -- the neighbours' plane carried on for those few pixels -- unless it is LOW_TEXTURE (may be sky).
 """
 from __future__ import annotations
 
@@ -36,8 +41,8 @@ from eonav.fusion.update import (UpdateConfig, counts_dict, kernel_params, measu
                                  update_rho_far)
 
 METHOD = "fused"
-# empty cells never filled: those the last measurement saw hidden in its image b (a depth edge, where a plane
-# through the neighbours mixes two surfaces). Not TRUNCATION, which a single pair does not fill either: in the
+# empty cells contested (filled only from a plane tighter than contested_rel_std): those the last measurement saw
+# hidden in its image b (a depth edge, where a loose plane through the neighbours mixes two surfaces). Not TRUNCATION, which a single pair does not fill either: in the
 # fused map it is one pair's verdict on its own Gauss-Newton step, and the fill's sigma (the plane's residual and
 # its disagreement across scales) judges the neighbours, which the stream has converged
 NO_FILL_FUSED = OCCLUDED
@@ -52,7 +57,9 @@ class MapConfig:
     max_rel_std: float = 0.34      # largest relative sigma of a VALID cell (the dense method's rule)
     fill: bool = True              # fill the cells without a fused range from the VALID ones around them
     slant_px: float = 1.5          # spread (px) of the window's effective centre: sigma^2 += slant_px^2 |grad rho|^2
-    no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells never filled (module docstring)
+    no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells contested (module docstring)
+    contested_rel_std: float = 0.05  # largest relative sigma of a contested cell's fill (0: never filled)
+    border_px: int = 4             # empty cells this near the image border are extrapolated to (0: not)
 
     def __post_init__(self):
         if not 0 < self.eta_inlier < 1:
@@ -61,6 +68,10 @@ class MapConfig:
             raise InputError(f"fused map: max_rel_std must be > 0, got {self.max_rel_std!r}")
         if not (math.isfinite(self.slant_px) and self.slant_px >= 0):
             raise InputError(f"fused map: slant_px must be a finite number >= 0, got {self.slant_px!r}")
+        if not (math.isfinite(self.contested_rel_std) and 0 <= self.contested_rel_std <= self.max_rel_std):
+            raise InputError(f"fused map: contested_rel_std must be in [0, max_rel_std], got {self.contested_rel_std!r}")
+        if not (isinstance(self.border_px, int) and self.border_px >= 0):
+            raise InputError(f"fused map: border_px must be a whole number of pixels >= 0, got {self.border_px!r}")
         if not (isinstance(self.no_fill, int) and 0 <= self.no_fill <= 255):
             raise InputError(f"fused map: no_fill must be flag bits (an integer 0..255), got {self.no_fill!r}")
 
@@ -144,13 +155,40 @@ def _outputs(shape, reuse):
 
 
 def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude) -> RangeResult:
-    # a cell whose measurements disagree gets no range from its neighbours either
-    n_filled = (fill_unmeasured(rho, std, flags, rng, conf, cfg.max_rel_std, rho_far=state.rho_far,
-                                exclude=exclude, no_fill=cfg.no_fill) if cfg.fill else 0)
+    # a cell whose measurements disagree, or that the last pair saw hidden, is filled only by a tight plane
+    n_filled = 0
+    if cfg.fill:
+        strict = (exclude | ((flags & np.uint8(cfg.no_fill)) != 0)) if cfg.contested_rel_std > 0 else None
+        edge = _border_cells(state, flags, cfg) if cfg.border_px else None
+        if edge is not None:
+            flags[edge] |= np.uint8(OUT_OF_VIEW)          # for the fill only: extrapolated to
+        n_filled = fill_unmeasured(rho, std, flags, rng, conf, cfg.max_rel_std, rho_far=state.rho_far,
+                                   exclude=exclude, no_fill=cfg.no_fill, strict=strict,
+                                   strict_rel_std=cfg.contested_rel_std)
+        if edge is not None:
+            flags[edge] &= np.uint8(~OUT_OF_VIEW & 0xFF)
     size = max(rho.size, 1)
     info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(np.count_nonzero(exclude)) / size,
             "filled_fraction": n_filled / size, "n_fused": state.n.copy()}
     return make_result(rho, std, flags, rng, conf, METHOD, int(n_val), int(n_inf), info)
+
+
+def _border_cells(state, flags, cfg):
+    """(rows, columns) of the empty cells within cfg.border_px of the image border, not yet out of view, with no
+    LOW_TEXTURE and none of the contested bits, or None. Only the border strips are read."""
+    h, w = flags.shape
+    k = min(cfg.border_px, (h + 1) // 2, (w + 1) // 2)
+    bad = np.uint8(VALID | OUT_OF_VIEW | LOW_TEXTURE | cfg.no_fill)
+    ys, xs = [], []
+    for r0, r1, c0, c1 in ((0, k, 0, w), (h - k, h, 0, w), (k, h - k, 0, k), (k, h - k, w - k, w)):
+        if r1 <= r0 or c1 <= c0:
+            continue
+        y, x = np.nonzero(((flags[r0:r1, c0:c1] & bad) == 0) & ~np.isfinite(state.rho[r0:r1, c0:c1]))
+        ys.append(y + r0)
+        xs.append(x + c0)
+    if not ys or not sum(len(y) for y in ys):
+        return None
+    return np.concatenate(ys), np.concatenate(xs)
 
 
 def _reusable(r: RangeResult, shape) -> bool:

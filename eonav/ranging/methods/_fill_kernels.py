@@ -51,11 +51,13 @@ def cell_sums(rho, std, flags, xs, ys, g1, n, sr, sx, sy, sv):
 
 @njit(**_JIT)
 def to_pixels(p, v, lev, b, c, xs, ys, xp, yp, g1, ref, flags, no_fill, exclude, use_exclude, max_rel_std, rho_far,
-              lev_max, rho, std, rng, conf):
+              lev_max, strict, use_strict, strict_rel_std, rho, std, rng, conf):
     """Every pixel without a measurement that may be filled (not VALID, none of the no_fill bits, not excluded)
     takes its cell's plane (p, v, lev, b, c in units of ref, at the cell centres xp, yp) carried to the pixel
     (xs, ys); kept where sigma <= max_rel_std rho, rho >= rho_far and (leverage <= lev_max or the pixel is out of
-    view of b, not occluded): rho, std, range, confidence written and FILLED set. Returns the number filled."""
+    view of b, not occluded): rho, std, range, confidence written and FILLED set. A pixel of ``strict`` (when
+    use_strict) is filled whatever its no_fill bits and exclusion, but only where sigma <= strict_rel_std rho.
+    Returns the number filled."""
     h, w = rho.shape
     hc, wc = p.shape
     nf = 0
@@ -64,9 +66,12 @@ def to_pixels(p, v, lev, b, c, xs, ys, xp, yp, g1, ref, flags, no_fill, exclude,
         dy = ys[y] - yp[cy]
         for x in range(w):
             f = flags[y, x]
-            if (f & (_VALID | no_fill)) != 0:
-                continue
-            if use_exclude and exclude[y, x]:
+            lim = max_rel_std
+            if use_strict and strict[y, x]:
+                if (f & _VALID) != 0:
+                    continue
+                lim = strict_rel_std
+            elif (f & (_VALID | no_fill)) != 0 or (use_exclude and exclude[y, x]):
                 continue
             cx = min(x >> g1, wc - 1)
             pc = p[cy, cx]
@@ -74,7 +79,7 @@ def to_pixels(p, v, lev, b, c, xs, ys, xp, yp, g1, ref, flags, no_fill, exclude,
                 continue
             rf = np.float32((pc + b[cy, cx] * (xs[x] - xp[cx]) + c[cy, cx] * dy) * ref)
             sf = np.float32(math.sqrt(v[cy, cx]) * abs(ref))
-            if not (sf <= max_rel_std * rf) or not (rf >= rho_far):
+            if not (sf <= lim * rf) or not (rf >= rho_far):
                 continue
             if not (lev[cy, cx] <= lev_max) and (f & _OOV_OCC) != _OOV:
                 continue

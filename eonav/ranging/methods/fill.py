@@ -141,7 +141,7 @@ def _cells(rho, flags, std, g1: int):
 
 
 def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: float = 0.0, exclude=None,
-                    no_fill: int = NO_FILL) -> int:
+                    no_fill: int = NO_FILL, strict=None, strict_rel_std: float = 0.0) -> int:
     """In place on a method's outputs: every pixel without a measurement (not VALID, not OCCLUDED or TRUNCATION)
     whose fill has a relative sigma within max_rel_std (the rule VALID pixels meet) gets the filled rho, its sigma,
     range 1/rho, confidence rho/sigma and the FILLED flag (its other flags say why it was not measured). Only a
@@ -151,14 +151,18 @@ def fill_unmeasured(rho, std, flags, rng, conf, max_rel_std: float, rho_far: flo
     pixels not to fill (the dense method's infinity test: a point at infinity explains them as well). rho_far:
     nothing is filled farther than this (the pair's far limit: beyond it a finite range means nothing; a fill
     among sky pixels at infinity took a tiny rho). no_fill: the flag bits of pixels never filled (default
-    ``NO_FILL``). Returns the number of pixels filled."""
+    ``NO_FILL``). strict: pixels (bool) filled whatever their no_fill bits and ``exclude`` say, but only within
+    the tighter strict_rel_std (a caller's contested pixels: a neighbours' plane may stand in for them only where
+    it is far tighter than the rule). Returns the number of pixels filled."""
     cells = _cells(rho, flags, std, FIRST_OCTAVE)
     if cells is None:
         return 0
     (p, v, lev, b, c, xp, yp), ref, xs, ys = cells
     ex = exclude if exclude is not None else np.zeros((1, 1), bool)
+    sx = strict if strict is not None else np.zeros((1, 1), bool)
     return int(_K.to_pixels(p, v, lev, b, c, xs, ys, xp, yp, FIRST_OCTAVE, F32(ref), flags, np.uint8(no_fill), ex,
-                            exclude is not None, F32(max_rel_std), F32(rho_far), F32(LEV_MAX), rho, std, rng, conf))
+                            exclude is not None, F32(max_rel_std), F32(rho_far), F32(LEV_MAX), sx, strict is not None,
+                            F32(strict_rel_std), rho, std, rng, conf))
 
 
 __all__ = ["fill_unmeasured", "MIN_SUPPORT", "NO_FILL"]
