@@ -38,7 +38,7 @@ def _sample(img_f32: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return cv2.remap(img_f32, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
 
 
-def fit_brightness(img_a: np.ndarray, img_b: np.ndarray, tracks: Tracks | None = None, *, window: int = 11,
+def fit_brightness(img_a: np.ndarray, img_b: np.ndarray, tracks: Tracks | None = None, *, window: int = 7,
                    min_points: int = 30, min_spread: float = 8.0, max_gain_ratio: float = 1.5,
                    min_change: float = 2.0) -> BrightnessFit:
     """Robust affine brightness I_a ~ gain I_b + offset between two grey images (module docstring).
