@@ -198,3 +198,18 @@ def test_pose_sigma_term_against_a_numerical_derivative_of_the_map():
     expect = np.sqrt(0.002 ** 2 + (0.5 / sens) ** 2)
     inner = (slice(4, -4), slice(4, -4))
     assert np.allclose(r.inv_range_std_per_m[inner], expect[inner], rtol=0.02)
+
+
+def test_bench_reason_for_a_pair_without_output():
+    # camera b 0.5 m to the right of a (R = I), a wall 5 m ahead: every pixel moves f b / 5 = 8 px along the row
+    from eonav.app.bench_fuse import no_output_reason
+    cam = Camera("c", 64, 48, 80.0, 80.0, 31.5, 23.5)
+    a = View(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((48, 64), np.float32))
+    b = View(cam, VehicleState.from_ypr([0, 0.5, 0], [0, 0, 0]), np.zeros((48, 64), np.float32))
+    truth = np.full((48, 64), 5.0, np.float32)
+    truth[:4] = np.nan
+    why = no_output_reason(a, b, truth, SimpleNamespace(info={"flow_sigma_px": 37.0}))
+    assert "baseline 0.500 m, rotation 0.0 deg" in why and "true motion median 8 px (90 % 8 px)" in why
+    assert f"{100 * (64 - 8) / 64:.0f} % of the pixels with truth still in view b" in why
+    assert "a robust 37 px off their epipolar lines" in why
+    assert "epipolar" not in no_output_reason(a, b, truth, SimpleNamespace(info={}))
