@@ -213,3 +213,30 @@ def test_bench_reason_for_a_pair_without_output():
     assert f"{100 * (64 - 8) / 64:.0f} % of the pixels with truth still in view b" in why
     assert "a robust 37 px off their epipolar lines" in why
     assert "epipolar" not in no_output_reason(a, b, truth, SimpleNamespace(info={}))
+
+
+@pytest.mark.parametrize("limit_px, frame2_used", [(0.5, False), (5.0, True)])
+def test_schedule_passes_over_a_frame_whose_pose_disagrees(limit_px, frame2_used):
+    # sim frames (exact poses: shifts ~0.05 px) with frame 2's attitude turned by 0.6 deg: its pairs' tracks lie
+    # f x 0.0105 ~ 1.3 px off their lines; below that limit frame 2 is nobody's partner, above it it is
+    from eonav.fusion.schedule import ScheduleConfig, Scheduler
+    from eonav.fusion.sequence import frame
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    from eonav.sim.sequence import render_sequence
+    seq = render_sequence("fast", n_frames=5, rate_hz=30.0, size=160, seed=0)
+    views = list(seq.views)
+    views[2] = _rotated(views[2], 0.6)
+    expect = views[2].camera.fx * np.radians(0.6)
+    sch = Scheduler(ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01), max_pose_shift_px=limit_px))
+    partners = {}
+    for k, v in enumerate(views):
+        ms, _ = sch.offer(frame("cam", v, 1_000_000 + 33_333 * k, k))
+        partners[k] = [m.b.seq for m in ms]
+    used = any(2 in p for p in partners.values())
+    assert used == frame2_used, partners
+    hist = list(sch._hist["cam"])
+    assert partners[3] and partners[4]                    # the frames after it still find partners
+    assert [sch.pose_ok(f) for f in hist] == [True, True, frame2_used, True, True]
+    shifts = [sch._shift[id(f)][1] for f in hist]
+    assert 0.7 * expect < shifts[2] < 1.3 * expect and 0.7 * expect < shifts[3] < 1.3 * expect
+    assert shifts[1] < 0.2 and shifts[4] < 0.2

@@ -51,13 +51,15 @@ def sim_case(name, n_frames, rate_hz, size, seed=0):
                    [r.object_id for r in seq.truth], ("vehicle1", "vehicle2", "vehicle3") if name == "paper" else ())
 
 
-def indoor_config(pair_checks: bool = True):
+def indoor_config(pair_checks: bool = True, max_pose_shift_px: float = 0.75):
     """The pair policy judged at an indoor reference range (3 m; the default 50 m sees no parallax indoors); the
-    headset's tracked poses and auto-exposed images with the measurement's pair checks (``eonav.fusion.measure``)."""
+    headset's tracked poses and auto-exposed images with the measurement's pair checks (``eonav.fusion.measure``)
+    and no partner whose pose disagrees with its neighbours' images by more than ``max_pose_shift_px``."""
     from eonav.fusion.schedule import ScheduleConfig
     from eonav.fusion.sequence import FusionConfig
     from eonav.ranging.pair_policy import PairPolicyConfig
-    return FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(ref_range_m=3.0)), pair_checks=pair_checks)
+    return FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(ref_range_m=3.0),
+                                                max_pose_shift_px=max_pose_shift_px), pair_checks=pair_checks)
 
 
 def hololens_case(data):
