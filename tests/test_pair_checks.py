@@ -177,6 +177,14 @@ def test_real_indoor_sequence_frame0_pose_is_the_inconsistent_one():
         return pose_shift_px(pair_geometry(views[k], views[j]), track_points(views[k].image, views[j].image))
     assert shift(1, 0) > 0.8 and shift(3, 0) > 0.6
     assert shift(2, 1) < 0.3 and shift(4, 3) < 0.3
+    # the indoor schedule passes over frame 0 and over no other frame
+    from eonav.app.bench_fuse import indoor_config
+    from eonav.fusion.schedule import Scheduler
+    from eonav.fusion.sequence import frame
+    sch = Scheduler(indoor_config().schedule)
+    for k, v in enumerate(views):
+        sch.offer(frame("hololens", v, int(round(v.state.t_s * 1e6)), k))
+    assert [f.seq for f in sch._hist["hololens"] if not sch.pose_ok(f)] == [0]
 
 
 def test_pose_sigma_term_against_a_numerical_derivative_of_the_map():
