@@ -6,7 +6,11 @@ One dense measurement per frame and camera (the locator's budget), its partner t
 - ``wide``: the earlier frame within the same age and rotation limits with the most parallax (median translational
   disparity at the policy's reference range, ``pair_metrics``) up to ``wide_max_disparity_px``: the baseline
   far points need (a 185 m point a pixel of parallax in 0.17 s gets 5 px in 1 s);
-falling back to the other when one has no partner. With a stereo rig (``stereo_rig``: reference, partner camera
+falling back to the other when one has no partner. With ``max_pose_shift_px`` finite, each frame is checked
+against the camera's previous frame by sparse tracks (``eonav.ranging.tracks.pose_shift_px``: the image shift the
+pair's pose error puts on its matches, px) and a frame whose pose disagrees with its neighbours' images by more
+than that (the smaller of the shifts to the frame before and after it, the one known while it is the newest or
+the first) is no partner: one frame's pose error enters every pair it is in. With a stereo rig (``stereo_rig``: reference, partner camera
 ids) the reference camera's newest frame is also measured against the partner camera's frame of the same instant
 (``max_stereo_dt_s``), whichever of the two arrives second.
 """
@@ -14,11 +18,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from eonav import InputError
+from eonav.geometry.camera import View
 from eonav.ranging.pair_policy import (CAMERA_MISMATCH, HISTORY_RESET, OK_MOTION, OUT_OF_ORDER, PairPolicy,
                                       PairPolicyConfig, PosedFrameInfo, _probe_pixels, pair_metrics)
 
@@ -33,8 +38,11 @@ class ScheduleConfig:
     history: int = 48                     # frames kept per camera for the wide partner
     stereo_rig: tuple | None = None
     max_stereo_dt_s: float = 0.002
+    max_pose_shift_px: float = math.inf   # a frame whose pose disagrees with its neighbours' by more is no partner
 
     def __post_init__(self):
+        if not (self.max_pose_shift_px > 0):
+            raise InputError(f"fusion schedule: max_pose_shift_px must be > 0, got {self.max_pose_shift_px!r}")
         pat = tuple(self.pattern)
         if not pat or any(p not in (NEAR, WIDE) for p in pat):
             raise InputError(f"fusion schedule: pattern must be a non-empty sequence of {NEAR!r} / {WIDE!r}, got {self.pattern!r}")
@@ -72,6 +80,7 @@ class Scheduler:
         self._count: dict[str, int] = {}
         self._stereo_done: deque = deque(maxlen=64)
         self._poses: dict = {}        # id(frame) -> _cam_pose(frame), for the frames in a history (alive)
+        self._shift: dict = {}        # id(frame) -> (frame, pose shift to the frame before, to the frame after)
 
     def newest(self, camera_id: str) -> PosedFrameInfo | None:
         h = self._hist.get(camera_id)
@@ -111,6 +120,11 @@ class Scheduler:
         earlier = list(h)
         h.append(f)
         out = []
+        if math.isfinite(cfg.max_pose_shift_px):
+            self._check_pose(f, earlier[-1] if earlier else None)
+            earlier = [b for b in earlier if self.pose_ok(b)]
+            if d.reason == OK_MOTION and not self.pose_ok(d.b):
+                d = replace(d, reason="pose_shift")
         motion = self._motion(f, earlier, d if d.reason == OK_MOTION else None)
         if motion is not None:
             out.append(motion)
@@ -119,6 +133,29 @@ class Scheduler:
             if st is not None:
                 out.append(st)
         return out, d.reason
+
+    def _check_pose(self, f, prev) -> None:
+        """The pose shift between ``f`` and the camera's previous frame, kept as f's "before" and prev's "after"."""
+        from eonav.ranging.tracks import pose_shift_px, track_points
+        from eonav.geometry.camera import pair_geometry
+        s = math.nan
+        if prev is not None and isinstance(f.payload, View) and isinstance(prev.payload, View):
+            s = pose_shift_px(pair_geometry(f.payload, prev.payload), track_points(f.payload.image, prev.payload.image))
+        if len(self._shift) > 4 * self.config.history * max(len(self._hist), 1):
+            live = {id(x) for h in self._hist.values() for x in h}
+            self._shift = {k: v for k, v in self._shift.items() if k in live}
+        self._shift[id(f)] = (f, s, math.nan)
+        if prev is not None:
+            e = self._shift.get(id(prev))
+            self._shift[id(prev)] = (prev, e[1] if e is not None and e[0] is prev else math.nan, s)
+
+    def pose_ok(self, b) -> bool:
+        """Whether frame ``b``'s pose agrees with its neighbours' images (``max_pose_shift_px``; unknown: yes)."""
+        e = self._shift.get(id(b))
+        if e is None or e[0] is not b:
+            return True
+        known = [x for x in e[1:] if math.isfinite(x)]
+        return not known or min(known) <= self.config.max_pose_shift_px
 
     def _motion(self, f, earlier, near) -> Measurement | None:
         """near: the pair policy's decision (OK_MOTION) or None."""

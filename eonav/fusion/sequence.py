@@ -42,9 +42,14 @@ def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrame
     return PosedFrameInfo(str(camera_id), int(seq), int(stamp_us), view.camera, view.state, payload=view)
 
 
-def dense_measurement(view_a: View, view_b: View, **prior) -> RangeResult:
+def dense_measurement(view_a: View, view_b: View, pair_checks: bool = False, **prior) -> RangeResult:
     """The default measurement: the dense method, measured pixels only (the fused map fills once, at the end);
-    ``prior``: ``prior=(rho, sigma)`` on view a's grid (the predicted state) and its options (``locate_dense``)."""
+    ``pair_checks``: after the pair's brightness match and with its pose error in the sigma
+    (``eonav.fusion.measure``); ``prior``: ``prior=(rho, sigma)`` on view a's grid (the predicted state) and its
+    options (``locate_dense``)."""
+    if pair_checks:
+        from eonav.fusion.measure import checked_dense
+        return checked_dense(view_a, view_b, **prior)
     from eonav.ranging.methods.dense import locate_dense
     return locate_dense(view_a, view_b, fill=False, **prior)
 
@@ -85,6 +90,7 @@ class FusionConfig:
     output: MapConfig = field(default_factory=MapConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
+    pair_checks: bool = False          # the default measurement's brightness match and pose term (fusion/measure.py)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
 
     def __post_init__(self):
@@ -180,9 +186,10 @@ class FusionRunner:
             ref = m.a.camera_id
             t1 = time.perf_counter()
             prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
+            kw = {"pair_checks": True} if self.config.pair_checks and self.measure is dense_measurement else {}
             res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
-                                prior_min_fraction=prior[2])
-                   if prior is not None else self.measure(m.a.payload, m.b.payload))
+                                prior_min_fraction=prior[2], **kw)
+                   if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
             t2 = time.perf_counter()
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)

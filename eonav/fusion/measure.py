@@ -1,0 +1,79 @@
+"""The fusion's default measurement of a pair: the dense method (without its own fill) after two checks of the pair
+that one pair alone does not need but a filter fusing many does.
+
+1. Brightness (``eonav.ranging.photometric``): image b brought onto image a's brightness by a robust affine fit
+   (exposure / gain change), when the change is worth correcting.
+2. Pose (``eonav.ranging.tracks``): the shift s (px) that the pair's pose error puts on its sparse tracks, measured
+   across the epipolar lines. The dense method searches along the lines, so the same error along them moves its
+   match by about as much, at every pixel alike, whatever the texture: a pixel error its own sigma (image noise
+   through the window's gradients) does not hold. Every pixel's sigma of rho gets it in quadrature,
+
+       sigma^2 = sigma_dense^2 + (s / |d(u_b, v_b)/d rho|)^2,
+
+   the sensitivity of eqs. (25)-(26) at the measured rho (``add_pose_sigma``). A filter that took each
+   pair's sigma at its word would fuse the pairs' pose errors as if they were independent image noise: a pair of a
+   few pixels of parallax with a pixel of pose error would count as a good one.
+
+The tracks cost a few milliseconds per pair (``track_points``); the figures are in docs/methods.md.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from eonav.geometry.camera import View, pair_geometry
+from eonav.ranging.photometric import match_brightness
+from eonav.ranging.rangemap import RangeResult
+from eonav.ranging.tracks import pose_shift_px, track_points
+
+
+def add_pose_sigma(res: RangeResult, geo, shift_px: float) -> None:
+    """sigma^2 += (shift_px / sensitivity)^2 in ``res.inv_range_std_per_m`` (in place) at every pixel with a
+    finite rho; nothing when the shift is not finite or zero. The sensitivity is |C| / den^2 of ``EpipolarMap``:
+    C1 = fx_b (B1 A0 - B0 A1), C2 = fy_b (B2 A0 - B0 A2), den = A0 + B0 rho with A = R_ba m; A, and so C, are
+    affine in the pixel's (x_p / fx, y_p / fy), built here from a row and a column term."""
+    if not (math.isfinite(shift_px) and shift_px > 0):
+        return
+    h, w = res.inv_range_per_m.shape
+    ca, cb = geo.cam_a, geo.cam_b
+    R = np.asarray(geo.R_ba, float)
+    B = np.asarray(geo.t_ba_m, float)
+    m1 = ((np.arange(w) - ca.cx) / ca.fx)[None, :]
+    m2 = ((np.arange(h) - ca.cy) / ca.fy)[:, None]
+
+    def affine(k):            # k . [1, m1, m2] on the grid
+        return (np.float32(k[0]) + (k[1] * m1).astype(np.float32)) + (k[2] * m2).astype(np.float32)
+    c1 = affine(cb.fx * (B[1] * R[0] - B[0] * R[1]))
+    c2 = affine(cb.fy * (B[2] * R[0] - B[0] * R[2]))
+    a0 = affine(R[0])
+    rho = res.inv_range_per_m
+    std = res.inv_range_std_per_m
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        den = a0 + np.float32(B[0]) * rho
+        extra = np.float32(shift_px) * den * den / np.hypot(c1, c2)      # shift / (|C| / den^2)
+        np.copyto(std, np.sqrt(std * std + extra * extra).astype(np.float32),
+                  where=np.isfinite(rho) & np.isfinite(std) & (den > 0))
+
+
+def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_sigma: bool = True,
+                  **dense_params) -> RangeResult:
+    """The dense method on (a, b) without its fill, after the brightness match, its sigma with the pose term
+    (module docstring); ``res.info["pair_check"]``: the brightness fit and the pose shift."""
+    from eonav.ranging.methods.dense import locate_dense
+    tracks = track_points(view_a.image, view_b.image) if (brightness or pose_sigma) else None
+    check = {}
+    if brightness:
+        view_b, fit = match_brightness(view_a, view_b, tracks)
+        check.update(gain=fit.gain, offset=fit.offset, brightness_used=fit.used, brightness=fit.reason)
+    res = locate_dense(view_a, view_b, fill=False, **dense_params)
+    if pose_sigma:
+        geo = pair_geometry(view_a, view_b)
+        shift = pose_shift_px(geo, tracks)
+        add_pose_sigma(res, geo, shift)
+        check.update(pose_shift_px=shift, tracks=len(tracks))
+    res.info["pair_check"] = check
+    return res
+
+
+__all__ = ["checked_dense", "add_pose_sigma"]

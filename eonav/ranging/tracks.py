@@ -1,0 +1,120 @@
+"""Sparse point tracks between the two images of a pair, and what they say about the pair's known relative pose.
+
+Shi-Tomasi corners of image a tracked into image b by pyramidal Lucas-Kanade (OpenCV), kept where tracking back
+lands within ``fb_max_px`` of the start (forward-backward check). A correct relative pose puts every static point's
+match on its epipolar line (eqs. 25-26 for rho from 0 to infinity: a straight line in b); the distance of the
+matches from their lines measures the pose's error in pixels (``epipolar_residual_px``). The dense methods search
+along that line only, so a pose error shifts their matches by as much without their residual showing it: its robust
+spread (``pose_sigma_px``) is the pixel error a measurement of this pair shares, whatever its texture. (Its component
+along the lines, which changes the range, is not observed; it is taken to be as large.)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from eonav import InputError
+from eonav.geometry.camera import PairGeometry
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Matched points (n x 2, x y pixels) of image a and image b."""
+    pts_a: np.ndarray
+    pts_b: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pts_a)
+
+
+def _to_u8(img: np.ndarray) -> np.ndarray:
+    if img.dtype == np.uint8:
+        return img
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def track_points(img_a: np.ndarray, img_b: np.ndarray, *, max_points: int = 200, min_distance_px: int = 10,
+                 win_px: int = 15, levels: int = 3, fb_max_px: float = 0.5, max_side_px: int = 180) -> Tracks:
+    """Forward-backward checked Lucas-Kanade tracks of image a's corners into image b (grey, any sizes), on the
+    coarsest pyramid level whose shorter side is still at least ``max_side_px`` (points in level-0 pixels, pyrDown alignment:
+    level-L pixel x is level-0 pixel 2^L x; ``fb_max_px`` holds on that level)."""
+    if img_a.ndim != 2 or img_b.ndim != 2:
+        raise InputError(f"track_points: expected two grey images, got shapes {img_a.shape} and {img_b.shape}")
+    a8, b8 = _to_u8(img_a), _to_u8(img_b)
+    scale = 1
+    while min(*a8.shape, *b8.shape) // (2 * scale) >= max_side_px:
+        scale *= 2
+    for _ in range(scale.bit_length() - 1):     # track on a coarser level of a large image (pyrDown alignment)
+        a8, b8 = cv2.pyrDown(a8), cv2.pyrDown(b8)
+    pts = cv2.goodFeaturesToTrack(a8, maxCorners=max_points, qualityLevel=0.01,
+                                  minDistance=max(min_distance_px // scale, 3), blockSize=7)
+    if pts is None:
+        return Tracks(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32))
+    lk = dict(winSize=(win_px, win_px), maxLevel=levels,
+              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    pb, st, _ = cv2.calcOpticalFlowPyrLK(a8, b8, pts, None, **lk)
+    pa, st2, _ = cv2.calcOpticalFlowPyrLK(b8, a8, pb, None, **lk)
+    pts, pb, pa = pts.reshape(-1, 2), pb.reshape(-1, 2), pa.reshape(-1, 2)
+    hb, wb = b8.shape
+    ok = ((st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pa - pts, axis=1) <= fb_max_px)
+          & (pb[:, 0] >= 0) & (pb[:, 0] <= wb - 1) & (pb[:, 1] >= 0) & (pb[:, 1] <= hb - 1))
+    return Tracks((pts[ok] * scale).astype(np.float32), (pb[ok] * scale).astype(np.float32))
+
+
+def epipolar_residual_px(geo: PairGeometry, tracks: Tracks):
+    """(d, normal): signed distance (px of b) of each match from its point's epipolar line under the pair's pose
+    and the unit normal of that line (n x 2); NaN where the pose puts the point behind b or the pair has no
+    baseline. The line runs through the point's image at rho = 0, (cx + fx A1 / A0, cy + fy A2 / A0), along the
+    derivative of eqs. (25)-(26) there, (fx (B1 A0 - B0 A1), fy (B2 A0 - B0 A2)) (``EpipolarMap``'s C1, C2), with
+    A = R_ba m, m = [1, x_p / fx, y_p / fy], B = t_ba."""
+    ca, cb = geo.cam_a, geo.cam_b
+    pa, pb = tracks.pts_a.astype(np.float64), tracks.pts_b.astype(np.float64)
+    m = np.stack([np.ones(len(pa)), (pa[:, 0] - ca.cx) / ca.fx, (pa[:, 1] - ca.cy) / ca.fy])
+    A = np.asarray(geo.R_ba, float) @ m
+    B = np.asarray(geo.t_ba_m, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u0 = cb.cx + cb.fx * A[1] / A[0]
+        v0 = cb.cy + cb.fy * A[2] / A[0]
+        du = cb.fx * (B[1] * A[0] - B[0] * A[1])
+        dv = cb.fy * (B[2] * A[0] - B[0] * A[2])
+        n = np.hypot(du, dv)
+        normal = np.stack([dv / n, -du / n], axis=1)
+        d = (pb[:, 0] - u0) * normal[:, 0] + (pb[:, 1] - v0) * normal[:, 1]
+    ok = (A[0] > 1e-6) & (n > 1e-12 * max(cb.fx, cb.fy))
+    return np.where(ok, d, np.nan), np.where(ok[:, None], normal, np.nan)
+
+
+def pose_shift_px(geo: PairGeometry, tracks: Tracks, min_tracks: int = 20, min_share: float = 0.25) -> float:
+    """Length (px) of the image shift that the pair's pose error puts on its matches: the 2-vector s fitted
+    robustly (Tukey IRLS) to the matches' distances from their epipolar lines, d_i = n_i . s (n_i the lines' unit
+    normals). A small rotation error moves every point of b by about one shift; the tracks' own errors are
+    independent from point to point and average out of s (their spread, not s, grows with a wide baseline's
+    distortion). Where the lines are all nearly parallel (a sideways motion) only s's component across them is
+    seen: a direction whose share of the normal equations (eigenvalue / weights' sum) is below ``min_share`` is
+    left out of s instead of taking the noise's whim. NaN with fewer than ``min_tracks`` usable matches."""
+    if len(tracks) == 0:
+        return float("nan")
+    d, nrm = epipolar_residual_px(geo, tracks)
+    ok = np.isfinite(d)
+    d, nrm = d[ok], nrm[ok]
+    if d.size < min_tracks:
+        return float("nan")
+    w = np.ones_like(d)
+    s = np.zeros(2)
+    for _ in range(8):
+        ev, V = np.linalg.eigh((nrm * w[:, None]).T @ nrm)
+        rhs = V.T @ ((nrm * w[:, None]).T @ d)
+        keep = ev > min_share * w.sum()
+        s = V @ np.where(keep, rhs / np.where(keep, ev, 1.0), 0.0)
+        r = d - nrm @ s
+        sc = max(1.4826 * float(np.median(np.abs(r))), 0.05)
+        u = r / (4.685 * sc)
+        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        if w.sum() < min_tracks / 2:
+            return float("nan")
+    return float(np.hypot(*s))
+
+
+__all__ = ["Tracks", "track_points", "epipolar_residual_px", "pose_shift_px"]
