@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
 
 import numpy as np
@@ -71,6 +72,15 @@ def add_arguments(p):
     add_flag(p, "--fusion", env="EONAV_LOCATOR_FUSION", default="auto", choices=("auto", "on", "off"),
              help="fuse every camera's measurements over time into one inverse-range state per camera and publish "
                   "the fused map (eonav.fusion); auto: on with the dense method, off with the others")
+    add_flag(p, "--pair-checks", env="EONAV_LOCATOR_PAIR_CHECKS", action="store_true",
+             help="fusion with the dense method: check every measured pair first (eonav.fusion.measure): image b "
+                  "brought onto a's brightness when exposure changed, the pose error seen on sparse tracks added to "
+                  "the pair's sigma, and a frame whose pose disagrees with its neighbours' by more than "
+                  "--max-pose-shift-px never used as a partner. For real cameras and navigation whose pose errors "
+                  "reach a pixel; costs ~10-15 ms CPU per pair (docs/methods.md). Default off")
+    add_flag(p, "--max-pose-shift-px", env="EONAV_LOCATOR_MAX_POSE_SHIFT_PX", default=0.75, type=float, metavar="PX",
+             help="--pair-checks: a frame whose pose shifts its tracks with both neighbours by more than this "
+                  "(px across the epipolar lines) is no partner (default 0.75)")
     add_flag(p, "--max-input-age-ms", env="EONAV_LOCATOR_MAX_INPUT_AGE_MS", default=800.0, type=float,
              help="drop (count dropped.too_old) a posed frame older than this on arrival, and a range map whose frame "
                   "is older than this when it would be published (docs/bus.md, Staleness)")
@@ -321,14 +331,26 @@ def fusion_runner(args, params: dict):
     from eonav.fusion.sequence import FusionConfig, FusionRunner
     from eonav.ranging.locate import locate
     pol = policy_config(args)
+    checks = bool(args.pair_checks)
+    if checks and not args.max_pose_shift_px > 0:
+        raise InputError(f"--max-pose-shift-px must be > 0, got {args.max_pose_shift_px!r}")
     schedule = ScheduleConfig(policy=replace(pol, stereo_rig=None), stereo_rig=pol.stereo_rig,
-                              max_stereo_dt_s=pol.max_stereo_dt_s)
+                              max_stereo_dt_s=pol.max_stereo_dt_s,
+                              max_pose_shift_px=args.max_pose_shift_px if checks else math.inf)
     measure_params = dict(params, fill=False)
+    if checks:
+        from eonav.fusion.measure import checked_dense
+        dense_params = {k: v for k, v in measure_params.items() if k != "fill"}
+
+        def measure(va, vb, **prior):
+            return checked_dense(va, vb, **dense_params, **prior)
+    else:
+        def measure(va, vb, **prior):
+            return locate(va, vb, method=args.method, **measure_params, **prior)
     # fresh_measurements: the runner may write the fused map into a measurement's arrays (nothing else keeps them);
     # takes_prior: the dense method starts from the predicted state between full searches (FusionConfig.prior)
     return FusionRunner(FusionConfig(schedule=schedule), fresh_measurements=True, takes_prior=args.method == "dense",
-                        measure=CpuTimed(lambda va, vb, **prior: locate(va, vb, method=args.method, **measure_params,
-                                                                        **prior)))
+                        measure=CpuTimed(measure))
 
 
 class CpuTimed:

@@ -248,3 +248,47 @@ def test_schedule_passes_over_a_frame_whose_pose_disagrees(limit_px, frame2_used
     shifts = [sch._shift[id(f)][1] for f in hist]
     assert 0.7 * expect < shifts[2] < 1.3 * expect and 0.7 * expect < shifts[3] < 1.3 * expect
     assert shifts[1] < 0.2 and shifts[4] < 0.2
+
+
+@pytest.mark.parametrize("checks", [False, True])
+def test_locator_pair_checks_flag_drives_the_measure_and_the_schedule(checks):
+    # the locator service's --pair-checks: each measurement goes through the checks (its info says so) and the
+    # frame whose attitude is 0.6 deg off (~1.3 px on its tracks, above the 0.75 px default) is nobody's partner;
+    # without the flag the plain method measures and that frame is used
+    import argparse
+
+    from eonav.fusion.sequence import frame
+    from eonav.services import locator
+    from eonav.sim.sequence import render_sequence
+    p = argparse.ArgumentParser()
+    locator.add_arguments(p)
+    args = p.parse_args(["--min-disparity-px", "0.01"] + (["--pair-checks"] if checks else []))
+    runner = locator.fusion_runner(args, {})
+    seq = render_sequence("fast", n_frames=5, rate_hz=30.0, size=160, seed=0)
+    views = list(seq.views)
+    views[2] = _rotated(views[2], 0.6)
+    seen_info, partners = [], []
+    measure = runner.measure
+
+    def spy(va, vb, **kw):
+        res = measure(va, vb, **kw)
+        seen_info.append("pair_check" in res.info)
+        partners.append(next(i for i, v in enumerate(views) if v is vb))
+        return res
+    runner.measure = spy
+    for k, v in enumerate(views):
+        runner.push(frame("cam", v, 1_000_000 + 33_333 * k, k))
+    assert seen_info and all(s == checks for s in seen_info)
+    assert len(partners) >= 3 and (2 in partners) == (not checks), partners
+
+
+def test_locator_pair_checks_rejects_a_bad_limit():
+    import argparse
+
+    from eonav import InputError
+    from eonav.services import locator
+    p = argparse.ArgumentParser()
+    locator.add_arguments(p)
+    args = p.parse_args(["--pair-checks", "--max-pose-shift-px", "0"])
+    with pytest.raises(InputError, match="--max-pose-shift-px must be > 0"):
+        locator.fusion_runner(args, {})
