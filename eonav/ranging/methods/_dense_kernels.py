@@ -4,7 +4,8 @@
 ring of window-height term planes (the map into b, b's bilinear samples, the Huber-weighted normal-equation terms),
 and as soon as a row's window is complete its window sums (at the coarse levels the shiftable windows' choice,
 ``_shift_windows_row``), its update and (final step) its uncertainty, flags and classification follow. Nothing
-per pixel is written but the outputs. ``scharr`` and ``pack_b4p`` prepare a level (a's gradient; b with its
+per pixel is written but the outputs. With the slanted window (``dense._slant_shape``) the window sums hold two more
+terms and ``_slant_row`` takes the update. ``scharr`` and ``pack_b4p`` prepare a level (a's gradient; b with its
 gradient and a zero border as the warp source), ``residual_grid`` samples the residual for the noise estimate.
 The coarse epipolar search (``dense._search``) has its kernels here too (``search_*``).
 

@@ -403,7 +403,15 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     iters: Gauss-Newton iterations per level, finest level last (padded with its first entry if short).
     (3, 3, 1, 1) is ~8 % faster and as accurate on the sim presets, but leaves a 0.03 px disparity bias on
     the sub-pixel plane test (vs <= 0.011 px): level 1 needs its second iteration.
-    window: box window (level pixels, odd) of the normal equations. huber_k: Huber threshold in noise
+    window: box window (level pixels, odd) of the normal equations.
+    slant / slant_grad: the slanted window (``_slant_shape``) at levels 1 and 0: the window of centre c models
+    rho_j = rho_c + A_c (S_j - S_c), S the current estimate's window mean, instead of one rho for all its pixels,
+    which measures rho at the texture-weighted centre of the window, not at the pixel, wherever rho varies across
+    it (ground at grazing angles, slanted walls): an error tied to the texture, the same in every pair, that
+    temporal fusion cannot average. A_c = 1 where the relative gradient of rho stays within slant_grad (per pixel)
+    around c and 0 from twice that on: a depth edge keeps one rho per window. slant_grad 0.1, or 2^lev x 0.05 at
+    level lev, let depth edges pass as slopes and widened them; 0.03 gave back a third of the gain on the approach
+    flight. Figures in docs/methods.md. huber_k: Huber threshold in noise
     sigmas. trust_px: Levenberg trust term ~ a step of this many pixels of displacement per iteration.
     presmooth_sigma: Gaussian pre-smoothing of both images (pixels). 0.6 measured best overall (sim medians
     fast/paper 0.64/0.78 % at 0.8 -> 0.59/0.72 %; 0.4 and below trade a higher 90th percentile and worse
@@ -444,9 +452,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     trunc_px: TRUNCATION where the last update still moves the match by more than this (level-0 px): the
     step past which the first-order model is not trusted (at 0.5 px, 17-30 % of sim pixels were flagged
     with a median error of 1 %, since the reported estimate is the one after that step).
-    std_scale: calibration factor of the reported sigma: 1.35 = the measured robust spread of
-    (rho - rho_true) / sigma on the sim presets (1.1-1.5; the window's samples are correlated by the
-    pre-smoothing and the interpolation). max_rel_std is 0.25 x 1.35 so that VALID is unchanged by it.
+    std_scale: calibration factor of the reported sigma: 1.1 = the measured robust spread of
+    (rho - rho_true) / sigma on the sim presets at 512 px with the slanted window (geometric mean of the five
+    presets 1.01 with it; the window's samples are correlated by the pre-smoothing and the interpolation; one rho
+    per window, slant=False, left a larger error and needed 1.35). max_rel_std (0.34) was set as 0.25 x 1.35 and
+    kept: the VALID rule is on the calibrated sigma.
     shift_px / shift_ratio: shiftable windows at the levels above 0 (``_shift_windows``): a pixel takes the
     normal-equation sums of the window shift_px pixels to its left or right where that window's least-squares cost
     is below shift_ratio x its centred window's. A window straddling a depth edge fits neither surface and its
