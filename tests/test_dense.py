@@ -151,6 +151,26 @@ def test_slanted_window_does_not_blur_a_depth_edge(d_near, d_far):
     assert out[True][0] > out[False][0] - 0.01 and out[True][1] < out[False][1] + 0.01, out
 
 
+def test_slant_gradient_kernel_matches_numpy():
+    """The slanted window's gate input (``slant_gradient``): |S[x+1] - S[x-1]| + |S[y+1] - S[y-1]| with reflected
+    borders, as numpy's pad and slicing compute it; and the shape's S is the window mean (cv2.blur)."""
+    img = (np.random.default_rng(5).random((23, 31)) * 0.1).astype(np.float32)
+    g = np.full_like(img, np.nan)
+    dense._K.slant_gradient(img, g)
+    p = np.pad(img, 1, mode="symmetric")
+    want = np.abs(p[1:-1, 2:] - p[1:-1, :-2]) + np.abs(p[2:, 1:-1] - p[:-2, 1:-1])
+    np.testing.assert_allclose(g, want, rtol=1e-6, atol=1e-9)
+    steps = dense._Steps(7, 3, 2.0, 0.1, np.float32(0.4), slant_grad=0.05)
+    S, M = dense._slant_shape(img, steps)
+    np.testing.assert_allclose(S, cv2.blur(img, (7, 7), borderType=cv2.BORDER_REFLECT), rtol=1e-5, atol=1e-7)
+    b3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REFLECT)
+    p3 = np.pad(b3, 1, mode="symmetric")
+    g3 = np.abs(p3[1:-1, 2:] - p3[1:-1, :-2]) + np.abs(p3[2:, 1:-1] - p3[:-2, 1:-1])
+    np.testing.assert_allclose(M, cv2.dilate(g3, np.ones((13, 13), np.uint8), borderType=cv2.BORDER_REFLECT),
+                               rtol=1e-4, atol=1e-7)
+    assert dense._slant_shape(img, dense._Steps(7, 3, 2.0, 0.1, np.float32(0.4)))[0].size == 0   # off
+
+
 def test_slant_grad_must_be_positive():
     (a, b), _ = slanted_plane_views(4.0, 16.0)
     for bad in (0.0, -0.05, float("nan")):
