@@ -546,17 +546,18 @@ def _window_sum(ring, plane, slot0, n, ext, hs, k, inv_n):
 
 
 @njit(**_JIT)
-def gn_level(b4p, ia, gxa, gya, rw, kc, R, S, M, inv_g2, B0, Q1, Q2, ks, lam_c, use_cap, cap_hi, win, occ, shift, shift_ratio,
-             final, inf_mode, amb_in, fp, noise_info, out, inf_o, std_o, flags_o, rng_o, conf_o, amb_o):
+def gn_level(b4p, ia, gxa, gya, rw, kc, R, S, M, inv_g2, B0, Q1, Q2, ks, lam_c, use_cap, cap_hi, win, occ, shift,
+             shift_ratio, final, inf_mode, amb_in, fp, noise_info, out, inf_o, std_o, flags_o, rng_o, conf_o, amb_o):
     """One re-linearised Gauss-Newton step of a whole level (b4p: b's [I, gx, gy, 1] with a border of one zero
     pixel): the map, the warp, the terms, their window sums (window win, and occ for the occlusion test; reflected
     borders) and the Levenberg-damped update of every pixel into out (clipped to [0, cap]; cap: the affine cap map
     rw[5] + kc[5] clipped to [0, cap_hi] when use_cap, else cap_hi; shift > 0: shiftable windows,
     ``_shift_windows_row``). S, M (empty: one rho per window, fronto-parallel): the slanted window, whose centre c
     models rho_j = rho_c + A_c (S_j - S_c) over its window (S: the shape's field, A_c its weight from M and
-    inv_g2; two more window sums, ``_slant_row``). final: also the uncertainty, flags and classification (std_o .. amb_o; fp: the
-    thresholds of dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr, occ_px2, occ_thr, orient_min,
-    rho_far, max_rel_std). Infinity test (does a point at infinity explain the window as well?): inf_mode 1 writes its verdict into inf_o;
+    inv_g2; two more window sums, ``_slant_row``). final: also the uncertainty, flags and classification
+    (std_o .. amb_o; fp: the thresholds of dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr,
+    occ_px2, occ_thr, orient_min, rho_far, max_rel_std). Infinity test (does a point at infinity explain the window
+    as well?): inf_mode 1 writes its verdict into inf_o;
     inf_mode 2 (final) uses it for the flags; otherwise a non-empty amb_in (uint8, a coarser level's verdict) is
     used.
     Returns (n_valid, n_at_infinity)."""

@@ -384,7 +384,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  inf_test: bool = True, fill: bool = True,
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
-                 prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = True, slant_grad: float = 0.05) -> RangeResult:
+                 prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = True,
+                 slant_grad: float = 0.05) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -405,7 +406,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     the sub-pixel plane test (vs <= 0.011 px): level 1 needs its second iteration.
     window: box window (level pixels, odd) of the normal equations.
     slant / slant_grad: the slanted window (``_slant_shape``) at levels 1 and 0: the window of centre c models
-    rho_j = rho_c + A_c (S_j - S_c), S the current estimate's window mean, instead of one rho for all its pixels,
+    rho_j = rho_c + A_c (S_j - S_c), S a box mean of the current estimate, instead of one rho for all its pixels,
     which measures rho at the texture-weighted centre of the window, not at the pixel, wherever rho varies across
     it (ground at grazing angles, slanted walls): an error tied to the texture, the same in every pair, that
     temporal fusion cannot average. A_c = 1 where the relative gradient of rho stays within slant_grad (per pixel)
@@ -834,15 +835,15 @@ def _slant_shape(rho, steps: _Steps):
     2 window - 3 pixels (a box filter: a plane stays that plane, noise is averaged; over the window itself the
     noise it feeds back cost Middlebury 0.01-0.03 pp more); A_c = 1 where the relative gradient of rho
     (|grad|_1 of its 3 x 3 mean: a depth edge stays steep in it, over 2-3 pixels) stays within
-    ``steps.slant_grad`` over the (2 window - 1)^2 pixels about c (S over c's window reads 3 window - 4; the 3 x 3
-    mean spreads an edge by 2) (M: its largest value there, twice
-    over, ``_dense_kernels.slant_gradient`` and a dilation), falling to 0 at twice that: a depth edge keeps one rho
-    per window (the ramp S makes of it would smear it), sky (rho ~ 0) too. Where rho is locally planar (ground at
+    ``steps.slant_grad`` over the (2 window - 1)^2 pixels about c, falling to 0 at twice that (M: its largest value
+    there, twice over: ``_dense_kernels.slant_gradient`` and a dilation; S over c's window reads 3 window - 4
+    pixels, the 3 x 3 mean spreads an edge by 2). A depth edge keeps one rho per window (the ramp S makes of it
+    would smear it), sky (rho ~ 0) too. Where rho is locally planar (ground at
     grazing angles, slanted walls) the window then measures rho at its centre, not at the texture-weighted mean of
     its pixels. (_NO_SLANT, _NO_SLANT: one rho per window.)"""
     if not steps.slant_grad > 0:
         return _NO_SLANT, _NO_SLANT
-    S = _box(rho, 2 * steps.window - 3, dst=_ws("slant_S", rho.shape))
+    S = _box(rho, max(2 * steps.window - 3, steps.window), dst=_ws("slant_S", rho.shape))
     g = _ws("slant_g", rho.shape)
     _K.slant_gradient(_box(rho, 3, dst=_ws("slant_b3", rho.shape)), g)
     M = cv2.dilate(g, _rect_kernel(2 * steps.window - 1), borderType=_BR, dst=_ws("slant_M", rho.shape))
@@ -879,8 +880,9 @@ def _gauss_newton_step(lv: _Level, rho, new, sigma: float, steps: _Steps, shift_
         outs = (inf_out,) + outs[1:]
     S, M = _slant_shape(rho, steps)
     inv_g2 = F32(0.5 / steps.slant_grad) if steps.slant_grad > 0 else F32(0.0)
-    nv, ni = _K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, S, M, inv_g2, lv.B0, lv.Q1, lv.Q2, ks, lam_c, lv.use_cap,
-                         lv.rho_hi, int(steps.window), int(steps.occ_window), shift_px, steps.shift_ratio,
+    nv, ni = _K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, S, M, inv_g2, lv.B0, lv.Q1, lv.Q2, ks,
+                         lam_c, lv.use_cap, lv.rho_hi, int(steps.window), int(steps.occ_window), shift_px,
+                         steps.shift_ratio,
                          fin is not None, inf_mode, amb_in, fp, noise_info, new, *outs)
     if fin is not None:
         fin.n_val += nv
