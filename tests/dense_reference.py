@@ -169,12 +169,13 @@ def _level(lv) -> Level:
     return _LEVELS[lv]
 
 
-def shift_windows(sh: int, ratio, H, g, S0, S1, Sq, Q) -> None:
+def shift_windows(sh: int, ratio, H, g, S0, S1, Sq, Q, *extra) -> None:
     """Shiftable windows, in place on the window means: each pixel takes the sums of the window shifted sh pixels
     left or right (clamped at the image border) instead of its centred one where that one fits the linearised model
     with less than ``ratio`` times the centred window's cost. Cost: the weighted residual left after the window's
     least-squares solution (rho and the brightness offset), per unit weight: (Q - Sq^2 / S0 - g'^2 / H') / S0,
-    g' = g - Sq S1 / S0, H' = H - S1^2 / S0. A tie takes the left one."""
+    g' = g - Sq S1 / S0, H' = H - S1^2 / S0. A tie takes the left one. ``extra`` planes (the slanted window's sums)
+    move with the five."""
     def cost(H_, g_, S0_, S1_, Sq_, Q_):
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             S1n = S1_ / S0_
@@ -189,7 +190,7 @@ def shift_windows(sh: int, ratio, H, g, S0, S1, Sq, Q) -> None:
     cl, cr = (cost(*(a[:, c] for a in planes)) for c in cols)
     right = cr < cl
     take = np.where(right, cr, cl) < ratio * c0
-    for a in planes[:5]:
+    for a in planes[:5] + extra:
         np.copyto(a, np.where(right, a[:, cols[1]], a[:, cols[0]]), where=take)
 
 
@@ -228,8 +229,17 @@ def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None
     S0 += F32(1e-6)
     S1 = _box(wJ, win)
     Sq = _box(mul(wgt, q), win)
+    # the slanted window (dense._slant_shape: S, A): rho_j = rho_c + A_c (S_j - S_c) over the window of centre c
+    S, M = dense._slant_shape(R, steps)
+    if S.size:      # the weight of the slant per centre: 1 where M / S_c <= 2 grad, 0 from 4 grad on
+        A = np.clip(2.0 - M / (2.0 * steps.slant_grad * np.maximum(S, 1e-12)), 0.0, 1.0).astype(F32)
+    extra = (_box(mul(mul(wJ, J), S), win), _box(mul(wJ, S), win)) if S.size else ()
     if shift_px > 0 and H.shape[1] > 2 * shift_px:
-        shift_windows(shift_px, steps.shift_ratio, H, g, S0, S1, Sq, _box(mul(mul(wgt, q), q), win))
+        shift_windows(shift_px, steps.shift_ratio, H, g, S0, S1, Sq, _box(mul(mul(wgt, q), q), win), *extra)
+    if extra:     # J_j rho_c = q_j - A_c J_j (S_j - S_c): the window means of wJ q and w q change
+        JJS, JS = extra
+        sub(g, mul(A, sub(JJS, mul(S, H))), dst=g)
+        sub(Sq, mul(A, sub(JS, mul(S, S1))), dst=Sq)
     wsum = S0.copy()
     S1n = cv2.divide(S1, S0)
     sub(g, mul(Sq, S1n), dst=g)

@@ -4,7 +4,8 @@
 ring of window-height term planes (the map into b, b's bilinear samples, the Huber-weighted normal-equation terms),
 and as soon as a row's window is complete its window sums (at the coarse levels the shiftable windows' choice,
 ``_shift_windows_row``), its update and (final step) its uncertainty, flags and classification follow. Nothing
-per pixel is written but the outputs. ``scharr`` and ``pack_b4p`` prepare a level (a's gradient; b with its
+per pixel is written but the outputs. With the slanted window (``dense._slant_shape``) the window sums hold two more
+terms and ``_slant_row`` takes the update. ``scharr`` and ``pack_b4p`` prepare a level (a's gradient; b with its
 gradient and a zero border as the warp source), ``residual_grid`` samples the residual for the noise estimate.
 The coarse epipolar search (``dense._search``) has its kernels here too (``search_*``).
 
@@ -275,11 +276,13 @@ _P_G, _P_MX, _P_MY, _P_RR = 5, 6, 7, 8
 _P_SE, _P_R0 = 9, 10
 _P_E2, _P_MF = 11, 12
 _P_WQQ = 13                # w q^2: a window's least-squares cost (shiftable windows)
-_N_PLANES = 14
+_P_WJJS, _P_WJS = 14, 15   # wJ J S, wJ S: the slanted window's (S: the shape's field)
+_N_PLANES = 16
 # window sums (ext rows): the five terms, G / Mx / My (window), G / rr (occlusion window), se / r0^2 (window)
 _S_G, _S_MX, _S_MY, _S_G3, _S_R2, _S_SE, _S_R0 = 5, 6, 7, 8, 9, 10, 11
 _S_WQQ = 12
-_N_SUMS = 13
+_S_WJJS, _S_WJS = 13, 14
+_N_SUMS = 15
 
 
 @njit(inline="always", **_JIT)
@@ -412,9 +415,10 @@ def _residual_at_infinity_row(bfp, hb, wb, a0r, a0c, p1r, p1c, p2r, p2c, ia, r0_
 
 
 @njit(**_JIT)
-def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, final, inf_mode):
+def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, S, B0, Q1, Q2, ks, final, inf_mode, slant):
     """Row y's per-pixel terms into the ring row rs (planes x w): the map and b's samples (``_sample_row``, into
-    the row buffers smp and s4), the Huber-weighted normal-equation terms (wJ J, wJ q, w, wJ, w q), E2 (a quarter of
+    the row buffers smp and s4), the Huber-weighted normal-equation terms (wJ J, wJ q, w, wJ, w q; slant: also
+    wJ J S and wJ S, S the window shape's field, ``gn_level``), E2 (a quarter of
     |d map / d rho|^2); final: the in-view mask mf, the masked gradient energy, gradient and squared residual of a;
     inf_mode: the in-view squared residual and the squared residual of a point at infinity. The passes after the
     sampling read row buffers only (numba vectorises them)."""
@@ -450,6 +454,11 @@ def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, B0, Q
         wq = wgt * q
         wqo[x] = wq
         wqqo[x] = wq * q
+    if slant:
+        Sy, wJJSo, wJSo = S[y], rs[_P_WJJS], rs[_P_WJS]
+        for x in range(w):
+            wJJSo[x] = wJJo[x] * Sy[x]
+            wJSo[x] = wJo[x] * Sy[x]
     if final:
         mfo, Go, rro, mxo, myo = rs[_P_MF], rs[_P_G], rs[_P_RR], rs[_P_MX], rs[_P_MY]
         for x in range(w):
@@ -537,20 +546,24 @@ def _window_sum(ring, plane, slot0, n, ext, hs, k, inv_n):
 
 
 @njit(**_JIT)
-def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_hi, win, occ, shift, shift_ratio, final,
-             inf_mode, amb_in, fp, noise_info, out, inf_o, std_o, flags_o, rng_o, conf_o, amb_o):
+def gn_level(b4p, ia, gxa, gya, rw, kc, R, S, M, inv_g2, B0, Q1, Q2, ks, lam_c, use_cap, cap_hi, win, occ, shift,
+             shift_ratio, final, inf_mode, amb_in, fp, noise_info, out, inf_o, std_o, flags_o, rng_o, conf_o, amb_o):
     """One re-linearised Gauss-Newton step of a whole level (b4p: b's [I, gx, gy, 1] with a border of one zero
     pixel): the map, the warp, the terms, their window sums (window win, and occ for the occlusion test; reflected
     borders) and the Levenberg-damped update of every pixel into out (clipped to [0, cap]; cap: the affine cap map
     rw[5] + kc[5] clipped to [0, cap_hi] when use_cap, else cap_hi; shift > 0: shiftable windows,
-    ``_shift_windows_row``). final: also the uncertainty, flags and classification (std_o .. amb_o; fp: the
-    thresholds of dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr, occ_px2, occ_thr, orient_min,
-    rho_far, max_rel_std). Infinity test (does a point at infinity explain the window as well?): inf_mode 1 writes its verdict into inf_o;
+    ``_shift_windows_row``). S, M (empty: one rho per window, fronto-parallel): the slanted window, whose centre c
+    models rho_j = rho_c + A_c (S_j - S_c) over its window (S: the shape's field, A_c its weight from M and
+    inv_g2; two more window sums, ``_slant_row``). final: also the uncertainty, flags and classification
+    (std_o .. amb_o; fp: the thresholds of dense._Final in the order noise_G, var_k, floor2, trunc2, low_thr,
+    occ_px2, occ_thr, orient_min, rho_far, max_rel_std). Infinity test (does a point at infinity explain the window
+    as well?): inf_mode 1 writes its verdict into inf_o;
     inf_mode 2 (final) uses it for the flags; otherwise a non-empty amb_in (uint8, a coarser level's verdict) is
     used.
     Returns (n_valid, n_at_infinity)."""
     h, w = R.shape
     p = win // 2
+    slant = S.shape[0] > 0
     ring = np.empty((win, _N_PLANES, w), F32)
     hb, wb = b4p.shape[0] - 2, b4p.shape[1] - 2
     bfp = b4p.ravel()
@@ -562,23 +575,24 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
     # the window sums (ext / hs rows): the five terms; final: G, Mx, My (window), G, rr (occlusion window);
     # inf_mode: se, r0^2 (window). One call site (numba compiles a callee into each caller's site)
     sum_plane = np.array([_P_WJJ, _P_WJQ, _P_W, _P_WJ, _P_WQ, _P_G, _P_MX, _P_MY, _P_G, _P_RR, _P_SE, _P_R0,
-                          _P_WQQ])
-    sum_n = np.array([win, win, win, win, win, win, win, win, occ, occ, win, win, win])
+                          _P_WQQ, _P_WJJS, _P_WJS])
+    sum_n = np.array([win, win, win, win, win, win, win, win, occ, occ, win, win, win, win, win])
     active = np.zeros(_N_SUMS, np.bool_)      # (element by element: numba's slice assignment compiles an error
     for k in range(_N_SUMS):                   # path with string formatting, ~5 s of the kernels' first compile)
-        active[k] = k < 5 or (final and k < 10) or (inf_mode != 0 and 10 <= k < 12) or (k == _S_WQQ and shift > 0)
+        active[k] = (k < 5 or (final and k < 10) or (inf_mode != 0 and 10 <= k < 12) or (k == _S_WQQ and shift > 0)
+                     or (slant and k >= _S_WJJS))
     use_amb = amb_in.shape[0] > 0
     hrow = np.empty(w, F32)
     s0row = np.empty(w, F32)
     crow = np.empty(w, F32)
-    sel = np.empty((5, w), F32)
+    sel = np.empty((7 if slant else 5, w), F32)
     code = np.empty(w, np.int8)
     ambr = np.zeros(w, np.uint8)
     nv = 0
     ni = 0
     for v in range(-p, h + p):
-        _row_terms(ring[(v + p) % win], smp, s4, jrow, _reflect(v, h), bfp, hb, wb, ia, gxa, gya, rw, kc, R, B0, Q1,
-                   Q2, ks, final, inf_mode)
+        _row_terms(ring[(v + p) % win], smp, s4, jrow, _reflect(v, h), bfp, hb, wb, ia, gxa, gya, rw, kc, R, S, B0,
+                   Q1, Q2, ks, final, inf_mode, slant)
         y = v - p
         if y < 0:
             continue
@@ -590,11 +604,19 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, B0, Q1, Q2, ks, lam_c, use_cap, cap_h
             _window_sum(ring, sum_plane[k], (c - n // 2 + win) % win, n, ext, hs, k, _ONE / F32(n * n))
         rc = ring[c]
         src = hs
+        jjs, js = hs[_S_WJJS], hs[_S_WJS]
         if shift > 0 and w > 2 * shift:
             _shift_windows_row(hs, shift, shift_ratio, crow, code, sel)
             src = sel
-        _update_row(src[_P_WJJ], src[_P_WJQ], src[_P_W], src[_P_WJ], src[_P_WQ], rc[_P_E2], R[y], lam_c, use_cap,
-                    rw[5], kc[5, y] if use_cap else _ZERO, cap_hi, out[y], hrow, s0row)
+            if slant:
+                jjs, js = sel[5], sel[6]
+        if slant:
+            _slant_row(src[_P_WJJ], src[_P_WJQ], src[_P_W], src[_P_WJ], src[_P_WQ], jjs, js, S[y], M[y], inv_g2,
+                       rc[_P_E2], R[y], lam_c, use_cap, rw[5], kc[5, y] if use_cap else _ZERO, cap_hi, out[y], hrow,
+                       s0row)
+        else:
+            _update_row(src[_P_WJJ], src[_P_WJQ], src[_P_W], src[_P_WJ], src[_P_WQ], rc[_P_E2], R[y], lam_c,
+                        use_cap, rw[5], kc[5, y] if use_cap else _ZERO, cap_hi, out[y], hrow, s0row)
         if inf_mode != 0:
             se, r0s = hs[_S_SE], hs[_S_R0]
             for x in range(w):
@@ -639,7 +661,9 @@ def _shift_code(c0, cl, cr, ratio):
 
 @njit(**_JIT)
 def _shift_windows_row(hs, sh, ratio, cost, code, sel):
-    """The shiftable windows on one row of window means (hs rows 0-4 and _S_WQQ), into sel (rows 0-4): a pixel takes
+    """The shiftable windows on one row of window means (hs rows 0-4 and _S_WQQ), into sel (rows 0-4; a sel of 7
+    rows takes the slanted window's sums _S_WJJS, _S_WJS into rows 5-6; the choice is by the cost of one rho per
+    window, ``_window_cost``): a pixel takes
     the sums of the window sh pixels to its left or right (clamped at the border) where that one's cost is below
     ratio x its centred window's. The interior columns by shifted views (numba vectorises the selects), the sh
     columns at each border one by one."""
@@ -656,10 +680,11 @@ def _shift_windows_row(hs, sh, ratio, cost, code, sel):
         jl = x - sh if x >= sh else 0
         jr = x + sh if x + sh < w else w - 1
         code[x] = _shift_code(cost[x], cost[jl], cost[jr], ratio)
-        for k in range(5):
-            sel[k, x] = hs[k, jl] if code[x] < 0 else (hs[k, jr] if code[x] > 0 else hs[k, x])
-    for k in range(5):
-        a, o = hs[k], sel[k]
+        for k in range(sel.shape[0]):
+            kk = k if k < 5 else _S_WJJS + k - 5
+            sel[k, x] = hs[kk, jl] if code[x] < 0 else (hs[kk, jr] if code[x] > 0 else hs[kk, x])
+    for k in range(sel.shape[0]):
+        a, o = hs[k if k < 5 else _S_WJJS + k - 5], sel[k]
         aL, aC, aR, oC = a[0:n], a[sh:sh + n], a[2 * sh:2 * sh + n], o[sh:sh + n]
         for i in range(n):
             c = kC[i]
@@ -693,6 +718,47 @@ def _update_row(sJJ, sJq, sW, sJ, sq, E2, R, lam_c, use_cap, capr, capc, cap_hi,
         if use_cap:
             c = capr[x] + capc
             hi = c if c < cap_hi else cap_hi        # np.clip(c, 0, cap_hi)
+            hi = _ZERO if hi < _ZERO else hi
+        out[x] = hi if v > hi else v
+
+
+@njit(**_JIT)
+def _slant_row(sJJ, sJq, sW, sJ, sq, sJJS, sJS, Sc, Mc, inv_g2, E2, R, lam_c, use_cap, capr, capc, cap_hi, out, H_o,
+               S0_o):
+    """``_update_row`` for the slanted window: rho_j = rho_c + A_c (S_j - S_c) over the
+    window of centre c, so that J_j rho_c = q_j - A_c J_j (S_j - S_c), and the window means of wJ q and w q become
+    sJq - A_c (sJJS - S_c sJJ) and sq - A_c (sJS - S_c sJ); A_c = clip(2 - M_c inv_g2 / S_c, 0, 1) (M: the largest
+    |grad S|_1 about c, twice over: ``slant_gradient``; inv_g2 = 1 / (2 grad), grad the relative gradient where A
+    starts to fall). (H - S1^2 / S0, the sigma's, is unchanged: so is the Jacobian of the residuals in rho_c.)
+    Branch-free: numba vectorises it."""
+    w = out.shape[0]
+    for x in range(w):
+        s0 = sW[x] + _EPS_S0
+        s1 = sJ[x]
+        s1n = s1 / s0
+        sc = Sc[x]
+        ac = _TWO - (Mc[x] * inv_g2) / max(sc, _H_MIN)
+        ac = _ZERO if ac < _ZERO else ac           # (NaN: no slant)
+        ac = _ONE if ac > _ONE else ac
+        ac = ac if ac == ac else _ZERO
+        m2 = sJJS[x] - sc * sJJ[x]
+        m1 = sJS[x] - sc * s1
+        gq = sJq[x] - ac * m2
+        qq = sq[x] - ac * m1
+        gg = gq - qq * s1n
+        hh = sJJ[x] - s1 * s1n
+        H_o[x] = hh
+        S0_o[x] = s0
+        e2 = E2[x]
+        num = _fma(e2 * R[x], lam_c, gg)
+        den = _fma(e2, lam_c, hh)
+        v = num / den
+        v = v if den != _ZERO else _ZERO
+        v = _ZERO if v < _ZERO else v
+        hi = cap_hi
+        if use_cap:
+            c = capr[x] + capc
+            hi = c if c < cap_hi else cap_hi
             hi = _ZERO if hi < _ZERO else hi
         out[x] = hi if v > hi else v
 
@@ -753,6 +819,21 @@ def _classify_row(rho_r, R, E2, H, S0, G, G3, R2, Mx, My, mf, amb, fp, noise_inf
         nv += 1 if val else 0
         ni += 1 if at_inf else 0
     return nv, ni
+
+
+@njit(**_JIT)
+def slant_gradient(S, g_o):
+    """|S[y, x+1] - S[y, x-1]| + |S[y+1, x] - S[y-1, x]| per pixel into g_o (twice the L1 norm of S's gradient by
+    central differences; reflected border): the slanted window's gate (``_slant_row``), before its dilation."""
+    h, w = S.shape
+    u1 = np.uint64(1)
+    for y in range(h):
+        r0, r1, r2, o = S[_reflect(y - 1, h)], S[y], S[_reflect(y + 1, h)], g_o[y]
+        for x in range(1, w - 1):
+            ux = np.uint64(x)
+            o[ux] = abs(r1[ux + u1] - r1[ux - u1]) + abs(r2[ux] - r0[ux])
+        for x in (0, w - 1):
+            o[x] = abs(r1[_reflect(x + 1, w)] - r1[_reflect(x - 1, w)]) + abs(r2[x] - r0[x])
 
 
 _SCHARR_SIDE = F32(3.0 / 32.0)

@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -376,7 +376,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  trust_px: float = 1.0, presmooth_sigma: float = 0.6, max_rel_std: float = 0.34,
                  far_parallax_px: float = 0.5, tex_k: float = 1.0, orient_min: float = 0.02,
                  occ_k: float = 3.0, occ_window: int = 3, occ_px: float = 0.25, trunc_px: float = 1.0,
-                 std_scale: float = 1.35, shift_px: int = 2, shift_ratio: float = 0.4,
+                 std_scale: float = 1.1, shift_px: int = 2, shift_ratio: float = 0.4,
                  fill_sigma: float = 4.0, fill_c: float = 0.3, highpass_sigma: float = 0.0,
                  highpass_levels: int = 9, bias: bool = True,
                  match_floor_px: float = 0.05, sgm: bool = False,
@@ -384,7 +384,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  inf_test: bool = True, fill: bool = True,
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
-                 prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1) -> RangeResult:
+                 prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = True,
+                 slant_grad: float = 0.05) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -403,7 +404,15 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     iters: Gauss-Newton iterations per level, finest level last (padded with its first entry if short).
     (3, 3, 1, 1) is ~8 % faster and as accurate on the sim presets, but leaves a 0.03 px disparity bias on
     the sub-pixel plane test (vs <= 0.011 px): level 1 needs its second iteration.
-    window: box window (level pixels, odd) of the normal equations. huber_k: Huber threshold in noise
+    window: box window (level pixels, odd) of the normal equations.
+    slant / slant_grad: the slanted window (``_slant_shape``) at levels 1 and 0: the window of centre c models
+    rho_j = rho_c + A_c (S_j - S_c), S a box mean of the current estimate, instead of one rho for all its pixels,
+    which measures rho at the texture-weighted centre of the window, not at the pixel, wherever rho varies across
+    it (ground at grazing angles, slanted walls): an error tied to the texture, the same in every pair, that
+    temporal fusion cannot average. A_c = 1 where the relative gradient of rho stays within slant_grad (per pixel)
+    around c and 0 from twice that on: a depth edge keeps one rho per window. slant_grad 0.1, or 2^lev x 0.05 at
+    level lev, let depth edges pass as slopes and widened them; 0.03 gave back a third of the gain on the approach
+    flight. Figures in docs/methods.md. huber_k: Huber threshold in noise
     sigmas. trust_px: Levenberg trust term ~ a step of this many pixels of displacement per iteration.
     presmooth_sigma: Gaussian pre-smoothing of both images (pixels). 0.6 measured best overall (sim medians
     fast/paper 0.64/0.78 % at 0.8 -> 0.59/0.72 %; 0.4 and below trade a higher 90th percentile and worse
@@ -444,9 +453,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     trunc_px: TRUNCATION where the last update still moves the match by more than this (level-0 px): the
     step past which the first-order model is not trusted (at 0.5 px, 17-30 % of sim pixels were flagged
     with a median error of 1 %, since the reported estimate is the one after that step).
-    std_scale: calibration factor of the reported sigma: 1.35 = the measured robust spread of
-    (rho - rho_true) / sigma on the sim presets (1.1-1.5; the window's samples are correlated by the
-    pre-smoothing and the interpolation). max_rel_std is 0.25 x 1.35 so that VALID is unchanged by it.
+    std_scale: calibration factor of the reported sigma: 1.1 = the measured robust spread of
+    (rho - rho_true) / sigma on the sim presets at 512 px with the slanted window (geometric mean of the five
+    presets 1.01 with it; the window's samples are correlated by the pre-smoothing and the interpolation; one rho
+    per window, slant=False, left a larger error and needed 1.35). max_rel_std (0.34) was set as 0.25 x 1.35 and
+    kept: the VALID rule is on the calibrated sigma.
     shift_px / shift_ratio: shiftable windows at the levels above 0 (``_shift_windows``): a pixel takes the
     normal-equation sums of the window shift_px pixels to its left or right where that window's least-squares cost
     is below shift_ratio x its centred window's. A window straddling a depth edge fits neither surface and its
@@ -491,6 +502,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
+    if slant and not (math.isfinite(slant_grad) and slant_grad > 0):
+        raise InputError(f"slant_grad must be a finite relative gradient > 0 (per pixel), got {slant_grad!r}")
     if tex_noise not in ("image", "residual"):
         raise InputError(f"tex_noise must be 'image' or 'residual', got {tex_noise!r}")
     img_sigma = image_noise_sigma(view_a.image) if tex_noise == "image" else None
@@ -536,12 +549,16 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         # shiftable windows at the coarser levels, where a pixel's estimate settles on one surface or the other;
         # level 0 refines within a pixel, and its sigma and flags are those of the pixel's own (centred) window
         shift = int(shift_px) if bias and lev >= 1 else 0
+        # the slanted window at levels 1 and 0 (at the coarser ones it changed nothing the finer ones keep), its
+        # gradient limit per level pixel: 2^lev x it (the same slope in level-0 pixels) let level 1's blurred depth
+        # edges pass as slopes and widened them
+        steps_l = replace(steps, slant_grad=float(slant_grad) if slant and lev <= 1 else 0.0)
         if lev > 0:
-            rho, amb = _refine_level(lv, rho, n_it, steps, shift, infinity_test=inf_at_level1 and lev == 1)
+            rho, amb = _refine_level(lv, rho, n_it, steps_l, shift, infinity_test=inf_at_level1 and lev == 1)
             if amb is not None:
                 inf_mask = cv2.resize(amb, (wa, ha), interpolation=cv2.INTER_NEAREST)
         else:
-            rho, fin = _refine_level(lv, rho, n_it, steps, shift, rules=rules, inf_mask=inf_mask)
+            rho, fin = _refine_level(lv, rho, n_it, steps_l, shift, rules=rules, inf_mask=inf_mask)
 
     prior_info = None
     if first_lv is not None:
@@ -740,6 +757,7 @@ class _Steps:
     huber_k: float
     lam_k: float
     shift_ratio: np.float32
+    slant_grad: float = 0.0        # > 0: the slanted window, up to this relative gradient of rho per level pixel
 
 
 def _refine_level(lv: _Level, rho, n_it: int, steps: _Steps, shift_px: int, *, infinity_test: bool = False,
@@ -808,6 +826,35 @@ _NO_F2 = np.empty((0, 0), F32)
 _NO_FP = np.zeros(10, F32)
 
 
+_NO_SLANT = np.empty((0, 0), F32)
+
+
+def _slant_shape(rho, steps: _Steps):
+    """The slanted window's shape for the Gauss-Newton step from rho: (S, M), the window of centre c modelling
+    rho_j = rho_c + A_c (S_j - S_c) over its pixels j (``_dense_kernels._slant_row``). S is the estimate's mean over
+    2 window - 3 pixels (a box filter: a plane stays that plane, noise is averaged; over the window itself the
+    noise it feeds back cost Middlebury 0.01-0.03 pp more); A_c = 1 where the relative gradient of rho
+    (|grad|_1 of its 3 x 3 mean: a depth edge stays steep in it, over 2-3 pixels) stays within
+    ``steps.slant_grad`` over the (2 window - 1)^2 pixels about c, falling to 0 at twice that (M: its largest value
+    there, twice over: ``_dense_kernels.slant_gradient`` and a dilation; S over c's window reads 3 window - 4
+    pixels, the 3 x 3 mean spreads an edge by 2). A depth edge keeps one rho per window (the ramp S makes of it
+    would smear it), sky (rho ~ 0) too. Where rho is locally planar (ground at
+    grazing angles, slanted walls) the window then measures rho at its centre, not at the texture-weighted mean of
+    its pixels. (_NO_SLANT, _NO_SLANT: one rho per window.)"""
+    if not steps.slant_grad > 0:
+        return _NO_SLANT, _NO_SLANT
+    S = _box(rho, max(2 * steps.window - 3, steps.window), dst=_ws("slant_S", rho.shape))
+    g = _ws("slant_g", rho.shape)
+    _K.slant_gradient(_box(rho, 3, dst=_ws("slant_b3", rho.shape)), g)
+    M = cv2.dilate(g, _rect_kernel(2 * steps.window - 1), borderType=_BR, dst=_ws("slant_M", rho.shape))
+    return S, M
+
+
+@lru_cache(maxsize=8)
+def _rect_kernel(k: int) -> np.ndarray:
+    return np.ones((k, k), np.uint8)
+
+
 def _gauss_newton_step(lv: _Level, rho, new, sigma: float, steps: _Steps, shift_px: int, fin: _Final | None = None,
                        inf_out=None, inf_mask=None) -> None:
     """One re-linearised Gauss-Newton step of the whole level ``lv`` from rho into ``new``, in one kernel pass
@@ -831,8 +878,11 @@ def _gauss_newton_step(lv: _Level, rho, new, sigma: float, steps: _Steps, shift_
                                                   fin.amb.view(np.uint8)), fin.noise_info
     if inf_out is not None:
         outs = (inf_out,) + outs[1:]
-    nv, ni = _K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, ks, lam_c, lv.use_cap,
-                         lv.rho_hi, int(steps.window), int(steps.occ_window), shift_px, steps.shift_ratio,
+    S, M = _slant_shape(rho, steps)
+    inv_g2 = F32(0.5 / steps.slant_grad) if steps.slant_grad > 0 else F32(0.0)
+    nv, ni = _K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, S, M, inv_g2, lv.B0, lv.Q1, lv.Q2, ks,
+                         lam_c, lv.use_cap, lv.rho_hi, int(steps.window), int(steps.occ_window), shift_px,
+                         steps.shift_ratio,
                          fin is not None, inf_mode, amb_in, fp, noise_info, new, *outs)
     if fin is not None:
         fin.n_val += nv
