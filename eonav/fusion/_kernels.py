@@ -158,14 +158,10 @@ def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
         ox = 1 - oy
         todo = np.zeros((h, w), np.bool_)
         for y in range(oy, h - oy):
-            for x in range(ox, w - ox):
-                if math.isfinite(rho[y, x]):
-                    continue
-                r0 = rho[y - oy, x - ox]
-                r1 = rho[y + oy, x + ox]
-                d = r1 - r0
-                if d * d <= k2 * (var[y - oy, x - ox] + var[y + oy, x + ox]):
-                    todo[y, x] = True
+            for x in range(ox, w - ox):         # (branch-free: vectorised)
+                d = rho[y + oy, x + ox] - rho[y - oy, x - ox]
+                todo[y, x] = (not math.isfinite(rho[y, x])) & (d * d <= k2 * (var[y - oy, x - ox]
+                                                                             + var[y + oy, x + ox]))
         for y in range(oy, h - oy):
             for x in range(ox, w - ox):
                 if not todo[y, x]:
