@@ -202,14 +202,14 @@ def update_classify(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bit
     h = rho.shape[0]
     cnt = np.zeros(5, np.int64)
     cc = np.zeros(4, np.int64)
-    buf = np.empty((5, rho.shape[1]), np.float32)
+    buf = np.empty((6, rho.shape[1]), np.float32)
     for y in range(h):
         _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt, buf)
         if y >= 1:
             _classify_row(y - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
-                          o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc)
+                          o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[5])
     _classify_row(h - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
-                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc)
+                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[5])
     return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4], cc[0], cc[1], cc[2], cc[3]
 
 
@@ -316,17 +316,20 @@ def classify_state(rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far
     ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION, AT_INFINITY, VALID) of
     ``eonav.ranging.rangemap``. Returns (n_valid, n_at_infinity, n_occupied, n_disagree)."""
     cc = np.zeros(4, np.int64)
+    g2 = np.empty(rho.shape[1], np.float32)
     for y in range(rho.shape[0]):
         _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
-                      o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc)
+                      o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, g2)
     return cc[0], cc[1], cc[2], cc[3]
 
 
 @njit(**_FAST)
 def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
-                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc):
-    """One row of ``classify_state``; cc (int64[4]) gains its counts."""
+                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, g2):
+    """One row of ``classify_state``; cc (int64[4]) gains its counts; g2 (float32[w]): room for the row's
+    ``slant_g2``."""
     w = rho.shape[1]
+    _slant_row(rho, var, y, g2)
     reason_bits, ILL, BAD, INF, VAL = bits[0], bits[1], bits[2], bits[3], bits[4]
     two_f = np.float32(2.0)
     for x in range(w):
@@ -338,7 +341,7 @@ def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_f
             A = a[y, x]
             agree = A >= eta_inlier * (A + b[y, x])
             f = np.uint8(0) if agree else ILL
-            sd = np.float32(math.sqrt(var[y, x] + slant2 * slant_g2(rho, var, y, x)))
+            sd = np.float32(math.sqrt(var[y, x] + slant2 * g2[x]))
             if not agree:
                 cc[3] += 1
         else:
@@ -372,6 +375,31 @@ def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_f
         o_flags[y, x] = f
         o_rng[y, x] = rng
         o_conf[y, x] = conf
+
+
+@njit(**_FAST)
+def _slant_row(rho, var, y, g2):
+    """``slant_g2`` of every cell of row y into g2: the inner columns in one branch-free loop over contiguous
+    neighbours (vectorised), the two border columns by ``slant_g2`` itself."""
+    h, w = rho.shape
+    nan = np.float32(np.nan)
+    zero = np.float32(0.0)
+    yu, yd = max(y - 1, 0), min(y + 1, h - 1)
+    up, down = y > 0, y < h - 1
+    for x in range(1, w - 1):
+        r = rho[y, x]
+        d = rho[y, x - 1] - r
+        el = d * d
+        d = rho[y, x + 1] - r
+        er = d * d
+        d = rho[yu, x] - r
+        eu = d * d if up else nan
+        d = rho[yd, x] - r
+        ed = d * d if down else nan
+        g2[x] = np.fmax(np.fmin(el, er), zero) + np.fmax(np.fmin(eu, ed), zero)
+    if w > 0:
+        g2[0] = slant_g2(rho, var, y, 0)
+        g2[w - 1] = slant_g2(rho, var, y, w - 1)
 
 
 @njit(**_FAST)
