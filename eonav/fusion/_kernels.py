@@ -1,6 +1,8 @@
 """Fused per-pixel passes (numba) of the filter: the forward warp with its z-buffer and the crack closing
 (``predict``), and the Gaussian x uniform update (``update``). The numpy paths of those modules are the reference
-and do the same arithmetic in ~40 full-array passes each; these do one pass. tests/test_fusion.py compares the two.
+and do the same arithmetic in ~40 full-array passes each; these sweep the image once, per row first the arithmetic
+of every cell in a branch-free loop (LLVM vectorises it; a cell it does not apply to computes values never used),
+then the per-cell choices. tests/test_fusion.py compares the two.
 
 Imported only when numba is installed (``eonav.ranging.methods._common.optional_kernels``); without it the numpy paths run.
 """
