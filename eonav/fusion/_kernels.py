@@ -39,8 +39,8 @@ def _exp2_table(n: int) -> np.ndarray:
 
 
 # expf of glibc (sysdeps/ieee754/flt-32/e_expf.c, the FMA build; ARM optimized-routines): 2^(k/32) from a table
-# times a cubic in double, within 0.502 ulp. The update's float32 exp inline instead of a libm call, which saves
-# spilling the loop's registers around the call (docs/methods.md, "Fusion over the stream": timing)
+# times a cubic in double, within 0.502 ulp. The update's float32 exp inline instead of a libm call: cheaper, and
+# the update's arithmetic loop vectorises with it (docs/methods.md, "Fusion over the stream": timing)
 _EXP_N = 32
 _EXP_TAB = _exp2_table(_EXP_N)
 _EXP_POW2 = np.ldexp(1.0, np.arange(-160, 1))          # 2^(k >> 5) for the k of x in [-104, 0]
