@@ -228,6 +228,33 @@ def test_numba_and_numpy_paths_agree_on_a_random_state():
         assert np.allclose(a0[ok], a1[ok], rtol=2e-4, atol=1e-9), name
 
 
+@pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
+def test_the_update_kernels_inline_exp_is_the_float32_exp():
+    """The update's inline exp (of x <= 0) against exp in float64 rounded to float32: at most 1 ulp apart (the
+    rounding of the float32 result), and its special values exact."""
+    from numba import njit
+    exp32 = optional_kernels().exp_nonpositive
+
+    @njit(cache=False)
+    def apply(xs, out):
+        for i in range(xs.size):
+            out[i] = exp32(xs[i])
+
+    rng = np.random.default_rng(11)
+    xs = np.concatenate([-rng.exponential(2.0, 200_000), -rng.uniform(0, 103.9, 200_000),
+                         -rng.uniform(0, 1e-6, 1000)]).astype(np.float32)
+    got = np.empty_like(xs)
+    apply(xs, got)
+    want = np.exp(xs.astype(np.float64)).astype(np.float32)
+    ulps = np.abs(got.view(np.int32).astype(np.int64) - want.view(np.int32))
+    assert ulps.max() <= 1 and (ulps == 0).mean() > 0.999
+    special = np.array([0.0, -0.0, -104.0, -110.0, -1e30, -np.inf, np.nan], np.float32)
+    out = np.empty_like(special)
+    apply(special, out)
+    assert out[0] == 1.0 and out[1] == 1.0
+    assert (out[2:6] == 0.0).all() and np.isnan(out[6])
+
+
 @pytest.fixture(scope="module")
 def fast_sequence():
     from eonav.sim.sequence import render_sequence
