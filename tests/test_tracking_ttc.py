@@ -155,3 +155,39 @@ def test_message_carries_the_expected_time_and_reads_old_messages():
     msg["tracks"][0]["expected_time_to_contact_s"] = "soon"
     with pytest.raises(G.SchemaError, match="expected_time_to_contact_s"):
         G.decode(G.encode(msg))
+
+
+def test_bench_scores_both_contact_times_against_the_true_entry():
+    from types import SimpleNamespace
+    from eonav.app import bench_tracking as B
+    from eonav.sim.scene import Box
+    wall = Box.on_ground("wall", 150.0, 0.0, 3.0, 12.0, 8.0)             # face at north 148.5
+    scene = SimpleNamespace(boxes=(wall,))
+    rec = []
+    for n, thr in ((100.0, (7, 2.0, 2.375)), (110.0, (7, 1.5, 1.5)), (120.0, (8, 1.0, 1.0))):
+        st = VehicleState.from_ypr([n, 0.0, -5.0], [0.0, 0.0, 0.0])
+        rec.append({"state": st, "scene": scene, "velocity_ned_mps": np.array([SPEED, 0.0, 0.0]), "threat": thr,
+                    "surface": {7: (148.5 - n, SPEED)}})
+    t = B.score_ttc(rec, "wall", 7, T.ConeConfig(vehicle_radius_m=1.0))
+    # true entry (148.5 - 1 - n) / 20: 2.375, 1.875, 1.375 s; the third frame's threat is another track
+    assert t["frames"] == 3 and t["missing"] == 1
+    np.testing.assert_allclose(t["threat_rel_err"][:2], [2.0 / 2.375 - 1, 1.5 / 1.875 - 1])
+    np.testing.assert_allclose(t["expected_rel_err"][:2], [0.0, 1.5 / 1.875 - 1], atol=1e-12)
+    assert math.isinf(t["expected_rel_err"][2]) and math.isinf(t["threat_rel_err"][2])
+
+
+def test_bench_map_cache_computes_once(tmp_path, monkeypatch):
+    from eonav.app import bench_tracking as B
+    calls = []
+
+    def fake(sc, rate, size, maps, seed):
+        calls.append(seed)
+        yield {"stamp_us": 0, "seed": seed}
+
+    monkeypatch.setattr(B, "range_maps", fake)
+    sc = B.scenario("head-on", 1.0)
+    first = B.cached_maps(sc, 15.0, (320, 240), "truth", 4, str(tmp_path))
+    again = B.cached_maps(sc, 15.0, (320, 240), "truth", 4, str(tmp_path))
+    assert first == again == [{"stamp_us": 0, "seed": 4}] and calls == [4]
+    B.cached_maps(sc, 15.0, (320, 240), "truth", 5, str(tmp_path))          # another seed: computed
+    assert calls == [4, 5] and len(list(tmp_path.glob("*.pkl"))) == 2

@@ -30,8 +30,8 @@ Per box (ground truth: the renderer's object ids and the solid box):
   track that lies within 1 m of the ground (or below it) is a ground track;
 - time to contact (head-on): the guidance threat (``eonav.obstacles.tracking.assess``, ``nearest_threat``) against
   the true entry time of the vehicle's velocity ray into the wall grown by the vehicle radius, for every frame at most
-  3 s from contact; also the track's surface distance over the closing speed (the estimate without the cone's sigma
-  margin);
+  3 s from contact, both its ``time_to_contact_s`` (the earliest contact consistent with the cone's k sigma) and its
+  ``expected_time_to_contact_s`` (without that margin); also the track's surface distance over the closing speed;
 - velocity (moving): over the frames from 1 s after a mover's track is confirmed, |v_track - v_true| / |v_true|.
 
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]

@@ -41,7 +41,10 @@ current pose, and the collision cone along the current velocity. The obstacle is
 position with the track's extent, inflated on each axis by ``vehicle_radius_m + k_sigma * sigma_axis`` (sigma_axis
 the track's position 1-sigma on that axis): the relative motion w = v_vehicle - v_obstacle (v_obstacle = 0 unless
 the track is ``moving``) puts it in the cone when the ray t -> w t from the vehicle hits that box within
-``horizon_s``; the time to contact is the ray's entry time (0 when already inside). See docs/guidance.md.
+``horizon_s``; the time to contact is the ray's entry time (0 when already inside), the earliest contact consistent
+with k sigma; the expected time to contact is the entry into the box grown by the vehicle radius only
+(``expected_contact_time``). The track's extent is the measurements' with the per-pixel range noise taken out
+(``range_noise_extent``: a face seen head-on spreads along the ray by its range noise alone). See docs/guidance.md.
 """
 from __future__ import annotations
 
