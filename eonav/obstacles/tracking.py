@@ -149,7 +149,7 @@ class Measurement:
     camera_id: str = ""
     lens_ned_m: np.ndarray | None = None    # the camera's lens centre (the ray's origin); None: no see-through test
     extent_noise_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))   # what range noise spreads the
-                                            # points over (5..95 %, per axis; extent_without_range_noise)
+                                            # points over (5..95 %, per axis; range_noise_extent)
 
     def __post_init__(self):
         self.position_ned_m = _vec("measurement position_ned_m", self.position_ned_m)
@@ -173,7 +173,7 @@ class Measurement:
 
     @property
     def object_extent_ned_m(self) -> np.ndarray:
-        """The extent with the range noise taken out (``extent_without_range_noise``): what the track keeps."""
+        """The extent with the range noise taken out in quadrature (``range_noise_extent``): what the track keeps."""
         e, n = self.extent_ned_m, self.extent_noise_ned_m
         return np.sqrt(np.maximum(e * e - n * n, 0.0))
 
