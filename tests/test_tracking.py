@@ -103,10 +103,11 @@ def test_measurement_from_obstacle_hand_derived_and_grid_independent():
     p = [40.0, 0.0, -10.0]                          # on the axis: N along the ray, E and D across
     o = _obstacle(p, bbox=[155, 90, 164, 149], ext=(2.0, 0.5, 4.0))       # 10 x 60 frame pixels
     m, = T.measurements_from_obstacles([o], CAM, HOVER, cfg)
-    # range sigma and 15 % of the depth extent without the range noise: N extent 2 m, of which 3.29 x 0.4 m is
-    # the spread of the 0.4 m range noise along the ray (on the axis the ray per metre of range is N itself)
+    # range sigma and 15 % of the points' depth spread (N extent 2 m); of that spread 3.29 x 0.4 m is the 0.4 m
+    # range noise along the ray (on the axis the ray per metre of range is N itself), which the object's extent
+    # leaves out
     depth = math.sqrt(2.0 ** 2 - (3.29 * 0.4) ** 2)
-    s_x = math.hypot(0.4, 0.15 * depth)
+    s_x = math.hypot(0.4, 0.15 * 2.0)
     np.testing.assert_allclose(m.extent_ned_m, [2.0, 0.5, 4.0])
     np.testing.assert_allclose(m.extent_noise_ned_m, [3.29 * 0.4, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(m.object_extent_ned_m, [depth, 0.5, 4.0], rtol=1e-9)

@@ -314,8 +314,9 @@ def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, 
             continue                                  # cannot happen for a point of this map; nothing to track
         s_pix = float(o.range_std_m) if math.isfinite(o.range_std_m) else 0.0
         noise = range_noise_extent(R @ (p_cam / x_c), s_pix)
-        obj = np.sqrt(np.maximum(ext * ext - noise * noise, 0.0))
-        depth_ext = float(np.linalg.norm(R[:, 0] * obj))     # the object's extent along the optical axis
+        # 15 % of the raw depth spread, range noise included, as before the noise was taken out of the extent:
+        # the measurement sigma (and so the association) is unchanged (docs/guidance.md, head-on)
+        depth_ext = float(np.linalg.norm(R[:, 0] * ext))
         s_range = math.hypot(s_pix, cfg.extent_fraction * depth_ext)
         s_range = max(s_range, cfg.min_range_rel_sigma * x_c)
         u0, v0, u1, v1 = o.bbox_px
