@@ -188,9 +188,9 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
     seed) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
-    them. No cache_dir: computed each time."""
+    them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     if not cache_dir:
-        return list(range_maps(sc, rate_hz, size, maps, seed))
+        return range_maps(sc, rate_hz, size, maps, seed)
     import pickle
     from pathlib import Path
     path = Path(cache_dir) / (f"{sc.name}_{sc.seconds:g}s_{rate_hz:g}hz_{size[0]}x{size[1]}_{maps}_seed{seed}"
