@@ -101,9 +101,16 @@ def _obstacle(p, bbox, range_std=0.4, ext=(0.5, 0.5, 4.0)):
 def test_measurement_from_obstacle_hand_derived_and_grid_independent():
     cfg = T.TrackerConfig(nav_sigma_m=0.0, attitude_sigma_rad=0.0)
     p = [40.0, 0.0, -10.0]                          # on the axis: N along the ray, E and D across
-    o = _obstacle(p, bbox=[155, 90, 164, 149])       # 10 x 60 frame pixels
+    o = _obstacle(p, bbox=[155, 90, 164, 149], ext=(2.0, 0.5, 4.0))       # 10 x 60 frame pixels
     m, = T.measurements_from_obstacles([o], CAM, HOVER, cfg)
-    s_x = math.hypot(0.4, 0.15 * 0.5)               # range sigma and 15 % of the depth extent (N extent 0.5 m)
+    # range sigma and 15 % of the points' depth spread (N extent 2 m); of that spread 3.29 x 0.4 m is the 0.4 m
+    # range noise along the ray (on the axis the ray per metre of range is N itself), which the object's extent
+    # leaves out
+    depth = math.sqrt(2.0 ** 2 - (3.29 * 0.4) ** 2)
+    s_x = math.hypot(0.4, 0.15 * 2.0)
+    np.testing.assert_allclose(m.extent_ned_m, [2.0, 0.5, 4.0])
+    np.testing.assert_allclose(m.extent_noise_ned_m, [3.29 * 0.4, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(m.object_extent_ned_m, [depth, 0.5, 4.0], rtol=1e-9)
     s_u = math.sqrt(1.0 + (0.15 * 10) ** 2)
     s_v = math.sqrt(1.0 + (0.15 * 60) ** 2)
     want = np.diag([s_x ** 2, (40.0 * s_u / F_PX) ** 2, (40.0 * s_v / F_PX) ** 2])
@@ -132,7 +139,11 @@ def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
     w = np.array([0.2, 0.6, 0.2])
     want = w @ np.array([p.position_ned_m for p in parts])
     np.testing.assert_allclose(m.position_ned_m, want)
-    np.testing.assert_allclose(m.extent_ned_m, [0.5, 0.4, 6.4])           # union of the three boxes
+    # 5..95 % of the pieces' points (each spread evenly, its own box its 5..95 %: support 2 + 2/9 m in down):
+    # the lowest piece (weight 0.2, support -6.511..-4.289) holds the 5 % point a quarter up, -5.956; the top one
+    # the 95 % point a quarter down from 0.111, -0.444: 5.511 m, inside the union of the boxes (6.4 m)
+    assert m.extent_ned_m[2] == pytest.approx(6.4 + 4.0 / 18.0 - 2 * 0.25 * (2.0 + 4.0 / 18.0), abs=1e-9)
+    assert np.all(m.extent_ned_m <= np.array([0.5, 0.4, 6.4]) + 1e-12) and np.all(m.extent_ned_m >= 0.3 - 1e-12)
     spread = sum(wi * np.outer(p.position_ned_m - want, p.position_ned_m - want) for wi, p in zip(w, parts))
     np.testing.assert_allclose(m.cov_ned_m2, cov + spread, atol=1e-12)
     assert m.pixel_count == 500
@@ -140,6 +151,25 @@ def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
     apart = [parts[0], T.Measurement([60.0, 0.0, -3.6], cov, [0.3, 0.3, 2.0], 300)]
     assert len(T.merge_fragments(apart, gap_m=0.5)) == 2
     assert len(T.merge_fragments(apart, gap_m=0.7)) == 1
+
+
+def test_a_speck_merged_with_a_wall_does_not_stretch_its_extent():
+    # a 3000-pixel wall face (5..95 % of its points 1 m deep) and a 12-pixel speck at its top edge ranged 15 m
+    # nearer, whose boxes touch: one obstacle, whose extent is the wall's, not the 16 m union of the two boxes
+    cov = np.diag([4.0, 0.04, 0.04])
+    wall = T.Measurement([100.0, 0.0, -4.0], cov, [1.0, 12.0, 8.0], 3000)
+    speck = T.Measurement([92.5, 0.0, -8.2], cov, [14.0, 0.5, 0.5], 12)
+    m, = T.merge_fragments([wall, speck], gap_m=0.5)
+    assert m.pixel_count == 3012
+    assert m.extent_ned_m[0] < 1.2                          # the union would be 100.5 - 85.5 = 15 m
+    np.testing.assert_allclose(m.extent_ned_m[1:], [12.0, 8.0], atol=0.15)
+    # two equal pieces side by side: the union, less the outer 5 % of the pair
+    a = T.Measurement([0.0, 0.0, 0.0], cov, [1.0, 1.0, 1.0], 100)
+    b = T.Measurement([0.0, 1.2, 0.0], cov, [1.0, 1.0, 1.0], 100)
+    m, = T.merge_fragments([a, b], gap_m=0.5)
+    # east: supports -0.556..0.556 and 0.644..1.756, weight 1/2 each: 5 % at 0.1 of the first, 95 % at 0.9 of
+    # the second
+    assert m.extent_ned_m[1] == pytest.approx((0.644444 + 0.9 * 1.111111) - (-0.555556 + 0.1 * 1.111111), abs=1e-5)
 
 
 def test_label_names_the_nearest_track_inside_the_gate():

@@ -61,12 +61,17 @@ THREAT_FIELDS = {
     "azimuth_frd_rad": "float", "elevation_frd_rad": "float", "closing_speed_mps": "float",
     "position_ned_m": "vec3",
 }
+# nested fields appended after version 1's first release: (type, default when absent)
+TRACK_OPTIONAL = {"expected_time_to_contact_s": ("float", math.nan)}
+THREAT_OPTIONAL = {"expected_time_to_contact_s": ("float", math.nan)}
 
 
-def _nested(where: str, d, spec: dict) -> dict:
+def _nested(where: str, d, spec: dict, optional: dict | None = None) -> dict:
     if not isinstance(d, dict):
         raise SchemaError(f"{where}: expected a map, got {type(d).__name__}")
     out = {}
+    for name, (typ, default) in (optional or {}).items():
+        out[name] = _check(where, name, typ, d[name]) if d.get(name) is not None else default
     for name, typ in spec.items():
         if name not in d:
             raise SchemaError(f"{where}.{name}: missing required field")
@@ -112,7 +117,7 @@ def validate(msg: dict) -> dict:
         raise SchemaError(f"{KIND}.map_age_s: expected >= 0 s, got {out['map_age_s']!r}")
     tracks = []
     for i, t in enumerate(out["tracks"]):
-        tr = _nested(f"{KIND}.tracks[{i}]", t, TRACK_FIELDS)
+        tr = _nested(f"{KIND}.tracks[{i}]", t, TRACK_FIELDS, TRACK_OPTIONAL)
         if tr["state"] not in TRACK_STATES:
             raise SchemaError(f"{KIND}.tracks[{i}].state: expected one of {TRACK_STATES}, got {tr['state']!r}")
         for name in ("position_ned_m", "position_cov_ned_m2", "velocity_ned_mps", "velocity_cov_ned_m2_per_s2"):
@@ -124,7 +129,7 @@ def validate(msg: dict) -> dict:
         raise SchemaError(f"{KIND}.tracks: ids must be unique, got {ids}")
     out["tracks"] = tracks
     if out["nearest_threat"] is not None:
-        th = _nested(f"{KIND}.nearest_threat", out["nearest_threat"], THREAT_FIELDS)
+        th = _nested(f"{KIND}.nearest_threat", out["nearest_threat"], THREAT_FIELDS, THREAT_OPTIONAL)
         if th["id"] not in ids:
             raise SchemaError(f"{KIND}.nearest_threat.id {th['id']} is not one of the tracks {ids}")
         out["nearest_threat"] = th

@@ -19,7 +19,7 @@ def _threat(tv) -> dict:
     return {"id": tv.track.id, "time_to_contact_s": tv.time_to_contact_s, "distance_m": tv.distance_m,
             "surface_distance_m": tv.surface_distance_m, "azimuth_frd_rad": tv.azimuth_frd_rad,
             "elevation_frd_rad": tv.elevation_frd_rad, "closing_speed_mps": tv.closing_speed_mps,
-            "position_ned_m": tv.position_ned_m}
+            "position_ned_m": tv.position_ned_m, "expected_time_to_contact_s": tv.expected_time_to_contact_s}
 
 
 def build(tracker: Tracker, own: Ownship, now_us: int, *, seq: int, trigger: str, stale_after_s: float,
@@ -53,7 +53,7 @@ def build(tracker: Tracker, own: Ownship, now_us: int, *, seq: int, trigger: str
             "measurement_confidence": float(t.measurement_confidence), "age_s": tv.age_s,
             "time_since_update_s": tv.time_since_update_s, "hits": int(t.hits), "misses": int(t.misses),
             "camera_id": t.camera_id, "in_cone": bool(tv.in_cone), "time_to_contact_s": tv.time_to_contact_s,
-            "closing_speed_mps": tv.closing_speed_mps})
+            "closing_speed_mps": tv.closing_speed_mps, "expected_time_to_contact_s": tv.expected_time_to_contact_s})
     return {"seq": int(seq), "stamp_us": now, "trigger": trigger,
             "status": status, "map_stamp_us": map_stamp, "map_age_s": float(age),
             "stale_after_s": float(stale_after_s), "nav_stamp_us": int(own.stamp_us),

@@ -41,7 +41,10 @@ current pose, and the collision cone along the current velocity. The obstacle is
 position with the track's extent, inflated on each axis by ``vehicle_radius_m + k_sigma * sigma_axis`` (sigma_axis
 the track's position 1-sigma on that axis): the relative motion w = v_vehicle - v_obstacle (v_obstacle = 0 unless
 the track is ``moving``) puts it in the cone when the ray t -> w t from the vehicle hits that box within
-``horizon_s``; the time to contact is the ray's entry time (0 when already inside). See docs/guidance.md.
+``horizon_s``; the time to contact is the ray's entry time (0 when already inside), the earliest contact consistent
+with k sigma; the expected time to contact is the entry into the box grown by the vehicle radius only
+(``expected_contact_time``). The track's extent is the measurements' with the per-pixel range noise taken out
+(``range_noise_extent``: a face seen head-on spreads along the ray by its range noise alone). See docs/guidance.md.
 """
 from __future__ import annotations
 
@@ -145,6 +148,8 @@ class Measurement:
     confidence: float = 1.0                 # the estimator's median confidence over those pixels
     camera_id: str = ""
     lens_ned_m: np.ndarray | None = None    # the camera's lens centre (the ray's origin); None: no see-through test
+    extent_noise_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))   # what range noise spreads the
+                                            # points over (5..95 %, per axis; range_noise_extent)
 
     def __post_init__(self):
         self.position_ned_m = _vec("measurement position_ned_m", self.position_ned_m)
@@ -153,6 +158,9 @@ class Measurement:
             if not np.linalg.norm(self.position_ned_m - self.lens_ned_m) > 0:
                 raise InputError("measurement lens_ned_m: must differ from position_ned_m (the ray's origin)")
         self.extent_ned_m = _vec("measurement extent_ned_m", self.extent_ned_m)
+        self.extent_noise_ned_m = _vec("measurement extent_noise_ned_m", self.extent_noise_ned_m)
+        if np.any(self.extent_noise_ned_m < 0):
+            raise InputError("measurement extent_noise_ned_m: must be >= 0")
         c = np.asarray(self.cov_ned_m2, float)
         # symmetric as np.allclose(c, c.T, rtol=1e-9, atol=1e-12) would say, without its per-call overhead
         if c.shape != (3, 3) or not np.isfinite(c).all() or not (np.abs(c - c.T) <= 1e-12 + 1e-9 * np.abs(c.T)).all():
@@ -162,6 +170,12 @@ class Measurement:
         self.cov_ned_m2 = 0.5 * (c + c.T)
         if np.any(self.extent_ned_m < 0):
             raise InputError("measurement extent_ned_m: must be >= 0")
+
+    @property
+    def object_extent_ned_m(self) -> np.ndarray:
+        """The extent with the range noise taken out in quadrature (``range_noise_extent``): what the track keeps."""
+        e, n = self.extent_ned_m, self.extent_noise_ned_m
+        return np.sqrt(np.maximum(e * e - n * n, 0.0))
 
 
 def merge_fragments(measurements, gap_m: float) -> list:
@@ -190,9 +204,35 @@ def merge_fragments(measurements, gap_m: float) -> list:
         pos = w @ p[idx]
         d = p[idx] - pos
         cov = np.einsum("i,ijk->jk", w, np.stack([meas[i].cov_ned_m2 for i in idx])) + (d * w[:, None]).T @ d
-        out.append(Measurement(pos, cov, hi[idx].max(0) - lo[idx].min(0), int(sum(meas[i].pixel_count for i in idx)),
+        ext = _mixture_extent(lo[idx], hi[idx], w)
+        ohalf = 0.5 * np.stack([meas[i].object_extent_ned_m for i in idx])
+        obj = _mixture_extent(p[idx] - ohalf, p[idx] + ohalf, w)
+        out.append(Measurement(pos, cov, ext, int(sum(meas[i].pixel_count for i in idx)),
                                float(w @ [meas[i].confidence for i in idx]), meas[idx[0]].camera_id,
-                               meas[idx[0]].lens_ned_m))
+                               meas[idx[0]].lens_ned_m, np.sqrt(np.maximum(ext * ext - obj * obj, 0.0))))
+    return out
+
+
+def _mixture_extent(lo: np.ndarray, hi: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Per axis, the 5..95 % span of the points of several fragments of one obstacle, each fragment's points spread
+    evenly with weight w (its share of the pixels) so that its own 5..95 % span is its box [lo, hi]: the merged
+    obstacle's extent in the sense of a single one's (a 12-pixel speck beside a 3000-pixel wall does not stretch it
+    as the union of their boxes would; one fragment alone gives its own box). Exact: the mixture's distribution is
+    piecewise linear between the ends of the fragments' supports."""
+    pad = (hi - lo) / 18.0                                   # 5 % of a uniform support beyond each end of [lo, hi]
+    a, b = lo - pad, np.maximum(hi + pad, lo - pad + 1e-9)
+    w = np.asarray(w, float) / float(np.sum(w))
+    out = np.empty(3)
+    for ax in range(3):
+        x = np.unique(np.concatenate([a[:, ax], b[:, ax]]))
+        cdf = np.clip((x[:, None] - a[None, :, ax]) / (b - a)[None, :, ax], 0.0, 1.0) @ w
+        q = []
+        for level in (0.05, 0.95):
+            k = int(np.searchsorted(cdf, level))
+            k = min(max(k, 1), x.size - 1)
+            f = (level - cdf[k - 1]) / (cdf[k] - cdf[k - 1]) if cdf[k] > cdf[k - 1] else 0.0
+            q.append(x[k - 1] + f * (x[k] - x[k - 1]))
+        out[ax] = q[1] - q[0]
     return out
 
 
@@ -241,6 +281,19 @@ def camera_covariance(point_ned_m, camera: Camera, state: VehicleState, sigma_ra
     return R @ cov_cam @ R.T
 
 
+SPAN_5_95 = 3.29                     # the 5..95 % span of a normal distribution, in sigma
+
+
+def range_noise_extent(ray_ned_per_m, sigma_range_m: float) -> np.ndarray:
+    """Per NED axis, the 5..95 % span over which a per-pixel range 1-sigma ``sigma_range_m`` spreads the points of a
+    flat face: a range error dx_c moves a point by dx_c ``ray_ned_per_m`` (the ray per metre of x_c, [1, a, b] of
+    eqs. 8-9 rotated into NED), and 5..95 % of a normal distribution spans 3.29 sigma. Seen head-on, a face's points
+    spread along the ray by this alone; the box centred on their median point would stand half of it in front of
+    the face (and make the time to contact early). ``Measurement.object_extent_ned_m`` takes it out in quadrature:
+    sqrt(max(e^2 - n^2, 0)) per axis."""
+    return SPAN_5_95 * max(float(sigma_range_m), 0.0) * np.abs(np.asarray(ray_ned_per_m, float))
+
+
 def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, cfg: TrackerConfig = TrackerConfig(),
                                 frame_size=None, camera_id: str = "") -> list:
     """``Measurement`` of each ``eonav.obstacles.Obstacle`` of one range map, fragments of one object merged
@@ -255,13 +308,16 @@ def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, 
     for o in obstacles:
         p = _vec(f"obstacle {o.id} position_ned_m", o.position_ned_m)
         ext = np.abs(_vec(f"obstacle {o.id} extent_ned_m", o.extent_ned_m))
-        x_c = float(camera_from_ned(p, camera.T_cam_body, state.T_body_ned, state.position_ned_m,
-                                    camera.l_body_m)[0])
+        p_cam = camera_from_ned(p, camera.T_cam_body, state.T_body_ned, state.position_ned_m, camera.l_body_m)
+        x_c = float(p_cam[0])
         if not x_c > 0:
             continue                                  # cannot happen for a point of this map; nothing to track
-        depth_ext = float(np.linalg.norm(R[:, 0] * ext))     # extent along the optical axis
-        s_range = math.hypot(float(o.range_std_m) if math.isfinite(o.range_std_m) else 0.0,
-                             cfg.extent_fraction * depth_ext)
+        s_pix = float(o.range_std_m) if math.isfinite(o.range_std_m) else 0.0
+        noise = range_noise_extent(R @ (p_cam / x_c), s_pix)
+        # 15 % of the raw depth spread, range noise included, as before the noise was taken out of the extent:
+        # the measurement sigma (and so the association) is unchanged (docs/guidance.md, head-on)
+        depth_ext = float(np.linalg.norm(R[:, 0] * ext))
+        s_range = math.hypot(s_pix, cfg.extent_fraction * depth_ext)
         s_range = max(s_range, cfg.min_range_rel_sigma * x_c)
         u0, v0, u1, v1 = o.bbox_px
         s_u = math.sqrt(cfg.pixel_sigma_px ** 2 + (cfg.extent_fraction * (u1 - u0 + 1)) ** 2
@@ -271,7 +327,7 @@ def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, 
         # camera_covariance takes pixels of ``camera``: convert the frame-pixel sigmas
         cov = camera_covariance(p, camera, state, s_range, s_u * camera.width / fw, s_v * camera.height / fh)
         cov = cov + cfg.nav_sigma_m ** 2 * np.eye(3)
-        out.append(Measurement(p, cov, ext, int(o.pixel_count), float(o.confidence), camera_id, lens))
+        out.append(Measurement(p, cov, ext, int(o.pixel_count), float(o.confidence), camera_id, lens, noise))
     return merge_fragments(out, cfg.merge_gap_m)
 
 
@@ -555,7 +611,7 @@ class Tracker:
         t.last_hit_us = stamp_us
         t.last_outcome = "hit"
         a = cfg.extent_smoothing
-        t.extent_ned_m = (1 - a) * t.extent_ned_m + a * m.extent_ned_m
+        t.extent_ned_m = (1 - a) * t.extent_ned_m + a * m.object_extent_ned_m
         t.pixel_count, t.measurement_confidence, t.camera_id = m.pixel_count, m.confidence, m.camera_id
         self._seen(t, True)
         if t.hits >= cfg.confirm_hits:
@@ -589,7 +645,7 @@ class Tracker:
         P[:3, :3] = m.cov_ned_m2
         P[3:, 3:] = cfg.initial_speed_sigma_mps ** 2 * np.eye(3)
         t = Track(self._next_id, np.concatenate([m.position_ned_m, np.zeros(3)]), P, stamp_us, stamp_us, stamp_us,
-                  extent_ned_m=m.extent_ned_m.copy(), pixel_count=m.pixel_count,
+                  extent_ned_m=m.object_extent_ned_m, pixel_count=m.pixel_count,
                   measurement_confidence=m.confidence, camera_id=m.camera_id)
         self._next_id += 1
         self._seen(t, True)
@@ -672,6 +728,7 @@ class TrackView:
     in_cone: bool
     time_to_contact_s: float          # NaN when not in the cone
     closing_speed_mps: float          # rate at which the distance shrinks (positive = approaching)
+    expected_time_to_contact_s: float = math.nan   # without the k-sigma margin (assess); NaN when not in the cone
 
 
 def box_entry_time(c, h, w):
@@ -689,6 +746,18 @@ def box_entry_time(c, h, w):
     if t_hi < max(t_lo, 0.0):
         return None
     return max(t_lo, 0.0)
+
+
+def expected_contact_time(c, h, w, earliest_s: float) -> float:
+    """Time to contact without the sigma margin: the entry time of the ray s(t) = w t into the box |s - c| <= h (the
+    track's box grown by the vehicle radius only), or, when the ray passes that box and meets only the sigma-grown
+    one, the time of its closest approach to the centre c (w.c / w.w), never before ``earliest_s`` (the entry into
+    the grown box)."""
+    te = box_entry_time(c, h, w)
+    if te is not None:
+        return float(te)
+    ww = float(np.dot(w, w))
+    return max(float(np.dot(w, c)) / ww, earliest_s) if ww > 0 else earliest_s
 
 
 def is_moving(x, P, cfg: TrackerConfig) -> bool:
@@ -725,21 +794,23 @@ def assess(snapshot, own: Ownship, now_us: int, cone: ConeConfig = ConeConfig(),
         dist = float(np.linalg.norm(rel))
         half = 0.5 * t.extent_ned_m
         surf = float(np.linalg.norm(np.maximum(np.abs(rel) - half, 0.0)))
-        ttc, closing = math.nan, math.nan
+        ttc, closing, expected = math.nan, math.nan, math.nan
         in_cone = False
         if own.velocity_known:
             w = own.velocity_ned_mps - (v if moving else 0.0)
             closing = float(w @ rel / dist) if dist > 0 else 0.0
-            h = half + cone.vehicle_radius_m + cone.k_sigma * np.sqrt(np.maximum(np.diag(P)[:3], 0.0))
+            h0 = half + cone.vehicle_radius_m
+            h = h0 + cone.k_sigma * np.sqrt(np.maximum(np.diag(P)[:3], 0.0))
             if float(np.linalg.norm(w)) < cone.min_speed_mps:
                 w = np.zeros(3)
             te = box_entry_time(rel, h, w)
             if te is not None and te <= cone.horizon_s:
                 in_cone, ttc = True, float(te)
+                expected = expected_contact_time(rel, h0, w, te)
         views.append(TrackView(
             t, p.copy(), v.copy(), P, (now_us - t.born_us) * 1e-6, (now_us - t.last_hit_us) * 1e-6, moving, dist,
             surf, float(math.atan2(b[1], b[0])), float(math.atan2(-b[2], math.hypot(b[0], b[1]))), in_cone, ttc,
-            closing))
+            closing, expected))
     return views
 
 
