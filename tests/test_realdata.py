@@ -48,3 +48,9 @@ def test_kitti_poses_move_the_camera_forward():
     g = pair_geometry(views[0], views[1])
     # ~0.86 m forward along the optical axis: a point ahead is nearer in frame 1 (t_x < 0), little sideways
     assert -0.9 < g.t_ba_m[0] < -0.8 and abs(g.t_ba_m[1]) < 0.1 and abs(g.t_ba_m[2]) < 0.1
+
+
+def test_default_data_dir_is_shared_data_beside_the_checkout():
+    # the benches' default --data: the folder beside the repository (its parent holds both), as the tests find it
+    from eonav.io.datasets import default_data_dir
+    assert default_data_dir() == Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -22,8 +22,8 @@ MIDDLEBURY_BASELINE_M = 0.1
 
 
 def default_data_dir() -> Path:
-    """``shared/data`` beside the repository checkout (where CI puts it)."""
-    return Path(__file__).resolve().parents[2] / "shared" / "data"
+    """``shared/data`` beside the repository checkout (its parent folder holds both; where CI puts it)."""
+    return Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def middlebury_pair(data_dir, scene: str):
