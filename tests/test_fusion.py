@@ -37,6 +37,19 @@ def planar_state(c, rho, var=1e-6):
     return st
 
 
+def converged_plane(empty=None):
+    """A 64 x 48 camera and a converged state on the plane rho = 0.05 + 0.0004 u - 0.0003 v (sigma 1e-4), the cells
+    of ``empty`` (an index) emptied; returns (camera, plane, state)."""
+    c = cam(64, 48)
+    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
+    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
+    st = planar_state(c, plane, var=1e-8)
+    if empty is not None:
+        st.rho[empty], st.var[empty], st.a[empty], st.b[empty], st.n[empty] = np.nan, np.inf, 0.0, 0.0, 0
+    return c, plane, st
+
+
+
 @pytest.mark.parametrize("kernels", PATHS)
 def test_forward_motion_carries_a_plane_to_the_pixels_and_inverse_ranges_derived_by_hand(kernels):
     # fronto-parallel plane at 20 m, camera 2 m forward (no rotation): every point is at 18 m in the new frame,
@@ -322,15 +335,10 @@ def test_stereo_partner_updates_the_rig_reference():
 def test_real_indoor_sequence_fused_beats_single_pair_dense():
     # the real HoloLens sequence (depth-sensor reference): the fused last frame against the dense method on the
     # newest pair and the widest pair of the same frame
-    from pathlib import Path
-
     from eonav.app.bench_fuse import indoor_config, widest_partner
     from eonav.ranging.methods.dense import locate_dense
-    from eonav.io.datasets import hololens_sequence
-    data = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-    if not (data / "hololens_dvmvs_20f").is_dir():
-        pytest.skip(f"real data not found at {data / 'hololens_dvmvs_20f'} (../shared/data)")
-    views, truth = hololens_sequence(data)
+    from shared_data import hololens_or_skip
+    views, truth = hololens_or_skip()
     cfg = indoor_config()
     runner = FusionRunner(cfg)
     for k, v in enumerate(views):
@@ -380,12 +388,8 @@ def test_an_empty_cell_is_filled_from_converged_neighbours_and_an_occluded_one_o
     # flagged TRUNCATION (one pair's verdict on its step): filled; OCCLUDED (contested): filled too, the plane
     # being exact (relative sigma ~0 <= contested_rel_std), but not when contested cells are never filled
     # (contested_rel_std 0), nor TRUNCATION when the config names it among the contested bits then
-    c = cam(64, 48)
-    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
-    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
-    st = planar_state(c, plane, var=1e-8)
     hole = (slice(20, 26), slice(30, 36))
-    st.rho[hole], st.var[hole], st.a[hole], st.b[hole], st.n[hole] = np.nan, np.inf, 0.0, 0.0, 0
+    c, plane, st = converged_plane(hole)
     never = dict(contested_rel_std=0.0)
     for bits, cfg, filled in ((TRUNCATION, MapConfig(), True), (OCCLUDED, MapConfig(), True),
                               (OCCLUDED, MapConfig(**never), False),
@@ -431,11 +435,8 @@ def test_a_disagreeing_cell_takes_a_tight_plane_of_its_neighbours_not_a_loose_on
     # converged plane: no range of their own (ILL_CONDITIONED); the exact plane of the neighbours (relative sigma
     # ~0.3 %) stands in for them, with the truth's rho; with noisy neighbours (2 % per cell, so the plane's
     # scatter gives a sigma well above a 0.1 % limit) they stay empty
-    c = cam(64, 48)
-    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
-    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
     dis = (slice(20, 24), slice(30, 34))
-    st = planar_state(c, plane, var=1e-8)
+    c, plane, st = converged_plane()
     st.rho[dis] = 1.5 * plane[dis]
     st.a[dis], st.b[dis] = 1.0, 5.0
     for cfg, filled in ((MapConfig(), True), (MapConfig(contested_rel_std=0.0), False)):
@@ -465,12 +466,8 @@ def test_empty_cells_at_the_image_border_are_extrapolated_unless_textureless(ker
     # plane's own rho, the 2 further in (5-6 px from the border, outside the support: an extrapolation) do not,
     # but in the top and bottom 4 rows, which are in the ring too; none
     # with border_px 0, nor where the last pair saw no texture (LOW_TEXTURE: may be sky)
-    c = cam(64, 48)
-    vs, us = np.mgrid[0:48, 0:64].astype(np.float32)
-    plane = (0.05 + 0.0004 * us - 0.0003 * vs).astype(np.float32)
-    st = planar_state(c, plane, var=1e-8)
     strip = (slice(None), slice(58, 64))
-    st.rho[strip], st.var[strip], st.a[strip], st.b[strip], st.n[strip] = np.nan, np.inf, 0.0, 0.0, 0
+    c, plane, st = converged_plane(strip)
     for bits, cfg, cols in ((ILL_CONDITIONED, MapConfig(), slice(60, 64)), (ILL_CONDITIONED, MapConfig(border_px=0), None),
                             (LOW_TEXTURE, MapConfig(), None)):
         st.flags[...] = 0

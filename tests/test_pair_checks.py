@@ -2,7 +2,6 @@
 affine brightness fit (eonav.ranging.photometric) and the pose term of the sigma (eonav.fusion.measure), against
 synthetic pairs of known geometry and brightness, and the real HoloLens sequence's one inconsistent pose."""
 from dataclasses import replace
-from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -167,11 +166,8 @@ def test_pose_sigma_term_by_hand():
 def test_real_indoor_sequence_frame0_pose_is_the_inconsistent_one():
     # HoloLens sequence: the headset's pose of frame 0 disagrees with its images (its pairs' tracks lie off the
     # epipolar lines by about a pixel), the pairs of the next frames agree to a few tenths
-    from eonav.io.datasets import hololens_sequence
-    data = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-    if not (data / "hololens_dvmvs_20f").is_dir():
-        pytest.skip(f"real data not found at {data / 'hololens_dvmvs_20f'} (../shared/data)")
-    views, _ = hololens_sequence(data)
+    from shared_data import hololens_or_skip
+    views, _ = hololens_or_skip()
 
     def shift(k, j):
         return pose_shift_px(pair_geometry(views[k], views[j]), track_points(views[k].image, views[j].image))
