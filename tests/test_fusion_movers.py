@@ -13,7 +13,7 @@ from eonav.fusion.state import InverseRangeState
 from eonav.fusion.update import UpdateConfig, gate_motion, stereo_restart
 from eonav.geometry.camera import Camera, VehicleState
 from eonav.ranging.rangemap import FILLED, OCCLUDED, OUT_OF_VIEW, VALID
-from eonav.sim.scene import Box
+from eonav.sim.scene import Box, Scene
 
 F32 = np.float32
 
@@ -121,3 +121,25 @@ def test_a_monocular_camera_ranges_an_oncoming_vehicle_wrong_and_a_stereo_rig_ra
     assert right_mono < 0.3 and wrong_mono > 0.4
     assert right_rig > 0.75 and wrong_rig < 0.15
     assert right_avg < right_rig - 0.15
+
+
+def test_the_benchmark_sorts_a_movers_pixels_by_what_the_map_says_of_them():
+    from eonav.app.bench_tracking import mover_pixels
+    sc = Scenario("m", "approach", 1.0, clear=True, movers=(ONCOMING,))
+    box = ONCOMING.box
+    state = VehicleState.from_ypr([box.center_ned_m[0] - 50.0, 0.0, -6.0], [0, 0, 0], 0.0)
+    oid = np.full((4, 5), 0, np.int32)
+    oid[:, :4] = 2                                       # 16 pixels of the van, a column of ground
+    truth = np.full((4, 5), 50.0, np.float32)
+    rng = truth * np.tile(np.array([1.09, 0.91, 1.0, 1.11, 1.0], np.float32), (4, 1))     # column 3 11 % off
+    flags = np.full((4, 5), VALID, np.uint8)
+    flags[3, :2] = FILLED
+    flags[2, 2:4] = OUT_OF_VIEW | OCCLUDED
+    m = {"scene": Scene(boxes=(box,)),
+         "state": state, "visible_px": {0: 16}, "object_id": oid, "flags": flags, "range_m": rng,
+         "truth_range_m": truth}
+    # VALID pixels of the van: rows 0-1 all, row 2 columns 0-1, row 3 columns 2-3; off by 11 %: column 3 of those
+    assert mover_pixels(m, sc) == {"van": {"pixels": 16, "right": 9, "wrong": 3, "filled": 2, "occluded": 2}}
+    assert mover_pixels(dict(m, visible_px={0: 11}), sc) == {}             # fewer than min_obstacle_pixels
+    far = VehicleState.from_ypr([box.center_ned_m[0] - 130.0, 0.0, -6.0], [0, 0, 0], 0.0)
+    assert mover_pixels(dict(m, state=far), sc) == {}                     # beyond max_obstacle_distance_m

@@ -222,20 +222,21 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
                 stereo_lead_k: float = UpdateConfig().stereo_lead_k):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
+    seed, rig baseline and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
+    lead = {"stereo_lead_k": stereo_lead_k} if maps == "fused" and sc.rig_baseline_m > 0 else {}
     if not cache_dir:
-        return range_maps(sc, rate_hz, size, maps, seed, stereo_lead_k)
+        return range_maps(sc, rate_hz, size, maps, seed, **lead)
     import pickle
     from pathlib import Path
     path = Path(cache_dir) / (f"{sc.name}_{sc.seconds:g}s_{rate_hz:g}hz_{size[0]}x{size[1]}_{maps}_seed{seed}"
                               f"{f'_slope{sc.slope_deg:g}' if sc.slope_deg else ''}"
                               f"{f'_rig{sc.rig_baseline_m:g}' if sc.rig_baseline_m > 0 else ''}"
-                              f"{f'_lead{stereo_lead_k:g}' if maps == 'fused' and sc.rig_baseline_m > 0 else ''}.pkl")
+                              f"{f'_lead{stereo_lead_k:g}' if lead else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
             return pickle.load(f)
-    out = list(range_maps(sc, rate_hz, size, maps, seed, stereo_lead_k))
+    out = list(range_maps(sc, rate_hz, size, maps, seed, **lead))
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path.with_suffix(".tmp"), "wb") as f:
         pickle.dump(out, f, protocol=pickle.HIGHEST_PROTOCOL)
