@@ -14,8 +14,8 @@ flight, boxes removed, analysed in a frame pitched by ``--slope-deg``: the groun
 vehicle follows), ``head-on`` (the approach flight's trajectory straight at a wall on its path: time to contact)
 ``moving`` (two vehicles driving at constant velocity, one across the path and one towards the aircraft: their
 tracked velocity) and ``moving-stereo`` (the same, the nose camera with a stereo partner ``STEREO_BASELINE_M`` to
-its right: fused maps take the rig's stereo pair of each instant besides the motion pair; dense maps are the
-stereo pair alone). The simulator's scene is static; a moving box is rendered at its place at each frame's time.
+its right: fused maps take the rig's stereo pair of each instant besides the motion pair, the partner's frame handed
+over first or, ``--rig-order arrival``, pushed after the reference's; dense maps are the stereo pair alone). The simulator's scene is static; a moving box is rendered at its place at each frame's time.
 
 Per box (ground truth: the renderer's object ids and the solid box):
 - in view: at least ``min_obstacle_pixels`` of its pixels in the frame and its distance within the obstacle list's
@@ -40,7 +40,7 @@ Per box (ground truth: the renderer's object ids and the solid box):
 
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
-        [--rig-baseline-m M] [--stereo-lead-k K] [--cache-dir DIR]
+        [--rig-baseline-m M] [--rig-order partner-first|arrival] [--stereo-lead-k K] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -167,7 +167,7 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
 
 
 def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
-               stereo_lead_k: float = UpdateConfig().stereo_lead_k):
+               stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
     confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene."""
     from eonav.ranging.locate import locate
@@ -204,9 +204,13 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         else:
             from eonav.fusion.sequence import frame
-            if pview is not None:       # the partner's frame first (a partner only: no state of its own), then the
-                runner.remember(frame(PARTNER_ID, pview, stamp, seq=k))      # reference's: motion + stereo
+            if pview is not None and rig_order == "partner-first":  # the partner's frame first (a partner only: no
+                runner.remember(frame(PARTNER_ID, pview, stamp, seq=k))  # state of its own), the reference's: both
             out = [m for m in runner.push(frame("nose", view, stamp, seq=k)) if m.frame.seq == k]
+            if pview is not None and rig_order == "arrival":    # the reference's frame first, then the partner's
+                out = out + [m for m in runner.push(frame(PARTNER_ID, pview, stamp, seq=k))    # (its own state too):
+                             if m.frame.camera_id == "nose" and m.frame.seq == k]            # the reference's last map
+                out = out[-1:]
             if not out:
                 continue
             res = out[0].result
@@ -220,11 +224,12 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 
 
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
-                stereo_lead_k: float = UpdateConfig().stereo_lead_k):
+                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
     seed, rig baseline and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
-    lead = {"stereo_lead_k": stereo_lead_k} if maps == "fused" and sc.rig_baseline_m > 0 else {}
+    lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
+            else {})
     if not cache_dir:
         return range_maps(sc, rate_hz, size, maps, seed, **lead)
     import pickle
@@ -232,7 +237,8 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
     path = Path(cache_dir) / (f"{sc.name}_{sc.seconds:g}s_{rate_hz:g}hz_{size[0]}x{size[1]}_{maps}_seed{seed}"
                               f"{f'_slope{sc.slope_deg:g}' if sc.slope_deg else ''}"
                               f"{f'_rig{sc.rig_baseline_m:g}' if sc.rig_baseline_m > 0 else ''}"
-                              f"{f'_lead{stereo_lead_k:g}' if lead else ''}.pkl")
+                              f"{f'_lead{stereo_lead_k:g}' if lead else ''}"
+                              f"{'_arrival' if lead and rig_order == 'arrival' else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
             return pickle.load(f)
@@ -448,6 +454,9 @@ def add_arguments(p) -> None:
                    help="TrackerConfig.duplicate_chi2: merge confirmed tracks within this 6-dof d^2 (0: off)")
     p.add_argument("--rig-baseline-m", type=float, default=0.0, metavar="M",
                    help=f"moving-stereo: the rig's baseline (default {STEREO_BASELINE_M:g} m)")
+    p.add_argument("--rig-order", choices=("partner-first", "arrival"), default="partner-first",
+                   help="moving-stereo, fused: the partner's frame handed over first (a partner only) or pushed after "
+                        "the reference's, as the locator does when the reference's frame arrives first")
     p.add_argument("--stereo-lead-k", type=float, default=UpdateConfig().stereo_lead_k, metavar="K",
                    help="UpdateConfig.stereo_lead_k: a rig's stereo measurement leads where it disagrees by K sigma "
                         "(0: off)")
@@ -467,7 +476,7 @@ def main(argv=None) -> int:
     for maps in [s for s in args.maps.split(",") if s]:
         for name in [s for s in args.scenarios.split(",") if s]:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
-                   tcfg, args.cache_dir, args.stereo_lead_k)
+                   tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order)
     return 0
 
 
@@ -478,10 +487,11 @@ def _pct(errs, q):
 
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
-           stereo_lead_k: float = UpdateConfig().stereo_lead_k) -> dict:
+           stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first") -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
-    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k), sc, ocfg, tcfg)
+    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order), sc, ocfg,
+                         tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "

@@ -133,6 +133,7 @@ class FusionRunner:
         self.frames: dict[str, PosedFrameInfo] = {}          # the frame each state is on
         self.counts: dict[str, int] = {}
         self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
+        self._rig_motion: dict[str, tuple] = {}              # a rig reference's last motion measurement (stereo leads)
 
     def count(self, name: str, k: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + k
@@ -145,6 +146,7 @@ class FusionRunner:
             self._spare.pop(cid, None)
             self._since_full.pop(cid, None)
             self._full_measured.pop(cid, None)
+            self._rig_motion.pop(cid, None)
 
     def remember(self, f: PosedFrameInfo) -> None:
         """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
@@ -231,14 +233,27 @@ class FusionRunner:
     def _stereo_lead(self, m, res, stereo_res) -> dict:
         """Stereo leads (``eonav.fusion.update``): a motion measurement's pixels that disagree with this push's
         stereo measurement of the same frame are not fused; a stereo measurement restarts the cells it disagrees
-        with. Edits ``res``'s inverse range in place; returns the counts (gated, stereo_restarted)."""
+        with, and, when the frame's motion measurement was fused in an earlier push (the partner's frame came
+        second), the cells where that motion measurement disagrees with it. Edits ``res``'s inverse range in place;
+        returns the counts (gated, stereo_restarted)."""
         ucfg = self.config.update
-        if ucfg.stereo_lead_k == 0:
+        rig = self.config.schedule.stereo_rig
+        if ucfg.stereo_lead_k == 0 or rig is None:
             return {}
+        ref = m.a.camera_id
         if m.kind == STEREO:
-            return {"stereo_restarted": int(stereo_restart(self.states[m.a.camera_id], res.inv_range_per_m,
-                                                           res.inv_range_std_per_m, res.flags, ucfg).sum())}
+            kept = self._rig_motion.pop(ref, None)
+            extra = None
+            if kept is not None and kept[0] == (m.a.seq, m.a.stamp_us):
+                extra = gate_motion(kept[1], kept[2], kept[3], res.inv_range_per_m, res.inv_range_std_per_m,
+                                    res.flags, ucfg)
+            return {"stereo_restarted": int(stereo_restart(self.states[ref], res.inv_range_per_m,
+                                                           res.inv_range_std_per_m, res.flags, ucfg,
+                                                           also=extra).sum())}
         if stereo_res is None:
+            if ref == rig[0]:       # its frame's stereo measurement may come with the partner's frame
+                self._rig_motion[ref] = ((m.a.seq, m.a.stamp_us), res.inv_range_per_m.copy(),
+                                         res.inv_range_std_per_m.copy(), res.flags.copy())
             return {}
         return {"gated": int(gate_motion(res.inv_range_per_m, res.inv_range_std_per_m, res.flags,
                                          stereo_res.inv_range_per_m, stereo_res.inv_range_std_per_m,

@@ -39,7 +39,8 @@ mover like anything else. So, when a reference frame has both:
   ``stereo_lead_k`` sigma (both sigmas) is not fused (the stereo one is right whatever moved);
 - ``stereo_restart``: a cell the stereo measurement disagrees with by more than ``stereo_lead_k`` sigma (the cell's
   and the measurement's) starts again from the stereo measurement, instead of counting one more outlier against an
-  estimate the motion pairs built from a scene that has since moved.
+  estimate the motion pairs built from a scene that has since moved; so does a cell whose motion measurement of the
+  same frame was fused before the stereo one arrived (the partner camera's frame second) and disagrees with it.
 A static cell whose stereo measurement is a mismatch is restarted too; the next frame's stereo measurement disagrees
 with that wrong start and restarts it again, so one bad stereo pixel costs its cell a frame or two.
 """
@@ -227,9 +228,12 @@ def gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, cfg: UpdateConfig 
     return off
 
 
-def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateConfig = UpdateConfig()) -> np.ndarray:
+def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateConfig = UpdateConfig(),
+                   also=None) -> np.ndarray:
     """Cells the stereo measurement disagrees with by more than ``cfg.stereo_lead_k`` sigma, |x - mu| > k sqrt(s^2 +
-    tau^2), restarted from it (mu = x, s^2 = tau^2, Beta(a_init, b_init), n = 1; module docstring), in place. The
+    tau^2), restarted from it (mu = x, s^2 = tau^2, Beta(a_init, b_init), n = 1; module docstring), in place;
+    ``also``: a mask of further cells to restart where the stereo measurement has a value (those where the same
+    frame's motion measurement, fused before the stereo one arrived, disagreed with it: ``gate_motion``). The
     measurement is to be fused into the other cells as usual: its inverse range is set to NaN in ``rho_s`` (in
     place, a float32 array) where a cell restarted. Returns the mask of restarted cells (none with k = 0)."""
     if np.shape(rho_s) != state.shape:
@@ -241,6 +245,8 @@ def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateC
     with np.errstate(invalid="ignore"):
         d = np.asarray(rho_s, F32) - state.rho
         off = meas & (d * d > _lead_k(cfg) ** 2 * (state.var + tau * tau))
+    if also is not None:
+        off |= meas & np.asarray(also, bool)
     state.rho[off] = rho_s[off]
     state.var[off] = tau[off] ** 2
     state.a[off] = cfg.a_init
