@@ -149,3 +149,24 @@ def test_the_benchmark_sorts_a_movers_pixels_by_what_the_map_says_of_them():
     assert mover_pixels(dict(m, visible_px={0: 11}), sc) == {}             # fewer than min_obstacle_pixels
     far = VehicleState.from_ypr([box.center_ned_m[0] - 130.0, 0.0, -6.0], [0, 0, 0], 0.0)
     assert mover_pixels(dict(m, state=far), sc) == {}                     # beyond max_obstacle_distance_m
+
+
+def test_stereo_leads_does_not_edit_the_arrays_of_a_measurement_the_caller_holds(oncoming_frames):
+    # a measurement that is not fresh (the caller keeps its results): the lead works on copies
+    from eonav.fusion.sequence import dense_measurement
+    held = []
+
+    def measure(a, b, **kw):
+        res = dense_measurement(a, b, **kw)
+        held.append((res, res.inv_range_per_m.copy()))
+        return res
+
+    runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID))), measure=measure)
+    restarted = 0
+    for i, (stamp, view, _, _, partner) in enumerate(oncoming_frames[:20]):
+        runner.remember(frame(PARTNER_ID, partner, stamp, i))
+        for m in runner.push(frame("nose", view, stamp, i)):
+            restarted += sum(x.get("stereo_restarted", 0) + x.get("gated", 0) for x in m.measurements)
+    assert restarted > 0
+    for res, rho in held:
+        np.testing.assert_array_equal(res.inv_range_per_m, rho)

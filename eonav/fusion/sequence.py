@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -197,6 +197,8 @@ class FusionRunner:
                                 prior_min_fraction=prior[2], **kw)
                    if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
             locate_s += time.perf_counter() - t1
+            if not self.fresh and self.config.schedule.stereo_rig is not None:     # stereo leads edits rho:
+                res = replace(res, inv_range_per_m=np.array(res.inv_range_per_m, F32))  # not the caller's arrays
             results.append((prior, res))
             if m.kind == STEREO:
                 stereo[ref] = res
