@@ -12,8 +12,10 @@ Scenarios (``--scenarios``): the simulator's flights (``approach``, ``turning``,
 same flights with every box removed (``<flight>-clear``: textured ground and runway only), ``slope`` (the approach
 flight, boxes removed, analysed in a frame pitched by ``--slope-deg``: the ground rises ahead, as over a slope the
 vehicle follows), ``head-on`` (the approach flight's trajectory straight at a wall on its path: time to contact)
-and ``moving`` (two vehicles driving at constant velocity, one across the path and one towards the aircraft: their
-tracked velocity). The simulator's scene is static; a moving box is rendered at its place at each frame's time.
+``moving`` (two vehicles driving at constant velocity, one across the path and one towards the aircraft: their
+tracked velocity) and ``moving-stereo`` (the same, the nose camera with a stereo partner ``STEREO_BASELINE_M`` to
+its right: fused maps take the rig's stereo pair of each instant besides the motion pair, the partner's frame handed
+over first or, ``--rig-order arrival``, pushed after the reference's; dense maps are the stereo pair alone). The simulator's scene is static; a moving box is rendered at its place at each frame's time.
 
 Per box (ground truth: the renderer's object ids and the solid box):
 - in view: at least ``min_obstacle_pixels`` of its pixels in the frame and its distance within the obstacle list's
@@ -32,11 +34,13 @@ Per box (ground truth: the renderer's object ids and the solid box):
   the true entry time of the vehicle's velocity ray into the wall grown by the vehicle radius, for every frame at most
   3 s from contact, both its ``time_to_contact_s`` (the earliest contact consistent with the cone's k sigma) and its
   ``expected_time_to_contact_s`` (without that margin); also the track's surface distance over the closing speed;
-- velocity (moving): over the frames from 1 s after a mover's track is confirmed, |v_track - v_true| / |v_true|.
+- velocity (moving): over the frames from 1 s after a mover's track is confirmed, |v_track - v_true| / |v_true|;
+- a mover's pixels (moving): of its visible pixels while in view, the share the map ranges VALID within 10 % of the
+  true range, VALID off by more, FILLED, flagged OCCLUDED (``mover_pixels``).
 
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
-        [--cache-dir DIR]
+        [--rig-baseline-m M] [--rig-order partner-first|arrival] [--stereo-lead-k K] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -52,13 +56,17 @@ from eonav.geometry.camera import VehicleState, View
 from eonav.obstacles.detect import ObstacleConfig, analyse, confident_mask, infinity_mask
 from eonav.obstacles.tracking import (ConeConfig, FieldOfView, Ownship, Tracker, TrackerConfig, assess,
                                       box_entry_time, measurements_from_obstacles, nearest_threat)
+from eonav.fusion.update import UpdateConfig
 from eonav.ranging.pair_policy import PairPolicy, PosedFrameInfo
+from eonav.ranging.rangemap import FILLED, OCCLUDED, VALID
 from eonav.sim.scene import Box
 
 # the obstacle service's defaults (its flags default to the library's)
 SERVICE_OBSTACLES = ObstacleConfig()
 MAP_SOURCES = ("truth", "dense", "fused")
 GROUND_TRACK_M = 1.0
+STEREO_BASELINE_M = 0.8            # the simulator's stereo preset's rig
+PARTNER_ID = "right"
 
 
 @dataclass(frozen=True)
@@ -77,10 +85,13 @@ class Scenario:
     movers: tuple = ()             # boxes moving at constant velocity
     slope_deg: float = 0.0         # analysis frame pitched by this (the ground rises ahead)
     ttc_box: str = ""              # the box whose time to contact is scored
+    rig_baseline_m: float = 0.0    # > 0: a stereo partner of the nose camera this far to its right (``rig_camera``)
 
 
-def scenario(name: str, seconds: float | None = None, slope_deg: float = 5.0) -> Scenario:
-    """A named scenario (module docstring); ``seconds`` overrides its default length."""
+def scenario(name: str, seconds: float | None = None, slope_deg: float = 5.0,
+             rig_baseline_m: float = 0.0) -> Scenario:
+    """A named scenario (module docstring); ``seconds`` overrides its default length, ``rig_baseline_m`` (> 0) the
+    stereo scenario's baseline."""
     base, _, clear = name.partition("-")
     if base in ("approach", "turning", "climbing") and clear in ("", "clear"):
         default = (30.0 if base == "approach" else 12.0) if clear else {"approach": 8.0, "turning": 10.0,
@@ -91,10 +102,11 @@ def scenario(name: str, seconds: float | None = None, slope_deg: float = 5.0) ->
     if name == "head-on":
         wall = Box.on_ground("wall", 150.0, 0.0, 3.0, 12.0, 8.0, albedo=120.0, contrast=30.0)
         return Scenario(name, "approach", seconds or 10.0, clear=True, boxes=(wall,), ttc_box="wall")
-    if name == "moving":
+    if name in ("moving", "moving-stereo"):
         crosser = Mover(Box.on_ground("crosser", 110.0, -30.0, 4.5, 2.0, 1.8, yaw_deg=90.0, albedo=110.0), (0.0, 6.0, 0.0))
         oncoming = Mover(Box.on_ground("oncoming", 140.0, -7.0, 5.0, 2.0, 2.2, albedo=140.0), (-8.0, 0.0, 0.0))
-        return Scenario(name, "approach", seconds or 7.0, clear=True, movers=(crosser, oncoming))
+        return Scenario(name, "approach", seconds or 7.0, clear=True, movers=(crosser, oncoming),
+                        rig_baseline_m=(rig_baseline_m or STEREO_BASELINE_M) if name == "moving-stereo" else 0.0)
     raise SystemExit(f"unknown scenario {name!r}")
 
 
@@ -126,22 +138,36 @@ def velocity_at(flight_name: str, t_s: float, dt: float = 1e-3) -> np.ndarray:
     return (b.position_ned_m - a.position_ned_m) / (b.t_s - a.t_s)
 
 
+def rig_camera(cam, baseline_m: float):
+    """The stereo partner of ``cam``: the same intrinsics and mount, ``baseline_m`` to its right (body y)."""
+    l = np.asarray(cam.l_body_m, float).reshape(3) + np.array([0.0, baseline_m, 0.0])
+    return replace(cam, name=PARTNER_ID, l_body_m=l)
+
+
 def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
-    """Yield (stamp_us, View, Render, scene) of a scenario's frames (true NED)."""
+    """Yield (stamp_us, View, Render, scene, partner View or None) of a scenario's frames (true NED); with
+    ``sc.rig_baseline_m`` the partner camera's frame of the same instant (its own sensor noise)."""
     from eonav.sim.flight import flight, flight_states
     from eonav.sim.presets import scale_camera
     from eonav.sim.render import render
     fl = flight(sc.flight)
     cam = scale_camera(fl.camera, size)
+    partner = rig_camera(cam, sc.rig_baseline_m) if sc.rig_baseline_m > 0 else None
     times = np.arange(int(round(sc.seconds * rate_hz))) / rate_hz
     for i, st in enumerate(flight_states(sc.flight, times)):
         scene = scene_at(sc, fl.scene, float(times[i]))
         r = render(scene, cam, st, supersample=1, noise_sigma=1.0,
                    seed=int(np.random.SeedSequence([seed, i]).generate_state(1)[0]))
-        yield int(round(times[i] * 1e6)), View(cam, st, r.image), r, scene
+        pv = None
+        if partner is not None:
+            rp = render(scene, partner, st, supersample=1, noise_sigma=1.0,
+                        seed=int(np.random.SeedSequence([seed, i, 1]).generate_state(1)[0]))
+            pv = View(partner, st, rp.image)
+        yield int(round(times[i] * 1e6)), View(cam, st, r.image), r, scene, pv
 
 
-def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0):
+def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
+               stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
     confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene."""
     from eonav.ranging.locate import locate
@@ -151,10 +177,13 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
     policy = PairPolicy()
     runner = None
     if maps == "fused":
-        from eonav.fusion.sequence import FusionRunner
-        runner = FusionRunner()
+        from eonav.fusion.schedule import ScheduleConfig
+        from eonav.fusion.sequence import FusionConfig, FusionRunner
+        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k))
+        runner = FusionRunner(replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
+                              if sc.rig_baseline_m > 0 else cfg)
     rng = np.random.default_rng(seed)
-    for k, (stamp, view, rnd, scene) in enumerate(frames(sc, rate_hz, size, seed)):
+    for k, (stamp, view, rnd, scene, pview) in enumerate(frames(sc, rate_hz, size, seed)):
         cam, st = view.camera, view.state
         n_fused = None
         if maps == "truth":
@@ -164,6 +193,9 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
                 std = np.where(np.isfinite(r), 0.01 / r, 0.0).astype(np.float32)
             flags = np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8)
             conf = np.ones(r.shape, np.float32)
+        elif maps == "dense" and pview is not None:      # the rig's stereo pair of the instant
+            res = locate(view, pview, method="dense")
+            r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         elif maps == "dense":
             d = policy.offer(PosedFrameInfo("nose", k, stamp, cam, st, view))
             if not d.ok:
@@ -172,7 +204,13 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         else:
             from eonav.fusion.sequence import frame
+            if pview is not None and rig_order == "partner-first":  # the partner's frame first (a partner only: no
+                runner.remember(frame(PARTNER_ID, pview, stamp, seq=k))  # state of its own), the reference's: both
             out = [m for m in runner.push(frame("nose", view, stamp, seq=k)) if m.frame.seq == k]
+            if pview is not None and rig_order == "arrival":    # the reference's frame first, then the partner's
+                out = out + [m for m in runner.push(frame(PARTNER_ID, pview, stamp, seq=k))    # (its own state too):
+                             if m.frame.camera_id == "nose" and m.frame.seq == k]            # the reference's last map
+                out = out[-1:]
             if not out:
                 continue
             res = out[0].result
@@ -185,20 +223,26 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
                "truth_range_m": rnd.range_m, "object_id": rnd.object_id}
 
 
-def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None):
+def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
+                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
+    seed, rig baseline and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
+    lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
+            else {})
     if not cache_dir:
-        return range_maps(sc, rate_hz, size, maps, seed)
+        return range_maps(sc, rate_hz, size, maps, seed, **lead)
     import pickle
     from pathlib import Path
     path = Path(cache_dir) / (f"{sc.name}_{sc.seconds:g}s_{rate_hz:g}hz_{size[0]}x{size[1]}_{maps}_seed{seed}"
-                              f"{f'_slope{sc.slope_deg:g}' if sc.slope_deg else ''}.pkl")
+                              f"{f'_slope{sc.slope_deg:g}' if sc.slope_deg else ''}"
+                              f"{f'_rig{sc.rig_baseline_m:g}' if sc.rig_baseline_m > 0 else ''}"
+                              f"{f'_lead{stereo_lead_k:g}' if lead else ''}"
+                              f"{'_arrival' if lead and rig_order == 'arrival' else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
             return pickle.load(f)
-    out = list(range_maps(sc, rate_hz, size, maps, seed))
+    out = list(range_maps(sc, rate_hz, size, maps, seed, **lead))
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path.with_suffix(".tmp"), "wb") as f:
         pickle.dump(out, f, protocol=pickle.HIGHEST_PROTOCOL)
@@ -241,8 +285,33 @@ def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, t
                     "threat": None if threat is None else (threat.track.id, threat.time_to_contact_s,
                                                            threat.expected_time_to_contact_s),
                     "n_measurements": len(meas), "n_obstacles": len(ob.obstacles),
+                    "mover_px": mover_pixels(m, sc, ocfg),
                     "measured": [R.T @ mm.position_ned_m for mm in meas]})
     return rec, t_track
+
+
+def mover_pixels(m: dict, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict:
+    """Per mover in view (``score``'s rule), its visible pixels by what the map says of them: VALID (not FILLED)
+    within 10 % of the true range (right), VALID off by more (wrong), FILLED, OCCLUDED, other (no range)."""
+    out = {}
+    if "object_id" not in m:
+        return out
+    boxes = m["scene"].boxes
+    for j in range(len(sc.movers)):
+        i = len(boxes) - len(sc.movers) + j
+        if m["visible_px"].get(i, 0) < ocfg.min_obstacle_pixels:
+            continue
+        if box_distance(boxes[i], m["state"].position_ned_m) > ocfg.max_obstacle_distance_m:
+            continue
+        px = m["object_id"] == i + 2
+        fl = m["flags"][px]
+        valid = (fl & (VALID | FILLED)) == VALID
+        with np.errstate(invalid="ignore"):
+            ok = np.abs(m["range_m"][px] / m["truth_range_m"][px] - 1.0) <= 0.10
+        out[boxes[i].name] = {"pixels": int(px.sum()), "right": int((valid & ok).sum()),
+                              "wrong": int((valid & ~ok).sum()), "filled": int(((fl & FILLED) != 0).sum()),
+                              "occluded": int(((fl & OCCLUDED) != 0).sum())}
+    return out
 
 
 def true_ttc(box: Box, pos_ned, vel_ned, radius_m: float) -> float | None:
@@ -364,7 +433,8 @@ def _size(s: str):
     return w, h
 
 
-DEFAULT_SCENARIOS = "approach,approach-clear,turning,turning-clear,climbing,climbing-clear,slope,head-on,moving"
+DEFAULT_SCENARIOS = ("approach,approach-clear,turning,turning-clear,climbing,climbing-clear,slope,head-on,moving,"
+                     "moving-stereo")
 
 
 def add_arguments(p) -> None:
@@ -382,6 +452,14 @@ def add_arguments(p) -> None:
                    help="TrackerConfig.see_through_k: farther measurements bearing-only beyond K track sigma (0: off)")
     p.add_argument("--duplicate-chi2", type=float, default=TrackerConfig().duplicate_chi2, metavar="D2",
                    help="TrackerConfig.duplicate_chi2: merge confirmed tracks within this 6-dof d^2 (0: off)")
+    p.add_argument("--rig-baseline-m", type=float, default=0.0, metavar="M",
+                   help=f"moving-stereo: the rig's baseline (default {STEREO_BASELINE_M:g} m)")
+    p.add_argument("--rig-order", choices=("partner-first", "arrival"), default="partner-first",
+                   help="moving-stereo, fused: the partner's frame handed over first (a partner only) or pushed after "
+                        "the reference's, as the locator does when the reference's frame arrives first")
+    p.add_argument("--stereo-lead-k", type=float, default=UpdateConfig().stereo_lead_k, metavar="K",
+                   help="UpdateConfig.stereo_lead_k: a rig's stereo measurement leads where it disagrees by K sigma "
+                        "(0: off)")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="store the range maps here and reuse them on the next run with the same settings")
     p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -397,8 +475,8 @@ def main(argv=None) -> int:
     print(f"tracker: see_through_k {tcfg.see_through_k:g}, duplicate_chi2 {tcfg.duplicate_chi2:g}")
     for maps in [s for s in args.maps.split(",") if s]:
         for name in [s for s in args.scenarios.split(",") if s]:
-            report(scenario(name, args.duration_s, args.slope_deg), args.rate_hz, args.size, maps, args.seed, ocfg,
-                   tcfg, args.cache_dir)
+            report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
+                   tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order)
     return 0
 
 
@@ -408,10 +486,12 @@ def _pct(errs, q):
 
 
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
-           tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None) -> dict:
+           tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
+           stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first") -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
-    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir), sc, ocfg, tcfg)
+    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order), sc, ocfg,
+                         tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
@@ -437,6 +517,16 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
               f"{100 * _pct(t['threat_rel_err'], 50):.1f} %, max {100 * _pct(t['threat_rel_err'], 100):.1f} %); "
               f"surface distance / closing speed within 10 % in {100 * within_p:.0f} % (median "
               f"{100 * _pct(t['plain_rel_err'], 50):.1f} %, max {100 * _pct(t['plain_rel_err'], 100):.1f} %)")
+    px = defaultdict(Counter)
+    for r in rec:
+        for name, c in r.get("mover_px", {}).items():
+            px[name].update(c)
+            px[name]["frames"] += 1
+    for name, c in sorted(px.items()):
+        n = max(c["pixels"], 1)
+        print(f"  pixels of {name} over {c['frames']} frames in view: VALID within 10 % {100 * c['right'] / n:.0f} %, "
+              f"VALID off by more {100 * c['wrong'] / n:.0f} %, FILLED {100 * c['filled'] / n:.0f} %, OCCLUDED "
+              f"{100 * c['occluded'] / n:.0f} %")
     for name, v in s.get("velocity", {}).items():
         print(f"  velocity of {name}: {v['frames']} frames from 1 s after confirmation, |error| / speed median "
               f"{100 * _pct(v['rel_err'], 50):.1f} %, p90 {100 * _pct(v['rel_err'], 90):.1f} %, within 20 % in "

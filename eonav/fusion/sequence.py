@@ -8,7 +8,9 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
 2. the scheduler's measurements (``schedule``): c's newest frame against a near or a wide earlier frame of c, and,
    in a stereo rig, the reference camera's newest frame against the partner's frame of the same instant;
 3. each measurement (``measure(view_a, view_b)``, default the dense method without its own fill) fused into the
-   state of its reference camera (``update``);
+   state of its reference camera (``update``); the push's measurements are all made before any is fused, so that
+   a stereo measurement of a frame leads its motion measurement where they disagree (a moving object:
+   ``eonav.fusion.update``, "Stereo leads");
 4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it; a state's
    last measurement and its map in one sweep (``update_and_map``), into the default measurement's arrays.
 
@@ -21,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -34,7 +36,7 @@ from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.predict import ProcessNoise, predict
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
-from eonav.fusion.update import UpdateConfig, update
+from eonav.fusion.update import UpdateConfig, gate_motion, stereo_restart, update
 
 
 def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrameInfo:
@@ -131,6 +133,7 @@ class FusionRunner:
         self.frames: dict[str, PosedFrameInfo] = {}          # the frame each state is on
         self.counts: dict[str, int] = {}
         self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
+        self._rig_motion: dict[str, tuple] = {}              # a rig reference's last motion measurement (stereo leads)
 
     def count(self, name: str, k: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + k
@@ -143,6 +146,7 @@ class FusionRunner:
             self._spare.pop(cid, None)
             self._since_full.pop(cid, None)
             self._full_measured.pop(cid, None)
+            self._rig_motion.pop(cid, None)
 
     def remember(self, f: PosedFrameInfo) -> None:
         """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
@@ -182,7 +186,9 @@ class FusionRunner:
             self.count("stale_measurements", len(measurements) - len(live))
         last = {m.a.camera_id: i for i, m in enumerate(live)}
         maps = {}
-        for i, m in enumerate(live):
+        stereo = {}                  # reference camera -> this push's stereo measurement of it (stereo leads)
+        results = []
+        for m in live:
             ref = m.a.camera_id
             t1 = time.perf_counter()
             prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
@@ -190,9 +196,18 @@ class FusionRunner:
             res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
                                 prior_min_fraction=prior[2], **kw)
                    if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
+            locate_s += time.perf_counter() - t1
+            if not self.fresh and self.config.schedule.stereo_rig is not None:     # stereo leads edits rho:
+                res = replace(res, inv_range_per_m=np.array(res.inv_range_per_m, F32))  # not the caller's arrays
+            results.append((prior, res))
+            if m.kind == STEREO:
+                stereo[ref] = res
+        for i, (m, (prior, res)) in enumerate(zip(live, results)):
+            ref = m.a.camera_id
             t2 = time.perf_counter()
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
+            lead = self._stereo_lead(m, res, stereo.get(ref))
             args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
             if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
                 # a fresh measurement's arrays (nobody else holds them) become the map's
@@ -203,9 +218,8 @@ class FusionRunner:
             if not used:
                 self._full_measured[ref] = counts["measured"]
             fusion_s += time.perf_counter() - t2
-            locate_s += t2 - t1
             self.count(f"measurements.{m.kind}")
-            touched.setdefault(ref, []).append(dict(counts, kind=m.kind, other_camera_id=m.b.camera_id,
+            touched.setdefault(ref, []).append(dict(counts, **lead, kind=m.kind, other_camera_id=m.b.camera_id,
                                                     other_seq=m.b.seq, baseline_m=m.baseline_m,
                                                     disparity_px=m.disparity_px))
         out = []
@@ -217,6 +231,35 @@ class FusionRunner:
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
 
+
+    def _stereo_lead(self, m, res, stereo_res) -> dict:
+        """Stereo leads (``eonav.fusion.update``): a motion measurement's pixels that disagree with this push's
+        stereo measurement of the same frame are not fused; a stereo measurement restarts the cells it disagrees
+        with, and, when the frame's motion measurement was fused in an earlier push (the partner's frame came
+        second), the cells where that motion measurement disagrees with it. Edits ``res``'s inverse range in place;
+        returns the counts (gated, stereo_restarted)."""
+        ucfg = self.config.update
+        rig = self.config.schedule.stereo_rig
+        if ucfg.stereo_lead_k == 0 or rig is None:
+            return {}
+        ref = m.a.camera_id
+        if m.kind == STEREO:
+            kept = self._rig_motion.pop(ref, None)
+            extra = None
+            if kept is not None and kept[0] == (m.a.seq, m.a.stamp_us):
+                extra = gate_motion(kept[1], kept[2], kept[3], res.inv_range_per_m, res.inv_range_std_per_m,
+                                    res.flags, ucfg)
+            return {"stereo_restarted": int(stereo_restart(self.states[ref], res.inv_range_per_m,
+                                                           res.inv_range_std_per_m, res.flags, ucfg,
+                                                           also=extra).sum())}
+        if stereo_res is None:
+            if ref == rig[0]:       # its frame's stereo measurement may come with the partner's frame
+                self._rig_motion[ref] = ((m.a.seq, m.a.stamp_us), res.inv_range_per_m.copy(),
+                                         res.inv_range_std_per_m.copy(), res.flags.copy())
+            return {}
+        return {"gated": int(gate_motion(res.inv_range_per_m, res.inv_range_std_per_m, res.flags,
+                                         stereo_res.inv_range_per_m, stereo_res.inv_range_std_per_m,
+                                         stereo_res.flags, ucfg).sum())}
 
     def prior(self, camera_id: str):
         """The prior of the next measurement of ``camera_id``'s state (``PriorConfig``) as (rho, sigma, the least

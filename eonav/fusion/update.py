@@ -29,6 +29,20 @@ of 0: far or near the focus of expansion, where one pair has too little parallax
 but their Gaussian measurements add up over the stream, which is the point of fusing (REMODE fuses every pixel with
 its own sigma). An ILL_CONDITIONED pixel whose sigma is tight was flagged for another reason (the dense method's
 point-at-infinity or orientation tests: its estimate is not to be trusted at that sigma) and is not fused.
+
+Stereo leads (``stereo_lead_k`` > 0). A motion pair (one camera at two times) ranges a point only if it stood still
+between the two frames: on an independently moving object its match leaves the epipolar curve, so the pair flags
+the pixel OCCLUDED or ranges it wrong, and a filter that assumes a static scene rejects it as an outlier against the
+converged background (the mover then never enters the map). A stereo pair (two cameras at one instant) ranges a
+mover like anything else. So, when a reference frame has both:
+- ``gate_motion``: a motion pixel whose measurement disagrees with the same frame's stereo measurement by more than
+  ``stereo_lead_k`` sigma (both sigmas) is not fused (the stereo one is right whatever moved);
+- ``stereo_restart``: a cell the stereo measurement disagrees with by more than ``stereo_lead_k`` sigma (the cell's
+  and the measurement's) starts again from the stereo measurement, instead of counting one more outlier against an
+  estimate the motion pairs built from a scene that has since moved; so does a cell whose motion measurement of the
+  same frame was fused before the stereo one arrived (the partner camera's frame second) and disagrees with it.
+A static cell whose stereo measurement is a mismatch is restarted too; the next frame's stereo measurement disagrees
+with that wrong start and restarts it again, so one bad stereo pixel costs its cell a frame or two.
 """
 from __future__ import annotations
 
@@ -57,8 +71,11 @@ class UpdateConfig:
     eta_outlier: float = 0.45         # E[pi] below this: diverged, restart from the measurement
     weak: bool = True                 # fuse ILL_CONDITIONED pixels whose only fault is their sigma (module docstring)
     max_rel_std: float = 0.34         # the dense method's VALID limit of the relative sigma (what "weak" means)
+    stereo_lead_k: float = 3.0        # stereo leads where it disagrees by more sigma than this (0: off; docstring)
 
     def __post_init__(self):
+        if not (math.isfinite(self.stereo_lead_k) and self.stereo_lead_k >= 0):
+            raise InputError(f"fusion update: stereo_lead_k must be a finite number >= 0, got {self.stereo_lead_k!r}")
         for name in ("rho_max_per_m", "sigma_scale", "a_init", "b_init", "evidence_cap", "max_rel_std"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -185,3 +202,58 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     N[start] = 1
     inl = c1 > F32(0.5)
     return counts_dict(meas.sum(), start.size, inl.sum(), (~inl).sum(), diverged.sum())
+
+
+def _lead_k(cfg: UpdateConfig) -> F32:
+    return F32(cfg.stereo_lead_k)
+
+
+def gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, cfg: UpdateConfig = UpdateConfig()) -> np.ndarray:
+    """Pixels of a motion measurement that disagree with the stereo measurement of the same frame by more than
+    ``cfg.stereo_lead_k`` sigma (module docstring): both measured (``measured``), |rho_m - rho_s| > k sqrt(tau_m^2 +
+    tau_s^2) with the sigmas scaled by ``sigma_scale``. Their inverse range is set to NaN in ``rho_m`` (in place, a
+    float32 array): they are not fused. Returns the mask (none with k = 0)."""
+    if np.shape(rho_m) != np.shape(rho_s):
+        raise InputError(f"fusion gate: motion measurement shape {np.shape(rho_m)} differs from the stereo one "
+                         f"{np.shape(rho_s)}")
+    if cfg.stereo_lead_k == 0:
+        return np.zeros(np.shape(rho_m), bool)
+    both = measured(rho_m, std_m, flags_m, cfg) & measured(rho_s, std_s, flags_s, cfg)
+    s = F32(cfg.sigma_scale)
+    with np.errstate(invalid="ignore"):
+        tau2 = (np.asarray(std_m, F32) * s) ** 2 + (np.asarray(std_s, F32) * s) ** 2
+        d = np.asarray(rho_m, F32) - np.asarray(rho_s, F32)
+        off = both & (d * d > _lead_k(cfg) ** 2 * tau2)
+    rho_m[off] = np.nan
+    return off
+
+
+def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateConfig = UpdateConfig(),
+                   also=None) -> np.ndarray:
+    """Cells the stereo measurement disagrees with by more than ``cfg.stereo_lead_k`` sigma, |x - mu| > k sqrt(s^2 +
+    tau^2), restarted from it (mu = x, s^2 = tau^2, Beta(a_init, b_init), n = 1; module docstring), in place;
+    ``also``: a mask of further cells to restart where the stereo measurement has a value (those where the same
+    frame's motion measurement, fused before the stereo one arrived, disagreed with it: ``gate_motion``). The
+    measurement is to be fused into the other cells as usual: its inverse range is set to NaN in ``rho_s`` (in
+    place, a float32 array) where a cell restarted. Returns the mask of restarted cells (none with k = 0)."""
+    if np.shape(rho_s) != state.shape:
+        raise InputError(f"fusion update: measurement shape {np.shape(rho_s)} differs from the state {state.shape}")
+    if cfg.stereo_lead_k == 0:
+        return np.zeros(state.shape, bool)
+    meas = measured(rho_s, std_s, flags_m=np.asarray(flags_s, np.uint8), cfg=cfg) & state.occupied()
+    tau = np.asarray(std_s, F32) * F32(cfg.sigma_scale)
+    with np.errstate(invalid="ignore"):
+        d = np.asarray(rho_s, F32) - state.rho
+        off = meas & (d * d > _lead_k(cfg) ** 2 * (state.var + tau * tau))
+    if also is not None:
+        off |= meas & np.asarray(also, bool)
+    state.rho[off] = rho_s[off]
+    state.var[off] = tau[off] ** 2
+    state.a[off] = cfg.a_init
+    state.b[off] = cfg.b_init
+    state.n[off] = 1
+    state.du[off] = 0.0
+    state.dv[off] = 0.0
+    state.flags[off] = np.asarray(flags_s, np.uint8)[off]
+    rho_s[off] = np.nan
+    return off

@@ -1,0 +1,172 @@
+"""A moving object in the fused map: a motion pair cannot range it, a stereo rig can, and the rig's stereo
+measurement leads where the motion pairs disagree with it (eonav.fusion.update, "Stereo leads")."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from eonav import InputError
+from eonav.app.bench_tracking import PARTNER_ID, Mover, Scenario, frames
+from eonav.fusion.schedule import ScheduleConfig
+from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+from eonav.fusion.state import InverseRangeState
+from eonav.fusion.update import UpdateConfig, gate_motion, stereo_restart
+from eonav.geometry.camera import Camera, VehicleState
+from eonav.ranging.rangemap import FILLED, OCCLUDED, OUT_OF_VIEW, VALID
+from eonav.sim.scene import Box, Scene
+
+F32 = np.float32
+
+
+def test_a_motion_pixel_beyond_k_sigma_of_the_same_frames_stereo_pixel_is_not_fused():
+    # sigmas 0.003 and 0.004 per m: combined 0.005; k = 3 -> 0.015. Pixels 3.1 / 2.9 sigma off, one unmeasured in
+    # the stereo measurement, one flagged OCCLUDED in the motion one
+    rho_s = np.full((1, 5), 0.05, F32)
+    std_s = np.full((1, 5), 0.004, F32)
+    flags_s = np.full((1, 5), VALID, np.uint8)
+    rho_m = np.array([[0.05 + 0.0155, 0.05 + 0.0145, 0.05 - 0.0155, 0.09, 0.09]], F32)
+    std_m = np.full((1, 5), 0.003, F32)
+    flags_m = np.array([[VALID, VALID, VALID, VALID, OUT_OF_VIEW | OCCLUDED]], np.uint8)
+    rho_s[0, 3] = np.nan                                            # stereo did not measure pixel 3
+    gated = gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, UpdateConfig(stereo_lead_k=3.0))
+    assert gated.tolist() == [[True, False, True, False, False]]
+    assert np.isnan(rho_m[0, 0]) and np.isnan(rho_m[0, 2]) and rho_m[0, 1] == F32(0.05 + 0.0145)
+    assert rho_m[0, 3] == F32(0.09)
+    # k = 0: off
+    rho_m2 = np.full((1, 5), 0.2, F32)
+    assert not gate_motion(rho_m2, std_m, flags_m, rho_s, std_s, flags_s, UpdateConfig(stereo_lead_k=0.0)).any()
+    assert (rho_m2 == F32(0.2)).all()
+    with pytest.raises(InputError, match="stereo"):
+        gate_motion(rho_m, std_m, flags_m, rho_s[:, :4], std_s[:, :4], flags_s[:, :4])
+    with pytest.raises(InputError, match="stereo_lead_k"):
+        UpdateConfig(stereo_lead_k=-1.0)
+
+
+def _state(mu, var, a=7.0, b=1.0, n=12):
+    cam = Camera("c", len(mu), 1, 100.0, 100.0, 0.0, 0.0)
+    st = InverseRangeState.empty(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0], 0.0), 0.0)
+    st.rho[0] = mu
+    st.var[0] = var
+    st.a[0], st.b[0], st.n[0] = a, b, n
+    return st
+
+
+def test_a_cell_the_stereo_measurement_disagrees_with_beyond_k_sigma_restarts_from_it():
+    # cell sigma 0.0003 (converged background at 50 m), stereo sigma 0.004: sqrt(s^2 + tau^2) = 0.0040112;
+    # k = 3 -> 0.0120337. Cells 0 and 1 just beyond / within; cell 2 empty (started by the usual update, not here)
+    st = _state([0.02, 0.02, np.nan], [0.0003 ** 2] * 3)
+    rho_s = np.array([[0.02 + 0.01210, 0.02 + 0.01196, 0.05]], F32)
+    std_s = np.full((1, 3), 0.004, F32)
+    flags_s = np.full((1, 3), VALID, np.uint8)
+    cfg = UpdateConfig(stereo_lead_k=3.0)
+    x0 = rho_s[0, 0]
+    restarted = stereo_restart(st, rho_s, std_s, flags_s, cfg)
+    assert restarted.tolist() == [[True, False, False]]
+    assert st.rho[0, 0] == x0 and st.var[0, 0] == pytest.approx(0.004 ** 2, rel=1e-6)
+    assert (st.a[0, 0], st.b[0, 0], st.n[0, 0]) == (cfg.a_init, cfg.b_init, 1)
+    assert np.isnan(rho_s[0, 0])                                     # not fused a second time
+    assert st.rho[0, 1] == F32(0.02) and st.n[0, 1] == 12 and rho_s[0, 1] == F32(0.02 + 0.01196)   # untouched
+    assert np.isnan(st.rho[0, 2]) and rho_s[0, 2] == F32(0.05)
+    # a loose cell (sigma 0.01: sqrt(s^2 + tau^2) = 0.010770, 3 sigma 0.03231): 0.03 off is within
+    st1 = _state([0.02], [0.01 ** 2], n=3)
+    assert not stereo_restart(st1, np.array([[0.05]], F32), np.array([[0.004]], F32), np.array([[VALID]], np.uint8),
+                              cfg).any()
+    st2 = _state([0.02], [0.0003 ** 2])
+    assert not stereo_restart(st2, np.array([[0.5]], F32), np.array([[0.004]], F32), np.array([[VALID]], np.uint8),
+                              UpdateConfig(stereo_lead_k=0.0)).any()
+    assert st2.rho[0, 0] == F32(0.02)
+
+
+# a van 90 m ahead of the approach flight (20 m/s) driving towards it at 8 m/s, 4 m left of its path, for 2 s (to
+# 34 m): a motion pair sees it close at 28 m/s and ranges it too near (about 20 / 28 of its range where the motion
+# is along the ray)
+ONCOMING = Mover(Box.on_ground("van", 30.0, -4.0, 4.0, 2.0, 2.2, albedo=140.0, contrast=30.0), (-8.0, 0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def oncoming_frames():
+    sc = Scenario("oncoming", "approach", 2.0, clear=True, movers=(ONCOMING,), rig_baseline_m=0.8)
+    return list(frames(sc, 15.0, (160, 120), seed=0))
+
+
+def van_pixels(fr, rig: bool, k: float = 3.0, partner_first: bool = True):
+    """Per fused map from 1.2 s on (the motion pairs' wrong ranges converged): the shares of the van's pixels ranged VALID within 10 % of the truth and
+    VALID off by more."""
+    cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=k))
+    if rig:
+        cfg = replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
+    runner = FusionRunner(cfg)
+    right, wrong = [], []
+    for i, (stamp, view, truth, _, partner) in enumerate(fr):
+        if rig and partner_first:                   # the partner's frame first: the reference's push has both
+            runner.remember(frame(PARTNER_ID, partner, stamp, i))
+        out = [m for m in runner.push(frame("nose", view, stamp, i)) if m.frame.seq == i]
+        if rig and not partner_first:               # the partner's frame second: its push brings the stereo one
+            out += [m for m in runner.push(frame(PARTNER_ID, partner, stamp, i)) if m.frame.camera_id == "nose"]
+        if i < 18:
+            continue
+        res = out[-1].result
+        px = truth.object_id == 2
+        valid = (res.flags[px] & (VALID | FILLED)) == VALID
+        ok = np.abs(res.range_m[px] / truth.range_m[px] - 1.0) <= 0.10
+        right.append(float(np.mean(valid & ok)))
+        wrong.append(float(np.mean(valid & ~ok)))
+    return np.mean(right), np.mean(wrong)
+
+
+def test_a_monocular_camera_ranges_an_oncoming_vehicle_wrong_and_a_stereo_rig_ranges_it(oncoming_frames):
+    right_mono, wrong_mono = van_pixels(oncoming_frames, rig=False)
+    right_rig, wrong_rig = van_pixels(oncoming_frames, rig=True)
+    right_avg, _ = van_pixels(oncoming_frames, rig=True, k=0.0)
+    right_arrival, wrong_arrival = van_pixels(oncoming_frames, rig=True, partner_first=False)
+    # measured (160 x 120, seed 0): mono 0.12 right / 0.60 wrong, the rig with stereo leading 0.89 / 0.05, the rig's
+    # stereo fused as one more measurement (k = 0) 0.60 right; the partner's frame second (its push brings the
+    # stereo measurement, after the motion one was fused) 0.89 / 0.05, 0.79 right without restarting the cells that
+    # motion measurement disagreed with
+    assert right_mono < 0.3 and wrong_mono > 0.4
+    assert right_rig > 0.75 and wrong_rig < 0.15
+    assert right_avg < right_rig - 0.15
+    assert right_arrival > right_rig - 0.05 and wrong_arrival < 0.15
+
+
+def test_the_benchmark_sorts_a_movers_pixels_by_what_the_map_says_of_them():
+    from eonav.app.bench_tracking import mover_pixels
+    sc = Scenario("m", "approach", 1.0, clear=True, movers=(ONCOMING,))
+    box = ONCOMING.box
+    state = VehicleState.from_ypr([box.center_ned_m[0] - 50.0, 0.0, -6.0], [0, 0, 0], 0.0)
+    oid = np.full((4, 5), 0, np.int32)
+    oid[:, :4] = 2                                       # 16 pixels of the van, a column of ground
+    truth = np.full((4, 5), 50.0, np.float32)
+    rng = truth * np.tile(np.array([1.09, 0.91, 1.0, 1.11, 1.0], np.float32), (4, 1))     # column 3 11 % off
+    flags = np.full((4, 5), VALID, np.uint8)
+    flags[3, :2] = FILLED
+    flags[2, 2:4] = OUT_OF_VIEW | OCCLUDED
+    m = {"scene": Scene(boxes=(box,)),
+         "state": state, "visible_px": {0: 16}, "object_id": oid, "flags": flags, "range_m": rng,
+         "truth_range_m": truth}
+    # VALID pixels of the van: rows 0-1 all, row 2 columns 0-1, row 3 columns 2-3; off by 11 %: column 3 of those
+    assert mover_pixels(m, sc) == {"van": {"pixels": 16, "right": 9, "wrong": 3, "filled": 2, "occluded": 2}}
+    assert mover_pixels(dict(m, visible_px={0: 11}), sc) == {}             # fewer than min_obstacle_pixels
+    far = VehicleState.from_ypr([box.center_ned_m[0] - 130.0, 0.0, -6.0], [0, 0, 0], 0.0)
+    assert mover_pixels(dict(m, state=far), sc) == {}                     # beyond max_obstacle_distance_m
+
+
+def test_stereo_leads_does_not_edit_the_arrays_of_a_measurement_the_caller_holds(oncoming_frames):
+    # a measurement that is not fresh (the caller keeps its results): the lead works on copies
+    from eonav.fusion.sequence import dense_measurement
+    held = []
+
+    def measure(a, b, **kw):
+        res = dense_measurement(a, b, **kw)
+        held.append((res, res.inv_range_per_m.copy()))
+        return res
+
+    runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID))), measure=measure)
+    restarted = 0
+    for i, (stamp, view, _, _, partner) in enumerate(oncoming_frames[:20]):
+        runner.remember(frame(PARTNER_ID, partner, stamp, i))
+        for m in runner.push(frame("nose", view, stamp, i)):
+            restarted += sum(x.get("stereo_restarted", 0) + x.get("gated", 0) for x in m.measurements)
+    assert restarted > 0
+    for res, rho in held:
+        np.testing.assert_array_equal(res.inv_range_per_m, rho)
