@@ -13,8 +13,9 @@ window's prediction: a plane that holds at two scales is trusted, one that does 
 truth: docs/methods.md, "Figures".
 
 Cells of 4 px (first octave 2). The pixel passes (sums into the cells, the cells' planes back to the pixels with
-the gating) and the per-cell plane fits run in numba kernels (``_fill_kernels``, the only implementation);
-tests/fill_reference.py is the numpy formulation the tests check them against.
+the gating), the cells' moments, octave and window sums and the per-cell plane fits run in numba kernels
+(``_fill_kernels``, the only implementation); tests/fill_reference.py is the numpy / OpenCV formulation the tests
+check them against.
 """
 from __future__ import annotations
 
