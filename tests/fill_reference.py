@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import types
 
+import cv2
 import numpy as np
 
 from eonav.ranging.methods import fill
@@ -64,6 +65,34 @@ def plane(S0, S1, S2, S3, S4, S5, S6, S7, S8, S9, S10, S11, xc, yc, min_share, m
     p[bad] = np.nan
     for out, a in zip((p_o, v_o, b_o, c_o, lev_o), (p, v, b, c, lev)):
         out[...] = a
+
+
+def moments(n, sr, sx, sy, sv, k1, h, w, M):
+    """The 12 moments of the first octave's cells into M: count, sums of x, y, rho, the cell means' products
+    (sums x mean), the mean noise variance and the cell's pixels inside the h x w image (cells of k1 pixels)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(n > 0, 1.0 / n, F32(0)).astype(F32)
+    xc, yc = sx * inv, sy * inv
+    rows = np.minimum(k1, h - k1 * np.arange(n.shape[0])).astype(F32)
+    cols = np.minimum(k1, w - k1 * np.arange(n.shape[1])).astype(F32)
+    M[...] = np.stack([n, sx, sy, sr, sx * xc, sx * yc, sy * yc, sr * xc, sr * yc, sr * sr * inv, sv * inv,
+                       rows[:, None] * cols[None, :]])
+
+
+def down(M, out):
+    """Sums over 2 x 2 cells of M's last two axes into out (an odd last row / column sums what it has)."""
+    hg, wg = out.shape[-2:]
+    h, w = M.shape[-2:]
+    m = np.pad(M, ((0, 0), (0, 2 * hg - h), (0, 2 * wg - w)))
+    out[...] = m[:, 0::2, 0::2] + m[:, 1::2, 0::2]
+    out += m[:, 0::2, 1::2]
+    out += m[:, 1::2, 1::2]
+
+
+def window_sums(M, S):
+    """Each moment's sum over the 7 x 7 cells about each cell (zeros beyond the grid): OpenCV's box filter."""
+    for m, s in zip(M, S):
+        s[...] = cv2.boxFilter(m, -1, (7, 7), normalize=False, borderType=cv2.BORDER_CONSTANT)
 
 
 def _up(m: np.ndarray, shape, k: int) -> np.ndarray:
@@ -126,7 +155,8 @@ def to_pixels(p, v, lev, b, c, xs, ys, xp, yp, g1, ref, flags, no_fill, exclude,
     return int(np.count_nonzero(keep))
 
 
-KERNELS = types.SimpleNamespace(cell_sums=cell_sums, plane=plane, merge=merge, to_pixels=to_pixels)
+KERNELS = types.SimpleNamespace(cell_sums=cell_sums, moments=moments, down=down, window_sums=window_sums, plane=plane,
+                                merge=merge, to_pixels=to_pixels)
 
 
 def use_reference(monkeypatch) -> None:

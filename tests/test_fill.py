@@ -262,3 +262,37 @@ def test_strict_pixels_are_filled_only_within_their_own_limit_by_kernels_and_ref
     a = runs[False, 0.34][1]
     rel = a[1][loose & ~tight] / a[0][loose & ~tight]
     assert (rel > 0.05 * (1 - 1e-6)).all() and (rel <= 0.34 * (1 + 1e-6)).all()
+
+
+@pytest.mark.parametrize("shape", [(60, 80), (25, 33), (7, 5), (1, 9)])
+def test_moment_and_window_kernels_equal_numpy_and_opencv_bit_for_bit(shape):
+    """The cells' moments, their 2 x 2 sums into the next octave and the 7 x 7 window sums (numba) give the very
+    float32 values of numpy's array formulas and of OpenCV's box filter (tests/fill_reference.py), also at odd
+    sizes and on grids smaller than the window: the fill's results do not depend on which computes them. Cell
+    sums as the fill makes them: counts of 0..16 pixels, coordinate sums spread over [-16, 16], rho in units of
+    its mean with some empty cells."""
+    from eonav.ranging.methods._fill_kernels import down, moments, window_sums
+    rng = np.random.default_rng(3)
+    h, w = shape
+    n = rng.integers(0, 17, shape).astype(np.float32)
+    sr = (n * rng.lognormal(0, 0.5, shape)).astype(np.float32)
+    sx = (n * rng.uniform(-1, 1, shape)).astype(np.float32)
+    sy = (n * rng.uniform(-1, 1, shape)).astype(np.float32)
+    sv = (n * rng.uniform(0, 1e-3, shape)).astype(np.float32)
+    h_px, w_px = 4 * h - 1, 4 * w - 3          # partial last cells
+    got, want = np.empty((12,) + shape, np.float32), np.empty((12,) + shape, np.float32)
+    moments(n, sr, sx, sy, sv, 4, h_px, w_px, got)
+    fill_reference.moments(n, sr, sx, sy, sv, 4, h_px, w_px, want)
+    assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+    assert want[11, -1, -1] == 3 * 1 and want[11, 0, 0] == min(4, h_px) * 4 and want[0].sum() == n.sum()
+    S1, S0 = np.empty_like(want), np.empty_like(want)
+    window_sums(want, S1)
+    fill_reference.window_sums(want, S0)
+    assert np.array_equal(S1.view(np.uint32), S0.view(np.uint32))
+    assert S0[0, h // 2, w // 2] == n[max(h // 2 - 3, 0):h // 2 + 4, max(w // 2 - 3, 0):w // 2 + 4].sum()
+    dshape = (12, -(-h // 2), -(-w // 2))
+    D1, D0 = np.empty(dshape, np.float32), np.empty(dshape, np.float32)
+    down(want, D1)
+    fill_reference.down(want, D0)
+    assert np.array_equal(D1.view(np.uint32), D0.view(np.uint32))
+    assert D0[0].sum() == n.sum()

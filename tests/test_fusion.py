@@ -667,3 +667,32 @@ def test_a_custom_measurement_is_left_alone_unless_declared_fresh():
         else:
             assert not any(shared)
             assert all(np.all(r.inv_range_std_per_m == 1e-3) and np.all(r.range_m == 20.0) for r in kept)
+
+
+def test_schedulers_batched_pair_policy_decides_as_the_pair_policy():
+    # the scheduler's pair policy takes its candidates' metrics from one wide_metrics pass per frame: on a stream of
+    # a turning (some pairs beyond 10 deg), climbing camera at varying speed and with a gap older than the age limit,
+    # its reasons, partners and metrics are those of PairPolicy's one pair_metrics at a time
+    from dataclasses import replace as dc_replace
+
+    from eonav.fusion.schedule import Scheduler
+    from eonav.ranging.pair_policy import OK_MOTION, TOO_LITTLE_PARALLAX, TOO_MUCH_ROTATION, TOO_OLD, PairPolicy
+    c = dc_replace(cam(640, 480, 500.0), l_body_m=np.array([2.0, 0.5, -0.3]))
+    rng = np.random.default_rng(17)
+    t, north, yaw, views = 0.0, 0.0, 0.0, []
+    for k in range(40):
+        t += 1.5 if k == 20 else 1 / 30
+        north += float(rng.choice([0.05, 0.5, 3.0]))
+        yaw += float(rng.choice([0.0, 0.5, 12.0], p=[0.5, 0.35, 0.15]))
+        views.append(View(c, VehicleState.from_ypr([north, 0.2 * k, -0.1 * k], np.deg2rad([yaw, 1.0, 0.0]), t),
+                          np.zeros((480, 640))))
+    fs = [frame("c", v, int(round(v.state.t_s * 1e6)), k) for k, v in enumerate(views)]
+    sched, plain = Scheduler(ScheduleConfig()), PairPolicy(ScheduleConfig().policy)
+    reasons = set()
+    for f in fs:
+        got, want = sched.policy.offer(f), plain.offer(f)
+        assert (got.reason, got.b and got.b.seq) == (want.reason, want.b and want.b.seq), f.seq
+        for name in ("disparity_px", "baseline_m", "rotation_deg", "dt_s"):
+            assert getattr(got, name) == pytest.approx(getattr(want, name), rel=1e-9, abs=1e-9, nan_ok=True)
+        reasons.add(want.reason)
+    assert {OK_MOTION, TOO_LITTLE_PARALLAX, TOO_MUCH_ROTATION, TOO_OLD} <= reasons, reasons

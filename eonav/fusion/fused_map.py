@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -176,20 +177,23 @@ def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude
 
 def _border_cells(state, flags, cfg):
     """(rows, columns) of the empty cells within cfg.border_px of the image border, not yet out of view, with no
-    LOW_TEXTURE and none of the contested bits, or None. Only the border strips are read."""
-    h, w = flags.shape
-    k = min(cfg.border_px, (h + 1) // 2, (w + 1) // 2)
+    LOW_TEXTURE and none of the contested bits, or None. Only the border ring is read."""
+    ring = _ring(flags.shape, cfg.border_px)
     bad = np.uint8(VALID | OUT_OF_VIEW | LOW_TEXTURE | cfg.no_fill)
-    ys, xs = [], []
-    for r0, r1, c0, c1 in ((0, k, 0, w), (h - k, h, 0, w), (k, h - k, 0, k), (k, h - k, w - k, w)):
-        if r1 <= r0 or c1 <= c0:
-            continue
-        y, x = np.nonzero(((flags[r0:r1, c0:c1] & bad) == 0) & ~np.isfinite(state.rho[r0:r1, c0:c1]))
-        ys.append(y + r0)
-        xs.append(x + c0)
-    if not ys or not sum(len(y) for y in ys):
-        return None
-    return np.concatenate(ys), np.concatenate(xs)
+    sel = ring[((flags.reshape(-1)[ring] & bad) == 0) & ~np.isfinite(state.rho.reshape(-1)[ring])]
+    return np.unravel_index(sel, flags.shape) if sel.size else None
+
+
+@lru_cache(maxsize=16)
+def _ring(shape, border_px: int) -> np.ndarray:
+    """Flat indices (read-only) of the pixels within border_px of the border of an image of ``shape``."""
+    h, w = shape
+    k = min(border_px, (h + 1) // 2, (w + 1) // 2)
+    inner = np.zeros(shape, bool)
+    inner[k:h - k, k:w - k] = True
+    ring = np.flatnonzero(~inner)
+    ring.setflags(write=False)
+    return ring
 
 
 def _reusable(r: RangeResult, shape) -> bool:

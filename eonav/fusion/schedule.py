@@ -24,8 +24,8 @@ import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import View
-from eonav.ranging.pair_policy import (CAMERA_MISMATCH, HISTORY_RESET, OK_MOTION, OUT_OF_ORDER, PairPolicy,
-                                      PairPolicyConfig, PosedFrameInfo, _probe_pixels, pair_metrics)
+from eonav.ranging.pair_policy import (CAMERA_MISMATCH, HISTORY_RESET, OK_MOTION, OUT_OF_ORDER, PairMetrics,
+                                      PairPolicy, PairPolicyConfig, PosedFrameInfo, _probe_pixels, pair_metrics)
 
 NEAR, WIDE, STEREO = "near", "wide", "stereo"
 
@@ -70,12 +70,26 @@ class Measurement:
     baseline_m: float = math.nan
 
 
+@dataclass
+class _BatchedPolicy(PairPolicy):
+    """The pair policy with its motion candidates' metrics from ``metrics(a, candidates, b)``: the scheduler's
+    ``wide_metrics`` of all of frame a's candidates within the age limit at once, b's row, instead of one
+    ``pair_metrics`` per candidate (equal to float rounding: the same decisions)."""
+    metrics: object = None
+
+    def _metrics(self, a, b) -> PairMetrics:
+        cands = [x for x in self._hist[a.camera_id] if x is not a
+                 and (a.stamp_us - x.stamp_us) * 1e-6 <= self.config.max_age_s]
+        return self.metrics(a, cands if any(x is b for x in cands) else cands + [b], b)
+
+
 class Scheduler:
     """Keeps a history of frames per camera and picks the measurements of each new frame. One thread."""
 
     def __init__(self, config: ScheduleConfig = ScheduleConfig()):
         self.config = config
-        self.policy = PairPolicy(config.policy)
+        self.policy = _BatchedPolicy(config.policy, metrics=self._policy_metrics)
+        self._batch: tuple = (None, {})     # (frame a, {id(b): (b, rotation deg, disparity px, baseline m)})
         self._hist: dict[str, deque] = {}
         self._count: dict[str, int] = {}
         self._stereo_done: deque = deque(maxlen=64)
@@ -107,6 +121,25 @@ class Scheduler:
                 self._poses = {k: v for k, v in self._poses.items() if k in live}
             p = self._poses[id(f)] = (f, *_cam_pose(f))
         return p[1:]
+
+    def _metrics_of(self, a, bs):
+        """(rotation deg, disparity px, baseline m) arrays of ``a`` against each of ``bs`` (``wide_metrics``), those
+        not yet known for ``a`` computed together."""
+        if self._batch[0] is not a:
+            self._batch = (a, {})
+        known = self._batch[1]
+        miss = [b for b in bs if id(b) not in known or known[id(b)][0] is not b]
+        if miss:
+            rot, disp, base = wide_metrics(a, miss, self.config.policy.ref_range_m, [self._pose(b) for b in miss])
+            for i, b in enumerate(miss):
+                known[id(b)] = (b, float(rot[i]), float(disp[i]), float(base[i]))
+        rows = [known[id(b)] for b in bs]
+        return (np.array([r[1] for r in rows]), np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
+
+    def _policy_metrics(self, a, cands, b) -> PairMetrics:
+        self._metrics_of(a, cands)
+        _, rot, disp, base = self._batch[1][id(b)]
+        return PairMetrics(base, rot, disp, (a.stamp_us - b.stamp_us) * 1e-6)
 
     def offer(self, f: PosedFrameInfo) -> tuple[list, str]:
         """The measurements of the new frame ``f`` (possibly none) and the pair policy's reason code."""
@@ -182,7 +215,7 @@ class Scheduler:
         cands = [b for b in reversed(earlier) if (f.stamp_us - b.stamp_us) * 1e-6 <= pc.max_age_s]
         if not cands:
             return None
-        rot_deg, disp, base = wide_metrics(f, cands, pc.ref_range_m, [self._pose(b) for b in cands])
+        rot_deg, disp, base = self._metrics_of(f, cands)
         ok = (rot_deg <= pc.max_rotation_deg) & (disp >= pc.min_disparity_px) & (disp <= self.config.wide_max_disparity_px)
         if not ok.any():
             return None
@@ -235,8 +268,8 @@ def wide_metrics(a: PosedFrameInfo, bs: list, ref_range_m: float, poses=None):
     ``_cam_pose`` of each of ``bs`` if known."""
     Ra, ca = _cam_pose(a)
     poses = poses if poses is not None else [_cam_pose(b) for b in bs]
-    Rb = np.stack([p[0] for p in poses])
-    cb = np.stack([p[1] for p in poses])
+    Rb = np.array([p[0] for p in poses])
+    cb = np.array([p[1] for p in poses])
     R = Rb @ Ra.T                                                       # (n, 3, 3)
     t = np.einsum("nij,nj->ni", Rb, ca[None, :] - cb)                  # (n, 3)
     rot_deg = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
@@ -252,7 +285,11 @@ def wide_metrics(a: PosedFrameInfo, bs: list, ref_range_m: float, poses=None):
         du = fx * ((A[:, 1] + t[:, 1:2] * rho) / den_ref - A[:, 1] / den_inf)
         dv = fy * ((A[:, 2] + t[:, 2:3] * rho) / den_ref - A[:, 2] / den_inf)
     d = np.hypot(du, dv)
-    if ok.all():
+    if ok.all() and np.isfinite(d).all():
+        d.sort(axis=1)                  # the median (np.median's value, without its overhead on small rows)
+        p = d.shape[1]
+        disp = d[:, p // 2] if p % 2 else (d[:, p // 2 - 1] + d[:, p // 2]) / 2
+    elif ok.all():
         disp = np.median(d, axis=1)
     else:
         disp = np.array([float(np.median(x[k])) if k.any() else 0.0 for x, k in zip(d, ok)])

@@ -227,6 +227,10 @@ class PairPolicy:
         return None                                       # partner silent (or ahead without a match): motion
 
     # -- motion -------------------------------------------------------------------------------
+    def _metrics(self, a: PosedFrameInfo, b: PosedFrameInfo) -> PairMetrics:
+        """``pair_metrics`` of a motion candidate (a subclass may compute a frame's candidates together)."""
+        return pair_metrics(a, b, self.config.ref_range_m)
+
     def _parallax_ok(self, m: PairMetrics) -> bool:
         cfg = self.config
         return (m.disparity_px >= cfg.min_disparity_px
@@ -248,7 +252,7 @@ class PairPolicy:
             age_s = (f.stamp_us - b.stamp_us) * 1e-6
             if age_s > cfg.max_age_s:
                 break                                    # the rest are older still
-            m = pair_metrics(f, b, cfg.ref_range_m)
+            m = self._metrics(f, b)
             if m.rotation_deg > cfg.max_rotation_deg:
                 seen_rot = seen_rot or m
                 continue

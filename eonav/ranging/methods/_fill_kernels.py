@@ -1,9 +1,11 @@
-"""Numba kernels of the fill (``fill.fill_unmeasured``): the pixels' sums into the first octave's cells, each
-octave's weighted plane fit per cell (``plane``), the coarse-to-fine merge of the octaves (``merge``), and the cells'
-planes back to the pixels with the gating and the writing of the outputs (``to_pixels``): one pass each. The
-window sums between them stay OpenCV's box filters on the cells (1/16 of the pixels and less). The planes are
-fitted in float64 inside. tests/fill_reference.py holds the numpy formulation (float32) that
-tests/test_fill.py::test_fill_kernels_match_reference checks them against.
+"""Numba kernels of the fill (``fill.fill_unmeasured``): the pixels' sums into the first octave's cells
+(``cell_sums``), the cells' moments (``moments``), their 2 x 2 sums into the next octave (``down``), the 7 x 7
+window sums of every moment (``window_sums``), each octave's weighted plane fit per cell (``plane``), the
+coarse-to-fine merge of the octaves (``merge``), and the cells' planes back to the pixels with the gating and the
+writing of the outputs (``to_pixels``): one pass each. ``moments`` and ``down`` add in numpy's order (float32) and
+``window_sums`` in float64 cast to float32, as OpenCV's unnormalised box filter on float32 does: the same sums. The
+planes are fitted in float64 inside. tests/fill_reference.py holds the numpy / OpenCV formulation that
+tests/test_fill.py checks them against.
 """
 from __future__ import annotations
 
@@ -47,6 +49,80 @@ def cell_sums(rho, std, flags, xs, ys, g1, n, sr, sx, sy, sv):
             cnt += 1
             tot += r
     return cnt, tot
+
+
+@njit(**_JIT)
+def moments(n, sr, sx, sy, sv, k1, h, w, M):
+    """The 12 moments of the first octave's cells (cells of k1 pixels of an h x w image) into M (12 x cells,
+    float32): count, sums of x, y, rho, the cell means' products (n xm xm, n xm ym, n ym ym, n rm xm, n rm ym,
+    n rm rm), the mean noise variance (sum std^2 / n) and the cell's pixels inside the image."""
+    hc, wc = n.shape
+    one = np.float32(1.0)
+    for y in range(hc):
+        rows = np.float32(min(k1, h - k1 * y))
+        for x in range(wc):
+            nn = n[y, x]
+            inv = one / nn if nn > 0 else np.float32(0.0)
+            ax, ay, ar = sx[y, x], sy[y, x], sr[y, x]
+            xm = ax * inv
+            ym = ay * inv
+            M[0, y, x] = nn
+            M[1, y, x] = ax
+            M[2, y, x] = ay
+            M[3, y, x] = ar
+            M[4, y, x] = ax * xm
+            M[5, y, x] = ax * ym
+            M[6, y, x] = ay * ym
+            M[7, y, x] = ar * xm
+            M[8, y, x] = ar * ym
+            M[9, y, x] = ar * ar * inv
+            M[10, y, x] = sv[y, x] * inv
+            M[11, y, x] = rows * np.float32(min(k1, w - k1 * x))
+
+
+@njit(**_JIT)
+def down(M, out):
+    """Sums over 2 x 2 cells of M (k x h x w) into out (k x ceil(h/2) x ceil(w/2)), in the order
+    ((m00 + m10) + m01) + m11; an odd last row / column sums what it has (zeros added)."""
+    nk, h, w = M.shape
+    _, hg, wg = out.shape
+    z = np.float32(0.0)
+    for k in range(nk):
+        for y in range(hg):
+            y0 = 2 * y
+            y1 = y0 + 1
+            for x in range(wg):
+                x0 = 2 * x
+                x1 = x0 + 1
+                a = M[k, y0, x0] + (M[k, y1, x0] if y1 < h else z)
+                a += M[k, y0, x1] if x1 < w else z
+                a += M[k, y1, x1] if (y1 < h and x1 < w) else z
+                out[k, y, x] = a
+
+
+@njit(**_JIT)
+def window_sums(M, S):
+    """Every moment's sum over the 7 x 7 cells about each cell (zeros beyond the grid) into S (M's shape):
+    rows then columns, in float64, cast to float32."""
+    nk, h, w = M.shape
+    r = 3
+    row = np.zeros(w + 2 * r, np.float64)
+    rs = np.zeros((h + 2 * r, w), np.float64)
+    for k in range(nk):
+        for y in range(h):
+            for x in range(w):
+                row[x + r] = M[k, y, x]
+            for x in range(w):
+                s = 0.0
+                for j in range(2 * r + 1):
+                    s += row[x + j]
+                rs[y + r, x] = s
+        for y in range(h):
+            for x in range(w):
+                s = 0.0
+                for j in range(2 * r + 1):
+                    s += rs[y + j, x]
+                S[k, y, x] = np.float32(s)
 
 
 @njit(**_JIT)

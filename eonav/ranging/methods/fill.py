@@ -4,8 +4,8 @@ A plane's inverse range is an affine function of the image coordinates (a point 
 n . X = d has rho = 1 / x_c = (n_1 + n_2 x_n + n_3 y_n) / d), so a weighted least-squares plane through the measured
 rho of a window predicts rho at a hole, also just outside the measured region (the ground band that has left image
 b). Windows grow by octaves (7 x 7 cells of 2^g pixels, g = 2..7: 28 .. 896 px wide); each cell takes the finest
-window with enough measured support. Every window's sums come from box filters of per-cell moments (no per-pixel
-loop).
+window with enough measured support. Every window's sums are 7 x 7 box sums of per-cell moments, each octave's
+moments the 2 x 2 sums of the finer one's (no per-pixel loop).
 
 The 1-sigma of a filled rho is the plane fit's prediction error (the window's residual variance, which a depth edge
 inflates, scaled for the distance from the support's centroid) plus the squared disagreement with the next coarser
@@ -13,12 +13,12 @@ window's prediction: a plane that holds at two scales is trusted, one that does 
 truth: docs/methods.md, "Figures".
 
 Cells of 4 px (first octave 2). The pixel passes (sums into the cells, the cells' planes back to the pixels with
-the gating) and the per-cell plane fits run in numba kernels (``_fill_kernels``, the only implementation);
-tests/fill_reference.py is the numpy formulation the tests check them against.
+the gating), the cells' moments, octave and window sums and the per-cell plane fits run in numba kernels
+(``_fill_kernels``, the only implementation); tests/fill_reference.py is the numpy / OpenCV formulation the tests
+check them against.
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from eonav.ranging.rangemap import OCCLUDED, TRUNCATION
@@ -44,22 +44,6 @@ MIN_SUPPORT = (0.3, 0.25, 0.2, 0.15, 0.15, 0.15)
 _WIN = 7        # window, cells of the octave's grid
 
 
-def _box(m: np.ndarray) -> np.ndarray:
-    return cv2.boxFilter(m, -1, (_WIN, _WIN), normalize=False, borderType=cv2.BORDER_CONSTANT)
-
-
-def _down(m: np.ndarray, shape) -> np.ndarray:
-    """Sums over 2 x 2 cells of the last two axes into ``shape`` (an odd last row / column of cells sums what it
-    has)."""
-    h, w = m.shape[-2:]
-    if (h, w) != (2 * shape[0], 2 * shape[1]):
-        m = np.pad(m, ((0, 0),) * (m.ndim - 2) + ((0, 2 * shape[0] - h), (0, 2 * shape[1] - w)))
-    out = m[..., 0::2, 0::2] + m[..., 1::2, 0::2]
-    out += m[..., 0::2, 1::2]
-    out += m[..., 1::2, 1::2]
-    return out
-
-
 def _cell_shape(shape, g: int):
     return -(-shape[0] // 2 ** g), -(-shape[1] // 2 ** g)
 
@@ -77,17 +61,11 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float):
     # half a cell off its centre: on steep ground 1 % of rho per pixel); the sums of squares and products are
     # those of the means (n * mean^2 ...), so the window's residual is the scatter of the cell means about the
     # plane, not the slope across a cell nor the per-pixel noise (1/n of it in a cell mean)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(n > 0, 1.0 / n, F32(0)).astype(F32)
-    xc, yc = sx * inv, sy * inv
     # (sv * inv: each cell mean's noise variance, sum sigma^2 / n, weighted by n; the last: the cells' pixel counts
     # in the image, so a window's support share is of its part inside the image: near a border or in an image
     # smaller than the window a constant share could never be met)
-    k1 = 2 ** g1
-    rows = np.minimum(k1, h - k1 * np.arange(n.shape[0])).astype(F32)
-    cols = np.minimum(k1, w - k1 * np.arange(n.shape[1])).astype(F32)
-    M = np.stack([n, sx, sy, sr, sx * xc, sx * yc, sy * yc, sr * xc, sr * yc, sr * sr * inv, sv * inv,
-                  rows[:, None] * cols[None, :]])
+    M = np.empty((12,) + n.shape, F32)
+    _K.moments(n, sr, sx, sy, sv, 2 ** g1, h, w, M)
     fits = []
     for k, min_share in enumerate(MIN_SUPPORT):
         g = g1 + k
@@ -95,12 +73,15 @@ def _fit_cells(n, sr, sx, sy, sv, shape, g1: int, scale: float):
             break            # the previous window already spans the image from any cell
         shg = _cell_shape((h, w), g)
         if k:
-            M = _down(M, shg)
+            M, Mk = np.empty((12,) + shg, F32), M
+            _K.down(Mk, M)
         xc, yc = _centres(shg[1], g, w, scale), _centres(shg[0], g, h, scale)
         win_px = _WIN * 2 ** g
         min_det = (0.05 * (win_px * scale) ** 2 / 12) ** 2
         out = [np.empty(shg, F32) for _ in range(5)]         # p, v, b, c, lev
-        _K.plane(*[_box(m) for m in M], xc, yc, min_share, min_det, *out)
+        S = np.empty_like(M)
+        _K.window_sums(M, S)
+        _K.plane(*S, xc, yc, min_share, min_det, *out)
         fits.append((xc, yc) + tuple(out))
     # coarse to fine: a cell keeps its own plane where it has one, else takes its parent's, carried along the
     # parent's plane to the cell's centre -- except that an interpolation (leverage <= LEV_MAX) is not replaced by
