@@ -832,10 +832,19 @@ def slant_gate_inputs(S, k, g_o, c_o):
     h, w = S.shape
     c23 = F32(2.0 / 3.0)
     two = F32(2.0)
+    u1, uk = np.uint64(1), np.uint64(k)
     for y in range(h):
         r0, r1, r2, rkm, rkp = S[_reflect(y - 1, h)], S[y], S[_reflect(y + 1, h)], S[_reflect(y - k, h)], S[_reflect(y + k, h)]
         o, co = g_o[y], c_o[y]
-        for x in range(w):
+        for x in range(k, w - k):          # inside: no reflection (numba vectorises it)
+            ux = np.uint64(x)
+            c2 = two * r1[ux]
+            o[ux] = abs(r1[ux + u1] - r1[ux - u1]) + abs(r2[ux] - r0[ux])
+            co[ux] = c23 * (abs(r1[ux + uk] + r1[ux - uk] - c2) + abs(rkp[ux] + rkm[ux] - c2))
+        for i in range(2 * k):             # the k columns at either border
+            x = i if i < k else w - 2 * k + i
+            if x < 0 or x >= w or (i >= k and x < k):
+                continue
             c2 = two * r1[x]
             o[x] = abs(r1[_reflect(x + 1, w)] - r1[_reflect(x - 1, w)]) + abs(r2[x] - r0[x])
             co[x] = c23 * (abs(r1[_reflect(x + k, w)] + r1[_reflect(x - k, w)] - c2) + abs(rkp[x] + rkm[x] - c2))
