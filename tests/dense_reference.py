@@ -231,8 +231,8 @@ def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None
     Sq = _box(mul(wgt, q), win)
     # the slanted window (dense._slant_shape: S, A): rho_j = rho_c + A_c (S_j - S_c) over the window of centre c
     S, M = dense._slant_shape(R, steps)
-    if S.size:      # the weight of the slant per centre: 1 where M / S_c <= 2 grad, 0 from 4 grad on
-        A = np.clip(2.0 - M / (2.0 * steps.slant_grad * np.maximum(S, 1e-12)), 0.0, 1.0).astype(F32)
+    if S.size:      # the weight of the slant per centre: 1 where M / S_c <= 2 curv, 0 from 4 curv on
+        A = np.clip(2.0 - M / (2.0 * steps.slant_curv * np.maximum(S, 1e-12)), 0.0, 1.0).astype(F32)
     extra = (_box(mul(mul(wJ, J), S), win), _box(mul(wJ, S), win)) if S.size else ()
     if shift_px > 0 and H.shape[1] > 2 * shift_px:
         shift_windows(shift_px, steps.shift_ratio, H, g, S0, S1, Sq, _box(mul(mul(wgt, q), q), win), *extra)

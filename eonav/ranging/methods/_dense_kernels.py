@@ -728,8 +728,8 @@ def _slant_row(sJJ, sJq, sW, sJ, sq, sJJS, sJS, Sc, Mc, inv_g2, E2, R, lam_c, us
     """``_update_row`` for the slanted window: rho_j = rho_c + A_c (S_j - S_c) over the
     window of centre c, so that J_j rho_c = q_j - A_c J_j (S_j - S_c), and the window means of wJ q and w q become
     sJq - A_c (sJJS - S_c sJJ) and sq - A_c (sJS - S_c sJ); A_c = clip(2 - M_c inv_g2 / S_c, 0, 1) (M: the largest
-    |grad S|_1 about c, twice over: ``slant_gradient``; inv_g2 = 1 / (2 grad), grad the relative gradient where A
-    starts to fall). (H - S1^2 / S0, the sigma's, is unchanged: so is the Jacobian of the residuals in rho_c.)
+    of the dilated gradient and second difference of S about c, ``slant_gate_inputs``; inv_g2 = 1 / (2 curv), curv the relative second difference
+    where A starts to fall). (H - S1^2 / S0, the sigma's, is unchanged: so is the Jacobian of the residuals in rho_c.)
     Branch-free: numba vectorises it."""
     w = out.shape[0]
     for x in range(w):
@@ -822,18 +822,32 @@ def _classify_row(rho_r, R, E2, H, S0, G, G3, R2, Mx, My, mf, amb, fp, noise_inf
 
 
 @njit(**_JIT)
-def slant_gradient(S, g_o):
-    """|S[y, x+1] - S[y, x-1]| + |S[y+1, x] - S[y-1, x]| per pixel into g_o (twice the L1 norm of S's gradient by
-    central differences; reflected border): the slanted window's gate (``_slant_row``), before its dilation."""
+def slant_gate_inputs(S, k, g_o, c_o):
+    """Per pixel (reflected border) |S[y, x+1] - S[y, x-1]| + |S[y+1, x] - S[y-1, x]| into g_o and
+    2/3 (|S[y, x+k] - 2 S[y, x] + S[y, x-k]| + |S[y+k, x] - 2 S[y, x] + S[y-k, x]|) into c_o: the slanted window's
+    gate (``_slant_row``) before its dilations. At a step of height h, 3 x 3-averaged, both peak at 2 h / 3 (k >= 2),
+    but c_o on a plane is 0 whatever its slope: it tells a depth edge from steep smooth ground, over 2 k + 1
+    pixels, so that a jump the estimate has widened into a ramp of up to 2 k pixels still counts as one; g_o, less
+    noisy, keeps the slant where rho is flat but its estimate noisy."""
     h, w = S.shape
-    u1 = np.uint64(1)
+    c23 = F32(2.0 / 3.0)
+    two = F32(2.0)
+    u1, uk = np.uint64(1), np.uint64(k)
     for y in range(h):
-        r0, r1, r2, o = S[_reflect(y - 1, h)], S[y], S[_reflect(y + 1, h)], g_o[y]
-        for x in range(1, w - 1):
+        r0, r1, r2, rkm, rkp = S[_reflect(y - 1, h)], S[y], S[_reflect(y + 1, h)], S[_reflect(y - k, h)], S[_reflect(y + k, h)]
+        o, co = g_o[y], c_o[y]
+        for x in range(k, w - k):          # inside: no reflection (numba vectorises it)
             ux = np.uint64(x)
+            c2 = two * r1[ux]
             o[ux] = abs(r1[ux + u1] - r1[ux - u1]) + abs(r2[ux] - r0[ux])
-        for x in (0, w - 1):
+            co[ux] = c23 * (abs(r1[ux + uk] + r1[ux - uk] - c2) + abs(rkp[ux] + rkm[ux] - c2))
+        for i in range(2 * k):             # the k columns at either border
+            x = i if i < k else w - 2 * k + i
+            if x < 0 or x >= w or (i >= k and x < k):
+                continue
+            c2 = two * r1[x]
             o[x] = abs(r1[_reflect(x + 1, w)] - r1[_reflect(x - 1, w)]) + abs(r2[x] - r0[x])
+            co[x] = c23 * (abs(r1[_reflect(x + k, w)] + r1[_reflect(x - k, w)] - c2) + abs(rkp[x] + rkm[x] - c2))
 
 
 _SCHARR_SIDE = F32(3.0 / 32.0)

@@ -385,7 +385,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
                  prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = True,
-                 slant_grad: float = 0.05) -> RangeResult:
+                 slant_curv: float = 0.05) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -405,13 +405,14 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     (3, 3, 1, 1) is ~8 % faster and as accurate on the sim presets, but leaves a 0.03 px disparity bias on
     the sub-pixel plane test (vs <= 0.011 px): level 1 needs its second iteration.
     window: box window (level pixels, odd) of the normal equations.
-    slant / slant_grad: the slanted window (``_slant_shape``) at levels 1 and 0: the window of centre c models
+    slant / slant_curv: the slanted window (``_slant_shape``) at levels 1 and 0: the window of centre c models
     rho_j = rho_c + A_c (S_j - S_c), S a box mean of the current estimate, instead of one rho for all its pixels,
     which measures rho at the texture-weighted centre of the window, not at the pixel, wherever rho varies across
     it (ground at grazing angles, slanted walls): an error tied to the texture, the same in every pair, that
-    temporal fusion cannot average. A_c = 1 where the relative gradient of rho stays within slant_grad (per pixel)
-    around c and 0 from twice that on: a depth edge keeps one rho per window. slant_grad 0.1, or 2^lev x 0.05 at
-    level lev, let depth edges pass as slopes and widened them; 0.03 gave back a third of the gain on the approach
+    temporal fusion cannot average. A_c = 1 where rho is flat or planar about c (its relative gradient or its
+    relative second difference, both per pixel, within slant_curv) and 0 from twice that on: a depth edge (a
+    jump) keeps one rho per window, a steep but smooth surface (ground near the horizon) keeps the slant. 0.1
+    gained nothing more on the sim sequences;
     flight. Figures in docs/methods.md. huber_k: Huber threshold in noise
     sigmas. trust_px: Levenberg trust term ~ a step of this many pixels of displacement per iteration.
     presmooth_sigma: Gaussian pre-smoothing of both images (pixels). 0.6 measured best overall (sim medians
@@ -502,8 +503,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
-    if slant and not (math.isfinite(slant_grad) and slant_grad > 0):
-        raise InputError(f"slant_grad must be a finite relative gradient > 0 (per pixel), got {slant_grad!r}")
+    if slant and not (math.isfinite(slant_curv) and slant_curv > 0):
+        raise InputError(f"slant_curv must be a finite relative second difference > 0 (per pixel), got {slant_curv!r}")
     if tex_noise not in ("image", "residual"):
         raise InputError(f"tex_noise must be 'image' or 'residual', got {tex_noise!r}")
     img_sigma = image_noise_sigma(view_a.image) if tex_noise == "image" else None
@@ -549,10 +550,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         # shiftable windows at the coarser levels, where a pixel's estimate settles on one surface or the other;
         # level 0 refines within a pixel, and its sigma and flags are those of the pixel's own (centred) window
         shift = int(shift_px) if bias and lev >= 1 else 0
-        # the slanted window at levels 1 and 0 (at the coarser ones it changed nothing the finer ones keep), its
-        # gradient limit per level pixel: 2^lev x it (the same slope in level-0 pixels) let level 1's blurred depth
-        # edges pass as slopes and widened them
-        steps_l = replace(steps, slant_grad=float(slant_grad) if slant and lev <= 1 else 0.0)
+        # the slanted window at levels 1 and 0 (at the coarser ones it changed nothing the finer ones keep)
+        steps_l = replace(steps, slant_curv=float(slant_curv) if slant and lev <= 1 else 0.0)
         if lev > 0:
             rho, amb = _refine_level(lv, rho, n_it, steps_l, shift, infinity_test=inf_at_level1 and lev == 1)
             if amb is not None:
@@ -757,7 +756,7 @@ class _Steps:
     huber_k: float
     lam_k: float
     shift_ratio: np.float32
-    slant_grad: float = 0.0        # > 0: the slanted window, up to this relative gradient of rho per level pixel
+    slant_curv: float = 0.0        # > 0: the slanted window, up to this relative second difference of rho
 
 
 def _refine_level(lv: _Level, rho, n_it: int, steps: _Steps, shift_px: int, *, infinity_test: bool = False,
@@ -833,21 +832,25 @@ def _slant_shape(rho, steps: _Steps):
     """The slanted window's shape for the Gauss-Newton step from rho: (S, M), the window of centre c modelling
     rho_j = rho_c + A_c (S_j - S_c) over its pixels j (``_dense_kernels._slant_row``). S is the estimate's mean over
     2 window - 3 pixels (a box filter: a plane stays that plane, noise is averaged; over the window itself the
-    noise it feeds back cost Middlebury 0.01-0.03 pp more); A_c = 1 where the relative gradient of rho
-    (|grad|_1 of its 3 x 3 mean: a depth edge stays steep in it, over 2-3 pixels) stays within
-    ``steps.slant_grad`` over the (2 window - 1)^2 pixels about c, falling to 0 at twice that (M: its largest value
-    there, twice over: ``_dense_kernels.slant_gradient`` and a dilation; S over c's window reads 3 window - 4
-    pixels, the 3 x 3 mean spreads an edge by 2). A depth edge keeps one rho per window (the ramp S makes of it
-    would smear it), sky (rho ~ 0) too. Where rho is locally planar (ground at
-    grazing angles, slanted walls) the window then measures rho at its centre, not at the texture-weighted mean of
+    noise it feeds back cost Middlebury 0.01-0.03 pp more); A_c = 1 where either the relative gradient of rho or
+    its relative departure from a plane across the window stays within ``steps.slant_curv`` over the
+    (2 window - 1)^2 pixels about c, falling to 0 at twice that (M: the smaller of the two largest values there, of
+    rho's 3 x 3 mean's central difference and its second difference over half a window,
+    ``_dense_kernels.slant_gate_inputs`` and two dilations; S over c's window reads 3 window - 4 pixels, the 3 x 3
+    mean spreads an edge by 2). A depth edge (a jump, steep in both, also where the estimate has widened it into a
+    ramp of up to a window: a second difference over one pixel let those pass as planes, Middlebury +0.01-0.09 pp)
+    keeps one rho per window (the ramp S makes of it would smear it); a plane of any slope (ground at grazing
+    angles up to the horizon, slanted walls: rho affine in the pixel) keeps the slant, and the window measures rho
+    at its centre, not at the texture-weighted mean of
     its pixels. (_NO_SLANT, _NO_SLANT: one rho per window.)"""
-    if not steps.slant_grad > 0:
+    if not steps.slant_curv > 0:
         return _NO_SLANT, _NO_SLANT
     S = _box(rho, max(2 * steps.window - 3, steps.window), dst=_ws("slant_S", rho.shape))
-    g = _ws("slant_g", rho.shape)
-    _K.slant_gradient(_box(rho, 3, dst=_ws("slant_b3", rho.shape)), g)
-    M = cv2.dilate(g, _rect_kernel(2 * steps.window - 1), borderType=_BR, dst=_ws("slant_M", rho.shape))
-    return S, M
+    g, c = _ws("slant_g", rho.shape), _ws("slant_c", rho.shape)
+    _K.slant_gate_inputs(_box(rho, 3, dst=_ws("slant_b3", rho.shape)), max(steps.window // 2, 2), g, c)
+    k = _rect_kernel(2 * steps.window - 1)
+    M = cv2.dilate(g, k, borderType=_BR, dst=_ws("slant_M", rho.shape))
+    return S, cv2.min(M, cv2.dilate(c, k, borderType=_BR, dst=_ws("slant_Mc", rho.shape)), dst=M)
 
 
 @lru_cache(maxsize=8)
@@ -879,7 +882,7 @@ def _gauss_newton_step(lv: _Level, rho, new, sigma: float, steps: _Steps, shift_
     if inf_out is not None:
         outs = (inf_out,) + outs[1:]
     S, M = _slant_shape(rho, steps)
-    inv_g2 = F32(0.5 / steps.slant_grad) if steps.slant_grad > 0 else F32(0.0)
+    inv_g2 = F32(0.5 / steps.slant_curv) if steps.slant_curv > 0 else F32(0.0)
     nv, ni = _K.gn_level(lv.b4p, lv.ia, lv.gxa, lv.gya, lv.rw, lv.kc, rho, S, M, inv_g2, lv.B0, lv.Q1, lv.Q2, ks,
                          lam_c, lv.use_cap, lv.rho_hi, int(steps.window), int(steps.occ_window), shift_px,
                          steps.shift_ratio,
