@@ -693,6 +693,24 @@ def _shift_windows_row(hs, sh, ratio, cost, code, sel):
             oC[i] = vl if c < 0 else v
 
 
+@njit(inline="always", **_JIT)
+def _damped_step(e2, r, gg, hh, lam_c, use_cap, capr, x, capc, cap_hi):
+    """The Levenberg-damped solution (hh + lam) rho' = gg + lam r, lam = lam_c e2, clipped to [0, cap] (cap: the
+    affine cap map's capr[x] + capc clipped to [0, cap_hi] with use_cap, else cap_hi): the last step of both update
+    rows."""
+    num = _fma(e2 * r, lam_c, gg)
+    den = _fma(e2, lam_c, hh)
+    v = num / den
+    v = v if den != _ZERO else _ZERO
+    v = _ZERO if v < _ZERO else v
+    hi = cap_hi
+    if use_cap:
+        c = capr[x] + capc             # (read only with use_cap: capr may be a row past the map's end)
+        hi = c if c < cap_hi else cap_hi        # np.clip(c, 0, cap_hi)
+        hi = _ZERO if hi < _ZERO else hi
+    return hi if v > hi else v
+
+
 @njit(**_JIT)
 def _update_row(sJJ, sJq, sW, sJ, sq, E2, R, lam_c, use_cap, capr, capc, cap_hi, out, H_o, S0_o):
     """One row's Levenberg-damped update from its window means (brightness offset eliminated, Schur complement):
@@ -708,18 +726,7 @@ def _update_row(sJJ, sJq, sW, sJ, sq, E2, R, lam_c, use_cap, capr, capc, cap_hi,
         hh = sJJ[x] - s1 * s1n
         H_o[x] = hh
         S0_o[x] = s0
-        e2 = E2[x]
-        num = _fma(e2 * R[x], lam_c, gg)
-        den = _fma(e2, lam_c, hh)
-        v = num / den
-        v = v if den != _ZERO else _ZERO
-        v = _ZERO if v < _ZERO else v
-        hi = cap_hi
-        if use_cap:
-            c = capr[x] + capc
-            hi = c if c < cap_hi else cap_hi        # np.clip(c, 0, cap_hi)
-            hi = _ZERO if hi < _ZERO else hi
-        out[x] = hi if v > hi else v
+        out[x] = _damped_step(E2[x], R[x], gg, hh, lam_c, use_cap, capr, x, capc, cap_hi)
 
 
 @njit(**_JIT)
@@ -749,18 +756,7 @@ def _slant_row(sJJ, sJq, sW, sJ, sq, sJJS, sJS, Sc, Mc, inv_g2, E2, R, lam_c, us
         hh = sJJ[x] - s1 * s1n
         H_o[x] = hh
         S0_o[x] = s0
-        e2 = E2[x]
-        num = _fma(e2 * R[x], lam_c, gg)
-        den = _fma(e2, lam_c, hh)
-        v = num / den
-        v = v if den != _ZERO else _ZERO
-        v = _ZERO if v < _ZERO else v
-        hi = cap_hi
-        if use_cap:
-            c = capr[x] + capc
-            hi = c if c < cap_hi else cap_hi
-            hi = _ZERO if hi < _ZERO else hi
-        out[x] = hi if v > hi else v
+        out[x] = _damped_step(E2[x], R[x], gg, hh, lam_c, use_cap, capr, x, capc, cap_hi)
 
 
 @njit(**_JIT)
