@@ -58,7 +58,7 @@ class MapConfig:
     eta_inlier: float = 0.65       # least E[inlier ratio] of a VALID cell
     max_rel_std: float = 0.34      # largest relative sigma of a VALID cell (the dense method's rule)
     fill: bool = True              # fill the cells without a fused range from the VALID ones around them
-    slant_px: float = 0.9          # spread (px) of the window's effective centre: sigma^2 += slant_px^2 |grad rho|^2
+    slant_px: float = 1.5          # spread (px) of the window's effective centre: sigma^2 += slant_px^2 |grad rho|^2
     no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells contested (module docstring)
     contested_rel_std: float = 0.05  # largest relative sigma of a contested cell's fill (0: never filled)
     border_px: int = 4             # empty cells this near the image border are extrapolated to (0: not)

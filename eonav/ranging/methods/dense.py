@@ -376,7 +376,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  trust_px: float = 1.0, presmooth_sigma: float = 0.6, max_rel_std: float = 0.34,
                  far_parallax_px: float = 0.5, tex_k: float = 1.0, orient_min: float = 0.02,
                  occ_k: float = 3.0, occ_window: int = 3, occ_px: float = 0.25, trunc_px: float = 1.0,
-                 std_scale: float = 1.1, shift_px: int = 2, shift_ratio: float = 0.4,
+                 std_scale: float | None = None, shift_px: int = 2, shift_ratio: float = 0.4,
                  fill_sigma: float = 4.0, fill_c: float = 0.3, highpass_sigma: float = 0.0,
                  highpass_levels: int = 9, bias: bool = True,
                  match_floor_px: float = 0.05, sgm: bool = False,
@@ -384,7 +384,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  inf_test: bool = True, fill: bool = True,
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
-                 prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = True,
+                 prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = False,
                  slant_curv: float = 0.05) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
@@ -411,9 +411,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     it (ground at grazing angles, slanted walls): an error tied to the texture, the same in every pair, that
     temporal fusion cannot average. A_c = 1 where rho is flat or planar about c (its relative gradient or its
     relative second difference, both per pixel, within slant_curv) and 0 from twice that on: a depth edge (a
-    jump) keeps one rho per window, a steep but smooth surface (ground near the horizon) keeps the slant. 0.1
-    gained nothing more on the sim sequences;
-    flight. Figures in docs/methods.md. huber_k: Huber threshold in noise
+    jump) keeps one rho per window, a steep but smooth surface (ground near the horizon) keeps the slant. Off by
+    default: it lowers the sim flights' errors (fused and single-pair) but with its calibrated sigma the obstacle
+    list finds about twice the false obstacles on far ground (whose sigma is too small at long range either way),
+    the real sequences gain nothing, and a sky patch at an image border can become an obstacle. Figures in
+    docs/methods.md. huber_k: Huber threshold in noise
     sigmas. trust_px: Levenberg trust term ~ a step of this many pixels of displacement per iteration.
     presmooth_sigma: Gaussian pre-smoothing of both images (pixels). 0.6 measured best overall (sim medians
     fast/paper 0.64/0.78 % at 0.8 -> 0.59/0.72 %; 0.4 and below trade a higher 90th percentile and worse
@@ -454,11 +456,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     trunc_px: TRUNCATION where the last update still moves the match by more than this (level-0 px): the
     step past which the first-order model is not trusted (at 0.5 px, 17-30 % of sim pixels were flagged
     with a median error of 1 %, since the reported estimate is the one after that step).
-    std_scale: calibration factor of the reported sigma: 1.1 = the measured robust spread of
-    (rho - rho_true) / sigma on the sim presets at 512 px with the slanted window (geometric mean of the five
-    presets 1.01 with it; the window's samples are correlated by the pre-smoothing and the interpolation; one rho
-    per window, slant=False, left a larger error and needed 1.35). max_rel_std (0.34) was set as 0.25 x 1.35 and
-    kept: the VALID rule is on the calibrated sigma.
+    std_scale: calibration factor of the reported sigma, the measured robust spread of (rho - rho_true) / sigma on
+    the sim presets at 512 px (the window's samples are correlated by the pre-smoothing and the interpolation):
+    None (default) takes the one measured for the window model, 1.35 with one rho per window, 1.1 with the slanted
+    window (whose smaller error it left over-reported: geometric mean of the five presets 0.82 at 1.35, 1.01 at
+    1.1). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
     shift_px / shift_ratio: shiftable windows at the levels above 0 (``_shift_windows``): a pixel takes the
     normal-equation sums of the window shift_px pixels to its left or right where that window's least-squares cost
     is below shift_ratio x its centred window's. A window straddling a depth edge fits neither surface and its
@@ -503,7 +505,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
-    if slant and not (math.isfinite(slant_curv) and slant_curv > 0):
+    if std_scale is None:
+        std_scale = 1.1 if slant else 1.35
+    if not (math.isfinite(slant_curv) and slant_curv > 0):
         raise InputError(f"slant_curv must be a finite relative second difference > 0 (per pixel), got {slant_curv!r}")
     if tex_noise not in ("image", "residual"):
         raise InputError(f"tex_noise must be 'image' or 'residual', got {tex_noise!r}")
@@ -919,9 +923,10 @@ def prepare_kernels() -> None:
     seconds on a fresh install). numba compiles per argument type, and every locate passes each kernel the same
     types (C-contiguous float32 / uint8 arrays, the same scalar types) whatever the image size or the options: one
     small plane pair (``_plane_pair``) reaches them all, the fill's included, and once more with a prior (its
-    gate and its finish)."""
+    gate and its finish), and once with the slanted window (off by default)."""
     a, b = _plane_pair(96)
     locate_dense(a, b)
+    locate_dense(a, b, slant=True)
     locate_dense(a, b, fill=False, prior=(np.full(a.image.shape, 0.05, F32), np.full(a.image.shape, 1e-4, F32)))
 
 
