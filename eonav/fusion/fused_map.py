@@ -2,7 +2,7 @@
 inv_range_std_per_m, flags) plus the number of measurements fused per pixel.
 
 The reported sigma adds to the filter's variance an error that fusion cannot average away: where the dense method
-fits one inverse range per window (its slanted window removes most of this where rho's gradient is moderate, not
+fits one inverse range per window (its slanted window, slant=True, removes most of this where rho's gradient is moderate, not
 across steep ones), weighting its pixels by their squared epipolar gradient, on a surface whose rho varies across
 the window it measures rho at the texture-weighted centre of the window, not at the pixel. The offset
 is fixed to the scene's texture, so every pair of the sequence makes the same error: the measurements agree with
@@ -58,7 +58,7 @@ class MapConfig:
     eta_inlier: float = 0.65       # least E[inlier ratio] of a VALID cell
     max_rel_std: float = 0.34      # largest relative sigma of a VALID cell (the dense method's rule)
     fill: bool = True              # fill the cells without a fused range from the VALID ones around them
-    slant_px: float = 1.5          # spread (px) of the window's effective centre: sigma^2 += slant_px^2 |grad rho|^2
+    slant_px: float = 1.5          # spread (px) of the window's effective centre (0.9 with the dense slant=True)
     no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells contested (module docstring)
     contested_rel_std: float = 0.05  # largest relative sigma of a contested cell's fill (0: never filled)
     border_px: int = 4             # empty cells this near the image border are extrapolated to (0: not)
