@@ -231,7 +231,6 @@ class FusionRunner:
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
 
-
     def _stereo_lead(self, m, res, stereo_res) -> dict:
         """Stereo leads (``eonav.fusion.update``): a motion measurement's pixels that disagree with this push's
         stereo measurement of the same frame are not fused; a stereo measurement restarts the cells it disagrees

@@ -148,6 +148,14 @@ def gaussian_uniform_step(mu, s2, a, b, x, tau2, rho_max: float):
     return mu_new, s2_new, a_new, b_new, c1
 
 
+def _start_cells(state: InverseRangeState, sel, rho, var, cfg: UpdateConfig) -> None:
+    """The cells ``sel`` (a flat index or mask of the state's grid) started from a measurement: mu = rho,
+    s^2 = var, Beta(a_init, b_init), n = 1, no sub-pixel remainder."""
+    for arr, v in ((state.rho, rho), (state.var, var), (state.a, cfg.a_init), (state.b, cfg.b_init), (state.n, 1),
+                   (state.du, 0.0), (state.dv, 0.0)):
+        arr.ravel()[sel] = v
+
+
 def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = UpdateConfig(),
            rho_far: float | None = None, kernels: bool | None = None) -> dict:
     """Fuse a measurement on the state's grid into ``state`` (in place). ``rho_far``: the pair's far inverse range
@@ -192,14 +200,9 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     n = N[fuse]
     N[fuse] = np.where(diverged, 1, np.minimum(n.astype(np.int64) + 1, np.iinfo(np.uint16).max)).astype(np.uint16)
     restart = fuse[diverged]
-    for idx in (start, restart):
-        state.du.ravel()[idx] = 0.0
-        state.dv.ravel()[idx] = 0.0
-    R[start] = rho_m[start]
-    V[start] = (std_m[start] * s) ** 2
-    A[start] = cfg.a_init
-    B[start] = cfg.b_init
-    N[start] = 1
+    state.du.ravel()[restart] = 0.0
+    state.dv.ravel()[restart] = 0.0
+    _start_cells(state, start, rho_m[start], (std_m[start] * s) ** 2, cfg)
     inl = c1 > F32(0.5)
     return counts_dict(meas.sum(), start.size, inl.sum(), (~inl).sum(), diverged.sum())
 
@@ -247,13 +250,7 @@ def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateC
         off = meas & (d * d > _lead_k(cfg) ** 2 * (state.var + tau * tau))
     if also is not None:
         off |= meas & np.asarray(also, bool)
-    state.rho[off] = rho_s[off]
-    state.var[off] = tau[off] ** 2
-    state.a[off] = cfg.a_init
-    state.b[off] = cfg.b_init
-    state.n[off] = 1
-    state.du[off] = 0.0
-    state.dv[off] = 0.0
+    _start_cells(state, off.ravel(), rho_s[off], tau[off] ** 2, cfg)
     state.flags[off] = np.asarray(flags_s, np.uint8)[off]
     rho_s[off] = np.nan
     return off
