@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from eonav.geometry.camera import View, pair_geometry
+from eonav.ranging.methods._common import EpipolarMap
 from eonav.ranging.photometric import match_brightness
 from eonav.ranging.rangemap import RangeResult
 from eonav.ranging.tracks import pose_shift_px, track_points
@@ -30,28 +31,16 @@ from eonav.ranging.tracks import pose_shift_px, track_points
 
 def add_pose_sigma(res: RangeResult, geo, shift_px: float) -> None:
     """sigma^2 += (shift_px / sensitivity)^2 in ``res.inv_range_std_per_m`` (in place) at every pixel with a
-    finite rho; nothing when the shift is not finite or zero. The sensitivity is |C| / den^2 of ``EpipolarMap``:
-    C1 = fx_b (B1 A0 - B0 A1), C2 = fy_b (B2 A0 - B0 A2), den = A0 + B0 rho with A = R_ba m; A, and so C, are
-    affine in the pixel's (x_p / fx, y_p / fy), built here from a row and a column term."""
+    finite rho; nothing when the shift is not finite or zero. The sensitivity is |C| / den^2 of the pair's
+    ``EpipolarMap`` on the map's grid (den = A0 + B0 rho)."""
     if not (math.isfinite(shift_px) and shift_px > 0):
         return
-    h, w = res.inv_range_per_m.shape
-    ca, cb = geo.cam_a, geo.cam_b
-    R = np.asarray(geo.R_ba, float)
-    B = np.asarray(geo.t_ba_m, float)
-    m1 = ((np.arange(w) - ca.cx) / ca.fx)[None, :]
-    m2 = ((np.arange(h) - ca.cy) / ca.fy)[:, None]
-
-    def affine(k):            # k . [1, m1, m2] on the grid
-        return (np.float32(k[0]) + (k[1] * m1).astype(np.float32)) + (k[2] * m2).astype(np.float32)
-    c1 = affine(cb.fx * (B[1] * R[0] - B[0] * R[1]))
-    c2 = affine(cb.fy * (B[2] * R[0] - B[0] * R[2]))
-    a0 = affine(R[0])
     rho = res.inv_range_per_m
     std = res.inv_range_std_per_m
+    em = EpipolarMap.build(geo, 0, rho.shape, (geo.cam_b.height, geo.cam_b.width))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        den = a0 + np.float32(B[0]) * rho
-        extra = np.float32(shift_px) * den * den / np.hypot(c1, c2)      # shift / (|C| / den^2)
+        den = em.A0 + em.B[0] * rho
+        extra = np.float32(shift_px) * den * den / np.hypot(em.C1, em.C2)      # shift / (|C| / den^2)
         np.copyto(std, np.sqrt(std * std + extra * extra).astype(np.float32),
                   where=np.isfinite(rho) & np.isfinite(std) & (den > 0))
 
