@@ -19,7 +19,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import View
-from eonav.ranging.tracks import Tracks, track_points
+from eonav.ranging.tracks import Tracks, track_points, tukey_weights
 
 
 @dataclass(frozen=True)
@@ -66,10 +66,7 @@ def fit_brightness(img_a: np.ndarray, img_b: np.ndarray, tracks: Tracks | None =
     for _ in range(10):                                     # IRLS, Tukey's biweight at 4.685 robust sigmas
         sw = np.sqrt(w)
         p = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)[0]
-        r = y - X @ p
-        s = max(1.4826 * float(np.median(np.abs(r))), 0.5)
-        u = r / (4.685 * s)
-        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        w = tukey_weights(y - X @ p, 0.5)
         if (w > 0).sum() < min_points:
             return BrightnessFit(1.0, 0.0, n, False, "too few inliers of the brightness fit")
     gain, offset = float(p[0]), float(p[1])

@@ -86,6 +86,14 @@ def epipolar_residual_px(geo: PairGeometry, tracks: Tracks):
     return np.where(ok, d, np.nan), np.where(ok[:, None], normal, np.nan)
 
 
+def tukey_weights(r: np.ndarray, min_scale: float) -> np.ndarray:
+    """Tukey's biweight weights of residuals r at 4.685 robust sigmas (1.4826 MAD, at least ``min_scale``): the
+    IRLS step of the robust fits here and in ``eonav.ranging.photometric``."""
+    sc = max(1.4826 * float(np.median(np.abs(r))), min_scale)
+    u = r / (4.685 * sc)
+    return np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+
+
 def pose_shift_px(geo: PairGeometry, tracks: Tracks, min_tracks: int = 20, min_share: float = 0.25) -> float:
     """Length (px) of the image shift that the pair's pose error puts on its matches: the 2-vector s fitted
     robustly (Tukey IRLS) to the matches' distances from their epipolar lines, d_i = n_i . s (n_i the lines' unit
@@ -108,13 +116,10 @@ def pose_shift_px(geo: PairGeometry, tracks: Tracks, min_tracks: int = 20, min_s
         rhs = V.T @ ((nrm * w[:, None]).T @ d)
         keep = ev > min_share * w.sum()
         s = V @ np.where(keep, rhs / np.where(keep, ev, 1.0), 0.0)
-        r = d - nrm @ s
-        sc = max(1.4826 * float(np.median(np.abs(r))), 0.05)
-        u = r / (4.685 * sc)
-        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        w = tukey_weights(d - nrm @ s, 0.05)
         if w.sum() < min_tracks / 2:
             return float("nan")
     return float(np.hypot(*s))
 
 
-__all__ = ["Tracks", "track_points", "epipolar_residual_px", "pose_shift_px"]
+__all__ = ["Tracks", "track_points", "epipolar_residual_px", "pose_shift_px", "tukey_weights"]
