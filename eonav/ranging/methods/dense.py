@@ -49,7 +49,7 @@ from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.methods._common import (F32, EpipolarMap, far_inverse_range, make_result, no_motion_result,
                                            numba_kernels, pyr_up_to, pyramid)
 from eonav.ranging.methods.fill import fill_unmeasured
-from eonav.ranging.rangemap import AT_INFINITY, OCCLUDED, TRUNCATION, VALID, RangeResult
+from eonav.ranging.rangemap import AT_INFINITY, ILL_CONDITIONED, OCCLUDED, TRUNCATION, VALID, RangeResult
 
 _K = numba_kernels("_dense_kernels")
 
@@ -385,7 +385,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
                  prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = False,
-                 slant_curv: float = 0.05) -> RangeResult:
+                 slant_curv: float = 0.05, window_noise: bool = True, centroid: bool = True) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -562,6 +562,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                 inf_mask = cv2.resize(amb, (wa, ha), interpolation=cv2.INTER_NEAREST)
         else:
             rho, fin = _refine_level(lv, rho, n_it, steps_l, shift, rules=rules, inf_mask=inf_mask)
+            if window_noise:
+                floor2 = 2.0 * g0 * img_sigma ** 2 if img_sigma is not None else 0.0
+                _apply_model_error(lv, rho, fin, window, floor2, centroid and not slant, max_rel_std, slant_curv)
 
     prior_info = None
     if first_lv is not None:
@@ -894,6 +897,147 @@ def _gauss_newton_step(lv: _Level, rho, new, sigma: float, steps: _Steps, shift_
     if fin is not None:
         fin.n_val += nv
         fin.n_inf += ni
+
+
+@lru_cache(maxsize=8)
+def _ramp_kernel(win: int) -> np.ndarray:
+    return ((np.arange(win) - win // 2) / win).astype(F32)
+
+
+def _minmod_slope(r: np.ndarray, k: int, axis: int) -> np.ndarray:
+    """Per pixel the slope of r along ``axis`` (per pixel) from its two one-sided differences over k pixels: the
+    smaller in magnitude where they agree in sign, 0 where they do not (the minmod limiter). On a plane both are the
+    plane's slope; at a depth edge one side crosses the edge and the slope stays that of the pixel's own side, or
+    0 (a ridge or a jump seen from both sides)."""
+    n = r.shape[axis]
+    idx = np.arange(n)
+    fwd = np.take(r, np.minimum(idx + k, n - 1), axis=axis) - r
+    bwd = r - np.take(r, np.maximum(idx - k, 0), axis=axis)
+    # one-sided differences over fewer than k pixels at the border, per pixel
+    dist_f = (np.minimum(idx + k, n - 1) - idx).astype(F32)
+    dist_b = (idx - np.maximum(idx - k, 0)).astype(F32)
+    shp = [1, 1]
+    shp[axis] = n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sf = np.where(dist_f.reshape(shp) > 0, fwd / dist_f.reshape(shp), np.nan)
+        sb = np.where(dist_b.reshape(shp) > 0, bwd / dist_b.reshape(shp), np.nan)
+    sf = np.where(np.isnan(sf), sb, sf)
+    sb = np.where(np.isnan(sb), sf, sb)
+    out = np.where(np.abs(sf) < np.abs(sb), sf, sb)
+    return np.where(sf * sb > 0, out, F32(0)).astype(F32)
+
+
+def _window_centroid(lv: "_Level", rho, window: int):
+    """Where in its window each pixel's one-rho-per-window estimate measures rho: the offset (ox, oy) in pixels of
+    the window's effective centre from the pixel. The normal equations of a window with its brightness offset
+    eliminated solve rho = sum_j W_j rho_j / sum_j W_j with W_j = J_j (J_j - mean J) (J_j: the epipolar gradient
+    grad I . d(u_b, v_b)/d rho, here image a's, at the estimate), so on a surface whose rho varies across the window
+    the estimate is rho at sum_j W_j (x_j - x_c) / sum_j W_j, not at the pixel: the texture picks the point. The
+    offsets are clipped to the window."""
+    a0 = lv.rw[0][None, :] + lv.kc[0][:, None]
+    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
+    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        den = a0 + lv.B0 * np.nan_to_num(rho, nan=0.0, posinf=0.0)
+        J = ((lv.gxa * c1 + lv.gya * c2) / (den * den)).astype(F32)
+        J = np.where(np.isfinite(J), J, F32(0)).astype(F32)
+    J2 = J * J
+    box, ramp = _box_kernel(window), _ramp_kernel(window)
+    m1 = _box(J, window)
+    m0 = _box(J2, window) - m1 * m1
+    h = F32(window // 2)
+    offs = []
+    for kx, ky in ((ramp, box), (box, ramp)):
+        r2 = cv2.sepFilter2D(J2, -1, kx, ky, borderType=_BR)
+        r1 = cv2.sepFilter2D(J, -1, kx, ky, borderType=_BR)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            o = (r2 - m1 * r1) / m0
+        offs.append(np.clip(np.where(np.isfinite(o), o, F32(0)), -h, h).astype(F32))
+    return offs[0], offs[1]
+
+
+def _model_error(lv: "_Level", rho, window: int, curv: float):
+    """The one-rho-per-window model's error at each pixel: its bias b = grad rho . (ox, oy) -- rho's slope (minmod of
+    the 3 x 3-averaged estimate over half a window each way, ``_minmod_slope``: a plane's slope, not a depth edge's)
+    times the offset of the window's effective centre (``_window_centroid``) -- and the variance of rho left
+    across the window's weights about that centre, |grad rho|^2 times the weights' second moment per pixel of
+    window (the part of the surface the window does not resolve). Returns (b, var)."""
+    rs = _box(rho, 3)
+    k = max(window // 2, 1)
+    gx, gy = _minmod_slope(rs, k, 1), _minmod_slope(rs, k, 0)
+    ox, oy = _window_centroid(lv, rho, window)
+    S, M = _slant_shape(rho, _Steps(window, 3, 0.0, 0.0, F32(0.0), slant_curv=curv))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        A = np.clip(F32(2) - M / (F32(2 * curv) * np.maximum(S, F32(1e-12))), 0, 1)
+    A = np.where(np.isfinite(A), A, F32(0))
+    return (A * (gx * ox + gy * oy)).astype(F32), (gx * gx + gy * gy).astype(F32)
+
+
+_VALID_ONLY = np.uint8(VALID)
+_INF_BIT = np.uint8(AT_INFINITY)
+
+
+def _window_residual_var(lv: "_Level", rho, window: int) -> np.ndarray:
+    """Each window's own residual variance: the residual I_b(map(rho)) - I_a at every pixel's final estimate
+    (``_dense_kernels.residual_grid``), its variance over the window's pixels in view of b (the brightness offset
+    removed), times n / (n - 2) for the two parameters the window fitted (rho and the offset)."""
+    h, w = rho.shape
+    r, iv = _ws("mr_r", (h, w)), _ws("mr_iv", (h, w), np.uint8)
+    _K.residual_grid(lv.b4p, lv.ia, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, 1, r, iv)
+    m = iv.astype(F32)
+    r = np.where(np.isfinite(r), r, F32(0)) * m
+    wv = _box(m, window)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m1 = _box(r, window) / wv
+        var = _box(r * r, window) / wv - m1 * m1
+        n = wv * F32(window * window)
+        var = var * n / (n - F32(2))
+    return np.where(np.isfinite(var) & (n > 2.5), np.maximum(var, F32(0)), np.inf).astype(F32)
+
+
+def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2: float, centroid: bool,
+                       max_rel_std: float, curv: float) -> None:
+    """In place on level 0's final estimate: the sigma of each VALID pixel with its own window's noise and model
+    error instead of the image's noise alone, and (``centroid``) rho corrected by the window model's bias
+    (``_model_error``).
+
+    The kernels' sigma is the image's robust residual noise through the window's normal equations (sigma_n^2 /
+    H). Where the window's model does not hold -- rho varies across it (ground at grazing angles, the window then
+    misregisters its pixels by the disparity's change over it), edges the interpolation blurs, texture the
+    pre-smoothing or the rendering changes between the images -- the window's residual holds that misfit on top
+    of the noise, sigma_n^2 + sigma_model^2, and the match is worse by as much; where the window fits to the
+    sensor noise (near ground), the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
+    max(s_w^2, noise_floor2) / sigma_n^2, s_w^2 the window's residual variance (``_window_residual_var``),
+    noise_floor2 the residual variance of the sensor noise alone (both images', through the pre-smoothing): a
+    window that fits by chance better than the sensor allows does not get a smaller sigma than the noise gives. A
+    pixel whose relative sigma then exceeds max_rel_std loses VALID (ILL_CONDITIONED, as the kernels' rule)."""
+    val = ((fin.flags & _VALID_ONLY) != 0) & ((fin.flags & _INF_BIT) == 0)
+    s_w2 = _window_residual_var(lv, rho, window)
+    f = np.maximum(s_w2, F32(noise_floor2)) / F32(max(fin.sigma, 1e-6) ** 2)
+    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
+    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        den = lv.rw[0][None, :] + lv.kc[0][:, None] + lv.B0 * rho
+        e2 = (c1 * c1 + c2 * c2) / (den * den) ** 2            # as the kernels' E2 (a quarter of |d map/d rho|^2)
+        floor = np.where(e2 > 0, fin.floor2 / e2, F32(0))
+        noise = np.maximum(fin.std * fin.std - floor, F32(0))
+        std = np.sqrt(noise * f + floor).astype(F32)
+    new = rho
+    if centroid:
+        b, _ = _model_error(lv, rho, window, curv)
+        new = np.maximum(rho - b, F32(0)).astype(F32)
+    ok = val & (new > 0) & (std <= F32(max_rel_std) * new) & np.isfinite(std)
+    lost = val & ~ok
+    np.copyto(rho, new, where=val)
+    np.copyto(fin.std, std, where=val)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.copyto(fin.rng, (F32(1) / rho).astype(F32), where=ok)
+        np.copyto(fin.conf, (rho / fin.std).astype(F32), where=ok)
+    if lost.any():
+        fin.flags[lost] = (fin.flags[lost] & ~_VALID_ONLY) | np.uint8(ILL_CONDITIONED)
+        fin.rng[lost] = np.nan
+        fin.conf[lost] = 0
+        fin.n_val -= int(lost.sum())
 
 
 def _plane_pair(size: int, range_m: float = 20.0, seed: int = 0) -> tuple[View, View]:
