@@ -506,7 +506,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
     if std_scale is None:
-        std_scale = 1.1 if slant else 1.35
+        std_scale = 1.25 if slant else 1.35
     if not (math.isfinite(slant_curv) and slant_curv > 0):
         raise InputError(f"slant_curv must be a finite relative second difference > 0 (per pixel), got {slant_curv!r}")
     if tex_noise not in ("image", "residual"):
@@ -970,7 +970,8 @@ def _model_error(lv: "_Level", rho, window: int, curv: float):
     with np.errstate(divide="ignore", invalid="ignore"):
         A = np.clip(F32(2) - M / (F32(2 * curv) * np.maximum(S, F32(1e-12))), 0, 1)
     A = np.where(np.isfinite(A), A, F32(0))
-    return (A * (gx * ox + gy * oy)).astype(F32), (gx * gx + gy * gy).astype(F32)
+    b = gx * ox + gy * oy
+    return (A * b).astype(F32), ((F32(1) - A) * b).astype(F32)
 
 
 _VALID_ONLY = np.uint8(VALID)
@@ -1024,8 +1025,9 @@ def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floo
         std = np.sqrt(noise * f + floor).astype(F32)
     new = rho
     if centroid:
-        b, _ = _model_error(lv, rho, window, curv)
+        b, b_left = _model_error(lv, rho, window, curv)
         new = np.maximum(rho - b, F32(0)).astype(F32)
+        std = np.sqrt(std * std + b_left * b_left).astype(F32)
     ok = val & (new > 0) & (std <= F32(max_rel_std) * new) & np.isfinite(std)
     lost = val & ~ok
     np.copyto(rho, new, where=val)
