@@ -194,11 +194,13 @@ def shift_windows(sh: int, ratio, H, g, S0, S1, Sq, Q, *extra) -> None:
         np.copyto(a, np.where(right, a[:, cols[1]], a[:, cols[0]]), where=take)
 
 
-def infinity_ambiguous(L: Level, r2, win: int) -> np.ndarray:
-    """Does a point at infinity explain the window at least as well as the estimate (r2: the in-view squared
-    residual at the estimate)? NaN (a window reaching out of b): no."""
+def infinity_ambiguous(L: Level, r2, mf, win: int) -> np.ndarray:
+    """Does a point at infinity explain the window at least as well as the estimate (r2: the squared residual at the
+    estimate, mf: where that is in view of b)? Both sums over the pixels where both are in view (none: yes)."""
     r0 = L.residual_at_infinity()
-    return _box(cv2.multiply(r0, r0), win) <= _box(r2, win)
+    both = np.isfinite(r0) & (mf > 0)
+    r0s = np.where(both, r0 * r0, F32(0)).astype(F32)
+    return _box(r0s, win) <= _box(np.where(both, r2, F32(0)).astype(F32), win)
 
 
 def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None, inf_out=None,
@@ -254,7 +256,7 @@ def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None
     if fin is None:
         if inf_out is not None:
             rm = mul(r, mf)
-            inf_out[:] = infinity_ambiguous(L, mul(rm, rm), win)
+            inf_out[:] = infinity_ambiguous(L, mul(rm, rm), mf, win)
         return
     # --- the final step: uncertainty, flags and classification
     d = sub(new, R)
@@ -268,7 +270,7 @@ def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None
     G = _box(G, win)
     r2 = mul(mul(r, r), mf)
     if fin.inf_test:
-        amb = (inf_mask != 0) if inf_mask is not None else infinity_ambiguous(L, r2, win)
+        amb = (inf_mask != 0) if inf_mask is not None else infinity_ambiguous(L, r2, mf, win)
     R2 = _box(r2, steps.occ_window)
     std = fin.std
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -106,3 +106,50 @@ def test_sigma_follows_each_windows_own_misfit(seed):
     (a, b), rho = _misfit_pair(seed, 0.0)
     left, right = _half_spreads(locate_dense(a, b, fill=False), rho)
     assert 0.8 < right / left < 1.25, (left, right)
+
+
+def _fixating_wall_pair(size=128, range_m=2.0, seed=4):
+    """A textured wall range_m ahead; camera b 0.3 m to the right and yawed to keep the wall's centre in view: the
+    wall moves little between the images, a point at infinity by ~15 px, so near one border of image a the infinity
+    test's warp (rho = 0) leaves image b while the wall's own does not. Image b is image a through the homography
+    the wall induces (eqs. 25-26), both with unit noise. Returns the views, the pair geometry and the wall's rho."""
+    from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
+    import cv2
+    f = 0.8 * size
+    c = (size - 1) / 2.0
+    cam = Camera("w", size, size, f, f, c, c)
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.standard_normal((size, size)).astype(F32), (0, 0), 1.5) * F32(150) + F32(128)
+    st_a = VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    st_b = VehicleState.from_ypr([0.0, 0.3, 0.0], [-np.arctan2(0.3, range_m), 0.0, 0.0])
+    geo = pair_geometry(View(cam, st_a, texture), View(cam, st_b, texture))
+    to_m = np.array([[0.0, 0.0, 1.0], [1.0 / f, 0.0, -c / f], [0.0, 1.0 / f, -c / f]])
+    to_px = np.array([[c, f, 0.0], [c, 0.0, f], [1.0, 0.0, 0.0]])
+    H = to_px @ (geo.R_ba + np.outer(geo.t_ba_m, [1.0 / range_m, 0.0, 0.0])) @ to_m
+    img_b = cv2.warpPerspective(texture, H, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    noisy = lambda img: (img + rng.standard_normal(img.shape)).astype(F32)
+    return View(cam, st_a, noisy(texture)), View(cam, st_b, noisy(img_b)), geo, 1.0 / range_m
+
+
+def test_no_valid_range_where_the_infinity_test_cannot_look():
+    """The infinity test (does a point at infinity explain the window as well?) compares the two residuals over the
+    pixels of the window that both warps keep in view of b. Where the warp at infinity leaves b for the whole
+    window, the test cannot rule infinity out and the pixel is not VALID (before: the test was skipped there, and
+    a sky patch at image a's border was ranged at 9-11 m VALID); where it stays in view, the wall is VALID and
+    right."""
+    a, b, geo, rho = _fixating_wall_pair()
+    res = locate_dense(a, b, fill=False)
+    ub, vb, den = geo.map_to_b(np.zeros(a.image.shape, F32))
+    out = ~((ub >= 0) & (ub <= a.camera.width - 1) & (vb >= 0) & (vb <= a.camera.height - 1) & (den > 0))
+    k = np.ones((17, 17), np.uint8)        # the test runs at level 1: a 7 x 7 window there spans 15 x 15 pixels
+    import cv2
+    all_out = cv2.erode(out.astype(np.uint8), k, borderType=cv2.BORDER_REPLICATE).astype(bool)
+    all_in = ~cv2.dilate(out.astype(np.uint8), k, borderType=cv2.BORDER_REPLICATE).astype(bool)
+    rows = slice(8, -8)
+    val = (res.flags & VALID) != 0
+    assert all_out[rows].sum() > 500 and all_in[rows].sum() > 5000       # the scene has both
+    assert val[rows][all_out[rows]].mean() < 0.02
+    inside = all_in[rows] & (np.arange(a.camera.width)[None, :] > 8) & (np.arange(a.camera.width)[None, :] < 120)
+    assert val[rows][inside].mean() > 0.95
+    err = np.abs(res.inv_range_per_m[rows][inside & val[rows]] / rho - 1)
+    assert np.median(err) < 0.01

@@ -397,7 +397,8 @@ def residual_grid(b4p, ia, rw, kc, R, B0, Q1, Q2, step, r_o, inview_o):
 @njit(**_JIT)
 def _residual_at_infinity_row(bfp, hb, wb, a0r, a0c, p1r, p1c, p2r, p2c, ia, r0_o):
     """One row of the squared residual of a point at infinity (rho = 0: b warped by the rotation alone), NaN where
-    any of the four neighbours of the sample is outside b (cv2.remap with a NaN border)."""
+    any of the four neighbours of the sample is outside b (cv2.remap with a NaN border; ``_row_terms`` leaves
+    those pixels out of the test)."""
     w = ia.shape[0]
     rs = np.uint64(4 * (wb + 2))
     c4 = np.uint64(4)
@@ -473,11 +474,15 @@ def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, S, B0
             mxo[x] = ga * mf
             myo[x] = gb * mf
     if inf_mode != 0:
-        seo = rs[_P_SE]
+        seo, r0o = rs[_P_SE], rs[_P_R0]
+        _residual_at_infinity_row(bfp, hb, wb, rw[0], kc[0, y], rw[1], kc[1, y], rw[2], kc[2, y], iay, r0o)
+        # both squared residuals over the pixels where both are in view of b (the test on the part of the window it
+        # can see; none: 0 <= 0, the test cannot rule infinity out)
         for x in range(w):
-            rm = s4[x, 0] - iay[x] if s4[x, 3] > _MASK_IN else _ZERO
-            seo[x] = rm * rm
-        _residual_at_infinity_row(bfp, hb, wb, rw[0], kc[0, y], rw[1], kc[1, y], rw[2], kc[2, y], iay, rs[_P_R0])
+            both = (s4[x, 3] > _MASK_IN) & (r0o[x] == r0o[x])
+            rm = s4[x, 0] - iay[x]
+            seo[x] = rm * rm if both else _ZERO
+            r0o[x] = r0o[x] if both else _ZERO
 
 
 @njit(**_JIT)
@@ -620,7 +625,7 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, S, M, inv_g2, B0, Q1, Q2, ks, lam_c, 
         if inf_mode != 0:
             se, r0s = hs[_S_SE], hs[_S_R0]
             for x in range(w):
-                ambr[x] = np.uint8(1) if r0s[x] <= se[x] else np.uint8(0)   # (NaN: a window reaching out of b)
+                ambr[x] = np.uint8(1) if r0s[x] <= se[x] else np.uint8(0)   # (sums over the pixels both see)
             if inf_mode == 1:
                 io = inf_o[y]
                 for x in range(w):
