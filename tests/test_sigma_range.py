@@ -1,6 +1,7 @@
 """The dense method's sigma where its window model does not hold (``dense._apply_model_error``): the window's
-effective centre against a direct sum, the slope limiter, and the sigma following each window's own misfit on a
-scene whose truth is exact (a textured plane, rectified pair)."""
+effective centre (tests/dense_reference.py) against a direct sum, the slope limiter, the kernel's correction against
+that reference, the sigma following each window's own misfit on a scene whose truth is exact (a textured plane,
+rectified pair), and the infinity test near a border of the image."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -8,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+import dense_reference as ref
 from eonav.ranging.methods import dense
 from eonav.ranging.methods.dense import locate_dense
 from eonav.ranging.rangemap import VALID
@@ -33,7 +35,7 @@ def test_window_centroid_matches_the_direct_sum():
     gx = rng.normal(0, 1, (h, w)) * (1 + 0.3 * (np.arange(h)[:, None] % 5))
     gy = rng.normal(0, 1, (h, w))
     lv = _fake_level(gx, gy, c1=0.7, c2=0.4)
-    ox, oy = dense._window_centroid(lv, np.zeros((h, w), F32), n)
+    ox, oy = ref.window_centroid(lv, np.zeros((h, w), F32), n)
     J = 2 * (0.7 * lv.gxa.astype(np.float64) + 0.4 * lv.gya)
     p = n // 2
     for yc, xc in ((10, 10), (20, 33), (30, 17), (p, 25)):
@@ -46,23 +48,55 @@ def test_window_centroid_matches_the_direct_sum():
     # texture only in the rows below the centre: the estimate is measured there (offset +1..+3 rows, mean 2)
     g = np.zeros((h, w))
     g[21:24] = rng.choice([-1.0, 1.0], (3, w))
-    _, oy = dense._window_centroid(_fake_level(g, np.zeros((h, w))), np.zeros((h, w), F32), n)
+    _, oy = ref.window_centroid(_fake_level(g, np.zeros((h, w))), np.zeros((h, w), F32), n)
     assert 1.0 < oy[20, 25] < 3.0
     assert oy[24, 25] < -1.0                     # seen from below, the texture lies above
 
 
 def test_minmod_slope():
-    """A plane: its slope (borders included); a step: 0 on the step's two sides within k; a ridge: 0 at its top."""
+    """(The reference of the kernel's slope.) A plane: its slope (borders included); a step: 0 on the step's two
+    sides within k; a ridge: 0 at its top."""
     y, x = np.mgrid[0:20, 0:30].astype(F32)
     plane = (0.01 + 0.002 * x - 0.001 * y).astype(F32)
-    assert np.allclose(dense._minmod_slope(plane, 3, 1), 0.002, atol=1e-7)
-    assert np.allclose(dense._minmod_slope(plane, 3, 0), -0.001, atol=1e-7)
+    assert np.allclose(ref.minmod_slope(plane, 3, 1), 0.002, atol=1e-7)
+    assert np.allclose(ref.minmod_slope(plane, 3, 0), -0.001, atol=1e-7)
     step = np.where(x < 15, 0.01, 0.05).astype(F32)
-    s = dense._minmod_slope(step, 3, 1)
+    s = ref.minmod_slope(step, 3, 1)
     assert np.all(s == 0)
     ridge = (0.05 - 0.002 * np.abs(x - 15)).astype(F32)
-    r = dense._minmod_slope(ridge, 3, 1)
+    r = ref.minmod_slope(ridge, 3, 1)
     assert r[0, 15] == 0 and r[0, 5] == pytest.approx(0.002, abs=1e-7) and r[0, 25] == pytest.approx(-0.002, abs=1e-7)
+
+
+def test_kernel_correction_matches_the_reference():
+    """On the steep ground plane of tests/test_dense.py the kernel moves each VALID rho by A g . o, g the minmod
+    slope of the 3 x 3 mean, o the window's effective centre, A the planarity gate: the same as the numpy
+    reference of each part, to float rounding; and it does move them (the scene has a bias to correct)."""
+    from test_dense import slanted_plane_views
+    (a, b), _ = slanted_plane_views(1.0, 20.0)
+    seen = {}
+    orig = dense._apply_model_error
+
+    def spy(lv, rho, fin, window, floor2, centroid, max_rel_std, curv):
+        before = rho.copy()
+        valid = ((fin.flags & VALID) != 0).copy()
+        rs = dense._box(before, 3)
+        gx, gy = ref.minmod_slope(rs, window // 2, 1), ref.minmod_slope(rs, window // 2, 0)
+        ox, oy = ref.window_centroid(lv, before, window)
+        S, M = dense._slant_shape(before, dense._Steps(window, 3, 0.0, 0.0, F32(0.0), slant_curv=curv))
+        A = np.nan_to_num(np.clip(2 - M / (2 * curv * np.maximum(S, 1e-12)), 0, 1))
+        orig(lv, rho, fin, window, floor2, centroid, max_rel_std, curv)
+        still = valid & ((fin.flags & VALID) != 0)
+        seen.update(moved=(before - rho)[still], want=(A * (gx * ox + gy * oy))[still], rho=before[still])
+    try:
+        dense._apply_model_error = spy
+        locate_dense(a, b, fill=False)
+    finally:
+        dense._apply_model_error = orig
+    moved, want, rho = seen["moved"], seen["want"], seen["rho"]
+    assert moved.size > 10000
+    assert np.max(np.abs(moved - want) / rho) < 1e-4
+    assert np.median(np.abs(moved) / rho) > 1e-3
 
 
 def _misfit_pair(seed, extra_sigma):

@@ -16,11 +16,12 @@ the method in four stages (docs/methods.md describes it):
    averaged over I_a and the warped I_b: eq. 27's symmetric form), a brightness offset per window eliminated,
    shiftable windows at the coarse levels and a Levenberg trust term worth ``trust_px`` pixels of displacement;
 3. classify, in level 0's last step: per-pixel 1-sigma of rho from the normal equations and the noise (robust MAD
-   of the residual), confidence rho / sigma, and the flags OUT_OF_VIEW (the map leaves b or lies behind it;
+   of the residual; then each window's own residual, ``_apply_model_error``), confidence rho / sigma, and the flags OUT_OF_VIEW (the map leaves b or lies behind it;
    OCCLUDED: a windowed residual neither the noise nor a small misregistration explains), LOW_TEXTURE,
    ILL_CONDITIONED (focus of expansion, gradient across the epipolar direction, relative sigma above
    ``max_rel_std``, or a point at infinity explains the window as well), TRUNCATION (the last step still moved by
-   more than ``trunc_px``) and AT_INFINITY (rho within 2 sigma of 0 with a tight sigma: range +inf);
+   more than ``trunc_px``) and AT_INFINITY (rho within 2 sigma of 0 with a tight sigma: range +inf); one rho per
+   window is then moved from the window's effective centre to the pixel (``_model_error``);
 4. fill: the pixels without a measurement get an inverse range from plane fits of the measured ones around them
    (``fill.fill_unmeasured``), flagged FILLED.
 
@@ -49,7 +50,7 @@ from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.methods._common import (F32, EpipolarMap, far_inverse_range, make_result, no_motion_result,
                                            numba_kernels, pyr_up_to, pyramid)
 from eonav.ranging.methods.fill import fill_unmeasured
-from eonav.ranging.rangemap import AT_INFINITY, ILL_CONDITIONED, OCCLUDED, TRUNCATION, VALID, RangeResult
+from eonav.ranging.rangemap import AT_INFINITY, OCCLUDED, TRUNCATION, VALID, RangeResult
 
 _K = numba_kernels("_dense_kernels")
 
@@ -412,9 +413,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     temporal fusion cannot average. A_c = 1 where rho is flat or planar about c (its relative gradient or its
     relative second difference, both per pixel, within slant_curv) and 0 from twice that on: a depth edge (a
     jump) keeps one rho per window, a steep but smooth surface (ground near the horizon) keeps the slant. Off by
-    default: it lowers the sim flights' errors (fused and single-pair) but with its calibrated sigma the obstacle
-    list finds about twice the false obstacles on far ground (whose sigma is too small at long range either way),
-    the real sequences gain nothing, and a sky patch at an image border can become an obstacle. Figures in
+    default: it lowers the sim flights' errors (fused and single-pair), but the real sequences gain nothing and,
+    with its calibrated sigma, the obstacle list found about twice the false obstacles on far ground (with the
+    window's own residual in the sigma, ``window_noise``, 1.4 x one rho per window's: docs/methods.md). Figures in
     docs/methods.md. huber_k: Huber threshold in noise
     sigmas. trust_px: Levenberg trust term ~ a step of this many pixels of displacement per iteration.
     presmooth_sigma: Gaussian pre-smoothing of both images (pixels). 0.6 measured best overall (sim medians
@@ -437,7 +438,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     neighbours' value (sky pixels of the fast preset with a finite range: 0.75 -> 0.53 %).
     inf_test: ILL_CONDITIONED where a point at infinity (rho = 0: b warped by the rotation alone) explains the
     7 x 7 window at least as well as the estimate does (and the estimate is more than 2 sigma from 0): the data
-    do not support that range. Judged at level 1's last iteration and carried to level 0 (a quarter of the work;
+    do not support that range. Both residuals are summed over the window's pixels that both warps keep in view of b;
+    where none is (near a border of image a, the warp at infinity leaves b), infinity is not ruled out. Judged at level 1's last iteration and carried to level 0 (a quarter of the work;
     the regions it catches are blobs of tens of pixels): sky pixels VALID nearer than 50 m on the approach flight
     73 -> 26 against the level-0 test, coverage within 0.5 point. Faint clouds reached by a wrong start (the coarse search's fill) were ranged at
     9-44 m with a tight sigma and became the nearest "obstacles" of the demo approach flight at 512 x 512; with
@@ -458,9 +460,17 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     with a median error of 1 %, since the reported estimate is the one after that step).
     std_scale: calibration factor of the reported sigma, the measured robust spread of (rho - rho_true) / sigma on
     the sim presets at 512 px (the window's samples are correlated by the pre-smoothing and the interpolation):
-    None (default) takes the one measured for the window model, 1.35 with one rho per window, 1.1 with the slanted
-    window (whose smaller error it left over-reported: geometric mean of the five presets 0.82 at 1.35, 1.01 at
-    1.1). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
+    None (default) takes the one measured for the window model, 1.35 with one rho per window, 1.25 with the slanted
+    window (geometric mean of the five presets' spread at std_scale 1, with window_noise: 1.38 / 1.24; docs/methods.md
+    "The sigma across range"). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the
+    calibrated sigma.
+    window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit,
+    floored at the sensor noise) instead of the image's noise alone (``_apply_model_error``): without it the
+    image-wide figure over-reports the sigma of near ground, which fits to the sensor noise, and under-reports that
+    of far ground near the horizon and of edges, where the window's model does not hold.
+    centroid: with window_noise and one rho per window, each VALID rho moved from the window's effective centre
+    (the texture-weighted centroid the normal equations measure) back to the pixel along rho's slope, where rho is
+    planar about the pixel (the slanted window's gate); elsewhere that bias goes into the sigma (``_model_error``).
     shift_px / shift_ratio: shiftable windows at the levels above 0 (``_shift_windows``): a pixel takes the
     normal-equation sums of the window shift_px pixels to its left or right where that window's least-squares cost
     is below shift_ratio x its centred window's. A window straddling a depth edge fits neither surface and its
@@ -904,142 +914,64 @@ def _ramp_kernel(win: int) -> np.ndarray:
     return ((np.arange(win) - win // 2) / win).astype(F32)
 
 
-def _minmod_slope(r: np.ndarray, k: int, axis: int) -> np.ndarray:
-    """Per pixel the slope of r along ``axis`` (per pixel) from its two one-sided differences over k pixels: the
-    smaller in magnitude where they agree in sign, 0 where they do not (the minmod limiter). On a plane both are the
-    plane's slope; at a depth edge one side crosses the edge and the slope stays that of the pixel's own side, or
-    0 (a ridge or a jump seen from both sides)."""
-    n = r.shape[axis]
-    idx = np.arange(n)
-    fwd = np.take(r, np.minimum(idx + k, n - 1), axis=axis) - r
-    bwd = r - np.take(r, np.maximum(idx - k, 0), axis=axis)
-    # one-sided differences over fewer than k pixels at the border, per pixel
-    dist_f = (np.minimum(idx + k, n - 1) - idx).astype(F32)
-    dist_b = (idx - np.maximum(idx - k, 0)).astype(F32)
-    shp = [1, 1]
-    shp[axis] = n
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sf = np.where(dist_f.reshape(shp) > 0, fwd / dist_f.reshape(shp), np.nan)
-        sb = np.where(dist_b.reshape(shp) > 0, bwd / dist_b.reshape(shp), np.nan)
-    sf = np.where(np.isnan(sf), sb, sf)
-    sb = np.where(np.isnan(sb), sf, sb)
-    out = np.where(np.abs(sf) < np.abs(sb), sf, sb)
-    return np.where(sf * sb > 0, out, F32(0)).astype(F32)
-
-
-def _window_centroid(lv: "_Level", rho, window: int):
-    """Where in its window each pixel's one-rho-per-window estimate measures rho: the offset (ox, oy) in pixels of
-    the window's effective centre from the pixel. The normal equations of a window with its brightness offset
-    eliminated solve rho = sum_j W_j rho_j / sum_j W_j with W_j = J_j (J_j - mean J) (J_j: the epipolar gradient
-    grad I . d(u_b, v_b)/d rho, here image a's, at the estimate), so on a surface whose rho varies across the window
-    the estimate is rho at sum_j W_j (x_j - x_c) / sum_j W_j, not at the pixel: the texture picks the point. The
-    offsets are clipped to the window."""
-    a0 = lv.rw[0][None, :] + lv.kc[0][:, None]
-    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
-    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        den = a0 + lv.B0 * np.nan_to_num(rho, nan=0.0, posinf=0.0)
-        J = ((lv.gxa * c1 + lv.gya * c2) / (den * den)).astype(F32)
-        J = np.where(np.isfinite(J), J, F32(0)).astype(F32)
-    J2 = J * J
-    box, ramp = _box_kernel(window), _ramp_kernel(window)
-    m1 = _box(J, window)
-    m0 = _box(J2, window) - m1 * m1
-    h = F32(window // 2)
-    offs = []
-    for kx, ky in ((ramp, box), (box, ramp)):
-        r2 = cv2.sepFilter2D(J2, -1, kx, ky, borderType=_BR)
-        r1 = cv2.sepFilter2D(J, -1, kx, ky, borderType=_BR)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            o = (r2 - m1 * r1) / m0
-        offs.append(np.clip(np.where(np.isfinite(o), o, F32(0)), -h, h).astype(F32))
-    return offs[0], offs[1]
-
-
-def _model_error(lv: "_Level", rho, window: int, curv: float):
-    """The one-rho-per-window model's error at each pixel: its bias b = grad rho . (ox, oy) -- rho's slope (minmod of
-    the 3 x 3-averaged estimate over half a window each way, ``_minmod_slope``: a plane's slope, not a depth edge's)
-    times the offset of the window's effective centre (``_window_centroid``) -- and the variance of rho left
-    across the window's weights about that centre, |grad rho|^2 times the weights' second moment per pixel of
-    window (the part of the surface the window does not resolve). Returns (b, var)."""
-    rs = _box(rho, 3)
-    k = max(window // 2, 1)
-    gx, gy = _minmod_slope(rs, k, 1), _minmod_slope(rs, k, 0)
-    ox, oy = _window_centroid(lv, rho, window)
-    S, M = _slant_shape(rho, _Steps(window, 3, 0.0, 0.0, F32(0.0), slant_curv=curv))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        A = np.clip(F32(2) - M / (F32(2 * curv) * np.maximum(S, F32(1e-12))), 0, 1)
-    A = np.where(np.isfinite(A), A, F32(0))
-    b = gx * ox + gy * oy
-    return (A * b).astype(F32), ((F32(1) - A) * b).astype(F32)
-
-
-_VALID_ONLY = np.uint8(VALID)
-_INF_BIT = np.uint8(AT_INFINITY)
-
-
-def _window_residual_var(lv: "_Level", rho, window: int) -> np.ndarray:
-    """Each window's own residual variance: the residual I_b(map(rho)) - I_a at every pixel's final estimate
-    (``_dense_kernels.residual_grid``), its variance over the window's pixels in view of b (the brightness offset
-    removed), times n / (n - 2) for the two parameters the window fitted (rho and the offset)."""
+def _window_means(lv: "_Level", rho, window: int):
+    """The window means the model error needs (``_dense_kernels.model_error_finish``): of the epipolar gradient J
+    at rho and of J^2 (m1, and m0J = mean J^2 - m1^2), of J^2 and J weighted by the pixel's column and row offset
+    from the window's centre (rx2, rx1, ry2, ry1), and of the residual I_b(map(rho)) - I_a, its square and the
+    in-view mask over the pixels in view of b (mr, mr2, mv)."""
     h, w = rho.shape
-    r, iv = _ws("mr_r", (h, w)), _ws("mr_iv", (h, w), np.uint8)
+    J, J2 = _ws("me_J", (h, w)), _ws("me_J2", (h, w))
+    r, iv = _ws("me_r", (h, w)), _ws("me_iv", (h, w), np.uint8)
     _K.residual_grid(lv.b4p, lv.ia, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, 1, r, iv)
     m = iv.astype(F32)
-    r = np.where(np.isfinite(r), r, F32(0)) * m
-    wv = _box(m, window)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        m1 = _box(r, window) / wv
-        var = _box(r * r, window) / wv - m1 * m1
-        n = wv * F32(window * window)
-        var = var * n / (n - F32(2))
-    return np.where(np.isfinite(var) & (n > 2.5), np.maximum(var, F32(0)), np.inf).astype(F32)
+    _K.centroid_terms(lv.rw, lv.kc, lv.B0, rho, lv.gxa, lv.gya, J, J2, m, r)
+    box, ramp = _box_kernel(window), _ramp_kernel(window)
+    m1 = _box(J, window)
+    m0J = _box(J2, window) - m1 * m1
+    rx2, rx1 = (cv2.sepFilter2D(t, -1, ramp, box, borderType=_BR) for t in (J2, J))
+    ry2, ry1 = (cv2.sepFilter2D(t, -1, box, ramp, borderType=_BR) for t in (J2, J))
+    mr, mr2, mv = _box(r, window), _box(r * r, window), _box(m, window)
+    return m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv
+
+
 
 
 def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2: float, centroid: bool,
                        max_rel_std: float, curv: float) -> None:
     """In place on level 0's final estimate: the sigma of each VALID pixel with its own window's noise and model
-    error instead of the image's noise alone, and (``centroid``) rho corrected by the window model's bias
-    (``_model_error``).
+    error instead of the image's noise alone, and (``centroid``) rho corrected by the window model's bias.
 
     The kernels' sigma is the image's robust residual noise through the window's normal equations (sigma_n^2 /
-    H). Where the window's model does not hold -- rho varies across it (ground at grazing angles, the window then
+    H). Where the window's model does not hold -- rho varies across it (ground at grazing angles: the window then
     misregisters its pixels by the disparity's change over it), edges the interpolation blurs, texture the
     pre-smoothing or the rendering changes between the images -- the window's residual holds that misfit on top
     of the noise, sigma_n^2 + sigma_model^2, and the match is worse by as much; where the window fits to the
-    sensor noise (near ground), the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
-    max(s_w^2, noise_floor2) / sigma_n^2, s_w^2 the window's residual variance (``_window_residual_var``),
-    noise_floor2 the residual variance of the sensor noise alone (both images', through the pre-smoothing): a
-    window that fits by chance better than the sensor allows does not get a smaller sigma than the noise gives. A
-    pixel whose relative sigma then exceeds max_rel_std loses VALID (ILL_CONDITIONED, as the kernels' rule)."""
-    val = ((fin.flags & _VALID_ONLY) != 0) & ((fin.flags & _INF_BIT) == 0)
-    s_w2 = _window_residual_var(lv, rho, window)
-    f = np.maximum(s_w2, F32(noise_floor2)) / F32(max(fin.sigma, 1e-6) ** 2)
-    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
-    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        den = lv.rw[0][None, :] + lv.kc[0][:, None] + lv.B0 * rho
-        e2 = (c1 * c1 + c2 * c2) / (den * den) ** 2            # as the kernels' E2 (a quarter of |d map/d rho|^2)
-        floor = np.where(e2 > 0, fin.floor2 / e2, F32(0))
-        noise = np.maximum(fin.std * fin.std - floor, F32(0))
-        std = np.sqrt(noise * f + floor).astype(F32)
-    new = rho
+    sensor noise (near ground) the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
+    max(s_w^2, noise_floor2) / sigma_n^2: s_w^2 the window's residual variance (over its pixels in view of b, the
+    brightness offset removed, times n / (n - 2) for the two parameters it fitted), noise_floor2 the residual
+    variance of the sensor noise alone (both images', through the pre-smoothing): a window that fits by chance
+    better than the sensor allows gets no smaller sigma than the noise gives.
+
+    One rho per window measures rho not at the pixel but at the window's effective centre: its normal equations
+    (brightness offset eliminated) solve rho = sum_j W_j rho_j / sum_j W_j, W_j = J_j (J_j - mean J), J_j the
+    epipolar gradient, so the texture picks the point, offset o = sum_j W_j (x_j - x_c) / sum_j W_j from the pixel
+    (clipped to the window). On a surface with slope g its bias is b = g . o (g: minmod of the 3 x 3 mean of the
+    estimate over half a window each way, a plane's slope and not a depth edge's). With ``centroid`` rho is moved
+    back by A b, A the slanted window's planarity gate (1 where rho is planar about the pixel, 0 at depth edges,
+    ``_slant_shape``), and what the gate leaves, (1 - A) b, goes into the sigma in quadrature. A pixel whose
+    relative sigma then exceeds max_rel_std loses VALID (ILL_CONDITIONED, as the kernels' rule)
+    (``_dense_kernels.model_error_finish``)."""
+    m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv = _window_means(lv, rho, window)
+    rs = _box(rho, 3, dst=_ws("me_rs", rho.shape))
     if centroid:
-        b, b_left = _model_error(lv, rho, window, curv)
-        new = np.maximum(rho - b, F32(0)).astype(F32)
-        std = np.sqrt(std * std + b_left * b_left).astype(F32)
-    ok = val & (new > 0) & (std <= F32(max_rel_std) * new) & np.isfinite(std)
-    lost = val & ~ok
-    np.copyto(rho, new, where=val)
-    np.copyto(fin.std, std, where=val)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        np.copyto(fin.rng, (F32(1) / rho).astype(F32), where=ok)
-        np.copyto(fin.conf, (rho / fin.std).astype(F32), where=ok)
-    if lost.any():
-        fin.flags[lost] = (fin.flags[lost] & ~_VALID_ONLY) | np.uint8(ILL_CONDITIONED)
-        fin.rng[lost] = np.nan
-        fin.conf[lost] = 0
-        fin.n_val -= int(lost.sum())
+        S, M = _slant_shape(rho, _Steps(window, 3, 0.0, 0.0, F32(0.0), slant_curv=curv))
+    else:
+        S = M = rs
+    lost = _K.model_error_finish(rho, rs, max(window // 2, 1), S, M, F32(0.5 / curv), m1, m0J, rx2, rx1, ry2, ry1,
+                                 F32(window // 2), mr, mr2, mv, F32(window * window), F32(noise_floor2),
+                                 F32(max(fin.sigma, 1e-6) ** 2), lv.rw, lv.kc, lv.B0, fin.floor2, F32(max_rel_std),
+                                 bool(centroid), fin.std, fin.flags, fin.rng, fin.conf)
+    fin.n_val -= int(lost)
 
 
 def _plane_pair(size: int, range_m: float = 20.0, seed: int = 0) -> tuple[View, View]:
