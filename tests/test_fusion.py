@@ -705,7 +705,7 @@ def _push_all(runner, views, camera_id="nose"):
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
 def test_predict_beside_the_measurement_gives_the_same_maps_as_in_turn(fast_sequence):
     serial = _push_all(FusionRunner(FusionConfig(overlap_predict=False)), fast_sequence.views)
-    overlap = _push_all(FusionRunner(FusionConfig(overlap_predict=True)), fast_sequence.views)
+    overlap = _push_all(FusionRunner(FusionConfig(overlap_predict=True, overlap_min_cells=0)), fast_sequence.views)
     assert len(serial) == len(overlap) == len(fast_sequence.views) - 1
     for a, b in zip(serial, overlap):
         assert a.frame.seq == b.frame.seq and a.measurements == b.measurements
@@ -715,17 +715,19 @@ def test_predict_beside_the_measurement_gives_the_same_maps_as_in_turn(fast_sequ
 
 
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
-@pytest.mark.parametrize("full_every", [1, 3])
+@pytest.mark.parametrize("full_every, min_cells", [(1, 128 * 128), (3, 0), (1, 128 * 128 + 1)])
 def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_from_it(fast_sequence, monkeypatch,
-                                                                                      full_every):
+                                                                                      full_every, min_cells):
     """Each predict and measurement of a push wait (a bounded time) for the other to have started: they see each
     other only if they run at the same time. With the prior on (full_every 3) a measurement may start from the
-    predicted state, so predict runs first, on the caller's thread, and never sees its measurement start."""
+    predicted state, so predict runs first, on the caller's thread, and never sees its measurement start; so it
+    does for a state (128 x 128) smaller than overlap_min_cells."""
     import threading
 
     import eonav.fusion.sequence as seq_mod
     from eonav.fusion.sequence import PriorConfig, dense_measurement
-    wait_s = 10.0 if full_every == 1 else 0.3
+    beside = full_every == 1 and min_cells <= 128 * 128
+    wait_s = 10.0 if beside else 0.3
     seen = {"predict": [], "measure": []}
     started = {}
 
@@ -737,7 +739,7 @@ def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_fr
         return run
 
     monkeypatch.setattr(seq_mod, "predict", meeting("predict", "measure", seq_mod.predict))
-    runner = FusionRunner(FusionConfig(prior=PriorConfig(full_every=full_every)),
+    runner = FusionRunner(FusionConfig(prior=PriorConfig(full_every=full_every), overlap_min_cells=min_cells),
                           measure=meeting("measure", "predict", dense_measurement),
                           fresh_measurements=True, takes_prior=True)
     views = fast_sequence.views[:3]
@@ -749,8 +751,8 @@ def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_fr
     main = threading.get_ident()
     for (p_saw, p_thread), (m_saw, m_thread) in zip(seen["predict"], seen["measure"]):
         assert m_thread == main
-        if full_every == 1:
+        if beside:
             assert p_saw and m_saw and p_thread != main      # at the same time, predict on the worker
         else:
             assert not p_saw and m_saw and p_thread == main  # predict first, on the caller's thread
-    assert runner.worker_cpu_s > 0 if full_every == 1 else runner.worker_cpu_s == 0
+    assert runner.worker_cpu_s > 0 if beside else runner.worker_cpu_s == 0

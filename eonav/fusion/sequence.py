@@ -20,8 +20,10 @@ reference's map, which it updated). A frame not newer than its camera's state is
 
 Predict needs only the state and the new frame's pose, so (``FusionConfig.overlap_predict``, with numba) it runs on a
 worker thread while the measurements run: its passes and the dense method's release the GIL, so on a machine with a
-core to spare predict costs the push no wall time (``fusion_s`` then holds only the wait for it, if any). Not when
-a measurement may start from the predicted state (``PriorConfig``). The results are the same either way.
+core to spare predict costs the push no wall time (``fusion_s`` then holds only the wait for it, if any). Only for
+states of ``overlap_min_cells`` and more: a small state's predict is short, and handing it to another core cost
+more CPU than it saved (docs/methods.md, "Fusion timing"). Not when a measurement may start from the predicted
+state (``PriorConfig``). The results are the same either way.
 ``states[camera_id]`` is valid until the next push of that camera (the one before is reused for its arrays).
 """
 from __future__ import annotations
@@ -101,11 +103,14 @@ class FusionConfig:
     max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
     pair_checks: bool = False          # the default measurement's brightness match and pose term (fusion/measure.py)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
-    overlap_predict: bool = True       # predict on a worker thread beside the measurements (module docstring)
+    overlap_predict: bool = True       # predict on a worker thread beside the measurements (module docstring) ...
+    overlap_min_cells: int = 100_000   # ... for states of at least this many cells
 
     def __post_init__(self):
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise InputError(f"fusion: max_gap_s must be > 0, got {self.max_gap_s!r}")
+        if not (isinstance(self.overlap_min_cells, int) and self.overlap_min_cells >= 0):
+            raise InputError(f"fusion: overlap_min_cells must be an integer >= 0, got {self.overlap_min_cells!r}")
 
 
 @dataclass
@@ -181,7 +186,7 @@ class FusionRunner:
             else:
                 args = (old, f.camera, f.state, t_s, self.config.noise)
                 kw = {"out": self._spare.get(cid)}
-                if self._overlap_predict():
+                if self._overlap_predict(old):
                     pending = _worker().submit(_cpu_timed, predict, *args, **kw)
                 else:
                     self.states[cid] = predict(*args, **kw)
@@ -240,11 +245,12 @@ class FusionRunner:
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
 
-    def _overlap_predict(self) -> bool:
-        """Whether predict may run beside the measurements (``FusionConfig.overlap_predict``): only when no
-        measurement can start from the predicted state (``PriorConfig``: a prior needs predict done first)."""
-        return (self.config.overlap_predict and optional_kernels() is not None
-                and (not self.takes_prior or self.config.prior.full_every == 1))
+    def _overlap_predict(self, state: InverseRangeState) -> bool:
+        """Whether predict of ``state`` runs beside the measurements (``FusionConfig.overlap_predict``): with numba,
+        for a state of at least ``overlap_min_cells`` cells and only when no measurement can start from the predicted
+        state (``PriorConfig``: a prior needs predict done first)."""
+        return (self.config.overlap_predict and state.rho.size >= self.config.overlap_min_cells
+                and optional_kernels() is not None and (not self.takes_prior or self.config.prior.full_every == 1))
 
     def _measure_all(self, live) -> list:
         """(prior, result, seconds) of each measurement, in order."""
