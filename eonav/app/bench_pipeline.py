@@ -27,6 +27,7 @@ import numpy as np
 log = logging.getLogger("eonav.app.bench_pipeline")
 
 DEFAULT_CASES = ((30.0, 640, 480), (30.0, 512, 512), (15.0, 640, 480), (15.0, 512, 512))
+STARTUP_S = 600.0            # longest wait for the locator's subscription
 
 
 def _frames(width: int, height: int, n: int = 4, rate_hz: float = 10.0):
@@ -154,7 +155,9 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                 t.start()
             pub = s.declare_publisher(K.posed_frame(vehicle, "nose"))
             wait_until(lambda: {"locator", "obstacles"} <= set(health), timeout=60, what="services up")
-            wait_until(lambda: pub.matching_status.matching, timeout=60, what="locator subscribed")
+            # the locator subscribes after loading its numba kernels: on a fresh install it compiles them first
+            # (minutes on a loaded 2-core machine)
+            wait_until(lambda: pub.matching_status.matching, timeout=STARTUP_S, what="locator subscribed")
             time.sleep(0.5)
             # warm-up: a few frames not counted
             sent = []
@@ -246,7 +249,9 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
                   f"{r['locator_scale_changes']} changes): capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
                   f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
                   f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
-                  f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} | "
+                  f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} (latest "
+                  f"frame wins: locator skipped {r['locator_skipped']}, superseded {r['locator_superseded']}; "
+                  f"obstacles superseded {r['obstacles_superseded']}) | "
                   f"compute p50 {r['locate_compute_ms']['p50']:.0f} ms, locator overhead p50 "
                   f"{r['locator_overhead_ms']['p50']:.1f} ms, obstacles p50 "
                   f"{r['obstacles_compute_ms'].get('p50', math.nan):.1f} ms | shm {r['range_map_payloads_via_shm']}",
