@@ -756,3 +756,18 @@ def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_fr
         else:
             assert not p_saw and m_saw and p_thread == main  # predict first, on the caller's thread
     assert runner.worker_cpu_s > 0 if beside else runner.worker_cpu_s == 0
+
+
+def test_bench_fusion_time_reports_both_runners_against_the_plain_locate():
+    """``eonav bench pipeline --fusion-time``: the same fused maps with predict before and beside the measurements
+    (it raises otherwise), and per scale the wall and CPU times of both and of the plain locate."""
+    import io
+
+    from eonav.app.bench_pipeline import fusion_time
+    out = io.StringIO()
+    rows = fusion_time((160, 120), scales=(1.0, 0.5), n_frames=5, repeats=1, stream=out)
+    # at 80 x 60 the approach flight's frames 1/30 s apart have too little parallax for a pair: said so, no row
+    assert [(r["width"], r["height"]) for r in rows] == [(160, 120)]
+    assert 1 <= rows[0]["frames"] <= 3           # frames 2-4 where the pair policy found a pair
+    assert all(rows[0][f"{n}_{k}_ms"] > 0 for n in ("plain", "serial", "beside") for k in ("wall", "cpu"))
+    assert out.getvalue().count("the same maps") == 1 and "80x60 (scale 0.5): no frame" in out.getvalue()
