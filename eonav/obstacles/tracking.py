@@ -114,8 +114,8 @@ class TrackerConfig:
     duplicate_chi2: float = 0.0            # two confirmed tracks this close in position and velocity (d^2 of
                                            # their state difference, 6 dof; CHI2_6_99): one, the older id kept (0: off)
     # static-world test (module docstring, "Phantoms that follow the vehicle"; off without a FieldOfView)
-    follow_k: float = 2.0                  # sigma of the drift test (0: off)
-    follow_fraction: float = 0.5           # drift along the vehicle's velocity above this fraction of its speed:
+    follow_k: float = 3.0                  # sigma of the drift test (0: off)
+    follow_fraction: float = 0.6           # drift along the vehicle's velocity above this fraction of its speed:
                                            # the track follows the vehicle (ground ranged at a near-constant range)
     follow_min_hits: int = 5               # detections the drift fit needs before it decides
     follow_window_s: float = 1.5           # the detections of this last stretch of time are fitted
@@ -539,6 +539,8 @@ class Tracker:
         self.last_stamp_us: int | None = None      # stamp of the newest map fed in
         self._last_view: tuple | None = None       # (stamp_us, vehicle position) of the newest map's view
         self._own = (None, None)                   # (vehicle velocity or None, vehicle position or None) now
+        self.n_followers = 0                       # tracks deleted because they followed the vehicle (FOLLOWS)
+        self.n_followers_confirmed = 0             # ... of them confirmed before
 
     @property
     def tracks(self) -> list:
@@ -578,7 +580,11 @@ class Tracker:
                 self._seen(t, False)
             else:
                 t.last_outcome = outcome
-        self._tracks = [t for t in self._tracks if not self._dead(t, stamp_us)]
+        dead = [t for t in self._tracks if self._dead(t, stamp_us)]
+        self.n_followers += sum(1 for t in dead if t.verdict == FOLLOWS)
+        self.n_followers_confirmed += sum(1 for t in dead if t.verdict == FOLLOWS and t.confirmed)
+        gone = {t.id for t in dead}
+        self._tracks = [t for t in self._tracks if t.id not in gone]
         self._merge_duplicates()
         for j, m in enumerate(meas):
             if j not in paired_m:
