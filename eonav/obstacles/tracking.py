@@ -66,6 +66,7 @@ from functools import lru_cache
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.stats import norm, t as student_t
 
 from eonav import InputError
 from eonav.geometry.camera import Camera, VehicleState
@@ -485,8 +486,7 @@ def drift_test(stamps_us, positions_ned_m, distances_m, own_velocity_ned_mps, cf
 def student_k(k_normal: float, dof: int) -> float:
     """The Student-t quantile with ``dof`` degrees of freedom at the normal distribution's one-sided level of
     ``k_normal`` sigma (k = 2: 97.7 %; 3 degrees of freedom: 3.31, 13: 2.21)."""
-    from scipy.stats import norm, t
-    return float(t.ppf(norm.cdf(k_normal), dof))
+    return float(student_t.ppf(norm.cdf(k_normal), dof))
 
 
 @dataclass
