@@ -158,22 +158,53 @@ def test_a_mover_receding_along_the_path_faster_than_the_fraction_is_held():
     assert slow is not None and slow <= 1.5
 
 
-def test_a_confirmed_track_that_starts_to_follow_is_deleted():
-    """A static obstacle's track confirmed, then its detections hold a constant range ahead (a phantom taking its
-    place): deleted once the drift passes the fraction by k sigma."""
+def test_a_confirmed_track_that_follows_is_deleted():
+    """A phantom at a constant range ahead confirmed with the test off (as a tracker configured without it would),
+    then judged with it: deleted at its next detection, counted as a confirmed follower."""
+    rng = np.random.default_rng(9)
+    ahead = np.array([70.0, 6.0, 3.0])
+    tr = T.Tracker(T.TrackerConfig(follow_k=0.0))
+    n = int(CFG.follow_window_s * RATE_HZ)                            # a full window of detections
+    for k in range(n):
+        st = state(k / RATE_HZ)
+        tr.update([observe(st.position_ned_m + ahead, st, rng)], us(k / RATE_HZ), T.FieldOfView(CAM, st, 100.0))
+    trk, = tr.confirmed()
+    tr.cfg = CFG
+    st = state(n / RATE_HZ)
+    tr.update([observe(st.position_ned_m + ahead, st, rng)], us(n / RATE_HZ), T.FieldOfView(CAM, st, 100.0))
+    assert all(t.id != trk.id for t in tr.tracks)
+    assert (tr.n_followers, tr.n_followers_confirmed) == (1, 1)
+
+
+def test_a_static_obstacle_replaced_by_a_phantom_loses_its_track_and_the_phantom_never_confirms():
+    """A static obstacle's track confirmed; then its detections hold a constant range ahead (a phantom in its
+    place): they leave the static track's gate (it dies of misses), and the track they start never confirms and is
+    deleted as a follower."""
     p = np.array([80.0, 3.0, -2.0])
     truth = lambda t, st: p if t < 1.5 else st.position_ned_m + (p - state(1.5).position_ned_m)
     rng = np.random.default_rng(9)
     tr = T.Tracker(CFG)
-    alive = []
+    confirmed_ids = []
     for k in range(int(3.5 * RATE_HZ)):
         t = k / RATE_HZ
         st = state(t)
         tr.update([observe(truth(t, st), st, rng)], us(t), T.FieldOfView(CAM, st, 100.0))
-        alive.append(any(trk.id == 1 for trk in tr.confirmed()))
-    assert alive[int(1.4 * RATE_HZ)]                                  # confirmed while static
-    assert not alive[-1]                                              # deleted as a phantom
-    assert all(trk.id != 1 for trk in tr.tracks)
+        confirmed_ids.append({trk.id for trk in tr.confirmed()})
+    assert confirmed_ids[int(1.4 * RATE_HZ)] == {1}                   # confirmed while static
+    assert set().union(*confirmed_ids) == {1} and not confirmed_ids[-1]
+    assert tr.n_followers >= 1 and tr.n_followers_confirmed == 0
+
+
+def test_bench_reports_the_followers_of_the_last_map():
+    from types import SimpleNamespace
+
+    from eonav.app import bench_tracking as B
+    st = state(0.0)
+    rec = [{"stamp_us": us(k / RATE_HZ), "state": st, "scene": SimpleNamespace(boxes=()), "visible_px": {},
+            "confirmed": [], "n_measurements": 0, "n_obstacles": 0, "followers": (k, k // 2)} for k in range(4)]
+    assert B.score(rec, RATE_HZ)["followers"] == (3, 1)
+    del rec[-1]["followers"]                                          # a record without them (older callers)
+    assert B.score(rec, RATE_HZ)["followers"] == (0, 0)
 
 
 def test_hovering_confirms_after_the_hits_and_the_views_velocity_is_used():
