@@ -214,6 +214,16 @@ def test_hovering_confirms_after_the_hits_and_the_views_velocity_is_used():
     assert first == pytest.approx(2 / RATE_HZ)
     first, _ = fly(lambda t, st: st.position_ned_m + np.array([70.0, 6.0, 3.0]), velocity=[0.0, 0.0, 0.0])
     assert first == pytest.approx(2 / RATE_HZ)
+    # two maps of one stamp (two cameras): the second keeps the velocity the poses gave before; the phantom seen by
+    # both never confirms
+    rng = np.random.default_rng(4)
+    tr = T.Tracker(CFG)
+    for k in range(int(2 * RATE_HZ)):
+        st = state(k / RATE_HZ)
+        for _ in range(2):
+            tr.update([observe(st.position_ned_m + np.array([70.0, 6.0, 3.0]), st, rng)], us(k / RATE_HZ),
+                      T.FieldOfView(CAM, st, 100.0))
+        assert not tr.confirmed()
     # without a view the tracker knows no vehicle motion: the test is off
     rng = np.random.default_rng(3)
     tr = T.Tracker(CFG)

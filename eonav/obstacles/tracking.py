@@ -537,7 +537,7 @@ class Tracker:
         self._tracks: list[Track] = []
         self._next_id = 1
         self.last_stamp_us: int | None = None      # stamp of the newest map fed in
-        self._last_view: tuple | None = None       # (stamp_us, vehicle position) of the newest map's view
+        self._last_view: tuple | None = None       # (stamp_us, vehicle position, velocity) of the newest view
         self._own = (None, None)                   # (vehicle velocity or None, vehicle position or None) now
         self.n_followers = 0                       # tracks deleted because they followed the vehicle (FOLLOWS)
         self.n_followers_confirmed = 0             # ... of them confirmed before
@@ -594,15 +594,17 @@ class Tracker:
 
     def _own_motion(self, view: FieldOfView | None, stamp_us: int) -> tuple:
         """(the vehicle's velocity, its position) at this map: the view's velocity, else the difference of the
-        vehicle positions of this view and the last one; None where not known (no view, the first map)."""
+        vehicle positions of this view and the last one (a map of the same stamp, another camera's: the velocity
+        found before); None where not known (no view, the first map)."""
         if view is None:
             self._last_view = None
             return None, None
         pos = np.asarray(view.state.position_ned_m, float)
         vel = view.velocity_ned_mps
-        if vel is None and self._last_view is not None and stamp_us > self._last_view[0]:
-            vel = (pos - self._last_view[1]) / ((stamp_us - self._last_view[0]) * 1e-6)
-        self._last_view = (stamp_us, pos)
+        if vel is None and self._last_view is not None:
+            last_us, last_pos, last_vel = self._last_view
+            vel = (pos - last_pos) / ((stamp_us - last_us) * 1e-6) if stamp_us > last_us else last_vel
+        self._last_view = (stamp_us, pos, vel)
         return vel, pos
 
     def _judge(self, t: Track, m: Measurement, stamp_us: int) -> None:
