@@ -29,7 +29,8 @@ Per box (ground truth: the renderer's object ids and the solid box):
   replacements); the frames without the main id are split by cause: the main track is live but off by more than the
   tolerance (range error), it is not live and another track represents the box, or no track does;
 - a confirmed track that never came near any box is false; false confirmed tracks per minute of flight; a false
-  track that lies within 1 m of the ground (or below it) is a ground track;
+  track that lies within 1 m of the ground (or below it) is a ground track; the tracks the tracker deleted because
+  they followed the vehicle (its static-world test), and how many of them had been confirmed;
 - time to contact (head-on): the guidance threat (``eonav.obstacles.tracking.assess``, ``nearest_threat``) against
   the true entry time of the vehicle's velocity ray into the wall grown by the vehicle radius, for every frame at most
   3 s from contact, both its ``time_to_contact_s`` (the earliest contact consistent with the cone's k sigma) and its
@@ -40,7 +41,8 @@ Per box (ground truth: the renderer's object ids and the solid box):
 
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
-        [--rig-baseline-m M] [--rig-order partner-first|arrival] [--stereo-lead-k K] [--cache-dir DIR]
+        [--follow-k K] [--follow-fraction F] [--rig-baseline-m M] [--rig-order partner-first|arrival]
+        [--stereo-lead-k K] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -286,7 +288,8 @@ def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, t
                                                            threat.expected_time_to_contact_s),
                     "n_measurements": len(meas), "n_obstacles": len(ob.obstacles),
                     "mover_px": mover_pixels(m, sc, ocfg),
-                    "measured": [R.T @ mm.position_ned_m for mm in meas]})
+                    "measured": [R.T @ mm.position_ned_m for mm in meas],
+                    "followers": (tracker.n_followers, tracker.n_followers_confirmed)})
     return rec, t_track
 
 
@@ -377,6 +380,7 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Sce
     minutes = (rec[-1]["stamp_us"] - rec[0]["stamp_us"]) * 1e-6 / 60.0 + 1.0 / rate_hz / 60.0
     false_ids = all_ids - near_box_ids
     out = {"boxes": boxes, "false_confirmed": len(false_ids), "false_per_min": len(false_ids) / minutes,
+           "followers": rec[-1].get("followers", (0, 0)),
            "false_ground": len(false_ids & ground_ids), "minutes": minutes, "maps": len(rec),
            "mean_measurements": float(np.mean([r["n_measurements"] for r in rec])),
            "mean_obstacles": float(np.mean([r["n_obstacles"] for r in rec]))}
@@ -452,6 +456,11 @@ def add_arguments(p) -> None:
                    help="TrackerConfig.see_through_k: farther measurements bearing-only beyond K track sigma (0: off)")
     p.add_argument("--duplicate-chi2", type=float, default=TrackerConfig().duplicate_chi2, metavar="D2",
                    help="TrackerConfig.duplicate_chi2: merge confirmed tracks within this 6-dof d^2 (0: off)")
+    p.add_argument("--follow-k", type=float, default=TrackerConfig().follow_k, metavar="K",
+                   help="TrackerConfig.follow_k: sigma of the static-world test (0: off)")
+    p.add_argument("--follow-fraction", type=float, default=TrackerConfig().follow_fraction, metavar="F",
+                   help="TrackerConfig.follow_fraction: drift along the vehicle's velocity, as a fraction of its "
+                        "speed, above which a track follows the vehicle")
     p.add_argument("--rig-baseline-m", type=float, default=0.0, metavar="M",
                    help=f"moving-stereo: the rig's baseline (default {STEREO_BASELINE_M:g} m)")
     p.add_argument("--rig-order", choices=("partner-first", "arrival"), default="partner-first",
@@ -470,9 +479,11 @@ def main(argv=None) -> int:
     add_arguments(p)
     args = p.parse_args(argv)
     ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused)
-    tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2)
+    tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2,
+                   follow_k=args.follow_k, follow_fraction=args.follow_fraction)
     print(f"obstacle config: {ocfg}")
-    print(f"tracker: see_through_k {tcfg.see_through_k:g}, duplicate_chi2 {tcfg.duplicate_chi2:g}")
+    print(f"tracker: see_through_k {tcfg.see_through_k:g}, duplicate_chi2 {tcfg.duplicate_chi2:g}, follow_k "
+          f"{tcfg.follow_k:g}, follow_fraction {tcfg.follow_fraction:g}")
     for maps in [s for s in args.maps.split(",") if s]:
         for name in [s for s in args.scenarios.split(",") if s]:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
@@ -504,7 +515,8 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
               f"the tolerance, {b['main_gone_other']} another id, {b['main_gone_none']} none; measured within the "
               f"tolerance in {b['measured']}")
     print(f"  false confirmed tracks: {s['false_confirmed']} ({s['false_per_min']:.1f} per minute), "
-          f"{s['false_ground']} of them on the ground")
+          f"{s['false_ground']} of them on the ground; tracks deleted as following the vehicle: "
+          f"{s['followers'][0]} ({s['followers'][1]} of them confirmed before)")
     if "ttc" in s:
         t = s["ttc"]
         within = np.mean(np.abs(t["threat_rel_err"]) <= 0.10) if t["frames"] else math.nan
