@@ -10,7 +10,9 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
 3. each measurement (``measure(view_a, view_b)``, default the dense method without its own fill) fused into the
    state of its reference camera (``update``); the push's measurements are all made before any is fused, so that
    a stereo measurement of a frame leads its motion measurement where they disagree (a moving object:
-   ``eonav.fusion.update``, "Stereo leads");
+   ``eonav.fusion.update``, "Stereo leads"); a measurement of ``lr_check_kinds`` is made both ways, a -> b and
+   b -> a, and the pixels of a the pair b -> a contradicts are flagged OCCLUDED, not fused
+   (``eonav.ranging.consistency``: off by default, docs/methods.md);
 4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it; a state's
    last measurement and its map in one sweep (``update_and_map``), into the default measurement's arrays.
 
@@ -29,6 +31,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import View, pair_geometry
+from eonav.ranging.consistency import LRCheckConfig, lr_checked
 from eonav.ranging.methods._common import far_inverse_range
 from eonav.ranging.pair_policy import PosedFrameInfo
 from eonav.ranging.rangemap import RangeResult
@@ -94,10 +97,17 @@ class FusionConfig:
     max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
     pair_checks: bool = False          # the default measurement's brightness match and pose term (fusion/measure.py)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
+    lr_check_kinds: tuple = ()         # measurements also made b -> a, a's pixels b contradicts not fused (below)
+    lr_check: LRCheckConfig = field(default_factory=LRCheckConfig)
 
     def __post_init__(self):
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise InputError(f"fusion: max_gap_s must be > 0, got {self.max_gap_s!r}")
+        kinds = tuple(self.lr_check_kinds)
+        if any(k not in (NEAR, WIDE, STEREO) for k in kinds):
+            raise InputError(f"fusion: lr_check_kinds must name {NEAR!r}, {WIDE!r} or {STEREO!r}, "
+                             f"got {self.lr_check_kinds!r}")
+        object.__setattr__(self, "lr_check_kinds", kinds)
 
 
 @dataclass
@@ -196,6 +206,9 @@ class FusionRunner:
             res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
                                 prior_min_fraction=prior[2], **kw)
                    if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
+            if m.kind in self.config.lr_check_kinds:       # left-right check: the pair b -> a too
+                res = lr_checked(res, self.measure(m.b.payload, m.a.payload, **kw),
+                                 pair_geometry(m.a.payload, m.b.payload), self.config.lr_check)
             locate_s += time.perf_counter() - t1
             if not self.fresh and self.config.schedule.stereo_rig is not None:     # stereo leads edits rho:
                 res = replace(res, inv_range_per_m=np.array(res.inv_range_per_m, F32))  # not the caller's arrays
