@@ -49,7 +49,8 @@ def inconsistent_reference(res_ab: RangeResult, res_ba: RangeResult, geo: PairGe
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=(np.nan,) * 3)
                 r, v, fl = smp[..., 0], smp[..., 1], smp[..., 2]
                 ok = np.isfinite(r)
-                agree |= ok & (np.abs(pred - r) <= k * np.sqrt(pred_var + v) + fl)
+                diff = pred - r if cfg.farther else np.abs(pred - r)
+                agree |= ok & (diff <= k * np.sqrt(pred_var + v) + fl)
                 usable |= ok
     usable &= cand
     return usable & ~agree, usable

@@ -207,10 +207,75 @@ def test_kernel_matches_the_numpy_reference(case, box_results):
         a, b = make_pair("stereo", seed=0, size=160).views
         ab, ba = locate_dense(a, b, fill=False), locate_dense(b, a, fill=False)
     geo = pair_geometry(a, b)
-    for cfg in (LRCheckConfig(), LRCheckConfig(1.0, 0.0)):
+    for cfg in (LRCheckConfig(), LRCheckConfig(farther=True), LRCheckConfig(1.0, 0.0)):
         bad, chk = inconsistent(ab, ba, geo, cfg)
         bad_r, chk_r = inconsistent_reference(ab, ba, geo, cfg)
         # float32 (reference) against float64 (kernel) arithmetic: a pixel exactly on a threshold may differ
         assert (bad != bad_r).sum() <= 2 and (chk != chk_r).sum() <= 2, ((bad != bad_r).sum(), (chk != chk_r).sum())
         assert chk.sum() > 0.5 * chk.size
     assert bad.sum() > 20                     # the tight setting flags something to compare
+
+
+def test_one_sided_check_flags_only_where_b_sees_farther():
+    """``farther``: b seeing farther than a's estimate (through it) contradicts it, b seeing nearer (in front of
+    it: a hidden point) does not; the two-sided check flags both."""
+    ca, cb = cameras(24, 40)
+    st = VehicleState.from_ypr([0, 0, 0], [0, 0, 0])
+    geo = pair_geometry(View(ca, st, np.zeros((24, 40), F32)), View(cb, st, np.zeros((24, 40), F32)))
+    ab = flat(0.2, 0.001)
+    for rho_b, farther, flagged in ((0.1, True, True), (0.3, True, False), (0.1, False, True), (0.3, False, True)):
+        bad, _ = inconsistent(ab, flat(rho_b, 0.001), geo, LRCheckConfig(farther=farther))
+        assert bad[:, 12:].all() == flagged and bad[:, 12:].any() == flagged, (rho_b, farther)
+
+
+def rig_runner(free_space: bool, measure):
+    cfg = FusionConfig(schedule=ScheduleConfig(stereo_rig=("nose", "right"),
+                                               policy=PairPolicyConfig(min_disparity_px=0.01)),
+                       lr_check_kinds=("stereo",), stereo_free_space=free_space)
+    return FusionRunner(cfg, measure=measure, fresh_measurements=True)
+
+
+@pytest.mark.parametrize("b_sees", ["background", "nearer"])
+def test_cells_a_moving_object_left_are_emptied_where_the_partner_sees_through_them(b_sees):
+    """Frame 0: an object (rho 0.3) over columns 20-25 of the reference in front of a wall (rho 0.2), ranged by the
+    stereo pair both ways. Frame 1 (the rig has not moved): the object is gone, the reference's pair does not range
+    those columns (hidden in b, as the background an object uncovers on the partner's side is), the partner's view
+    is the wall: it sees through the cells that still hold the object, and they are emptied (``stereo_free_space``).
+    Had the partner seen something nearer there instead, the cells would only be hidden: kept."""
+    h, w = 24, 40
+    ca = Camera("nose", w, h, F, F, (w - 1) / 2, (h - 1) / 2, [0, 0, 0], [0, 0, 0])
+    cb = Camera("right", w, h, F, F, (w - 1) / 2, (h - 1) / 2, [0, B, 0], [0, 0, 0])
+    st = VehicleState.from_ypr([0, 0, -10], [0, 0, 0])
+
+    def measure(view_a, view_b, **_):
+        t1 = view_a.state.t_s > 0.05
+        res = flat(0.2, 0.002, (h, w))
+        if view_a.camera.name == "nose":
+            if not t1:
+                res.inv_range_per_m[:, 20:26] = 0.3
+            else:
+                res.flags[:, 20:26] = OUT_OF_VIEW | OCCLUDED
+        elif not t1:
+            res.inv_range_per_m[:, 5:11] = 0.3          # b sees the object 15 px to the left (F B 0.3)
+        elif b_sees == "nearer":
+            res.inv_range_per_m[:, 5:11] = 0.5
+        return res
+
+    held = {}
+    for free_space in (False, True):
+        runner = rig_runner(free_space, measure)
+        for k, t in enumerate((0.0, 0.1)):
+            s = VehicleState(st.position_ned_m, st.T_body_ned, t)
+            stamp = 1_000_000 + int(t * 1e6)
+            runner.remember(frame("right", View(cb, s, np.zeros((h, w), F32)), stamp, k))
+            out = runner.push(frame("nose", View(ca, s, np.zeros((h, w), F32)), stamp, k))
+        state = runner.states["nose"]
+        held[free_space] = state.occupied()[:, 20:26].mean(), np.nanmax(np.append(state.rho[:, 20:26], 0))
+        # the wall's cells stay (columns 15-19 are hidden in b behind the object in frame 0: the left-right check
+        # leaves them unmeasured until the partner sees them)
+        assert state.occupied()[:, 12:15].all()
+        assert state.occupied()[:, 15:20].all() == (b_sees == "background")
+        stereo = [m for m in out[0].measurements if m["kind"] == "stereo"][0]
+        assert ("seen_through" in stereo) == free_space
+    assert held[False] == (1.0, pytest.approx(0.3))
+    assert held[True][0] == (0.0 if b_sees == "background" else 1.0)

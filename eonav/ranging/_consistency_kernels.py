@@ -45,9 +45,9 @@ def _b_terms(rho_b, std_b, flags_b, Rt, tt, cam_b, cam_a, floor_px, rb_out, var_
 
 
 @njit(**_JIT)
-def check(rho_a, std_a, flags_a, rho_b, std_b, flags_b, R_ba, t_ba, cam_a, cam_b, k, floor_px, bad, checked):
+def check(rho_a, std_a, flags_a, rho_b, std_b, flags_b, R_ba, t_ba, cam_a, cam_b, k, floor_px, farther, bad, checked):
     """bad / checked (uint8, a's grid, written): the pixels of a whose estimate b contradicts, and those b could
-    judge. cam_a / cam_b: float64 (fx, fy, cx, cy); R_ba, t_ba: float64 pose of a in b (X_b = R X_a + t)."""
+    judge; farther: only where b sees farther than a's estimate (b sees through it). cam_a / cam_b: float64 (fx, fy, cx, cy); R_ba, t_ba: float64 pose of a in b (X_b = R X_a + t)."""
     ha, wa = rho_a.shape
     hb, wb = rho_b.shape
     fxa, fya, cxa, cya = cam_a[0], cam_a[1], cam_a[2], cam_a[3]
@@ -96,7 +96,8 @@ def check(rho_a, std_a, flags_a, rho_b, std_b, flags_b, R_ba, t_ba, cam_a, cam_b
                 if rb != rb:                  # NaN: b measured nothing there
                     continue
                 usable = True
-                e = abs(pred - rb) - fb_[y, x]           # |difference| - floor <= k sqrt(var_a' + var_b)
+                d = pred - rb                   # > 0: b sees farther than a's estimate
+                e = (d if farther else abs(d)) - fb_[y, x]   # difference - floor <= k sqrt(var_a' + var_b)
                 if e <= 0.0 or e * e <= k2 * (pv + vb_[y, x]):
                     agree = True
             if usable:

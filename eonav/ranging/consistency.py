@@ -23,6 +23,12 @@ pixel of b (not FILLED): where b has nothing to say, a keeps its estimate. An in
 AT_INFINITY) and gets OUT_OF_VIEW | OCCLUDED, range NaN, confidence 0, its rho kept, as the dense method's own
 occlusion test leaves it; a filter fusing measurements (``eonav.fusion.update.measured``) then skips it. The cost is
 a second dense locate per pair.
+
+The two-sided test flags a's pixels hidden in b even where a ranged them right (b sees the occluder in front). The
+one-sided test (``farther``: p is contradicted only where b sees farther than rho_b' by more than the tolerance)
+is the free-space argument of multi-view fusion: b looking through the point a claims means nothing is there, while
+b seeing something nearer may just hide it. It judges an estimate a pair did not make, e.g. a fused state whose
+cell still holds a moving object that has left it (``eonav.fusion.sequence``, ``stereo_free_space``).
 """
 from __future__ import annotations
 
@@ -43,9 +49,10 @@ F32 = np.float32
 @dataclass(frozen=True)
 class LRCheckConfig:
     """k: sigmas of the two estimates' combined 1-sigma they may differ by; floor_px: and pixels of image a
-    (module docstring)."""
+    (module docstring); farther: one-sided, the free-space test (module docstring)."""
     k: float = 3.0
     floor_px: float = 1.0
+    farther: bool = False          # only b seeing farther than a's estimate contradicts it (free space, below)
 
     def __post_init__(self):
         for name in ("k", "floor_px"):
@@ -83,7 +90,7 @@ def inconsistent(res_ab: RangeResult, res_ba: RangeResult, geo: PairGeometry,
     _K.check(c32(res_ab.inv_range_per_m, F32), c32(res_ab.inv_range_std_per_m, F32), c32(res_ab.flags, np.uint8),
              c32(res_ba.inv_range_per_m, F32), c32(res_ba.inv_range_std_per_m, F32), c32(res_ba.flags, np.uint8),
              np.ascontiguousarray(geo.R_ba, np.float64), np.ascontiguousarray(geo.t_ba_m, np.float64),
-             cam(geo.cam_a), cam(geo.cam_b), float(cfg.k), float(cfg.floor_px), bad, checked)
+             cam(geo.cam_a), cam(geo.cam_b), float(cfg.k), float(cfg.floor_px), bool(cfg.farther), bad, checked)
     return bad.view(bool), checked.view(bool)
 
 
