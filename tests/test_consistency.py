@@ -12,7 +12,8 @@ from eonav import InputError
 from eonav.fusion.schedule import ScheduleConfig
 from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
 from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
-from eonav.ranging.consistency import LRCheckConfig, inconsistent, locate_dense_lr, lr_checked
+from eonav.ranging.consistency import LRCheckConfig, inconsistent, lr_checked
+from eonav.ranging.locate import locate
 from eonav.ranging.methods.dense import locate_dense
 from eonav.ranging.pair_policy import PairPolicyConfig
 from eonav.ranging.rangemap import AT_INFINITY, OCCLUDED, OUT_OF_VIEW, VALID, RangeResult
@@ -103,7 +104,7 @@ def test_with_the_dense_methods_own_occlusion_test_the_check_changes_little():
     """The dense method's residual test already flags the hidden band on this clean pair (2 of its 800 pixels
     VALID): the check then keeps what the method kept."""
     (a, b), truth, box, hidden = box_pair()
-    res = locate_dense_lr(a, b, fill=False)
+    res = locate(a, b, method="dense_lr", fill=False)       # the method registry's "dense_lr": locate_dense_lr
     plain = locate_dense(a, b, fill=False)
     v0, v1 = (plain.flags & VALID) > 0, (res.flags & VALID) > 0
     assert (v0 & hidden).sum() < 10

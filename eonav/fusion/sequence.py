@@ -12,7 +12,8 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
    a stereo measurement of a frame leads its motion measurement where they disagree (a moving object:
    ``eonav.fusion.update``, "Stereo leads"); a measurement of ``lr_check_kinds`` is made both ways, a -> b and
    b -> a, and the pixels of a the pair b -> a contradicts are flagged OCCLUDED, not fused
-   (``eonav.ranging.consistency``: off by default, docs/methods.md);
+   (``eonav.ranging.consistency``: off by default, docs/methods.md), and a stereo pair made both ways empties the
+   cells of the state its b -> a sees through (``stereo_free_space``);
 4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it; a state's
    last measurement and its map in one sweep (``update_and_map``), into the default measurement's arrays.
 
@@ -97,7 +98,7 @@ class FusionConfig:
     max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
     pair_checks: bool = False          # the default measurement's brightness match and pose term (fusion/measure.py)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
-    lr_check_kinds: tuple = ()         # measurements also made b -> a, a's pixels b contradicts not fused (below)
+    lr_check_kinds: tuple = ()         # measurements also made b -> a, a's pixels b contradicts not fused (step 3)
     lr_check: LRCheckConfig = field(default_factory=LRCheckConfig)
     stereo_free_space: bool = True     # with the stereo pair checked both ways: cells its b -> a sees through emptied
 
@@ -280,12 +281,12 @@ class FusionRunner:
                                          stereo_res.flags, ucfg).sum())}
 
     def _free_space(self, m, back) -> int:
-        """Empty the cells of the reference's state (predicted into this frame) that the partner camera sees
-        through: its pair b -> a ranges the pixel the cell's point lands on farther than the cell holds, beyond both
-        sigmas and ``lr_check.floor_px`` (``eonav.ranging.consistency``, one-sided). A moving object leaves its
-        range behind in the cells it uncovers, and there the stereo pair of a is hidden in b (the rig's partner
-        sees the background the object uncovered on its own side) or the motion pair is: nothing measures them
-        again and they keep the object's range; the partner's own view of them does. Returns the cells emptied."""
+        """Empty the cells of the reference's state (before the stereo measurement is fused) that the partner
+        camera sees through: its pair b -> a ranges the pixel the cell's point lands on farther than the cell holds,
+        beyond both sigmas and ``lr_check.floor_px`` (``eonav.ranging.consistency``, one-sided). A moving object
+        leaves its range in the cells it uncovers; where no pair of the frame ranges them again (hidden in b, as the
+        background an object uncovers on the partner's side is, or ranged only with a sigma wide enough for the old
+        range) they keep it, and the partner's own view of them contradicts it. Returns the cells emptied."""
         st = self.states[m.a.camera_id]
         held = st.occupied()
         if not held.any():
