@@ -280,3 +280,13 @@ def test_cells_a_moving_object_left_are_emptied_where_the_partner_sees_through_t
         assert ("seen_through" in stereo) == free_space
     assert held[False] == (1.0, pytest.approx(0.3))
     assert held[True][0] == (0.0 if b_sees == "background" else 1.0)
+
+
+def test_prepare_kernels_compiles_what_a_real_check_uses(box_results):
+    from eonav.ranging import _consistency_kernels as K
+    from eonav.ranging.consistency import prepare_kernels
+    prepare_kernels()
+    n = len(K.check.signatures)
+    a, b, *_, ab, ba = box_results
+    inconsistent(ab, ba, pair_geometry(a, b))
+    assert len(K.check.signatures) == n == 1

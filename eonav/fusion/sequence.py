@@ -347,10 +347,12 @@ def prepare_kernels() -> None:
     """Compile (or load from numba's cache) the dense method's kernels and the fusion's passes now: a pipeline that
     fuses spends this before its first frame, not in it (a fresh install compiles for tens of seconds). One small
     plane pair through a runner reaches predict, update and the fused map."""
+    from eonav.ranging import consistency
     from eonav.ranging.methods import dense
     from eonav.fusion.schedule import ScheduleConfig
     from eonav.ranging.pair_policy import PairPolicyConfig
     dense.prepare_kernels()
+    consistency.prepare_kernels()       # the left-right check (``lr_check_kinds``), off by default
     va, vb = dense._plane_pair(96)
     probe = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01))))
     for k, v in enumerate((va, vb, va)):

@@ -138,4 +138,17 @@ def locate_dense_lr(view_a: View, view_b: View, *, lr_k: float = LRCheckConfig.k
     return out
 
 
-__all__ = ["LRCheckConfig", "inconsistent", "flag_inconsistent", "lr_checked", "locate_dense_lr"]
+def prepare_kernels() -> None:
+    """Compile the check's kernel (or load it from numba's cache) now, for the argument types ``inconsistent``
+    passes it, instead of in the first check: a tiny hand-made pair of results, both sides."""
+    from eonav.geometry.camera import Camera
+    cam = Camera("probe", 8, 8, 8.0, 8.0, 3.5, 3.5)
+    geo = PairGeometry(cam, cam, np.eye(3), np.array([0.0, 0.1, 0.0]))
+    res = RangeResult(range_m=np.full((8, 8), 10.0, F32), confidence=np.ones((8, 8), F32), method="probe",
+                      inv_range_per_m=np.full((8, 8), 0.1, F32), inv_range_std_per_m=np.full((8, 8), 0.01, F32),
+                      flags=np.full((8, 8), VALID, np.uint8))
+    for farther in (False, True):
+        inconsistent(res, res, geo, LRCheckConfig(farther=farther))
+
+
+__all__ = ["LRCheckConfig", "inconsistent", "flag_inconsistent", "lr_checked", "locate_dense_lr", "prepare_kernels"]
