@@ -42,7 +42,7 @@ Per box (ground truth: the renderer's object ids and the solid box):
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
         [--follow-k K] [--follow-fraction F] [--rig-baseline-m M] [--rig-order partner-first|arrival]
-        [--stereo-lead-k K] [--cache-dir DIR]
+        [--stereo-lead-k K] [--lr-check KINDS] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -169,9 +169,12 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
 
 
 def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
-               stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
+               stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
+               lr_check: tuple = ()):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
-    confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene."""
+    confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene.
+    ``lr_check``: fused, the measurement kinds checked left-right (``FusionConfig.lr_check_kinds``); dense, any: every
+    pair checked (method "dense_lr")."""
     from eonav.ranging.locate import locate
     from eonav.ranging.rangemap import AT_INFINITY, VALID
     if maps not in MAP_SOURCES:
@@ -181,7 +184,7 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
     if maps == "fused":
         from eonav.fusion.schedule import ScheduleConfig
         from eonav.fusion.sequence import FusionConfig, FusionRunner
-        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k))
+        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k), lr_check_kinds=tuple(lr_check))
         runner = FusionRunner(replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
                               if sc.rig_baseline_m > 0 else cfg)
     rng = np.random.default_rng(seed)
@@ -196,13 +199,13 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
             flags = np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8)
             conf = np.ones(r.shape, np.float32)
         elif maps == "dense" and pview is not None:      # the rig's stereo pair of the instant
-            res = locate(view, pview, method="dense")
+            res = locate(view, pview, method="dense_lr" if lr_check else "dense")
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         elif maps == "dense":
             d = policy.offer(PosedFrameInfo("nose", k, stamp, cam, st, view))
             if not d.ok:
                 continue
-            res = locate(d.a.payload, d.b.payload, method="dense")
+            res = locate(d.a.payload, d.b.payload, method="dense_lr" if lr_check else "dense")
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         else:
             from eonav.fusion.sequence import frame
@@ -226,12 +229,15 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 
 
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
-                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
+                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
+                lr_check: tuple = ()):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed, rig baseline and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
+    seed, rig baseline, the left-right check and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
             else {})
+    if lr_check:
+        lead["lr_check"] = tuple(lr_check)
     if not cache_dir:
         return range_maps(sc, rate_hz, size, maps, seed, **lead)
     import pickle
@@ -239,8 +245,9 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
     path = Path(cache_dir) / (f"{sc.name}_{sc.seconds:g}s_{rate_hz:g}hz_{size[0]}x{size[1]}_{maps}_seed{seed}"
                               f"{f'_slope{sc.slope_deg:g}' if sc.slope_deg else ''}"
                               f"{f'_rig{sc.rig_baseline_m:g}' if sc.rig_baseline_m > 0 else ''}"
-                              f"{f'_lead{stereo_lead_k:g}' if lead else ''}"
-                              f"{'_arrival' if lead and rig_order == 'arrival' else ''}.pkl")
+                              f"{f'_lead{stereo_lead_k:g}' if 'stereo_lead_k' in lead else ''}"
+                              f"{'_arrival' if rig_order == 'arrival' and 'rig_order' in lead else ''}"
+                              f"{'_lr-' + '-'.join(lr_check) if lr_check else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
             return pickle.load(f)
@@ -469,6 +476,9 @@ def add_arguments(p) -> None:
     p.add_argument("--stereo-lead-k", type=float, default=UpdateConfig().stereo_lead_k, metavar="K",
                    help="UpdateConfig.stereo_lead_k: a rig's stereo measurement leads where it disagrees by K sigma "
                         "(0: off)")
+    p.add_argument("--lr-check", default="", metavar="KINDS",
+                   help="comma list of the measurement kinds (stereo, near, wide) the fused maps check left-right "
+                        "(FusionConfig.lr_check_kinds; default none); dense maps: any checks every pair")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="store the range maps here and reuse them on the next run with the same settings")
     p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -487,7 +497,8 @@ def main(argv=None) -> int:
     for maps in [s for s in args.maps.split(",") if s]:
         for name in [s for s in args.scenarios.split(",") if s]:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
-                   tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order)
+                   tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order,
+                   tuple(k for k in args.lr_check.split(",") if k))
     return 0
 
 
@@ -498,13 +509,15 @@ def _pct(errs, q):
 
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
-           stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first") -> dict:
+           stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
+           lr_check: tuple = ()) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
-    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order), sc, ocfg,
-                         tcfg)
+    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check), sc,
+                         ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
-    label = f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
+    label = (f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
+             f"{', left-right check ' + ','.join(lr_check) if lr_check else ''}")
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
           f"{s['mean_obstacles']:.1f} obstacles / {s['mean_measurements']:.1f} measurements a map; tracker p50 "
           f"{np.median(tt) * 1e3:.2f} ms, max {max(tt) * 1e3:.2f} ms a map ({time.perf_counter() - t0:.0f} s run)")
