@@ -19,14 +19,23 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
 
 ``push`` returns those maps (usually one: the frame's own camera; a stereo partner's frame returns the rig
 reference's map, which it updated). A frame not newer than its camera's state is dropped (``counts``
-``out_of_order``). Timing per map: ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
+``out_of_order``). Timing per map (wall): ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
+
+Predict needs only the state and the new frame's pose, so (``FusionConfig.overlap_predict``, with numba) it runs on a
+worker thread while the measurements run: its passes and the dense method's release the GIL, so on a machine with a
+core to spare predict costs the push no wall time (``fusion_s`` then holds only the wait for it, if any). Only for
+states of ``overlap_min_cells`` and more: a small state's predict is short, and handing it to another core cost
+more CPU than it saved (docs/methods.md, "Fusion timing"). Not when a measurement may start from the predicted
+state (``PriorConfig``). The results are the same either way.
 ``states[camera_id]`` is valid until the next push of that camera (the one before is reused for its arrays).
 """
 from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -98,6 +107,8 @@ class FusionConfig:
     max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
     pair_checks: bool = False          # the default measurement's brightness match and pose term (fusion/measure.py)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
+    overlap_predict: bool = True       # predict on a worker thread beside the measurements (module docstring) ...
+    overlap_min_cells: int = 100_000   # ... for states of at least this many cells
     lr_check_kinds: tuple = ()         # measurements also made b -> a, a's pixels b contradicts not fused (step 3)
     lr_check: LRCheckConfig = field(default_factory=LRCheckConfig)
     stereo_free_space: bool = True     # with the stereo pair checked both ways: cells its b -> a sees through emptied
@@ -105,6 +116,8 @@ class FusionConfig:
     def __post_init__(self):
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise InputError(f"fusion: max_gap_s must be > 0, got {self.max_gap_s!r}")
+        if not (isinstance(self.overlap_min_cells, int) and self.overlap_min_cells >= 0):
+            raise InputError(f"fusion: overlap_min_cells must be an integer >= 0, got {self.overlap_min_cells!r}")
         kinds = tuple(self.lr_check_kinds)
         if any(k not in (NEAR, WIDE, STEREO) for k in kinds):
             raise InputError(f"fusion: lr_check_kinds must name {NEAR!r}, {WIDE!r} or {STEREO!r}, "
@@ -146,6 +159,7 @@ class FusionRunner:
         self.counts: dict[str, int] = {}
         self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
         self._rig_motion: dict[str, tuple] = {}              # a rig reference's last motion measurement (stereo leads)
+        self.worker_cpu_s = 0.0      # CPU seconds the predicts on the worker thread took so far (overlap_predict)
 
     def count(self, name: str, k: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + k
@@ -176,49 +190,46 @@ class FusionRunner:
             return []
         t0 = time.perf_counter()
         touched = {}
+        pending = None               # the predict running on the worker thread beside this push's measurements
         if old is not None:
             if t_s - old.stamp_s > self.config.max_gap_s:
                 self.count("gap_resets")
                 old = None
             else:
-                self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise, out=self._spare.get(cid))
+                args = (old, f.camera, f.state, t_s, self.config.noise)
+                kw = {"out": self._spare.get(cid)}
+                if self._overlap_predict(old):
+                    pending = _worker().submit(_cpu_timed, predict, *args, **kw)
+                else:
+                    self.states[cid] = predict(*args, **kw)
                 self._spare[cid] = old
                 self.frames[cid] = f
-                if self.states[cid].occupied().any():      # nothing measured yet: no map to give
-                    touched[cid] = []
         if old is None:
             self.states[cid] = InverseRangeState.empty(f.camera, f.state, t_s)
             self.frames[cid] = f
         fusion_s = time.perf_counter() - t0
-        measurements, reason = self.scheduler.offer(f)
-        self.count(f"policy.{reason}")
-        locate_s = 0.0
-        live = [m for m in measurements if self.frames.get(m.a.camera_id) is m.a]
-        if len(live) < len(measurements):                  # the reference's state moved on (or never started)
-            self.count("stale_measurements", len(measurements) - len(live))
+        try:
+            measurements, reason = self.scheduler.offer(f)
+            self.count(f"policy.{reason}")
+            locate_s = 0.0
+            live = [m for m in measurements if self.frames.get(m.a.camera_id) is m.a]
+            if len(live) < len(measurements):                  # the reference's state moved on (or never started)
+                self.count("stale_measurements", len(measurements) - len(live))
+            results = self._measure_all(live)
+            locate_s = sum(r[2] for r in results)
+        finally:
+            if pending is not None:                            # (also when a measurement raised: the state is whole)
+                t_wait = time.perf_counter()
+                self.states[cid], cpu_s = pending.result()
+                self.worker_cpu_s += cpu_s
+                fusion_s += time.perf_counter() - t_wait
+        if old is not None and self.states[cid].occupied().any():     # nothing measured yet: no map to give
+            touched[cid] = []
         last = {m.a.camera_id: i for i, m in enumerate(live)}
         maps = {}
-        stereo = {}                  # reference camera -> this push's stereo measurement of it (stereo leads)
-        results = []
-        backs = {}                   # measurement index -> its pair b -> a (the left-right check's)
-        for i_m, m in enumerate(live):
-            ref = m.a.camera_id
-            t1 = time.perf_counter()
-            prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
-            kw = {"pair_checks": True} if self.config.pair_checks and self.measure is dense_measurement else {}
-            res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
-                                prior_min_fraction=prior[2], **kw)
-                   if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
-            if m.kind in self.config.lr_check_kinds:       # left-right check: the pair b -> a too
-                backs[i_m] = self.measure(m.b.payload, m.a.payload, **kw)
-                res = lr_checked(res, backs[i_m], pair_geometry(m.a.payload, m.b.payload), self.config.lr_check)
-            locate_s += time.perf_counter() - t1
-            if not self.fresh and self.config.schedule.stereo_rig is not None:     # stereo leads edits rho:
-                res = replace(res, inv_range_per_m=np.array(res.inv_range_per_m, F32))  # not the caller's arrays
-            results.append((prior, res))
-            if m.kind == STEREO:
-                stereo[ref] = res
-        for i, (m, (prior, res)) in enumerate(zip(live, results)):
+        stereo = {m.a.camera_id: r[1] for m, r in zip(live, results) if m.kind == STEREO}
+        backs = {i: r[3] for i, r in enumerate(results) if r[3] is not None}   # the left-right check's b -> a
+        for i, (m, (prior, res, _, _)) in enumerate(zip(live, results)):
             ref = m.a.camera_id
             t2 = time.perf_counter()
             used = self._after_measure(ref, prior, res)
@@ -245,6 +256,35 @@ class FusionRunner:
             n_fused = res.info.pop("n_fused")
             dt = time.perf_counter() - t3
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
+        return out
+
+    def _overlap_predict(self, state: InverseRangeState) -> bool:
+        """Whether predict of ``state`` runs beside the measurements (``FusionConfig.overlap_predict``): with numba,
+        for a state of at least ``overlap_min_cells`` cells and only when no measurement can start from the predicted
+        state (``PriorConfig``: a prior needs predict done first)."""
+        return (self.config.overlap_predict and state.rho.size >= self.config.overlap_min_cells
+                and optional_kernels() is not None and (not self.takes_prior or self.config.prior.full_every == 1))
+
+    def _measure_all(self, live) -> list:
+        """(prior, result, seconds, its pair b -> a or None) of each measurement, in order; a measurement of
+        ``lr_check_kinds`` is also made b -> a, and its result is the left-right checked one."""
+        out = []
+        for m in live:
+            ref = m.a.camera_id
+            t1 = time.perf_counter()
+            prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
+            kw = {"pair_checks": True} if self.config.pair_checks and self.measure is dense_measurement else {}
+            res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
+                                prior_min_fraction=prior[2], **kw)
+                   if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
+            back = None
+            if m.kind in self.config.lr_check_kinds:       # left-right check: the pair b -> a too
+                back = self.measure(m.b.payload, m.a.payload, **kw)
+                res = lr_checked(res, back, pair_geometry(m.a.payload, m.b.payload), self.config.lr_check)
+            dt = time.perf_counter() - t1
+            if not self.fresh and self.config.schedule.stereo_rig is not None:     # stereo leads edits rho:
+                res = replace(res, inv_range_per_m=np.array(res.inv_range_per_m, F32))  # not the caller's arrays
+            out.append((prior, res, dt, back))
         return out
 
     def _stereo_lead(self, m, res, stereo_res, back=None) -> dict:
@@ -332,6 +372,20 @@ class FusionRunner:
         self._since_full[camera_id] = self._since_full.get(camera_id, 0) + 1 if used else 0
         self.count("prior_seeded" if used else "full_search")
         return used
+
+
+def _cpu_timed(fn, *args, **kw):
+    """(fn(*args, **kw), the CPU seconds of the call on this thread)."""
+    c0 = time.thread_time()
+    out = fn(*args, **kw)
+    return out, time.thread_time() - c0
+
+
+@lru_cache(maxsize=1)
+def _worker() -> ThreadPoolExecutor:
+    """The one worker thread the runners' predicts run on (``FusionConfig.overlap_predict``); a push waits for its
+    own predict, so one thread serves every runner."""
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="eonav-fusion-predict")
 
 
 def run_frames(frames, config: FusionConfig = FusionConfig(), measure=None) -> list:
