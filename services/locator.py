@@ -591,6 +591,7 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
     scale = sc.scale
     t0, cpu0 = time.perf_counter(), time.thread_time()
     measure_cpu0 = getattr(runner.measure, "cpu_s", 0.0)
+    worker_cpu0 = getattr(runner, "worker_cpu_s", 0.0)       # predict on the runner's worker thread
     node.latency("age.locate_start", (now_us() - f.stamp_us) * 1e-6)
     sources[(f.camera_id, f.seq)] = f            # the posed frame behind a fused map (its quaternion, camera map)
     while len(sources) > 64:
@@ -604,7 +605,7 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
         node.log_limited("fusion_error", logging.ERROR, "fusion of %s/%d failed (state reset): %s: %s",
                          f.camera_id, f.seq, type(e).__name__, e)
         return
-    cpu_push = time.thread_time() - cpu0
+    cpu_push = time.thread_time() - cpu0 + getattr(runner, "worker_cpu_s", 0.0) - worker_cpu0
     cpu_measure = getattr(runner.measure, "cpu_s", 0.0) - measure_cpu0
     if maps:
         node.latency("age.fused", (now_us() - f.stamp_us) * 1e-6)

@@ -696,3 +696,78 @@ def test_schedulers_batched_pair_policy_decides_as_the_pair_policy():
             assert getattr(got, name) == pytest.approx(getattr(want, name), rel=1e-9, abs=1e-9, nan_ok=True)
         reasons.add(want.reason)
     assert {OK_MOTION, TOO_LITTLE_PARALLAX, TOO_MUCH_ROTATION, TOO_OLD} <= reasons, reasons
+
+
+def _push_all(runner, views, camera_id="nose"):
+    return [m for k, v in enumerate(views) for m in runner.push(frame(camera_id, v, int(round(v.state.t_s * 1e6)), k))]
+
+
+@pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
+def test_predict_beside_the_measurement_gives_the_same_maps_as_in_turn(fast_sequence):
+    serial = _push_all(FusionRunner(FusionConfig(overlap_predict=False)), fast_sequence.views)
+    overlap = _push_all(FusionRunner(FusionConfig(overlap_predict=True, overlap_min_cells=0)), fast_sequence.views)
+    assert len(serial) == len(overlap) == len(fast_sequence.views) - 1
+    for a, b in zip(serial, overlap):
+        assert a.frame.seq == b.frame.seq and a.measurements == b.measurements
+        for name in ("range_m", "inv_range_per_m", "inv_range_std_per_m", "confidence", "flags"):
+            assert np.array_equal(getattr(a.result, name), getattr(b.result, name), equal_nan=True), name
+        assert np.array_equal(a.n_fused, b.n_fused)
+
+
+@pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
+@pytest.mark.parametrize("full_every, min_cells", [(1, 128 * 128), (3, 0), (1, 128 * 128 + 1)])
+def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_from_it(fast_sequence, monkeypatch,
+                                                                                      full_every, min_cells):
+    """Each predict and measurement of a push wait (a bounded time) for the other to have started: they see each
+    other only if they run at the same time. With the prior on (full_every 3) a measurement may start from the
+    predicted state, so predict runs first, on the caller's thread, and never sees its measurement start; so it
+    does for a state (128 x 128) smaller than overlap_min_cells."""
+    import threading
+
+    import eonav.fusion.sequence as seq_mod
+    from eonav.fusion.sequence import PriorConfig, dense_measurement
+    beside = full_every == 1 and min_cells <= 128 * 128
+    wait_s = 10.0 if beside else 0.3
+    seen = {"predict": [], "measure": []}
+    started = {}
+
+    def meeting(name, other, fn):
+        def run(*a, **kw):
+            started[name].set()
+            seen[name].append((started[other].wait(wait_s), threading.get_ident()))
+            return fn(*a, **kw)
+        return run
+
+    monkeypatch.setattr(seq_mod, "predict", meeting("predict", "measure", seq_mod.predict))
+    runner = FusionRunner(FusionConfig(prior=PriorConfig(full_every=full_every), overlap_min_cells=min_cells),
+                          measure=meeting("measure", "predict", dense_measurement),
+                          fresh_measurements=True, takes_prior=True)
+    views = fast_sequence.views[:3]
+    maps = []
+    for k, v in enumerate(views):
+        started.update(predict=threading.Event(), measure=threading.Event())
+        maps += runner.push(frame("nose", v, int(round(v.state.t_s * 1e6)), k))
+    assert len(maps) == 2 and len(seen["predict"]) == 2 and len(seen["measure"]) == 2     # frames 1 and 2
+    main = threading.get_ident()
+    for (p_saw, p_thread), (m_saw, m_thread) in zip(seen["predict"], seen["measure"]):
+        assert m_thread == main
+        if beside:
+            assert p_saw and m_saw and p_thread != main      # at the same time, predict on the worker
+        else:
+            assert not p_saw and m_saw and p_thread == main  # predict first, on the caller's thread
+    assert runner.worker_cpu_s > 0 if beside else runner.worker_cpu_s == 0
+
+
+def test_bench_fusion_time_reports_both_runners_against_the_plain_locate():
+    """``eonav bench pipeline --fusion-time``: the same fused maps with predict before and beside the measurements
+    (it raises otherwise), and per scale the wall and CPU times of both and of the plain locate."""
+    import io
+
+    from eonav.app.bench_pipeline import fusion_time
+    out = io.StringIO()
+    rows = fusion_time((160, 120), scales=(1.0, 0.5), n_frames=5, repeats=1, stream=out)
+    # at 80 x 60 the approach flight's frames 1/30 s apart have too little parallax for a pair: said so, no row
+    assert [(r["width"], r["height"]) for r in rows] == [(160, 120)]
+    assert 1 <= rows[0]["frames"] <= 3           # frames 2-4 where the pair policy found a pair
+    assert all(rows[0][f"{n}_{k}_ms"] > 0 for n in ("plain", "serial", "beside") for k in ("wall", "cpu"))
+    assert out.getvalue().count("the same maps") == 1 and "80x60 (scale 0.5): no frame" in out.getvalue()

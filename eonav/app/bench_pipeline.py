@@ -8,7 +8,8 @@ capture -> obstacles), throughput, drops, the locator's compute time and the sca
 the services' own health latencies (ages at each point of a frame's way, each stage's wall and CPU time) and each
 process's share of a core (/proc), with the load average (the machine may be shared: CPU times are the figures
 other load moves least). ``--json`` adds every measured frame's timeline.
-``--accuracy`` instead measures, in process, what a locate scale costs against the simulator's truth.
+``--accuracy`` instead measures, in process, what a locate scale costs against the simulator's truth, and
+``--fusion-time`` what fusion adds to the locator's time per frame.
 ``run_bench(cases, seconds=...)`` is the pipeline function under the command.
 """
 from __future__ import annotations
@@ -27,6 +28,7 @@ import numpy as np
 log = logging.getLogger("eonav.app.bench_pipeline")
 
 DEFAULT_CASES = ((30.0, 640, 480), (30.0, 512, 512), (15.0, 640, 480), (15.0, 512, 512))
+STARTUP_S = 600.0            # longest wait for the locator's subscription
 
 
 def _frames(width: int, height: int, n: int = 4, rate_hz: float = 10.0):
@@ -154,7 +156,9 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                 t.start()
             pub = s.declare_publisher(K.posed_frame(vehicle, "nose"))
             wait_until(lambda: {"locator", "obstacles"} <= set(health), timeout=60, what="services up")
-            wait_until(lambda: pub.matching_status.matching, timeout=60, what="locator subscribed")
+            # the locator subscribes after loading its numba kernels: on a fresh install it compiles them first
+            # (minutes on a loaded 2-core machine)
+            wait_until(lambda: pub.matching_status.matching, timeout=STARTUP_S, what="locator subscribed")
             time.sleep(0.5)
             # warm-up: a few frames not counted
             sent = []
@@ -246,7 +250,9 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
                   f"{r['locator_scale_changes']} changes): capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
                   f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
                   f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
-                  f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} | "
+                  f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} (latest "
+                  f"frame wins: locator skipped {r['locator_skipped']}, superseded {r['locator_superseded']}; "
+                  f"obstacles superseded {r['obstacles_superseded']}) | "
                   f"compute p50 {r['locate_compute_ms']['p50']:.0f} ms, locator overhead p50 "
                   f"{r['locator_overhead_ms']['p50']:.1f} ms, obstacles p50 "
                   f"{r['obstacles_compute_ms'].get('p50', math.nan):.1f} ms | shm {r['range_map_payloads_via_shm']}",
@@ -329,6 +335,77 @@ def accuracy(size=(640, 480), scales=(1.0, 0.5), n_frames: int = 5, rate_hz: flo
     return out
 
 
+def fusion_time(size=(640, 480), scales=(1.0, 0.5, 0.3), n_frames: int = 12, repeats: int = 4, stream=None) -> list:
+    """What fusion adds to the locator's time per frame, in process: the approach flight's frames at each locate
+    scale pushed through two ``FusionRunner``s in turn, predict before the measurements and beside them
+    (``FusionConfig.overlap_predict`` off / on), and the plain dense locate (with its fill) of each frame's pair.
+    Per frame the least of ``repeats`` runs (wall and CPU time of this process), mean over frames 2 on: the ratios
+    to the plain locate. The maps of the two runners are checked to be the same. Wall time shows what the second
+    core does only where the machine has one to spare."""
+    import cv2
+    from eonav.fusion.sequence import FusionConfig, FusionRunner, frame, prepare_kernels
+    from eonav.geometry.camera import View, scaled_camera
+    from eonav.ranging.methods.dense import locate_dense
+    from eonav.sim.flight import render_flight
+    cv2.setNumThreads(1)
+    prepare_kernels()
+    stream = stream or sys.stdout
+    w, h = size
+    rendered = [(np.clip(np.round(v.image), 0, 255).astype(np.float32), v) for _, v, _ in
+                render_flight("approach", n_frames=n_frames, rate_hz=30.0, size=(w, h), t0_s=2.5, supersample=1)]
+    out = []
+    for scale in scales:
+        views = []
+        for img, v in rendered:
+            cam = v.camera if scale == 1.0 else scaled_camera(v.camera, scale)
+            views.append(View(cam, v.state, img if scale == 1.0 else
+                              cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)))
+        best: dict = {}
+        for r in range(repeats):
+            runners = {"serial": FusionRunner(FusionConfig(overlap_predict=False)),
+                       "beside": FusionRunner(FusionConfig(overlap_predict=True))}
+            for k, v in enumerate(views):
+                f = frame("nose", v, int(round(v.state.t_s * 1e6)), seq=k)
+                maps = {}
+                for name in (("serial", "beside") if (k + r) % 2 else ("beside", "serial")):
+                    w0, c0 = time.perf_counter(), time.process_time()
+                    maps[name] = runners[name].push(f)
+                    _least(best.setdefault(k, {}), name, time.perf_counter() - w0, time.process_time() - c0)
+                for a, b in zip(maps["serial"], maps["beside"]):
+                    if not all(np.array_equal(getattr(a.result, x), getattr(b.result, x), equal_nan=True)
+                               for x in ("range_m", "inv_range_std_per_m", "flags")):
+                        raise AssertionError(f"scale {scale:g} frame {k}: predict beside changed the fused map")
+                if maps["beside"] and maps["beside"][0].measurements:
+                    other = maps["beside"][0].measurements[0]["other_seq"]
+                    w0, c0 = time.perf_counter(), time.process_time()
+                    locate_dense(v, views[other])
+                    _least(best[k], "plain", time.perf_counter() - w0, time.process_time() - c0)
+        rows = [b for k, b in best.items() if k >= 2 and "plain" in b]
+        if not rows:
+            print(f"{views[0].camera.width}x{views[0].camera.height} (scale {scale:g}): no frame from the third on had "
+                  "a pair (too little parallax)", file=stream, flush=True)
+            continue
+        row = {"width": views[0].camera.width, "height": views[0].camera.height, "scale": scale, "frames": len(rows),
+               **{f"{name}_{kind}_ms": 1e3 * float(np.mean([b[name][j] for b in rows]))
+                  for name in ("plain", "serial", "beside") for j, kind in enumerate(("wall", "cpu"))}}
+        out.append(row)
+        pl_w, pl_c = row["plain_wall_ms"], row["plain_cpu_ms"]
+        small = row["width"] * row["height"] < FusionConfig().overlap_min_cells
+        note = " (in turn too: a state under overlap_min_cells)" if small else ""
+        print(f"{row['width']}x{row['height']} (scale {scale:g}, {len(rows)} frames, least of {repeats}): plain locate "
+              f"{pl_w:.1f} ms wall / {pl_c:.1f} ms CPU; push, predict in turn: {row['serial_wall_ms'] / pl_w:.3f} / "
+              f"{row['serial_cpu_ms'] / pl_c:.3f} x plain (wall / CPU); predict beside{note}: "
+              f"{row['beside_wall_ms'] / pl_w:.3f} / {row['beside_cpu_ms'] / pl_c:.3f} x plain; the same maps",
+              file=stream, flush=True)
+    return out
+
+
+def _least(d: dict, name: str, wall_s: float, cpu_s: float) -> None:
+    """Keep the least wall and the least CPU time seen of ``name`` in ``d``."""
+    old = d.get(name, (math.inf, math.inf))
+    d[name] = (min(old[0], wall_s), min(old[1], cpu_s))
+
+
 def add_arguments(p) -> None:
     p.add_argument("--case", action="append", default=[], metavar="FPS@WxH",
                    help="a case, e.g. 30@640x480 (repeatable; default: 30@640x480 30@512x512 15@640x480 15@512x512)")
@@ -345,6 +422,10 @@ def add_arguments(p) -> None:
     p.add_argument("--accuracy", action="store_true",
                    help="instead of the pipeline: range error, coverage and nearest obstacle vs simulator truth at "
                         "scales 1 and 0.5 (in process, the locator's code path) for each case's image size")
+    p.add_argument("--fusion-time", action="store_true",
+                   help="instead of the pipeline: what fusion adds to the locator's time per frame, in process, at "
+                        "locate scales 1, 0.5 and 0.3 of each case's image size, predict before and beside the "
+                        "measurements (wall and CPU time against a plain dense locate)")
     p.add_argument("--json", action="store_true", help="print the results as JSON at the end")
 
 
@@ -364,7 +445,10 @@ def run(args) -> int:
     from eonav.ranging.scale_control import parse_scale
     fixed = parse_scale(args.scale)              # None: auto; InputError on anything else
     scale = "auto" if fixed is None else fixed
-    if args.accuracy:
+    if args.fusion_time:
+        sizes = list(dict.fromkeys((w, h) for _, w, h in cases))
+        res = [r for size in sizes for r in fusion_time(size)]
+    elif args.accuracy:
         sizes = list(dict.fromkeys((w, h) for _, w, h in cases))
         res = [r for m in methods for size in sizes
                for r in accuracy(size, scales=sorted({1.0, fixed or 1.0, 0.5}, reverse=True), method=m,

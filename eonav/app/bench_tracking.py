@@ -29,7 +29,8 @@ Per box (ground truth: the renderer's object ids and the solid box):
   replacements); the frames without the main id are split by cause: the main track is live but off by more than the
   tolerance (range error), it is not live and another track represents the box, or no track does;
 - a confirmed track that never came near any box is false; false confirmed tracks per minute of flight; a false
-  track that lies within 1 m of the ground (or below it) is a ground track;
+  track that lies within 1 m of the ground (or below it) is a ground track; the tracks the tracker deleted because
+  they followed the vehicle (its static-world test), and how many of them had been confirmed;
 - time to contact (head-on): the guidance threat (``eonav.obstacles.tracking.assess``, ``nearest_threat``) against
   the true entry time of the vehicle's velocity ray into the wall grown by the vehicle radius, for every frame at most
   3 s from contact, both its ``time_to_contact_s`` (the earliest contact consistent with the cone's k sigma) and its
@@ -40,7 +41,8 @@ Per box (ground truth: the renderer's object ids and the solid box):
 
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
-        [--rig-baseline-m M] [--rig-order partner-first|arrival] [--stereo-lead-k K] [--cache-dir DIR]
+        [--follow-k K] [--follow-fraction F] [--rig-baseline-m M] [--rig-order partner-first|arrival]
+        [--stereo-lead-k K] [--lr-check KINDS] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -167,9 +169,12 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
 
 
 def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
-               stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
+               stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
+               lr_check: tuple = ()):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
-    confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene."""
+    confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene.
+    ``lr_check``: fused, the measurement kinds checked left-right (``FusionConfig.lr_check_kinds``); dense, any: every
+    pair checked (method "dense_lr")."""
     from eonav.ranging.locate import locate
     from eonav.ranging.rangemap import AT_INFINITY, VALID
     if maps not in MAP_SOURCES:
@@ -179,7 +184,7 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
     if maps == "fused":
         from eonav.fusion.schedule import ScheduleConfig
         from eonav.fusion.sequence import FusionConfig, FusionRunner
-        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k))
+        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k), lr_check_kinds=tuple(lr_check))
         runner = FusionRunner(replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
                               if sc.rig_baseline_m > 0 else cfg)
     rng = np.random.default_rng(seed)
@@ -194,13 +199,13 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
             flags = np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8)
             conf = np.ones(r.shape, np.float32)
         elif maps == "dense" and pview is not None:      # the rig's stereo pair of the instant
-            res = locate(view, pview, method="dense")
+            res = locate(view, pview, method="dense_lr" if lr_check else "dense")
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         elif maps == "dense":
             d = policy.offer(PosedFrameInfo("nose", k, stamp, cam, st, view))
             if not d.ok:
                 continue
-            res = locate(d.a.payload, d.b.payload, method="dense")
+            res = locate(d.a.payload, d.b.payload, method="dense_lr" if lr_check else "dense")
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         else:
             from eonav.fusion.sequence import frame
@@ -224,12 +229,15 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 
 
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
-                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first"):
+                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
+                lr_check: tuple = ()):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed, rig baseline and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
+    seed, rig baseline, the left-right check and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
             else {})
+    if lr_check:
+        lead["lr_check"] = tuple(lr_check)
     if not cache_dir:
         return range_maps(sc, rate_hz, size, maps, seed, **lead)
     import pickle
@@ -237,8 +245,9 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
     path = Path(cache_dir) / (f"{sc.name}_{sc.seconds:g}s_{rate_hz:g}hz_{size[0]}x{size[1]}_{maps}_seed{seed}"
                               f"{f'_slope{sc.slope_deg:g}' if sc.slope_deg else ''}"
                               f"{f'_rig{sc.rig_baseline_m:g}' if sc.rig_baseline_m > 0 else ''}"
-                              f"{f'_lead{stereo_lead_k:g}' if lead else ''}"
-                              f"{'_arrival' if lead and rig_order == 'arrival' else ''}.pkl")
+                              f"{f'_lead{stereo_lead_k:g}' if 'stereo_lead_k' in lead else ''}"
+                              f"{'_arrival' if rig_order == 'arrival' and 'rig_order' in lead else ''}"
+                              f"{'_lr-' + '-'.join(lr_check) if lr_check else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
             return pickle.load(f)
@@ -286,7 +295,8 @@ def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, t
                                                            threat.expected_time_to_contact_s),
                     "n_measurements": len(meas), "n_obstacles": len(ob.obstacles),
                     "mover_px": mover_pixels(m, sc, ocfg),
-                    "measured": [R.T @ mm.position_ned_m for mm in meas]})
+                    "measured": [R.T @ mm.position_ned_m for mm in meas],
+                    "followers": (tracker.n_followers, tracker.n_followers_confirmed)})
     return rec, t_track
 
 
@@ -377,6 +387,7 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Sce
     minutes = (rec[-1]["stamp_us"] - rec[0]["stamp_us"]) * 1e-6 / 60.0 + 1.0 / rate_hz / 60.0
     false_ids = all_ids - near_box_ids
     out = {"boxes": boxes, "false_confirmed": len(false_ids), "false_per_min": len(false_ids) / minutes,
+           "followers": rec[-1].get("followers", (0, 0)),
            "false_ground": len(false_ids & ground_ids), "minutes": minutes, "maps": len(rec),
            "mean_measurements": float(np.mean([r["n_measurements"] for r in rec])),
            "mean_obstacles": float(np.mean([r["n_obstacles"] for r in rec]))}
@@ -452,6 +463,11 @@ def add_arguments(p) -> None:
                    help="TrackerConfig.see_through_k: farther measurements bearing-only beyond K track sigma (0: off)")
     p.add_argument("--duplicate-chi2", type=float, default=TrackerConfig().duplicate_chi2, metavar="D2",
                    help="TrackerConfig.duplicate_chi2: merge confirmed tracks within this 6-dof d^2 (0: off)")
+    p.add_argument("--follow-k", type=float, default=TrackerConfig().follow_k, metavar="K",
+                   help="TrackerConfig.follow_k: sigma of the static-world test (0: off)")
+    p.add_argument("--follow-fraction", type=float, default=TrackerConfig().follow_fraction, metavar="F",
+                   help="TrackerConfig.follow_fraction: drift along the vehicle's velocity, as a fraction of its "
+                        "speed, above which a track follows the vehicle")
     p.add_argument("--rig-baseline-m", type=float, default=0.0, metavar="M",
                    help=f"moving-stereo: the rig's baseline (default {STEREO_BASELINE_M:g} m)")
     p.add_argument("--rig-order", choices=("partner-first", "arrival"), default="partner-first",
@@ -460,6 +476,9 @@ def add_arguments(p) -> None:
     p.add_argument("--stereo-lead-k", type=float, default=UpdateConfig().stereo_lead_k, metavar="K",
                    help="UpdateConfig.stereo_lead_k: a rig's stereo measurement leads where it disagrees by K sigma "
                         "(0: off)")
+    p.add_argument("--lr-check", default="", metavar="KINDS",
+                   help="comma list of the measurement kinds (stereo, near, wide) the fused maps check left-right "
+                        "(FusionConfig.lr_check_kinds; default none); dense maps: any checks every pair")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="store the range maps here and reuse them on the next run with the same settings")
     p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -470,13 +489,16 @@ def main(argv=None) -> int:
     add_arguments(p)
     args = p.parse_args(argv)
     ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused)
-    tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2)
+    tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2,
+                   follow_k=args.follow_k, follow_fraction=args.follow_fraction)
     print(f"obstacle config: {ocfg}")
-    print(f"tracker: see_through_k {tcfg.see_through_k:g}, duplicate_chi2 {tcfg.duplicate_chi2:g}")
+    print(f"tracker: see_through_k {tcfg.see_through_k:g}, duplicate_chi2 {tcfg.duplicate_chi2:g}, follow_k "
+          f"{tcfg.follow_k:g}, follow_fraction {tcfg.follow_fraction:g}")
     for maps in [s for s in args.maps.split(",") if s]:
         for name in [s for s in args.scenarios.split(",") if s]:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
-                   tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order)
+                   tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order,
+                   tuple(k for k in args.lr_check.split(",") if k))
     return 0
 
 
@@ -487,13 +509,15 @@ def _pct(errs, q):
 
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
-           stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first") -> dict:
+           stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
+           lr_check: tuple = ()) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
-    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order), sc, ocfg,
-                         tcfg)
+    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check), sc,
+                         ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
-    label = f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
+    label = (f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
+             f"{', left-right check ' + ','.join(lr_check) if lr_check else ''}")
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
           f"{s['mean_obstacles']:.1f} obstacles / {s['mean_measurements']:.1f} measurements a map; tracker p50 "
           f"{np.median(tt) * 1e3:.2f} ms, max {max(tt) * 1e3:.2f} ms a map ({time.perf_counter() - t0:.0f} s run)")
@@ -504,7 +528,8 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
               f"the tolerance, {b['main_gone_other']} another id, {b['main_gone_none']} none; measured within the "
               f"tolerance in {b['measured']}")
     print(f"  false confirmed tracks: {s['false_confirmed']} ({s['false_per_min']:.1f} per minute), "
-          f"{s['false_ground']} of them on the ground")
+          f"{s['false_ground']} of them on the ground; tracks deleted as following the vehicle: "
+          f"{s['followers'][0]} ({s['followers'][1]} of them confirmed before)")
     if "ttc" in s:
         t = s["ttc"]
         within = np.mean(np.abs(t["threat_rel_err"]) <= 0.10) if t["frames"] else math.nan

@@ -70,8 +70,8 @@ def exp_nonpositive(x):
 def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
          o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags):
     """Every occupied source cell's point into the new grid (predict's module docstring): the output arrays are
-    first emptied (any contents: a reused state); where several points land on one pixel the largest rho_new wins
-    (the first of equal ones). cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of
+    first emptied (any contents: a reused state; C-contiguous); where several points land on one pixel the largest
+    rho_new wins (the first of equal ones). cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of
     cells written."""
     h, w = rho.shape
     h1, w1 = o_rho.shape
@@ -96,11 +96,14 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
     zero = f32(0.0)
     wmax = f32(w1 - 1)
     hmax = f32(h1 - 1)
-    # per row: the transfer of every cell into row buffers in a branch-free loop (LLVM vectorises it), then the
-    # scatter of the valid ones
-    buf = np.empty((6, w), np.float32)
-    b_ui, b_vi, b_du, b_dv, b_rn, b_var = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
-    b_ok = np.empty(w, np.bool_)
+    # per row: the transfer of every cell into row buffers in a branch-free loop (LLVM vectorises it), with the flat
+    # index of its target pixel (-1: none), then the scatter of the valid ones into the flat outputs
+    buf = np.empty((4, w), np.float32)
+    b_du, b_dv, b_rn, b_var = buf[0], buf[1], buf[2], buf[3]
+    b_tgt = np.empty(w, np.int64)
+    # (views: the outputs must be C-contiguous, reshape raises otherwise; predict makes sure they are)
+    f_rho, f_var, f_a, f_b = o_rho.reshape(-1), o_var.reshape(-1), o_a.reshape(-1), o_b.reshape(-1)
+    f_n, f_du, f_dv, f_flags = o_n.reshape(-1), o_du.reshape(-1), o_dv.reshape(-1), o_flags.reshape(-1)
     written = 0
     for y in range(h):
         fy = f32(y)
@@ -119,34 +122,32 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
             vi = np.floor(vn + half)
             rn = r * inv
             j = A0 * inv * inv
-            b_ok[x] = (math.isfinite(r) and den > eps and A0 > eps
-                       and ui >= zero and ui <= wmax and vi >= zero and vi <= hmax)
-            b_ui[x] = ui
-            b_vi[x] = vi
+            ok = (math.isfinite(r) and den > eps and A0 > eps
+                  and ui >= zero and ui <= wmax and vi >= zero and vi <= hmax)
+            b_tgt[x] = np.int64(vi) * w1 + np.int64(ui) if ok else -1
             b_du[x] = un - ui
             b_dv[x] = vn - vi
             b_rn[x] = rn
             b_var[x] = var[y, x] * j * j + q * rn * rn + q_abs
         for x in range(w):
-            if not b_ok[x]:
+            T = b_tgt[x]
+            if T < 0:
                 continue
-            X = np.int64(b_ui[x])
-            Y = np.int64(b_vi[x])
             rn = b_rn[x]
-            cur = o_rho[Y, X]
+            cur = f_rho[T]
             if cur == cur:                # occupied already: the nearer point wins
                 if not rn > cur:
                     continue
             else:
                 written += 1
-            o_rho[Y, X] = rn
-            o_var[Y, X] = b_var[x]
-            o_a[Y, X] = a[y, x]
-            o_b[Y, X] = b[y, x]
-            o_n[Y, X] = n[y, x]
-            o_flags[Y, X] = flags[y, x]
-            o_du[Y, X] = b_du[x]
-            o_dv[Y, X] = b_dv[x]
+            f_rho[T] = rn
+            f_var[T] = b_var[x]
+            f_a[T] = a[y, x]
+            f_b[T] = b[y, x]
+            f_n[T] = n[y, x]
+            f_flags[T] = flags[y, x]
+            f_du[T] = b_du[x]
+            f_dv[T] = b_dv[x]
     return written
 
 

@@ -82,7 +82,8 @@ def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_
     dt = float(stamp_s) - state.stamp_s
     if not dt >= 0:
         raise InputError(f"predict: the new frame ({stamp_s:.6f} s) is older than the state ({state.stamp_s:.6f} s)")
-    if out is None or out is state or out.shape != (camera.height, camera.width):
+    if (out is None or out is state or out.shape != (camera.height, camera.width)
+            or not all(getattr(out, k).flags.c_contiguous for k in _FIELDS)):
         out = InverseRangeState.empty(camera, pose, stamp_s)
     else:
         out.camera, out.pose, out.stamp_s = camera, pose, float(stamp_s)
@@ -127,6 +128,9 @@ def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_
     if crack_k > 0:
         close_cracks(out, crack_k)
     return out
+
+
+_FIELDS = ("rho", "var", "a", "b", "n", "du", "dv", "flags")
 
 
 def _intrinsics(cam: Camera) -> np.ndarray:

@@ -10,33 +10,46 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
 3. each measurement (``measure(view_a, view_b)``, default the dense method without its own fill) fused into the
    state of its reference camera (``update``); the push's measurements are all made before any is fused, so that
    a stereo measurement of a frame leads its motion measurement where they disagree (a moving object:
-   ``eonav.fusion.update``, "Stereo leads");
+   ``eonav.fusion.update``, "Stereo leads"); a measurement of ``lr_check_kinds`` is made both ways, a -> b and
+   b -> a, and the pixels of a the pair b -> a contradicts are flagged OCCLUDED, not fused
+   (``eonav.ranging.consistency``: off by default, docs/methods.md), and a stereo pair made both ways empties the
+   cells of the state its b -> a sees through (``stereo_free_space``);
 4. the fused map (``fused_map``) of every state this frame updated, or predicted with anything in it; a state's
    last measurement and its map in one sweep (``update_and_map``), into the default measurement's arrays.
 
 ``push`` returns those maps (usually one: the frame's own camera; a stereo partner's frame returns the rig
 reference's map, which it updated). A frame not newer than its camera's state is dropped (``counts``
-``out_of_order``). Timing per map: ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
+``out_of_order``). Timing per map (wall): ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
+
+Predict needs only the state and the new frame's pose, so (``FusionConfig.overlap_predict``, with numba) it runs on a
+worker thread while the measurements run: its passes and the dense method's release the GIL, so on a machine with a
+core to spare predict costs the push no wall time (``fusion_s`` then holds only the wait for it, if any). Only for
+states of ``overlap_min_cells`` and more: a small state's predict is short, and handing it to another core cost
+more CPU than it saved (docs/methods.md, "Fusion timing"). Not when a measurement may start from the predicted
+state (``PriorConfig``). The results are the same either way.
 ``states[camera_id]`` is valid until the next push of that camera (the one before is reused for its arrays).
 """
 from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import View, pair_geometry
+from eonav.ranging.consistency import LRCheckConfig, inconsistent, lr_checked
 from eonav.ranging.methods._common import far_inverse_range
 from eonav.ranging.pair_policy import PosedFrameInfo
-from eonav.ranging.rangemap import RangeResult
+from eonav.ranging.rangemap import VALID, RangeResult
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.predict import ProcessNoise, predict
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
-from eonav.fusion.update import UpdateConfig, gate_motion, stereo_restart, update
+from eonav.fusion.update import UpdateConfig, clear_cells, gate_motion, stereo_restart, update
 
 
 def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrameInfo:
@@ -94,10 +107,22 @@ class FusionConfig:
     max_gap_s: float = 1.0             # a state older than this is dropped (nav / camera gap)
     pair_checks: bool = False          # the default measurement's brightness match and pose term (fusion/measure.py)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
+    overlap_predict: bool = True       # predict on a worker thread beside the measurements (module docstring) ...
+    overlap_min_cells: int = 100_000   # ... for states of at least this many cells
+    lr_check_kinds: tuple = ()         # measurements also made b -> a, a's pixels b contradicts not fused (step 3)
+    lr_check: LRCheckConfig = field(default_factory=LRCheckConfig)
+    stereo_free_space: bool = True     # with the stereo pair checked both ways: cells its b -> a sees through emptied
 
     def __post_init__(self):
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise InputError(f"fusion: max_gap_s must be > 0, got {self.max_gap_s!r}")
+        if not (isinstance(self.overlap_min_cells, int) and self.overlap_min_cells >= 0):
+            raise InputError(f"fusion: overlap_min_cells must be an integer >= 0, got {self.overlap_min_cells!r}")
+        kinds = tuple(self.lr_check_kinds)
+        if any(k not in (NEAR, WIDE, STEREO) for k in kinds):
+            raise InputError(f"fusion: lr_check_kinds must name {NEAR!r}, {WIDE!r} or {STEREO!r}, "
+                             f"got {self.lr_check_kinds!r}")
+        object.__setattr__(self, "lr_check_kinds", kinds)
 
 
 @dataclass
@@ -134,6 +159,7 @@ class FusionRunner:
         self.counts: dict[str, int] = {}
         self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
         self._rig_motion: dict[str, tuple] = {}              # a rig reference's last motion measurement (stereo leads)
+        self.worker_cpu_s = 0.0      # CPU seconds the predicts on the worker thread took so far (overlap_predict)
 
     def count(self, name: str, k: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + k
@@ -164,50 +190,51 @@ class FusionRunner:
             return []
         t0 = time.perf_counter()
         touched = {}
+        pending = None               # the predict running on the worker thread beside this push's measurements
         if old is not None:
             if t_s - old.stamp_s > self.config.max_gap_s:
                 self.count("gap_resets")
                 old = None
             else:
-                self.states[cid] = predict(old, f.camera, f.state, t_s, self.config.noise, out=self._spare.get(cid))
+                args = (old, f.camera, f.state, t_s, self.config.noise)
+                kw = {"out": self._spare.get(cid)}
+                if self._overlap_predict(old):
+                    pending = _worker().submit(_cpu_timed, predict, *args, **kw)
+                else:
+                    self.states[cid] = predict(*args, **kw)
                 self._spare[cid] = old
                 self.frames[cid] = f
-                if self.states[cid].occupied().any():      # nothing measured yet: no map to give
-                    touched[cid] = []
         if old is None:
             self.states[cid] = InverseRangeState.empty(f.camera, f.state, t_s)
             self.frames[cid] = f
         fusion_s = time.perf_counter() - t0
-        measurements, reason = self.scheduler.offer(f)
-        self.count(f"policy.{reason}")
-        locate_s = 0.0
-        live = [m for m in measurements if self.frames.get(m.a.camera_id) is m.a]
-        if len(live) < len(measurements):                  # the reference's state moved on (or never started)
-            self.count("stale_measurements", len(measurements) - len(live))
+        try:
+            measurements, reason = self.scheduler.offer(f)
+            self.count(f"policy.{reason}")
+            locate_s = 0.0
+            live = [m for m in measurements if self.frames.get(m.a.camera_id) is m.a]
+            if len(live) < len(measurements):                  # the reference's state moved on (or never started)
+                self.count("stale_measurements", len(measurements) - len(live))
+            results = self._measure_all(live)
+            locate_s = sum(r[2] for r in results)
+        finally:
+            if pending is not None:                            # (also when a measurement raised: the state is whole)
+                t_wait = time.perf_counter()
+                self.states[cid], cpu_s = pending.result()
+                self.worker_cpu_s += cpu_s
+                fusion_s += time.perf_counter() - t_wait
+        if old is not None and self.states[cid].occupied().any():     # nothing measured yet: no map to give
+            touched[cid] = []
         last = {m.a.camera_id: i for i, m in enumerate(live)}
         maps = {}
-        stereo = {}                  # reference camera -> this push's stereo measurement of it (stereo leads)
-        results = []
-        for m in live:
-            ref = m.a.camera_id
-            t1 = time.perf_counter()
-            prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
-            kw = {"pair_checks": True} if self.config.pair_checks and self.measure is dense_measurement else {}
-            res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
-                                prior_min_fraction=prior[2], **kw)
-                   if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
-            locate_s += time.perf_counter() - t1
-            if not self.fresh and self.config.schedule.stereo_rig is not None:     # stereo leads edits rho:
-                res = replace(res, inv_range_per_m=np.array(res.inv_range_per_m, F32))  # not the caller's arrays
-            results.append((prior, res))
-            if m.kind == STEREO:
-                stereo[ref] = res
-        for i, (m, (prior, res)) in enumerate(zip(live, results)):
+        stereo = {m.a.camera_id: r[1] for m, r in zip(live, results) if m.kind == STEREO}
+        backs = {i: r[3] for i, r in enumerate(results) if r[3] is not None}   # the left-right check's b -> a
+        for i, (m, (prior, res, _, _)) in enumerate(zip(live, results)):
             ref = m.a.camera_id
             t2 = time.perf_counter()
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
-            lead = self._stereo_lead(m, res, stereo.get(ref))
+            lead = self._stereo_lead(m, res, stereo.get(ref), backs.get(i))
             args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
             if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
                 # a fresh measurement's arrays (nobody else holds them) become the map's
@@ -231,26 +258,59 @@ class FusionRunner:
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
 
-    def _stereo_lead(self, m, res, stereo_res) -> dict:
+    def _overlap_predict(self, state: InverseRangeState) -> bool:
+        """Whether predict of ``state`` runs beside the measurements (``FusionConfig.overlap_predict``): with numba,
+        for a state of at least ``overlap_min_cells`` cells and only when no measurement can start from the predicted
+        state (``PriorConfig``: a prior needs predict done first)."""
+        return (self.config.overlap_predict and state.rho.size >= self.config.overlap_min_cells
+                and optional_kernels() is not None and (not self.takes_prior or self.config.prior.full_every == 1))
+
+    def _measure_all(self, live) -> list:
+        """(prior, result, seconds, its pair b -> a or None) of each measurement, in order; a measurement of
+        ``lr_check_kinds`` is also made b -> a, and its result is the left-right checked one."""
+        out = []
+        for m in live:
+            ref = m.a.camera_id
+            t1 = time.perf_counter()
+            prior = self.prior(ref) if m.kind in self.config.prior.kinds else None
+            kw = {"pair_checks": True} if self.config.pair_checks and self.measure is dense_measurement else {}
+            res = (self.measure(m.a.payload, m.b.payload, prior=prior[:2], prior_level=self.config.prior.level,
+                                prior_min_fraction=prior[2], **kw)
+                   if prior is not None else self.measure(m.a.payload, m.b.payload, **kw))
+            back = None
+            if m.kind in self.config.lr_check_kinds:       # left-right check: the pair b -> a too
+                back = self.measure(m.b.payload, m.a.payload, **kw)
+                res = lr_checked(res, back, pair_geometry(m.a.payload, m.b.payload), self.config.lr_check)
+            dt = time.perf_counter() - t1
+            if not self.fresh and self.config.schedule.stereo_rig is not None:     # stereo leads edits rho:
+                res = replace(res, inv_range_per_m=np.array(res.inv_range_per_m, F32))  # not the caller's arrays
+            out.append((prior, res, dt, back))
+        return out
+
+    def _stereo_lead(self, m, res, stereo_res, back=None) -> dict:
         """Stereo leads (``eonav.fusion.update``): a motion measurement's pixels that disagree with this push's
         stereo measurement of the same frame are not fused; a stereo measurement restarts the cells it disagrees
         with, and, when the frame's motion measurement was fused in an earlier push (the partner's frame came
-        second), the cells where that motion measurement disagrees with it. Edits ``res``'s inverse range in place;
-        returns the counts (gated, stereo_restarted)."""
+        second), the cells where that motion measurement disagrees with it. With the stereo pair's b -> a (``back``,
+        the left-right check's) and ``stereo_free_space``, first the cells of the state the partner camera sees
+        through (``_free_space``) are emptied. Edits ``res``'s inverse range in place; returns the counts (gated,
+        stereo_restarted, seen_through)."""
         ucfg = self.config.update
         rig = self.config.schedule.stereo_rig
         if ucfg.stereo_lead_k == 0 or rig is None:
             return {}
         ref = m.a.camera_id
         if m.kind == STEREO:
+            seen = self._free_space(m, back) if back is not None and self.config.stereo_free_space else None
             kept = self._rig_motion.pop(ref, None)
             extra = None
             if kept is not None and kept[0] == (m.a.seq, m.a.stamp_us):
                 extra = gate_motion(kept[1], kept[2], kept[3], res.inv_range_per_m, res.inv_range_std_per_m,
                                     res.flags, ucfg)
-            return {"stereo_restarted": int(stereo_restart(self.states[ref], res.inv_range_per_m,
-                                                           res.inv_range_std_per_m, res.flags, ucfg,
-                                                           also=extra).sum())}
+            out = {"stereo_restarted": int(stereo_restart(self.states[ref], res.inv_range_per_m,
+                                                          res.inv_range_std_per_m, res.flags, ucfg,
+                                                          also=extra).sum())}
+            return out if seen is None else dict(out, seen_through=seen)
         if stereo_res is None:
             if ref == rig[0]:       # its frame's stereo measurement may come with the partner's frame
                 self._rig_motion[ref] = ((m.a.seq, m.a.stamp_us), res.inv_range_per_m.copy(),
@@ -259,6 +319,25 @@ class FusionRunner:
         return {"gated": int(gate_motion(res.inv_range_per_m, res.inv_range_std_per_m, res.flags,
                                          stereo_res.inv_range_per_m, stereo_res.inv_range_std_per_m,
                                          stereo_res.flags, ucfg).sum())}
+
+    def _free_space(self, m, back) -> int:
+        """Empty the cells of the reference's state (before the stereo measurement is fused) that the partner
+        camera sees through: its pair b -> a ranges the pixel the cell's point lands on farther than the cell holds,
+        beyond both sigmas and ``lr_check.floor_px`` (``eonav.ranging.consistency``, one-sided). A moving object
+        leaves its range in the cells it uncovers; where no pair of the frame ranges them again (hidden in b, as the
+        background an object uncovers on the partner's side is, or ranged only with a sigma wide enough for the old
+        range) they keep it, and the partner's own view of them contradicts it. Returns the cells emptied."""
+        st = self.states[m.a.camera_id]
+        held = st.occupied()
+        if not held.any():
+            return 0
+        with np.errstate(invalid="ignore"):
+            std = np.sqrt(st.var)
+        cells = RangeResult(range_m=st.rho, confidence=st.rho, method="state", inv_range_per_m=st.rho,
+                            inv_range_std_per_m=std, flags=np.where(held, VALID, 0).astype(np.uint8))
+        seen, _ = inconsistent(cells, back, pair_geometry(m.a.payload, m.b.payload),
+                               replace(self.config.lr_check, farther=True))
+        return clear_cells(st, seen)
 
     def prior(self, camera_id: str):
         """The prior of the next measurement of ``camera_id``'s state (``PriorConfig``) as (rho, sigma, the least
@@ -295,6 +374,20 @@ class FusionRunner:
         return used
 
 
+def _cpu_timed(fn, *args, **kw):
+    """(fn(*args, **kw), the CPU seconds of the call on this thread)."""
+    c0 = time.thread_time()
+    out = fn(*args, **kw)
+    return out, time.thread_time() - c0
+
+
+@lru_cache(maxsize=1)
+def _worker() -> ThreadPoolExecutor:
+    """The one worker thread the runners' predicts run on (``FusionConfig.overlap_predict``); a push waits for its
+    own predict, so one thread serves every runner."""
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="eonav-fusion-predict")
+
+
 def run_frames(frames, config: FusionConfig = FusionConfig(), measure=None) -> list:
     """All fused maps of a list of posed frames pushed in order (a convenience of ``FusionRunner``)."""
     runner = FusionRunner(config, measure)
@@ -308,10 +401,12 @@ def prepare_kernels() -> None:
     """Compile (or load from numba's cache) the dense method's kernels and the fusion's passes now: a pipeline that
     fuses spends this before its first frame, not in it (a fresh install compiles for tens of seconds). One small
     plane pair through a runner reaches predict, update and the fused map."""
+    from eonav.ranging import consistency
     from eonav.ranging.methods import dense
     from eonav.fusion.schedule import ScheduleConfig
     from eonav.ranging.pair_policy import PairPolicyConfig
     dense.prepare_kernels()
+    consistency.prepare_kernels()       # the left-right check (``lr_check_kinds``), off by default
     va, vb = dense._plane_pair(96)
     probe = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=0.01))))
     for k, v in enumerate((va, vb, va)):

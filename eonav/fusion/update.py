@@ -231,6 +231,17 @@ def gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, cfg: UpdateConfig 
     return off
 
 
+def clear_cells(state: InverseRangeState, mask) -> int:
+    """Empty the ``mask`` cells of ``state`` (in place: rho NaN, variance inf, no evidence); returns how many held
+    an estimate."""
+    m = np.asarray(mask, bool) & state.occupied()
+    state.rho[m] = np.nan
+    state.var[m] = np.inf
+    for x in (state.a, state.b, state.n, state.du, state.dv):
+        x[m] = 0
+    return int(m.sum())
+
+
 def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateConfig = UpdateConfig(),
                    also=None) -> np.ndarray:
     """Cells the stereo measurement disagrees with by more than ``cfg.stereo_lead_k`` sigma, |x - mu| > k sqrt(s^2 +

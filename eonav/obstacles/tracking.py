@@ -32,9 +32,20 @@ bearing-only measurement for that track (its range variance grows by (k e)^2, e 
 wider than a thin object ranges its background. ``duplicate_chi2`` > 0 merges two confirmed tracks whose position and
 velocity agree within that d^2 into the older id.
 
-Life cycle: tentative -> confirmed after ``confirm_hits`` hits; a tentative track dies at its first miss or when not
-confirmed within ``confirm_window_s``; a confirmed track dies after ``max_misses`` consecutive misses, after
-``max_coast_s`` without a hit, or when its position 1-sigma exceeds ``max_position_sigma_m``.
+Phantoms that follow the vehicle (the static-world test, ``drift_test``): ground seen near the horizon and ranged
+too near stays at a near-constant range ahead, so its detections drift in NED along the vehicle's own velocity, at
+(1 - r'/r) of its speed for a range r' ranged as a fixed fraction of the true r, at the full speed for a constant
+range; a static obstacle's detections stay put. Each track fits a line to its last ``follow_window_s`` of detections
+along the vehicle's velocity (the view's ``velocity_ned_mps``, else the difference of successive views' poses), with
+the fit's own scatter (the maps' sigma is not trusted for this: it is what lets the phantoms through): STATIC when
+the drift is below ``follow_fraction`` of the speed by ``follow_k`` sigma, FOLLOWS when above it by as much,
+UNDECIDED in between. A real obstacle moving away along the vehicle's path faster than that fraction looks the same
+and is held too (a monocular camera ranges such a mover as static anyway).
+
+Life cycle: tentative -> confirmed after ``confirm_hits`` hits and a STATIC verdict; a tentative track dies at its
+first miss or when not confirmed within ``confirm_window_s``; any track dies at a FOLLOWS verdict; a confirmed track
+dies after ``max_misses`` consecutive misses, after ``max_coast_s`` without a hit, or when its position 1-sigma
+exceeds ``max_position_sigma_m``. Without a ``FieldOfView`` the tracker knows no vehicle motion and the test passes.
 
 Guidance (``assess``): for each track predicted to the current time, the distance and the bearing in body FRD of the
 current pose, and the collision cone along the current velocity. The obstacle is a box in NED centred on the track
@@ -51,9 +62,11 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.stats import norm, t as student_t
 
 from eonav import InputError
 from eonav.geometry.camera import Camera, VehicleState
@@ -61,6 +74,8 @@ from eonav.geometry.frames import camera_from_ned
 
 # visibility of a predicted track in one range map
 VISIBLE, OUT_OF_VIEW, OCCLUDED, NO_DATA = "visible", "out_of_view", "occluded", "no_data"
+# the static-world test's verdict on a track (``drift_test``)
+STATIC, FOLLOWS, UNDECIDED = "static", "follows", "undecided"
 TENTATIVE, CONFIRMED, COASTING = "tentative", "confirmed", "coasting"
 CHI2_3_999 = 16.266                  # 3-dof chi-square, 99.9 %
 CHI2_3_99 = 11.345                   # 3-dof chi-square, 99 %
@@ -99,6 +114,14 @@ class TrackerConfig:
                                            # than this many of the track's sigma saw past it: bearing only (0: off)
     duplicate_chi2: float = 0.0            # two confirmed tracks this close in position and velocity (d^2 of
                                            # their state difference, 6 dof; CHI2_6_99): one, the older id kept (0: off)
+    # static-world test (module docstring, "Phantoms that follow the vehicle"; off without a FieldOfView)
+    follow_k: float = 3.0                  # sigma of the drift test (0: off)
+    follow_fraction: float = 0.6           # drift along the vehicle's velocity above this fraction of its speed:
+                                           # the track follows the vehicle (ground ranged at a near-constant range)
+    follow_min_hits: int = 5               # detections the drift fit needs before it decides
+    follow_window_s: float = 1.5           # the detections of this last stretch of time are fitted
+    follow_rel_scatter: float = 0.01       # floor of the fit's position scatter, relative to the distance
+    follow_min_speed_mps: float = 2.0      # the vehicle slower than this: nothing drifts, the test passes
     # visibility
     edge_margin_px: float = 1.0            # map pixels: a track projected this close to the edge is out of view
     occlusion_rel: float = 0.08            # nearer than (1 - this) x_c (and 3 sigma, and the depth extent): the
@@ -112,8 +135,14 @@ class TrackerConfig:
         for name in ("extent_fraction", "attitude_sigma_rad", "nav_sigma_m", "min_range_rel_sigma",
                      "edge_margin_px", "merge_gap_m"):
             _positive(name, getattr(self, name), allow_zero=True)
-        for name in ("see_through_k", "duplicate_chi2"):
+        for name in ("see_through_k", "duplicate_chi2", "follow_k", "follow_fraction", "follow_rel_scatter",
+                     "follow_min_speed_mps"):
             _positive(name, getattr(self, name), allow_zero=True)
+        _positive("follow_window_s", self.follow_window_s)
+        if not (isinstance(self.follow_min_hits, int) and not isinstance(self.follow_min_hits, bool)
+                and self.follow_min_hits >= 3):
+            raise InputError(f"tracker config: follow_min_hits must be an integer >= 3 (a line and a scatter), "
+                             f"got {self.follow_min_hits!r}")
         for name in ("confirm_hits", "max_misses", "confidence_window"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
@@ -342,8 +371,11 @@ class FieldOfView:
     min_distance_m: float = 0.0
     range_m: np.ndarray | None = None
     data_mask: np.ndarray | None = None
+    velocity_ned_mps: np.ndarray | None = None     # the vehicle's; None: the tracker differences the views' poses
 
     def __post_init__(self):
+        if self.velocity_ned_mps is not None:
+            self.velocity_ned_mps = _vec("field of view velocity_ned_mps", self.velocity_ned_mps)
         if self.range_m is not None:
             r = np.asarray(self.range_m)
             if r.shape != (self.camera.height, self.camera.width):
@@ -413,6 +445,50 @@ def predict_state(x, P, dt_s: float, cfg: TrackerConfig):
     return F @ x, F @ P @ F.T + _Q(dt_s, cfg.accel_sigma_mps2 ** 2)
 
 
+def drift_test(stamps_us, positions_ned_m, distances_m, own_velocity_ned_mps, cfg: TrackerConfig) -> tuple:
+    """The static-world test of one track: (verdict, drift, its 1-sigma), the drift in m/s along the vehicle's
+    velocity. A line a + b t fitted by least squares to the detections' positions along the vehicle's velocity
+    direction gives the drift b; its 1-sigma is s / sqrt(sum (t - mean t)^2), s the fit's own residual scatter
+    (n - 2 degrees of freedom), at least ``follow_rel_scatter`` of the median distance. FOLLOWS when b exceeds
+    ``follow_fraction`` of the vehicle's speed by k_t sigma, STATIC when it stays below it by as much, UNDECIDED in
+    between or with fewer than ``follow_min_hits`` detections; k_t is the Student-t quantile (n - 2 degrees of
+    freedom) of the normal's one-sided level at ``follow_k`` (the scatter is estimated from the same few points: a
+    small one by chance must not pass a phantom). STATIC when the test is off (``follow_k`` 0) or the vehicle moves
+    slower than ``follow_min_speed_mps``."""
+    v = np.asarray(own_velocity_ned_mps, float).reshape(3)
+    speed = float(np.linalg.norm(v))
+    if cfg.follow_k <= 0 or not math.isfinite(speed) or speed < cfg.follow_min_speed_mps:
+        return STATIC, math.nan, math.nan
+    n = len(stamps_us)
+    if n < cfg.follow_min_hits:
+        return UNDECIDED, math.nan, math.nan
+    t = (np.asarray(stamps_us, np.int64) - int(stamps_us[-1])) * 1e-6
+    a = np.asarray(positions_ned_m, float) @ (v / speed)
+    tc = t - t.mean()
+    stt = float(tc @ tc)
+    if not stt > 0:
+        return UNDECIDED, math.nan, math.nan
+    ac = a - a.mean()
+    b = float(tc @ ac) / stt
+    res = ac - b * tc
+    s = max(math.sqrt(float(res @ res) / (n - 2)), cfg.follow_rel_scatter * float(np.median(distances_m)))
+    sb = s / math.sqrt(stt)
+    thr = cfg.follow_fraction * speed
+    k = student_k(cfg.follow_k, n - 2)
+    if b - k * sb > thr:
+        return FOLLOWS, b, sb
+    if b + k * sb < thr:
+        return STATIC, b, sb
+    return UNDECIDED, b, sb
+
+
+@lru_cache(maxsize=256)
+def student_k(k_normal: float, dof: int) -> float:
+    """The Student-t quantile with ``dof`` degrees of freedom at the normal distribution's one-sided level of
+    ``k_normal`` sigma (k = 2: 97.7 %; 3 degrees of freedom: 3.31, 13: 2.21)."""
+    return float(student_t.ppf(norm.cdf(k_normal), dof))
+
+
 @dataclass
 class Track:
     """One tracked obstacle. ``x`` = [position_ned_m, velocity_ned_mps] and ``P`` at ``stamp_us``."""
@@ -431,6 +507,11 @@ class Track:
     measurement_confidence: float = 0.0
     camera_id: str = ""
     seen: deque = field(default_factory=deque)      # True/False per in-view map (newest last)
+    detections: deque = field(default_factory=deque)   # (stamp_us, position_ned_m, distance_m) of the last
+                                                       # ``follow_window_s`` of detections (the drift test's input)
+    verdict: str = UNDECIDED                        # the static-world test's, after the last detection
+    drift_mps: float = math.nan                     # the fitted drift along the vehicle's velocity, and its 1-sigma
+    drift_sigma_mps: float = math.nan
 
     @property
     def state(self) -> str:
@@ -456,6 +537,10 @@ class Tracker:
         self._tracks: list[Track] = []
         self._next_id = 1
         self.last_stamp_us: int | None = None      # stamp of the newest map fed in
+        self._last_view: tuple | None = None       # (stamp_us, vehicle position, velocity) of the newest view
+        self._own = (None, None)                   # (vehicle velocity or None, vehicle position or None) now
+        self.n_followers = 0                       # tracks deleted because they followed the vehicle (FOLLOWS)
+        self.n_followers_confirmed = 0             # ... of them confirmed before
 
     @property
     def tracks(self) -> list:
@@ -476,6 +561,7 @@ class Tracker:
             if not isinstance(m, Measurement):
                 raise InputError(f"tracker: expected Measurement objects, got {type(m).__name__}")
         cfg = self.cfg
+        self._own = self._own_motion(view, stamp_us)
         for t in self._tracks:
             t.x, t.P = predict_state(t.x, t.P, (stamp_us - t.stamp_us) * 1e-6, cfg)
             t.stamp_us = stamp_us
@@ -494,13 +580,46 @@ class Tracker:
                 self._seen(t, False)
             else:
                 t.last_outcome = outcome
-        self._tracks = [t for t in self._tracks if not self._dead(t, stamp_us)]
+        dead = [t for t in self._tracks if self._dead(t, stamp_us)]
+        self.n_followers += sum(1 for t in dead if t.verdict == FOLLOWS)
+        self.n_followers_confirmed += sum(1 for t in dead if t.verdict == FOLLOWS and t.confirmed)
+        gone = {t.id for t in dead}
+        self._tracks = [t for t in self._tracks if t.id not in gone]
         self._merge_duplicates()
         for j, m in enumerate(meas):
             if j not in paired_m:
                 self._tracks.append(self._new_track(m, stamp_us))
         self.last_stamp_us = stamp_us
         return self.tracks
+
+    def _own_motion(self, view: FieldOfView | None, stamp_us: int) -> tuple:
+        """(the vehicle's velocity, its position) at this map: the view's velocity, else the difference of the
+        vehicle positions of this view and the last one (a map of the same stamp, another camera's: the velocity
+        found before); None where not known (no view, the first map)."""
+        if view is None:
+            self._last_view = None
+            return None, None
+        pos = np.asarray(view.state.position_ned_m, float)
+        vel = view.velocity_ned_mps
+        if vel is None and self._last_view is not None:
+            last_us, last_pos, last_vel = self._last_view
+            vel = (pos - last_pos) / ((stamp_us - last_us) * 1e-6) if stamp_us > last_us else last_vel
+        self._last_view = (stamp_us, pos, vel)
+        return vel, pos
+
+    def _judge(self, t: Track, m: Measurement, stamp_us: int) -> None:
+        """Add the detection to the track's window and run the static-world test on it (``drift_test``)."""
+        vel, pos = self._own
+        dist = float(np.linalg.norm(m.position_ned_m - pos)) if pos is not None else 0.0
+        t.detections.append((stamp_us, m.position_ned_m.copy(), dist))
+        while t.detections and stamp_us - t.detections[0][0] > self.cfg.follow_window_s * 1e6:
+            t.detections.popleft()
+        if vel is None:
+            t.verdict, t.drift_mps, t.drift_sigma_mps = STATIC, math.nan, math.nan
+            return
+        st = np.array([d[0] for d in t.detections])
+        t.verdict, t.drift_mps, t.drift_sigma_mps = drift_test(st, np.stack([d[1] for d in t.detections]),
+                                                               np.array([d[2] for d in t.detections]), vel, self.cfg)
 
     def label(self, measurements) -> list:
         """The id of the live track each measurement supports (inside its gate, nearest by Mahalanobis distance),
@@ -614,7 +733,8 @@ class Tracker:
         t.extent_ned_m = (1 - a) * t.extent_ned_m + a * m.object_extent_ned_m
         t.pixel_count, t.measurement_confidence, t.camera_id = m.pixel_count, m.confidence, m.camera_id
         self._seen(t, True)
-        if t.hits >= cfg.confirm_hits:
+        self._judge(t, m, stamp_us)
+        if t.hits >= cfg.confirm_hits and t.verdict == STATIC:
             t.confirmed = True
 
     def _seen(self, t: Track, hit: bool) -> None:
@@ -633,6 +753,8 @@ class Tracker:
         cfg = self.cfg
         if t.position_sigma_m() > cfg.max_position_sigma_m:
             return True
+        if t.verdict == FOLLOWS:
+            return True                               # a phantom: ground ranged at a near-constant range ahead
         if (stamp_us - t.last_hit_us) * 1e-6 > cfg.max_coast_s:
             return True
         if not t.confirmed:
@@ -649,7 +771,8 @@ class Tracker:
                   measurement_confidence=m.confidence, camera_id=m.camera_id)
         self._next_id += 1
         self._seen(t, True)
-        if cfg.confirm_hits <= 1:
+        self._judge(t, m, stamp_us)
+        if cfg.confirm_hits <= 1 and t.verdict == STATIC:
             t.confirmed = True
         return t
 

@@ -14,6 +14,8 @@ from eonav.ranging.rangemap import RangeResult
 METHODS = {
     "dense": ("eonav.ranging.methods.dense", "locate_dense",
               "direct inverse-range method: epipolar search + coarse-to-fine re-linearised eq. (27) (default)"),
+    "dense_lr": ("eonav.ranging.consistency", "locate_dense_lr",
+                 "dense, checked left-right: also run b -> a, the pixels it contradicts flagged OCCLUDED"),
     "paper": ("eonav.ranging.methods.paper", "locate_paper",
               "the paper, faithfully: recursive estimators (36)-(42), closed form (28), eq. (7) test"),
     "dis": ("eonav.ranging.methods.flow_baseline", "locate_dis",
