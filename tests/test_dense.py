@@ -362,10 +362,12 @@ def z_spread(res, gt, mask):
 
 def test_reported_sigma_is_calibrated():
     """The sigma of VALID pixels against the truth, on every motion preset and the stereo rig at 256 px (23-30k
-    pixels each; the noise seed moves a spread by <= 0.03). Measured z spread: fast 0.95, paper 0.98, turning 0.88,
-    climbing 1.02, stereo 1.34; geometric mean 1.02 (std_scale was calibrated at 512 px, where it is 1.01; one rho
-    per window with the old std_scale 1.35: 1.10). The mean's band holds 1 and the measured value and fails for the
-    sigma scaled by 1.2 (0.85) or 0.8 (1.28); each scene within -25 / +40 %. (FILLED pixels have the fill's own sigma: tests/test_fill.py.)"""
+    pixels each; the noise seed moves a spread by <= 0.03). Measured z spread: fast 0.84, paper 0.85, turning 0.74,
+    climbing 0.80, stereo 1.09; geometric mean 0.85. The sim over-reports: std_scale is set so that real images
+    (Middlebury) do not under-report (docs/methods.md "The sigma across range"; with the window's residual floored
+    at the sensor noise instead the mean was 1.02). The mean's band holds the measured value, not 1.05, and fails for
+    the sigma scaled by 1.2 (0.71) or 0.8 (1.07); each scene within 0.6 .. 1.3. (FILLED pixels have the fill's own
+    sigma: tests/test_fill.py.)"""
     spreads = {}
     for preset in ("fast", "paper", "turning", "climbing", "stereo"):
         sp = sim(preset)
@@ -375,8 +377,8 @@ def test_reported_sigma_is_calibrated():
         assert valid.sum() > 20000, preset
         spreads[preset] = z_spread(res, gt, valid)
     mean = float(np.exp(np.mean(np.log(list(spreads.values())))))
-    assert 0.95 < mean < 1.27, (mean, spreads)
-    assert all(0.75 < s < 1.4 for s in spreads.values()), spreads
+    assert 0.75 < mean < 1.0, (mean, spreads)
+    assert all(0.6 < s < 1.3 for s in spreads.values()), spreads
 
 
 def test_paper_preset_vehicles():

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import dense_reference as ref
+from eonav import InputError
 from eonav.ranging.methods import dense
 from eonav.ranging.methods.dense import locate_dense
 from eonav.ranging.rangemap import VALID
@@ -129,14 +130,19 @@ def _half_spreads(res, rho_true):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_sigma_follows_each_windows_own_misfit(seed):
     """Where image b's right half holds a misfit (extra noise 3 x the sensor's), the errors there are larger; the
-    window's own residual puts that into the sigma. Measured z spread right / left half: 1.44 / 1.29 (seeds 1 / 2)
-    with the window's residual, 2.2 / 2.0 with the image-wide noise (window_noise=False). Held: below 1.6 with it,
-    above 1.8 without; without the misfit both halves alike (within 25 %)."""
+    window's own residual puts that into the sigma. Measured z spread left / right half (seeds 1 / 2): image-wide
+    noise (window_noise=False) 0.58 / 1.29, 0.63 / 1.27; floor at the image's residual noise (default) 0.58 / 1.04,
+    0.65 / 1.02; floor at the sensor noise 0.72 / 1.04, 0.79 / 1.02 (the clean half's windows fit below the
+    image-wide figure the noisy half raises). Held: the misfit half's spread down by more than 12 % with the
+    window's residual, the clean half's within 5 % at the default floor and up by more than 15 % at the sensor's;
+    without the misfit both halves alike (within 25 %)."""
     (a, b), rho = _misfit_pair(seed, 3.0)
-    left, right = _half_spreads(locate_dense(a, b, fill=False), rho)
-    assert right / left < 1.6, (left, right)
     left0, right0 = _half_spreads(locate_dense(a, b, fill=False, window_noise=False), rho)
-    assert right0 / left0 > 1.8, (left0, right0)
+    left, right = _half_spreads(locate_dense(a, b, fill=False), rho)
+    assert right / right0 < 0.88, (right0, right)
+    assert 0.95 < left / left0 < 1.05, (left0, left)
+    left_s, right_s = _half_spreads(locate_dense(a, b, fill=False, window_floor="sensor"), rho)
+    assert right_s / right0 < 0.88 and left_s / left0 > 1.15, (left0, left_s, right0, right_s)
     (a, b), rho = _misfit_pair(seed, 0.0)
     left, right = _half_spreads(locate_dense(a, b, fill=False), rho)
     assert 0.8 < right / left < 1.25, (left, right)
@@ -187,3 +193,30 @@ def test_no_valid_range_where_the_infinity_test_cannot_look():
     assert val[rows][inside].mean() > 0.95
     err = np.abs(res.inv_range_per_m[rows][inside & val[rows]] / rho - 1)
     assert np.median(err) < 0.01
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_window_term_only_widens_the_sigma_at_the_global_floor(seed):
+    """With the floor at the image's residual noise (window_floor="global", the default) no VALID pixel's sigma
+    falls below the image-wide model's (window_noise=False); with the floor at the sensor noise, the windows of
+    the misfit pair's clean left half (which fit to the sensor noise, below the image-wide figure the noisy right
+    half raises) get a smaller one. The centroid term is off: it moves rho, not only the sigma."""
+    (a, b), _ = _misfit_pair(seed, 3.0)
+    plain = locate_dense(a, b, fill=False, window_noise=False, centroid=False)
+    both = lambda r: ((r.flags & VALID) != 0) & ((plain.flags & VALID) != 0)
+    for floor, lowered in (("global", False), ("sensor", True)):
+        res = locate_dense(a, b, fill=False, centroid=False, window_floor=floor)
+        v = both(res)
+        assert v.mean() > 0.8
+        ratio = res.inv_range_std_per_m[v] / plain.inv_range_std_per_m[v]
+        if lowered:
+            assert np.mean(ratio < 0.95) > 0.2, np.percentile(ratio, [5, 50, 95])
+        else:
+            assert ratio.min() >= 1.0 - 1e-5, ratio.min()
+            assert np.mean(ratio > 1.2) > 0.2               # the noisy half's windows widen it
+
+
+def test_an_unknown_window_floor_is_an_input_error():
+    (a, b), _ = _misfit_pair(1, 0.0)
+    with pytest.raises(InputError, match="window_floor"):
+        locate_dense(a, b, window_floor="median")

@@ -386,7 +386,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
                  prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = False,
-                 slant_curv: float = 0.05, window_noise: bool = True, centroid: bool = True) -> RangeResult:
+                 slant_curv: float = 0.05, window_noise: bool = True, centroid: bool = True,
+                 window_floor: str = "global") -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -464,10 +465,15 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     window (geometric mean of the five presets' spread at std_scale 1, with window_noise: 1.38 / 1.24; docs/methods.md
     "The sigma across range"). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the
     calibrated sigma.
-    window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit,
-    floored at the sensor noise) instead of the image's noise alone (``_apply_model_error``): without it the
-    image-wide figure over-reports the sigma of near ground, which fits to the sensor noise, and under-reports that
-    of far ground near the horizon and of edges, where the window's model does not hold.
+    window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit)
+    where that exceeds the floor, instead of the image's noise alone (``_apply_model_error``): the image-wide figure
+    under-reports the sigma of far ground near the horizon and of edges, where the window's model does not hold.
+    window_floor: the floor of the window's residual variance (``_window_floor2``). "global" (default), the image's
+    final residual noise: the window term only raises the sigma above the image-wide model's, where its window
+    misfits. "sensor" (the sensor noise alone) also lowers it where a window fits better than the image-wide
+    figure (near sim ground): even sim bins, but on real images the window's residual misses part of the error and
+    Middlebury teddy / cones, HoloLens under-reported (z 1.49 / 1.31 / 1.74 against 0.95 / 0.61 / 1.18);
+    "mid", their geometric mean, lies between (docs/methods.md "The sigma across range").
     centroid: with window_noise and one rho per window, each VALID rho moved from the window's effective centre
     (the texture-weighted centroid the normal equations measure) back to the pixel along rho's slope, where rho is
     planar about the pixel (the slanted window's gate); elsewhere that bias goes into the sigma (``_model_error``).
@@ -515,6 +521,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
+    if window_floor not in ("sensor", "global", "mid"):
+        raise InputError(f"window_floor {window_floor!r}: expected 'sensor', 'global' or 'mid'")
     if std_scale is None:
         std_scale = 1.25 if slant else 1.35
     if not (math.isfinite(slant_curv) and slant_curv > 0):
@@ -573,7 +581,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         else:
             rho, fin = _refine_level(lv, rho, n_it, steps_l, shift, rules=rules, inf_mask=inf_mask)
             if window_noise:
-                floor2 = 2.0 * g0 * img_sigma ** 2 if img_sigma is not None else 0.0
+                floor2 = _window_floor2(window_floor, g0, img_sigma, fin.sigma)
                 _apply_model_error(lv, rho, fin, window, floor2, centroid and not slant, max_rel_std, slant_curv)
 
     prior_info = None
@@ -936,6 +944,21 @@ def _window_means(lv: "_Level", rho, window: int):
 
 
 
+def _window_floor2(kind: str, g0: float, img_sigma: float | None, resid_sigma: float) -> float:
+    """The floor of the window's residual variance in ``_apply_model_error``: "sensor" the sensor noise's own
+    (2 g0 sigma_img^2), "global" the image's final residual noise (the window can only raise the sigma), "mid"
+    their geometric mean."""
+    sensor = 2.0 * g0 * img_sigma ** 2 if img_sigma is not None else 0.0
+    glob = max(float(resid_sigma), 1e-6) ** 2
+    if kind == "sensor":
+        return sensor
+    if kind == "global":
+        return glob
+    if kind == "mid":
+        return math.sqrt(sensor * glob)
+    raise InputError(f"window_floor {kind!r}: expected 'sensor', 'global' or 'mid'")
+
+
 def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2: float, centroid: bool,
                        max_rel_std: float, curv: float) -> None:
     """In place on level 0's final estimate: the sigma of each VALID pixel with its own window's noise and model
@@ -946,11 +969,11 @@ def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floo
     misregisters its pixels by the disparity's change over it), edges the interpolation blurs, texture the
     pre-smoothing or the rendering changes between the images -- the window's residual holds that misfit on top
     of the noise, sigma_n^2 + sigma_model^2, and the match is worse by as much; where the window fits to the
-    sensor noise (near ground) the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
+    sensor noise (near sim ground) the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
     max(s_w^2, noise_floor2) / sigma_n^2: s_w^2 the window's residual variance (over its pixels in view of b, the
-    brightness offset removed, times n / (n - 2) for the two parameters it fitted), noise_floor2 the residual
-    variance of the sensor noise alone (both images', through the pre-smoothing): a window that fits by chance
-    better than the sensor allows gets no smaller sigma than the noise gives.
+    brightness offset removed, times n / (n - 2) for the two parameters it fitted), noise_floor2 its floor
+    (``_window_floor2``): the image's residual noise sigma_n^2 by default, so that a window can only widen the
+    sigma (on real images a window's small residual does not mean a small error), or the sensor noise's own.
 
     One rho per window measures rho not at the pixel but at the window's effective centre: its normal equations
     (brightness offset eliminated) solve rho = sum_j W_j rho_j / sum_j W_j, W_j = J_j (J_j - mean J), J_j the
