@@ -459,12 +459,12 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     trunc_px: TRUNCATION where the last update still moves the match by more than this (level-0 px): the
     step past which the first-order model is not trusted (at 0.5 px, 17-30 % of sim pixels were flagged
     with a median error of 1 %, since the reported estimate is the one after that step).
-    std_scale: calibration factor of the reported sigma, the measured robust spread of (rho - rho_true) / sigma on
-    the sim presets at 512 px (the window's samples are correlated by the pre-smoothing and the interpolation):
-    None (default) takes the one measured for the window model, 1.35 with one rho per window, 1.25 with the slanted
-    window (geometric mean of the five presets' spread at std_scale 1, with window_noise: 1.38 / 1.24; docs/methods.md
-    "The sigma across range"). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the
-    calibrated sigma.
+    std_scale: calibration factor of the reported sigma, from the measured robust spread of (rho - rho_true) / sigma
+    (the window's samples are correlated by the pre-smoothing and the interpolation): None (default) takes the one
+    for the window model, 1.35 with one rho per window (at the global window floor the Middlebury pairs' spread is
+    then 0.98 and the sim presets' 0.83: real images do not under-report), 1.25 with the slanted window (measured
+    on the sim presets with the sensor floor; docs/methods.md "The sigma across range"). max_rel_std (0.34) was set
+    as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
     window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit)
     where that exceeds the floor, instead of the image's noise alone (``_apply_model_error``): the image-wide figure
     under-reports the sigma of far ground near the horizon and of edges, where the window's model does not hold.
