@@ -194,11 +194,13 @@ def shift_windows(sh: int, ratio, H, g, S0, S1, Sq, Q, *extra) -> None:
         np.copyto(a, np.where(right, a[:, cols[1]], a[:, cols[0]]), where=take)
 
 
-def infinity_ambiguous(L: Level, r2, win: int) -> np.ndarray:
-    """Does a point at infinity explain the window at least as well as the estimate (r2: the in-view squared
-    residual at the estimate)? NaN (a window reaching out of b): no."""
+def infinity_ambiguous(L: Level, r2, mf, win: int) -> np.ndarray:
+    """Does a point at infinity explain the window at least as well as the estimate (r2: the squared residual at the
+    estimate, mf: where that is in view of b)? Both sums over the pixels where both are in view (none: yes)."""
     r0 = L.residual_at_infinity()
-    return _box(cv2.multiply(r0, r0), win) <= _box(r2, win)
+    both = np.isfinite(r0) & (mf > 0)
+    r0s = np.where(both, r0 * r0, F32(0)).astype(F32)
+    return _box(r0s, win) <= _box(np.where(both, r2, F32(0)).astype(F32), win)
 
 
 def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None, inf_out=None,
@@ -254,7 +256,7 @@ def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None
     if fin is None:
         if inf_out is not None:
             rm = mul(r, mf)
-            inf_out[:] = infinity_ambiguous(L, mul(rm, rm), win)
+            inf_out[:] = infinity_ambiguous(L, mul(rm, rm), mf, win)
         return
     # --- the final step: uncertainty, flags and classification
     d = sub(new, R)
@@ -268,7 +270,7 @@ def gauss_newton_step(lv, rho, new, sigma: float, steps, shift_px: int, fin=None
     G = _box(G, win)
     r2 = mul(mul(r, r), mf)
     if fin.inf_test:
-        amb = (inf_mask != 0) if inf_mask is not None else infinity_ambiguous(L, r2, win)
+        amb = (inf_mask != 0) if inf_mask is not None else infinity_ambiguous(L, r2, mf, win)
     R2 = _box(r2, steps.occ_window)
     std = fin.std
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -317,3 +319,48 @@ def residual_noise(lv, rho, final: bool = True, step: int = 3):
         return _robust_sigma(r, step=1), None
     inview = (wv[..., 3] > F32(0.999)) & (inv > 0)
     return _robust_sigma(r, step=1), _robust_sigma(r, inview, step=1)
+
+
+# --- the window model's error (dense._apply_model_error, _dense_kernels.model_error_finish) in numpy
+
+
+def minmod_slope(r: np.ndarray, k: int, axis: int) -> np.ndarray:
+    """Per pixel the slope of r along ``axis`` from its two one-sided differences over k pixels (fewer at the
+    border): the smaller in magnitude where they agree in sign, 0 where they do not (the minmod limiter)."""
+    n = r.shape[axis]
+    idx = np.arange(n)
+    shp = [1, 1]
+    shp[axis] = n
+    hi, lo = np.minimum(idx + k, n - 1), np.maximum(idx - k, 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sf = (np.take(r, hi, axis=axis) - r) / (hi - idx).reshape(shp)
+        sb = (r - np.take(r, lo, axis=axis)) / (idx - lo).reshape(shp)
+    sf = np.where(np.isfinite(sf), sf, sb)
+    sb = np.where(np.isfinite(sb), sb, sf)
+    out = np.where(np.abs(sf) < np.abs(sb), sf, sb)
+    return np.where(sf * sb > 0, out, 0).astype(F32)
+
+
+def window_centroid(lv, rho, window: int):
+    """Offset (ox, oy) of each window's effective centre, sum_j W_j (x_j - x_c) / sum_j W_j, W_j = J_j (J_j -
+    mean J), J = grad I_a . (C1, C2) / den^2 at rho (box filters with a ramp kernel), clipped to the window."""
+    a0 = lv.rw[0][None, :] + lv.kc[0][:, None]
+    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
+    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        den = a0 + lv.B0 * np.nan_to_num(rho, nan=0.0, posinf=0.0)
+        J = ((lv.gxa * c1 + lv.gya * c2) / (den * den)).astype(F32)
+    J = np.where(np.isfinite(J), J, F32(0)).astype(F32)
+    box = np.full(window, 1.0 / window, F32)
+    ramp = ((np.arange(window) - window // 2) / window).astype(F32)
+    m1 = _box(J, window)
+    m0 = _box(J * J, window) - m1 * m1
+    h = window // 2
+    offs = []
+    for kx, ky in ((ramp, box), (box, ramp)):
+        r2 = cv2.sepFilter2D(J * J, -1, kx, ky, borderType=cv2.BORDER_REFLECT)
+        r1 = cv2.sepFilter2D(J, -1, kx, ky, borderType=cv2.BORDER_REFLECT)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            o = (r2 - m1 * r1) / m0
+        offs.append(np.clip(np.where(np.isfinite(o), o, 0), -h, h).astype(F32))
+    return offs[0], offs[1]

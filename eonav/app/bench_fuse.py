@@ -5,7 +5,8 @@ Per sequence the frames are pushed in time order through ``eonav.fusion.sequence
 beside single pairs of the same frame: the dense method and the OpenCV DIS flow baseline, each on the newest pair
 (k, k-1) and on the widest pair (k, the earlier frame with the longest baseline within the pair policy's age and
 rotation limits). Scored: median relative error and coverage of the pixels with truth (non-sky), the same for far
-pixels (truth > 150 m), the fused sigma's calibration (robust z spread on VALID pixels and on FILLED ones) and, per frame, the CPU time
+pixels (truth > 150 m), the fused sigma's calibration (robust z spread on VALID pixels and on FILLED ones; after 10 frames and on the last
+frame also per true-range bin, fused and the dense newest pair, ``bench_locate.z_by_range``) and, per frame, the CPU time
 of a push (measurement without its own fill + fusion) against a plain locate (dense with its fill) of the same pair:
 what fusion adds to the locator's time (the median, and the sums: between full searches a measurement starts from
 the prior and costs less, ``eonav.fusion.sequence.PriorConfig``). Targets of issue 11 are printed with "met" / "NOT met". Figures, not
@@ -149,6 +150,7 @@ def fmt(e, c):
 
 
 def run_case(case: SeqCase, out: list) -> dict:
+    from eonav.app.bench_locate import z_by_range, z_range_line
     from eonav.fusion.sequence import FusionRunner, frame
     from eonav.ranging.locate import get_method
     from eonav.ranging.rangemap import FILLED, VALID
@@ -205,6 +207,11 @@ def run_case(case: SeqCase, out: list) -> dict:
         summary[k] = row
         print(f"   {k:>3} {fmt(*row['fused'])} {fmt(*row['fused_valid'])} {fmt(*row['dense newest'])} "
               f"{fmt(*row['dense widest'])} {fmt(*row['DIS newest'])} {fmt(*row['DIS widest'])} {row['z']:>8.2f} {row['z_filled']:>8.2f}")
+        if k == 10 or k == n - 1:
+            zf, zd = z_by_range(res, truth, mask), z_by_range(singles["dense newest"], truth, mask)
+            row["z_by_range"], row["z_by_range_dense_newest"] = [list(r) for r in zf], [list(r) for r in zd]
+            print(z_range_line(zf, "      fused z by true range (VALID)"))
+            print(z_range_line(zd, "      dense newest z by true range (VALID)"))
         for name, r in singles.items():
             if not np.isfinite(row[name][0]):
                 j = k - 1 if "newest" in name else jw

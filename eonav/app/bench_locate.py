@@ -32,6 +32,7 @@ class Case:
     stereo_rectified: bool = False
     scale_check: bool = False      # reference of another pair: also print the median range ratio to it
     measurable: np.ndarray | None = None   # scored pixels a two-view method can range at all (sim: in view of b)
+    by_range: bool = False         # print the sigma's calibration per true-range bin (outdoor scenes)
 
 
 def sim_cases(presets, size):
@@ -39,12 +40,27 @@ def sim_cases(presets, size):
     from eonav.sim.visibility import measurable_in_b
     out = []
     for name in presets:
+        if name.startswith("flight:"):
+            out.append(flight_case(name, size))
+            continue
         sp = make_pair(name, seed=0, size=size if name != "paper" else None)
         t = sp.truth[0]
         out.append(Case(f"sim:{name}", sp.views[0], sp.views[1], t.range_m, np.isfinite(t.range_m),
                         object_id=t.object_id, objects=dict(sp.objects),
-                        measurable=measurable_in_b(*sp.views, t.range_m, sp.truth[1].range_m)))
+                        measurable=measurable_in_b(*sp.views, t.range_m, sp.truth[1].range_m), by_range=True))
     return out
+
+
+def flight_case(name, size, k: int = 10, rate_hz: float = 30.0):
+    """A pair of a simulated flight (``eonav.sim.sequence``, "flight:<name>"): frame k against frame k - 1 at
+    rate_hz (seed 0), scored on frame k's truth."""
+    from eonav.sim.sequence import render_sequence
+    from eonav.sim.visibility import measurable_in_b
+    seq = render_sequence(name, n_frames=k + 1, rate_hz=rate_hz, size=size, seed=0)
+    t, tb = seq.truth[k], seq.truth[k - 1]
+    return Case(f"sim:{name} frame {k} vs {k - 1} at {rate_hz:g} fps", seq.views[k], seq.views[k - 1], t.range_m,
+                np.isfinite(t.range_m), object_id=t.object_id, objects=dict(seq.objects),
+                measurable=measurable_in_b(seq.views[k], seq.views[k - 1], t.range_m, tb.range_m), by_range=True)
 
 
 def middlebury_cases(data_dir):
@@ -93,6 +109,44 @@ def calibration(res, truth_m, mask) -> dict:
     z = (res.inv_range_per_m[ok][good] - 1.0 / truth_m[ok][good]) / std[good]
     return {"z_spread": float(1.4826 * np.median(np.abs(z - np.median(z)))),
             "within_2_sigma": float(np.mean(np.abs(z) < 2.0))}
+
+
+RANGE_BINS_M = (0.0, 30.0, 60.0, 100.0, 150.0, np.inf)
+
+
+def z_by_range(res, truth_m, mask, flag=None, bins=RANGE_BINS_M, min_pixels: int = 20) -> list:
+    """The sigma's calibration per true-range bin: for each bin [lo, hi) of ``bins`` (m), the pixels of ``mask``
+    with a finite truth in it, ``flag`` set (default VALID), a finite range and a finite sigma > 0: (lo, hi, pixels,
+    robust spread 1.4826 MAD of z = (rho - 1/truth) / sigma, median z, share with |z| > 3). A sigma right at every
+    range gives spreads near 1 and medians near 0 in every bin; a global calibration can average an over-reported
+    near sigma and an under-reported far one into a spread of 1. Bins of fewer than ``min_pixels``: NaN figures."""
+    from eonav.ranging.rangemap import VALID
+    flag = VALID if flag is None else flag
+    ok = (mask & np.isfinite(truth_m) & (truth_m > 0) & ((res.flags & flag) != 0) & np.isfinite(res.range_m)
+          & (res.range_m > 0) & np.isfinite(res.inv_range_std_per_m) & (res.inv_range_std_per_m > 0))
+    t = np.where(ok, truth_m, np.nan)
+    z = np.where(ok, (res.inv_range_per_m - 1.0 / np.where(ok, truth_m, 1.0)) / np.where(ok, res.inv_range_std_per_m,
+                                                                                             1.0), np.nan)
+    out = []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        zb = z[ok & (t >= lo) & (t < hi)]
+        if zb.size < min_pixels:
+            out.append((lo, hi, int(zb.size), float("nan"), float("nan"), float("nan")))
+            continue
+        med = float(np.median(zb))
+        out.append((lo, hi, int(zb.size), float(1.4826 * np.median(np.abs(zb - med))), med,
+                    float(np.mean(np.abs(zb) > 3.0))))
+    return out
+
+
+def z_range_line(rows, label: str = "z by true range") -> str:
+    """One line of ``z_by_range``: per bin its spread, median z and |z| > 3 share."""
+    def head(lo, hi):
+        return f">{lo:g}" if not np.isfinite(hi) else f"{lo:g}-{hi:g}"
+    parts = [f"{head(lo, hi)} m: -" if not np.isfinite(sp) else
+             f"{head(lo, hi)} m: {sp:.2f} (med {med:+.2f}, |z|>3 {100 * f3:.1f}%, {n} px)"
+             for lo, hi, n, sp, med, f3 in rows]
+    return f"   {label}: " + "; ".join(parts)
 
 
 def filled_line(name, res, case) -> str:
@@ -213,6 +267,10 @@ def run_bench(methods, cases, repeat, json_out=None):
             filled = filled_line(name, res, case)
             if filled:
                 print(filled)
+            if not case.scale_check and case.by_range and res.flags is not None:
+                zr = z_by_range(res, case.truth_m, case.mask)
+                results[-1]["z_by_range"] = [list(r) for r in zr]
+                print(z_range_line(zr, f"{'':<11}z by true range (VALID)"))
         line = common_pixel_line(case, per)
         if line:
             print(line)
@@ -238,7 +296,8 @@ def run_bench(methods, cases, repeat, json_out=None):
 
 def add_arguments(p):
     p.add_argument("--methods", default="dense,paper,dis", help="comma-separated methods (default dense,paper,dis)")
-    p.add_argument("--presets", default="paper,fast,turning,climbing,stereo", help="simulator presets")
+    p.add_argument("--presets", default="paper,fast,turning,climbing,stereo,flight:approach",
+                   help="simulator presets (and flights as flight:<name>: frame 10 vs 9 at 30 fps)")
     p.add_argument("--size", type=int, default=512, help="image size for the simulator presets other than 'paper'")
     p.add_argument("--data", default=None, help="real data folder (default: shared/data beside the checkout)")
     p.add_argument("--no-real", action="store_true", help="skip Middlebury and KITTI")

@@ -397,7 +397,8 @@ def residual_grid(b4p, ia, rw, kc, R, B0, Q1, Q2, step, r_o, inview_o):
 @njit(**_JIT)
 def _residual_at_infinity_row(bfp, hb, wb, a0r, a0c, p1r, p1c, p2r, p2c, ia, r0_o):
     """One row of the squared residual of a point at infinity (rho = 0: b warped by the rotation alone), NaN where
-    any of the four neighbours of the sample is outside b (cv2.remap with a NaN border)."""
+    any of the four neighbours of the sample is outside b (cv2.remap with a NaN border; ``_row_terms`` leaves
+    those pixels out of the test)."""
     w = ia.shape[0]
     rs = np.uint64(4 * (wb + 2))
     c4 = np.uint64(4)
@@ -473,11 +474,15 @@ def _row_terms(rs, smp, s4, jrow, y, bfp, hb, wb, ia, gxa, gya, rw, kc, R, S, B0
             mxo[x] = ga * mf
             myo[x] = gb * mf
     if inf_mode != 0:
-        seo = rs[_P_SE]
+        seo, r0o = rs[_P_SE], rs[_P_R0]
+        _residual_at_infinity_row(bfp, hb, wb, rw[0], kc[0, y], rw[1], kc[1, y], rw[2], kc[2, y], iay, r0o)
+        # both squared residuals over the pixels where both are in view of b (the test on the part of the window it
+        # can see; none: 0 <= 0, the test cannot rule infinity out)
         for x in range(w):
-            rm = s4[x, 0] - iay[x] if s4[x, 3] > _MASK_IN else _ZERO
-            seo[x] = rm * rm
-        _residual_at_infinity_row(bfp, hb, wb, rw[0], kc[0, y], rw[1], kc[1, y], rw[2], kc[2, y], iay, rs[_P_R0])
+            both = (s4[x, 3] > _MASK_IN) & (r0o[x] == r0o[x])
+            rm = s4[x, 0] - iay[x]
+            seo[x] = rm * rm if both else _ZERO
+            r0o[x] = r0o[x] if both else _ZERO
 
 
 @njit(**_JIT)
@@ -620,7 +625,7 @@ def gn_level(b4p, ia, gxa, gya, rw, kc, R, S, M, inv_g2, B0, Q1, Q2, ks, lam_c, 
         if inf_mode != 0:
             se, r0s = hs[_S_SE], hs[_S_R0]
             for x in range(w):
-                ambr[x] = np.uint8(1) if r0s[x] <= se[x] else np.uint8(0)   # (NaN: a window reaching out of b)
+                ambr[x] = np.uint8(1) if r0s[x] <= se[x] else np.uint8(0)   # (sums over the pixels both see)
             if inf_mode == 1:
                 io = inf_o[y]
                 for x in range(w):
@@ -965,3 +970,117 @@ def prior_unmeasure(ok_lev, s, rho_p, bad_bits, rho, std, flags, rng, conf):
             gr[x] = gr[x] if keep else _NAN
             cr[x] = cr[x] if keep else _ZERO
     return n_ok, n_bad, d_val, d_inf
+
+
+# --- the window model's error after level 0's last step (dense._apply_model_error)
+
+
+@njit(**_JIT)
+def centroid_terms(rw, kc, B0, rho, gxa, gya, J_o, J2_o, m_o, r_o):
+    """Per pixel the epipolar gradient J = grad I_a . (C1, C2) / den^2 at rho (rw / kc: a _Level's affine rows, C / 2
+    in rows 3 and 4; 0 where not finite) and J^2 into J_o, J2_o; and r_o (the residual, from ``residual_grid``) made 0
+    where not in view (m_o: the in-view mask as 1.0 / 0.0, from its uint8 form, in place of the residual's finite
+    test)."""
+    h, w = rho.shape
+    for y in range(h):
+        a0c, c1c, c2c = kc[0, y], kc[3, y], kc[4, y]
+        for x in range(w):
+            r = rho[y, x]
+            r = r if np.isfinite(r) else _ZERO
+            den = _fma(r, B0, rw[0, x] + a0c)
+            j = (gxa[y, x] * (rw[3, x] + c1c) + gya[y, x] * (rw[4, x] + c2c)) / (den * den)
+            j = j if np.isfinite(j) else _ZERO
+            J_o[y, x] = j
+            J2_o[y, x] = j * j
+            rr = r_o[y, x]
+            m = m_o[y, x]
+            r_o[y, x] = rr * m if np.isfinite(rr) else _ZERO
+
+
+@njit(inline="always", **_JIT)
+def _minmod(a, b):
+    """The smaller in magnitude of two slopes of the same sign, else 0."""
+    s = a if abs(a) < abs(b) else b
+    return s if a * b > _ZERO else _ZERO
+
+
+@njit(**_JIT)
+def model_error_finish(rho, rs, k, S, M, inv_g2, m1, m0J, rx2, rx1, ry2, ry1, half, mr, mr2, mv, n_win,
+                       noise_floor2, sigma2, rw, kc, B0, floor2, max_rel_std, centroid, std, flags, rng, conf):
+    """dense._apply_model_error per pixel, in place on the VALID (not AT_INFINITY) pixels: the sigma's noise part
+    scaled by max(s_w^2, noise_floor2) / sigma2 (s_w^2: the window's residual variance from its window means mr, mr2
+    over the in-view share mv, times n / (n - 2)); with ``centroid`` rho moved by the bias A b, b = grad rho . o (the
+    minmod slopes of rs over k pixels each way, the offset o of the window's effective centre from the window means
+    of J (m1), J^2 - mean J^2 (m0J) and the ramp-weighted J^2, J (rx2, rx1, ry2, ry1), clipped to +-half), A the
+    planarity gate clip(2 - M inv_g2 / S, 0, 1) (as ``_slant_row``), and (1 - A) b into the sigma in quadrature; a
+    pixel whose relative sigma then exceeds max_rel_std loses VALID (ILL_CONDITIONED). Returns the VALID pixels
+    lost."""
+    h, w = rho.shape
+    lost = 0
+    for y in range(h):
+        yu = min(y + k, h - 1)
+        yd = max(y - k, 0)
+        a0c, c1c, c2c = kc[0, y], kc[3, y], kc[4, y]
+        for x in range(w):
+            f = flags[y, x]
+            if (f & _VAL) == 0 or (f & np.uint8(AT_INFINITY)) != 0:
+                continue
+            r = rho[y, x]
+            # the window's residual variance against the image's noise
+            n = mv[y, x] * n_win
+            mvv = mv[y, x]
+            sw2 = _INF
+            if n > F32(2.5):
+                mm = mr[y, x] / mvv
+                sw2 = (mr2[y, x] / mvv - mm * mm) * n / (n - _TWO)
+                sw2 = sw2 if sw2 > _ZERO else _ZERO
+            fac = (sw2 if sw2 > noise_floor2 else noise_floor2) / sigma2
+            den = _fma(r, B0, rw[0, x] + a0c)
+            c1 = rw[3, x] + c1c
+            c2 = rw[4, x] + c2c
+            d2 = den * den
+            e2 = (c1 * c1 + c2 * c2) / (d2 * d2)
+            fl = floor2 / e2 if e2 > _ZERO else _ZERO
+            s = std[y, x]
+            nz = s * s - fl
+            nz = nz if nz > _ZERO else _ZERO
+            var = nz * fac + fl
+            new = r
+            if centroid:
+                xr = min(x + k, w - 1)
+                xl = max(x - k, 0)
+                c = rs[y, x]
+                gx = _minmod((rs[y, xr] - c) / F32(max(xr - x, 1)) if xr > x else (c - rs[y, xl]) / F32(max(x - xl, 1)),
+                             (c - rs[y, xl]) / F32(max(x - xl, 1)) if xl < x else (rs[y, xr] - c) / F32(max(xr - x, 1)))
+                gy = _minmod((rs[yu, x] - c) / F32(max(yu - y, 1)) if yu > y else (c - rs[yd, x]) / F32(max(y - yd, 1)),
+                             (c - rs[yd, x]) / F32(max(y - yd, 1)) if yd < y else (rs[yu, x] - c) / F32(max(yu - y, 1)))
+                d0 = m0J[y, x]
+                ox = (rx2[y, x] - m1[y, x] * rx1[y, x]) / d0
+                oy = (ry2[y, x] - m1[y, x] * ry1[y, x]) / d0
+                ox = ox if np.isfinite(ox) else _ZERO
+                oy = oy if np.isfinite(oy) else _ZERO
+                ox = min(max(ox, -half), half)
+                oy = min(max(oy, -half), half)
+                b = gx * ox + gy * oy
+                sc = S[y, x]
+                a = _TWO - (M[y, x] * inv_g2) / max(sc, _H_MIN)
+                a = _ZERO if a < _ZERO else a
+                a = _ONE if a > _ONE else a
+                a = a if a == a else _ZERO
+                new = r - a * b
+                new = new if new > _ZERO else _ZERO
+                bl = (_ONE - a) * b
+                var = var + bl * bl
+            sd = np.sqrt(var)
+            ok = (new > _ZERO) & (sd <= max_rel_std * new) & np.isfinite(sd)
+            rho[y, x] = new
+            std[y, x] = sd
+            if ok:
+                rng[y, x] = _ONE / new
+                conf[y, x] = new / sd
+            else:
+                flags[y, x] = (f & ~_VAL) | _ILL
+                rng[y, x] = _NAN
+                conf[y, x] = _ZERO
+                lost += 1
+    return lost

@@ -16,11 +16,12 @@ the method in four stages (docs/methods.md describes it):
    averaged over I_a and the warped I_b: eq. 27's symmetric form), a brightness offset per window eliminated,
    shiftable windows at the coarse levels and a Levenberg trust term worth ``trust_px`` pixels of displacement;
 3. classify, in level 0's last step: per-pixel 1-sigma of rho from the normal equations and the noise (robust MAD
-   of the residual), confidence rho / sigma, and the flags OUT_OF_VIEW (the map leaves b or lies behind it;
+   of the residual; then each window's own residual, ``_apply_model_error``), confidence rho / sigma, and the flags OUT_OF_VIEW (the map leaves b or lies behind it;
    OCCLUDED: a windowed residual neither the noise nor a small misregistration explains), LOW_TEXTURE,
    ILL_CONDITIONED (focus of expansion, gradient across the epipolar direction, relative sigma above
    ``max_rel_std``, or a point at infinity explains the window as well), TRUNCATION (the last step still moved by
-   more than ``trunc_px``) and AT_INFINITY (rho within 2 sigma of 0 with a tight sigma: range +inf);
+   more than ``trunc_px``) and AT_INFINITY (rho within 2 sigma of 0 with a tight sigma: range +inf); one rho per
+   window is then moved from the window's effective centre to the pixel (``_model_error``);
 4. fill: the pixels without a measurement get an inverse range from plane fits of the measured ones around them
    (``fill.fill_unmeasured``), flagged FILLED.
 
@@ -385,7 +386,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  sgm_p1: float = 1.0, sgm_p2: float = 8.0, sgm_tau: float = 8.0,
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
                  prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = False,
-                 slant_curv: float = 0.05) -> RangeResult:
+                 slant_curv: float = 0.05, window_noise: bool = True, centroid: bool = True,
+                 window_floor: str = "global") -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -412,9 +414,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     temporal fusion cannot average. A_c = 1 where rho is flat or planar about c (its relative gradient or its
     relative second difference, both per pixel, within slant_curv) and 0 from twice that on: a depth edge (a
     jump) keeps one rho per window, a steep but smooth surface (ground near the horizon) keeps the slant. Off by
-    default: it lowers the sim flights' errors (fused and single-pair) but with its calibrated sigma the obstacle
-    list finds about twice the false obstacles on far ground (whose sigma is too small at long range either way),
-    the real sequences gain nothing, and a sky patch at an image border can become an obstacle. Figures in
+    default: it lowers the sim flights' errors (fused and single-pair), but the real sequences gain nothing and,
+    with its calibrated sigma, the obstacle list found about twice the false obstacles on far ground (with the
+    window's own residual in the sigma, ``window_noise``, 1.4 x one rho per window's: docs/methods.md). Figures in
     docs/methods.md. huber_k: Huber threshold in noise
     sigmas. trust_px: Levenberg trust term ~ a step of this many pixels of displacement per iteration.
     presmooth_sigma: Gaussian pre-smoothing of both images (pixels). 0.6 measured best overall (sim medians
@@ -437,7 +439,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     neighbours' value (sky pixels of the fast preset with a finite range: 0.75 -> 0.53 %).
     inf_test: ILL_CONDITIONED where a point at infinity (rho = 0: b warped by the rotation alone) explains the
     7 x 7 window at least as well as the estimate does (and the estimate is more than 2 sigma from 0): the data
-    do not support that range. Judged at level 1's last iteration and carried to level 0 (a quarter of the work;
+    do not support that range. Both residuals are summed over the window's pixels that both warps keep in view of b;
+    where none is (near a border of image a, the warp at infinity leaves b), infinity is not ruled out. Judged at level 1's last iteration and carried to level 0 (a quarter of the work;
     the regions it catches are blobs of tens of pixels): sky pixels VALID nearer than 50 m on the approach flight
     73 -> 26 against the level-0 test, coverage within 0.5 point. Faint clouds reached by a wrong start (the coarse search's fill) were ranged at
     9-44 m with a tight sigma and became the nearest "obstacles" of the demo approach flight at 512 x 512; with
@@ -456,11 +459,24 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     trunc_px: TRUNCATION where the last update still moves the match by more than this (level-0 px): the
     step past which the first-order model is not trusted (at 0.5 px, 17-30 % of sim pixels were flagged
     with a median error of 1 %, since the reported estimate is the one after that step).
-    std_scale: calibration factor of the reported sigma, the measured robust spread of (rho - rho_true) / sigma on
-    the sim presets at 512 px (the window's samples are correlated by the pre-smoothing and the interpolation):
-    None (default) takes the one measured for the window model, 1.35 with one rho per window, 1.1 with the slanted
-    window (whose smaller error it left over-reported: geometric mean of the five presets 0.82 at 1.35, 1.01 at
-    1.1). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
+    std_scale: calibration factor of the reported sigma, from the measured robust spread of (rho - rho_true) / sigma
+    (the window's samples are correlated by the pre-smoothing and the interpolation): None (default) takes the one
+    for the window model, 1.35 with one rho per window (at the global window floor the Middlebury pairs' spread is
+    then 0.98 and the sim presets' 0.83: real images do not under-report), 1.25 with the slanted window (measured
+    on the sim presets with the sensor floor; docs/methods.md "The sigma across range"). max_rel_std (0.34) was set
+    as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
+    window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit)
+    where that exceeds the floor, instead of the image's noise alone (``_apply_model_error``): the image-wide figure
+    under-reports the sigma of far ground near the horizon and of edges, where the window's model does not hold.
+    window_floor: the floor of the window's residual variance (``_window_floor2``). "global" (default), the image's
+    final residual noise: the window term only raises the sigma above the image-wide model's, where its window
+    misfits. "sensor" (the sensor noise alone) also lowers it where a window fits better than the image-wide
+    figure (near sim ground): even sim bins, but on real images the window's residual misses part of the error and
+    Middlebury teddy / cones, HoloLens under-reported (z 1.49 / 1.31 / 1.74 against 0.95 / 0.61 / 1.18);
+    "mid", their geometric mean, lies between (docs/methods.md "The sigma across range").
+    centroid: with window_noise and one rho per window, each VALID rho moved from the window's effective centre
+    (the texture-weighted centroid the normal equations measure) back to the pixel along rho's slope, where rho is
+    planar about the pixel (the slanted window's gate); elsewhere that bias goes into the sigma (``_model_error``).
     shift_px / shift_ratio: shiftable windows at the levels above 0 (``_shift_windows``): a pixel takes the
     normal-equation sums of the window shift_px pixels to its left or right where that window's least-squares cost
     is below shift_ratio x its centred window's. A window straddling a depth edge fits neither surface and its
@@ -505,8 +521,10 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
+    if window_floor not in ("sensor", "global", "mid"):
+        raise InputError(f"window_floor {window_floor!r}: expected 'sensor', 'global' or 'mid'")
     if std_scale is None:
-        std_scale = 1.1 if slant else 1.35
+        std_scale = 1.25 if slant else 1.35
     if not (math.isfinite(slant_curv) and slant_curv > 0):
         raise InputError(f"slant_curv must be a finite relative second difference > 0 (per pixel), got {slant_curv!r}")
     if tex_noise not in ("image", "residual"):
@@ -562,6 +580,9 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                 inf_mask = cv2.resize(amb, (wa, ha), interpolation=cv2.INTER_NEAREST)
         else:
             rho, fin = _refine_level(lv, rho, n_it, steps_l, shift, rules=rules, inf_mask=inf_mask)
+            if window_noise:
+                floor2 = _window_floor2(window_floor, g0, img_sigma, fin.sigma)
+                _apply_model_error(lv, rho, fin, window, floor2, centroid and not slant, max_rel_std, slant_curv)
 
     prior_info = None
     if first_lv is not None:
@@ -894,6 +915,86 @@ def _gauss_newton_step(lv: _Level, rho, new, sigma: float, steps: _Steps, shift_
     if fin is not None:
         fin.n_val += nv
         fin.n_inf += ni
+
+
+@lru_cache(maxsize=8)
+def _ramp_kernel(win: int) -> np.ndarray:
+    return ((np.arange(win) - win // 2) / win).astype(F32)
+
+
+def _window_means(lv: "_Level", rho, window: int):
+    """The window means the model error needs (``_dense_kernels.model_error_finish``): of the epipolar gradient J
+    at rho and of J^2 (m1, and m0J = mean J^2 - m1^2), of J^2 and J weighted by the pixel's column and row offset
+    from the window's centre (rx2, rx1, ry2, ry1), and of the residual I_b(map(rho)) - I_a, its square and the
+    in-view mask over the pixels in view of b (mr, mr2, mv)."""
+    h, w = rho.shape
+    J, J2 = _ws("me_J", (h, w)), _ws("me_J2", (h, w))
+    r, iv = _ws("me_r", (h, w)), _ws("me_iv", (h, w), np.uint8)
+    _K.residual_grid(lv.b4p, lv.ia, lv.rw, lv.kc, rho, lv.B0, lv.Q1, lv.Q2, 1, r, iv)
+    m = iv.astype(F32)
+    _K.centroid_terms(lv.rw, lv.kc, lv.B0, rho, lv.gxa, lv.gya, J, J2, m, r)
+    box, ramp = _box_kernel(window), _ramp_kernel(window)
+    m1 = _box(J, window)
+    m0J = _box(J2, window) - m1 * m1
+    rx2, rx1 = (cv2.sepFilter2D(t, -1, ramp, box, borderType=_BR) for t in (J2, J))
+    ry2, ry1 = (cv2.sepFilter2D(t, -1, box, ramp, borderType=_BR) for t in (J2, J))
+    mr, mr2, mv = _box(r, window), _box(r * r, window), _box(m, window)
+    return m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv
+
+
+
+
+def _window_floor2(kind: str, g0: float, img_sigma: float | None, resid_sigma: float) -> float:
+    """The floor of the window's residual variance in ``_apply_model_error``: "sensor" the sensor noise's own
+    (2 g0 sigma_img^2), "global" the image's final residual noise (the window can only raise the sigma), "mid"
+    their geometric mean."""
+    sensor = 2.0 * g0 * img_sigma ** 2 if img_sigma is not None else 0.0
+    glob = max(float(resid_sigma), 1e-6) ** 2
+    if kind == "sensor":
+        return sensor
+    if kind == "global":
+        return glob
+    if kind == "mid":
+        return math.sqrt(sensor * glob)
+    raise InputError(f"window_floor {kind!r}: expected 'sensor', 'global' or 'mid'")
+
+
+def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2: float, centroid: bool,
+                       max_rel_std: float, curv: float) -> None:
+    """In place on level 0's final estimate: the sigma of each VALID pixel with its own window's noise and model
+    error instead of the image's noise alone, and (``centroid``) rho corrected by the window model's bias.
+
+    The kernels' sigma is the image's robust residual noise through the window's normal equations (sigma_n^2 /
+    H). Where the window's model does not hold -- rho varies across it (ground at grazing angles: the window then
+    misregisters its pixels by the disparity's change over it), edges the interpolation blurs, texture the
+    pre-smoothing or the rendering changes between the images -- the window's residual holds that misfit on top
+    of the noise, sigma_n^2 + sigma_model^2, and the match is worse by as much; where the window fits to the
+    sensor noise (near sim ground) the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
+    max(s_w^2, noise_floor2) / sigma_n^2: s_w^2 the window's residual variance (over its pixels in view of b, the
+    brightness offset removed, times n / (n - 2) for the two parameters it fitted), noise_floor2 its floor
+    (``_window_floor2``): the image's residual noise sigma_n^2 by default, so that a window can only widen the
+    sigma (on real images a window's small residual does not mean a small error), or the sensor noise's own.
+
+    One rho per window measures rho not at the pixel but at the window's effective centre: its normal equations
+    (brightness offset eliminated) solve rho = sum_j W_j rho_j / sum_j W_j, W_j = J_j (J_j - mean J), J_j the
+    epipolar gradient, so the texture picks the point, offset o = sum_j W_j (x_j - x_c) / sum_j W_j from the pixel
+    (clipped to the window). On a surface with slope g its bias is b = g . o (g: minmod of the 3 x 3 mean of the
+    estimate over half a window each way, a plane's slope and not a depth edge's). With ``centroid`` rho is moved
+    back by A b, A the slanted window's planarity gate (1 where rho is planar about the pixel, 0 at depth edges,
+    ``_slant_shape``), and what the gate leaves, (1 - A) b, goes into the sigma in quadrature. A pixel whose
+    relative sigma then exceeds max_rel_std loses VALID (ILL_CONDITIONED, as the kernels' rule)
+    (``_dense_kernels.model_error_finish``)."""
+    m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv = _window_means(lv, rho, window)
+    rs = _box(rho, 3, dst=_ws("me_rs", rho.shape))
+    if centroid:
+        S, M = _slant_shape(rho, _Steps(window, 3, 0.0, 0.0, F32(0.0), slant_curv=curv))
+    else:
+        S = M = rs
+    lost = _K.model_error_finish(rho, rs, max(window // 2, 1), S, M, F32(0.5 / curv), m1, m0J, rx2, rx1, ry2, ry1,
+                                 F32(window // 2), mr, mr2, mv, F32(window * window), F32(noise_floor2),
+                                 F32(max(fin.sigma, 1e-6) ** 2), lv.rw, lv.kc, lv.B0, fin.floor2, F32(max_rel_std),
+                                 bool(centroid), fin.std, fin.flags, fin.rng, fin.conf)
+    fin.n_val -= int(lost)
 
 
 def _plane_pair(size: int, range_m: float = 20.0, seed: int = 0) -> tuple[View, View]:
