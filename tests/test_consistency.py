@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from consistency_reference import inconsistent_reference
+from test_dense import sine_texture
 from eonav import InputError
 from eonav.fusion.schedule import ScheduleConfig
 from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
@@ -21,15 +22,6 @@ from eonav.ranging.rangemap import AT_INFINITY, OCCLUDED, OUT_OF_VIEW, VALID, Ra
 F32 = np.float32
 F, B = 500.0, 0.1                 # focal length (px) and baseline (m) of the rectified pairs: disparity = F B rho
 
-
-def sine_texture(x, y, seed=0, k=60):
-    """Band-limited analytic texture (sum of random plane waves), exact at any point."""
-    rng = np.random.default_rng(seed)
-    fr, th, ph = rng.uniform(0.02, 0.2, k), rng.uniform(0, 2 * np.pi, k), rng.uniform(0, 2 * np.pi, k)
-    s = np.zeros_like(x, dtype=np.float64)
-    for f, t, p in zip(fr, th, ph):
-        s += np.cos(2 * np.pi * f * (x * np.cos(t) + y * np.sin(t)) + p)
-    return (s / np.sqrt(k / 2) * 35 + 128).astype(np.float32)
 
 
 def cameras(h, w):

@@ -4,18 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from test_dense import sine_texture
 from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.methods.flow_baseline import locate_dis, locate_sgbm, sgbm_disparity, triangulate_matches
 from eonav.ranging.rangemap import VALID
 
-
-def sine_texture(x, y, seed=0, k=60):
-    rng = np.random.default_rng(seed)
-    fr, th, ph = rng.uniform(0.02, 0.2, k), rng.uniform(0, 2 * np.pi, k), rng.uniform(0, 2 * np.pi, k)
-    s = np.zeros_like(x, dtype=np.float64)
-    for f, t, p in zip(fr, th, ph):
-        s += np.cos(2 * np.pi * f * (x * np.cos(t) + y * np.sin(t)) + p)
-    return (s / np.sqrt(k / 2) * 35 + 128).astype(np.float32)
 
 
 def rectified(left, right, f=500.0, b=0.1):
