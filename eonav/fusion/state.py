@@ -50,12 +50,14 @@ class InverseRangeState:
                    np.zeros(shape, F32), np.zeros(shape, F32), np.zeros(shape, np.uint16),
                    np.zeros(shape, F32), np.zeros(shape, F32), np.zeros(shape, np.uint8), 0.0)
 
-    def clear(self) -> None:
-        """Every cell empty, in place."""
-        self.rho.fill(np.nan)
-        self.var.fill(np.inf)
-        for x in (self.a, self.b, self.n, self.du, self.dv, self.flags):
-            x.fill(0)
+    def clear(self, mask: np.ndarray | None = None) -> None:
+        """Cells empty, in place (rho NaN, variance inf, no evidence): every cell, the last measurement's flags too;
+        or the cells of ``mask``, whose flags stay those of the last measurement that saw them."""
+        sel = Ellipsis if mask is None else np.asarray(mask, bool)
+        self.rho[sel] = np.nan
+        self.var[sel] = np.inf
+        for x in (self.a, self.b, self.n, self.du, self.dv) + ((self.flags,) if mask is None else ()):
+            x[sel] = 0
 
     @property
     def shape(self):

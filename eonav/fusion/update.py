@@ -235,10 +235,7 @@ def clear_cells(state: InverseRangeState, mask) -> int:
     """Empty the ``mask`` cells of ``state`` (in place: rho NaN, variance inf, no evidence); returns how many held
     an estimate."""
     m = np.asarray(mask, bool) & state.occupied()
-    state.rho[m] = np.nan
-    state.var[m] = np.inf
-    for x in (state.a, state.b, state.n, state.du, state.dv):
-        x[m] = 0
+    state.clear(m)
     return int(m.sum())
 
 
