@@ -942,21 +942,13 @@ def _window_means(lv: "_Level", rho, window: int):
     return m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv
 
 
-
-
 def _window_floor2(kind: str, g0: float, img_sigma: float | None, resid_sigma: float) -> float:
     """The floor of the window's residual variance in ``_apply_model_error``: "sensor" the sensor noise's own
     (2 g0 sigma_img^2), "global" the image's final residual noise (the window can only raise the sigma), "mid"
-    their geometric mean."""
+    their geometric mean (``locate_dense`` has checked the name)."""
     sensor = 2.0 * g0 * img_sigma ** 2 if img_sigma is not None else 0.0
     glob = max(float(resid_sigma), 1e-6) ** 2
-    if kind == "sensor":
-        return sensor
-    if kind == "global":
-        return glob
-    if kind == "mid":
-        return math.sqrt(sensor * glob)
-    raise InputError(f"window_floor {kind!r}: expected 'sensor', 'global' or 'mid'")
+    return {"sensor": sensor, "global": glob, "mid": math.sqrt(sensor * glob)}[kind]
 
 
 def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2: float, centroid: bool,
