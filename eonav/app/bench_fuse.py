@@ -106,8 +106,8 @@ def z_spread(res, truth, mask, flag=None) -> float:
     good = np.isfinite(std) & (std > 0)
     if good.sum() < 10:
         return float("nan")
-    z = (res.inv_range_per_m[ok][good] - 1.0 / truth[ok][good]) / std[good]
-    return float(1.4826 * np.median(np.abs(z - np.median(z))))
+    from eonav.app.bench_locate import robust_spread
+    return robust_spread((res.inv_range_per_m[ok][good] - 1.0 / truth[ok][good]) / std[good])
 
 
 def widest_partner(views, k, cfg):
