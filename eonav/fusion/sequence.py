@@ -400,7 +400,8 @@ def run_frames(frames, config: FusionConfig = FusionConfig(), measure=None) -> l
 def prepare_kernels() -> None:
     """Compile (or load from numba's cache) the dense method's kernels and the fusion's passes now: a pipeline that
     fuses spends this before its first frame, not in it (a fresh install compiles for tens of seconds). One small
-    plane pair through a runner reaches predict, update and the fused map."""
+    plane pair through a runner reaches predict, update and the fused map; the prior's arrays and the map of a
+    frame that got no measurement are called directly."""
     from eonav.ranging import consistency
     from eonav.ranging.methods import dense
     from eonav.fusion.schedule import ScheduleConfig
@@ -416,6 +417,7 @@ def prepare_kernels() -> None:
     if K is not None:       # the prior of a measurement (``FusionRunner.prior``), whether the probe reached it or not
         K.prior_arrays(st.rho, st.var, st.a, st.b, st.n, F32(0.65), 2, np.empty(st.shape, F32),
                        np.empty(st.shape, F32))
+    fused_map(st, probe.config.output)     # the map of a frame without a measurement (its own classification pass)
 
 
 __all__ = ["FusionRunner", "prepare_kernels", "FusionConfig", "PriorConfig", "FusedMap", "frame", "dense_measurement", "run_frames"]
