@@ -2,6 +2,7 @@
 with known box positions (distance from the vehicle origin to the solid box, computed from the box itself)."""
 import math
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -309,6 +310,71 @@ def test_box_and_pole_on_biased_ground_are_found(slope_deg, x_c_m, cols, top_m):
     v_top = CAM.cy + CAM.fy * (ALT_M - math.tan(math.radians(slope_deg)) * x_c_m - top_m) / x_c_m
     assert math.ceil(v_top) - 2 <= o.bbox_px[1] <= math.ceil(v_top) + 1
     assert cols[0] - 2 <= o.bbox_px[0] and o.bbox_px[2] <= cols[1] + 1
+
+
+def test_height_above_plane_low_hand_derived():
+    # lens 10 m above a level plane, a ray descending 0.05 m per metre of x_c, rho = 1/60: at the estimate 10 - 3 = 7 m;
+    # with sigma_rho = rho / 4 and k = 3 the interval is rho x [0.25, 1.75], x_c 240 .. 34.3 m: least 10 - 12 = -2 m
+    plane, lens = ob.GroundPlane(0.0), np.array([0.0, 0.0, -10.0])
+    down, up = np.array([1.0, 0.0, 0.05]), np.array([1.0, 0.0, -0.05])
+    rho = np.array([1 / 60.0])
+    assert ob.height_above_plane_low(plane, lens, down, rho)[0] == pytest.approx(7.0)
+    assert ob.height_above_plane_low(plane, lens, down, rho, rho / 4, 3.0)[0] == pytest.approx(-2.0)
+    # sigma_rho = rho / 2: the interval holds infinity, where a descending ray is below the plane; a rising ray is
+    # lowest at its near end, x_c = 60 / 2.5 = 24 m, 10 + 1.2 m
+    assert ob.height_above_plane_low(plane, lens, down, rho, rho / 2, 3.0)[0] == -np.inf
+    assert ob.height_above_plane_low(plane, lens, up, rho, rho / 2, 3.0)[0] == pytest.approx(11.2)
+    # a plane falling 0.05 per metre north, parallel to the ray: 10 m above it wherever the point is, infinity too
+    sloped = ob.GroundPlane(0.0, 0.05)
+    assert ob.height_above_plane_low(sloped, lens, down, rho, rho / 2, 3.0)[0] == pytest.approx(10.0)
+
+
+def ground_patch(r, rows_below_horizon, u0, u1, x_c_m, cam=CAM):
+    """``r`` with the pixels of the given rows below the horizon (v - cy) and columns u0..u1-1 at x_c = x_c_m."""
+    r = r.copy()
+    v = np.round(cam.cy + np.asarray(rows_below_horizon, float)).astype(int)
+    r[np.ix_(v, np.arange(u0, u1))] = x_c_m
+    return r
+
+
+def rel_std(r, rel):
+    """inv_range_std_per_m of a relative sigma ``rel`` (sigma_rho = rel rho), 0 where r is not finite."""
+    with np.errstate(divide="ignore"):
+        return np.where(np.isfinite(r), rel / r, 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("fitted", [False, True])
+def test_far_ground_ranged_too_near_within_its_sigma_is_not_an_obstacle(fitted):
+    # the false track of the fused approach flight (seed 1): far ground (rows 6.5..10.5 below the horizon, truly
+    # 197..122 m) smoothed to one range, 60 m, with a 25 % sigma (the truth within 2.5 sigma). At 60 m it stands
+    # 5-7 m above the ground, above the first-order clearance (0.6 + 3 sigma_r x 0.05..0.08 + 2 x 60 / 128 = 3.8-5.2
+    # m); its inverse range's 3-sigma interval reaches 1 / (0.25 rho) = 240 m, past the ground on every row: ground
+    r = ground_patch(ground_and_sky(), np.arange(6.5, 11.0), 100, 140, 60.0)
+    std = rel_std(r, 0.01)
+    std[r == 60.0] = 0.25 / 60.0
+    cfg = ob.ObstacleConfig() if fitted else CFG
+    res = ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=cfg)
+    assert res.obstacles == []
+    # without the sigma (k = 0) the patch is an obstacle at 60 m: the interval is what makes it ground
+    flat = ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(cfg, ground_sigma_k=0.0)).obstacles
+    assert len(flat) == 1 and flat[0].position_ned_m[0] == pytest.approx(60.0, abs=0.01)
+
+
+@pytest.mark.parametrize("above_band_m, found", [(1.5, True), (-0.3, False)])
+def test_low_box_just_above_the_grounds_sigma_band_is_found(above_band_m, found):
+    # a box face at 40 m with a 5 % sigma: the far end of its 3-sigma interval is 40 / 0.85 = 47.06 m, the clearance
+    # 0.6 + 2 x 40 / 128 = 1.225 m; its row of descent d is above the band iff 10 - 47.06 d > 1.225, where the face
+    # stands 10 - 40 d > 10 - 0.85 x 8.775 = 2.541 m. A top 1.5 m above that is an obstacle at 40 m; 0.3 m below, ground
+    band_m = ALT_M - 0.85 * (ALT_M - 0.6 - 2 * 40.0 / CAM.fy)
+    assert band_m == pytest.approx(2.541, abs=1e-3)
+    r = add_wall(ground_and_sky(), 40.0, 100, 140, top_down_m=-(band_m + above_band_m))
+    # no least height: the band alone decides (a sliver above it would be an obstacle)
+    res = ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=rel_std(r, 0.05), cfg=replace(CFG, min_obstacle_height_m=0.0))
+    if found:
+        assert len(res.obstacles) == 1
+        assert res.obstacles[0].position_ned_m[0] == pytest.approx(40.0, abs=0.01)
+    else:
+        assert res.obstacles == []
 
 
 def test_plane_law_slope_hand_derived():

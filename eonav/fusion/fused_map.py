@@ -58,7 +58,8 @@ class MapConfig:
     eta_inlier: float = 0.65       # least E[inlier ratio] of a VALID cell
     max_rel_std: float = 0.34      # largest relative sigma of a VALID cell (the dense method's rule)
     fill: bool = True              # fill the cells without a fused range from the VALID ones around them
-    slant_px: float = 1.5          # spread (px) of the window's effective centre (0.9 with the dense slant=True)
+    slant_px: float = 1.5          # spread (px) of the window's effective centre (one rho per window's, also with the
+                                   # dense slant=True: its gate keeps one rho per window on far ground and at edges)
     no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells contested (module docstring)
     contested_rel_std: float = 0.05  # largest relative sigma of a contested cell's fill (0: never filled)
     border_px: int = 4             # empty cells this near the image border are extrapolated to (0: not)

@@ -39,7 +39,7 @@ class ObstacleConfig:
     max_distance_m: float = 150.0      # OBSTACLE_DISTANCE max_distance; farther points are "clear" evidence
     ground_down_m: float | None = None  # NED down of the ground; None: estimate from the points (docs/methods.md)
     ground_clearance_m: float = 0.6    # points within this of the ground (or below it) are ground ...
-    ground_sigma_k: float = 3.0        # ... plus this many 1-sigma of the point's down coordinate (from the range std)
+    ground_sigma_k: float = 3.0        # ... anywhere in their inverse range's interval of this many 1-sigma ...
     ground_window_px: float = 2.0      # ... plus the height a matching window of this many rows spans on the ground
                                        # at the point's range: x_c k / fy, whatever the map's own sigma
     max_height_above_m: float = 200.0  # points higher than this above the vehicle are ignored (top of the band)
@@ -355,6 +355,29 @@ class GroundPlane:
         return descent / below if below > 0 else np.zeros(descent.shape)
 
 
+def height_above_plane_low(plane: GroundPlane, lens_ned_m, ray_ned, rho_per_m, sigma_rho_per_m=None,
+                           k: float = 0.0) -> np.ndarray:
+    """The least height above ``plane`` of the points lens + ray / rho' for rho' in the k-sigma interval of each
+    point's inverse range, rho +- k sigma_rho (the map's noise model is Gaussian in inverse range). The height is
+    linear in x_c = 1 / rho' (H - x_c descent, ``GroundPlane.inverse_range_per_m``), so its least value is at an
+    end of the interval; rho - k sigma <= 0 holds infinity: a descending ray then reaches the ground, -inf. The
+    first-order range sigma (sigma_rho / rho^2) puts the far end at x_c + k sigma_r instead of 1 / (rho - k sigma),
+    short of it by k^2 sigma_r sigma_rho / (rho - k sigma): at 3 sigma and sigma_rho / rho = 0.2 the far end is
+    1.6 x_c, not 2.5 x_c, and far ground ranged at half its range stands metres above its clearance."""
+    lens = np.asarray(lens_ned_m, float)
+    ray = np.asarray(ray_ned, float)
+    H = float(plane.down_m(lens) - lens[2])                      # the lens' height above the plane
+    descent = ray[..., 2] - plane.b * ray[..., 0] - plane.c * ray[..., 1]
+    rho = np.asarray(rho_per_m, float)
+    dr = 0.0 if sigma_rho_per_m is None else k * np.asarray(sigma_rho_per_m, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        near = H - descent / (rho + dr)
+        lo = rho - dr
+        far = np.where(lo > 0, H - descent / np.where(lo > 0, lo, 1.0),
+                       np.where(descent > 0, -np.inf, np.where(descent < 0, np.inf, H)))
+    return np.minimum(near, far)
+
+
 def fit_ground(pts: Points, state: VehicleState, cfg: ObstacleConfig) -> GroundPlane:
     """The ground plane: ``cfg.ground_down_m`` when configured (level); else a robust least-squares plane through
     the confident points below the vehicle, from the level plane of the 90th percentile of down, iterated on the
@@ -483,17 +506,14 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
     z = pts.ned_m[:, 2]
     lens = state.position_ned_m + state.T_body_ned.T @ camera.l_body_m
     ray = (pts.ned_m - lens) / pts.range_m[:, None]               # NED direction per metre of x_c
-    clearance = np.full(z.shape, cfg.ground_clearance_m)
-    if pts.sigma_m is not None and cfg.ground_sigma_k > 0:
-        # a range error moves a point along its ray: sigma_down = sigma_r |d down / d x_c|. Far ground seen at a
-        # grazing angle is lifted by metres for a few per cent of range error, so the clearance grows with it.
-        sig = np.nan_to_num(pts.sigma_m, nan=0.0, posinf=0.0)
-        clearance = clearance + cfg.ground_sigma_k * sig * np.abs(ray[:, 2])
     # a window of k rows on ground seen at a grazing angle d spans ranges x_c k / (fy tan d): the honest range error
     # there, whose height error x_c k / fy does not depend on the angle (docs/methods.md, "Obstacles")
     # (k in frame pixels: a map at a locate scale gives the obstacles of the same map upsampled to the frame)
-    clearance = clearance + cfg.ground_window_px * pts.range_m / (camera.fy * fh / camera.height)
-    above_ground = z < plane.down_m(pts.ned_m) - clearance
+    clearance = cfg.ground_clearance_m + cfg.ground_window_px * pts.range_m / (camera.fy * fh / camera.height)
+    sig_rho = None
+    if pts.sigma_m is not None and cfg.ground_sigma_k > 0:
+        sig_rho = np.nan_to_num(pts.sigma_m / (pts.range_m * pts.range_m), nan=0.0, posinf=0.0)
+    above_ground = height_above_plane_low(plane, lens, ray, 1.0 / pts.range_m, sig_rho, cfg.ground_sigma_k) > clearance
     rho_ground = plane.inverse_range_per_m(lens, ray)
     in_band = above_ground & (z > state.position_ned_m[2] - cfg.max_height_above_m)
     obstacle = in_band & (pts.hdist_m <= cfg.max_distance_m)
