@@ -96,6 +96,37 @@ def errors(range_m, truth, mask):
     return (float(np.median(rel)) if rel.size else float("nan")), float(est.sum() / max(n, 1))
 
 
+def uncovered_reasons(res, state, mask, eta_inlier: float, border_px: int = 8) -> dict:
+    """Why the pixels of ``mask`` (truth, not sky) have no fused range: counts of those whose cell holds an estimate
+    the map does not report (``loose``: the evidence agrees but the sigma fails the rule; ``disagree``: the evidence
+    disagrees), of the empty cells by the last measurement's verdict (``empty_occluded``, ``empty_truncation``,
+    ``empty_other``), and of all of them within ``border_px`` of the image border (``border``)."""
+    from eonav.ranging.rangemap import OCCLUDED, TRUNCATION
+    unc = mask & ~(np.isfinite(res.range_m) & (res.range_m > 0))
+    occ = state.occupied()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        agree = occ & (state.a >= np.float32(eta_inlier) * (state.a + state.b))
+    empty = unc & ~occ
+    occl = empty & ((state.flags & OCCLUDED) != 0)
+    trunc = empty & ~occl & ((state.flags & TRUNCATION) != 0)
+    h, w = mask.shape
+    yy, xx = np.mgrid[:h, :w]
+    edge = np.minimum(np.minimum(xx, w - 1 - xx), np.minimum(yy, h - 1 - yy)) < border_px
+    return {"uncovered": int(unc.sum()), "loose": int((unc & agree).sum()), "disagree": int((unc & occ & ~agree).sum()),
+            "empty_occluded": int(occl.sum()), "empty_truncation": int(trunc.sum()),
+            "empty_other": int((empty & ~occl & ~trunc).sum()), "border": int((unc & edge).sum())}
+
+
+def by_range(res, truth, mask, bins=(0.0, 30.0, 60.0, 100.0, 150.0, 300.0, np.inf)) -> list:
+    """Per true-range bin [lo, hi) (m): (lo, hi, pixels of ``mask``, median relative error, coverage) of ``res``."""
+    out = []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        sel = mask & (truth >= lo) & (truth < hi)
+        e, c = errors(res.range_m, truth, sel)
+        out.append((lo, hi, int(sel.sum()), e, c))
+    return out
+
+
 def z_spread(res, truth, mask, flag=None) -> float:
     """Robust spread (1.4826 MAD) of the z-scores (rho - 1/truth) / sigma of the pixels with truth, a finite range
     and ``flag`` (default VALID); NaN under 10 such pixels."""
@@ -212,6 +243,13 @@ def run_case(case: SeqCase, out: list) -> dict:
             row["z_by_range"], row["z_by_range_dense_newest"] = [list(r) for r in zf], [list(r) for r in zd]
             print(z_range_line(zf, "      fused z by true range (VALID)"))
             print(z_range_line(zd, "      dense newest z by true range (VALID)"))
+            rf, rd = by_range(res, truth, mask), by_range(singles["dense newest"], truth, mask)
+            print("      error, coverage by true range: fused | dense newest: " + "; ".join(
+                f"{lo:g}-{hi:g} m ({npx} px) {fmt(e, c).strip()} | {fmt(*d[3:]).strip()}"
+                for (lo, hi, npx, e, c), d in zip(rf, rd)))
+            why = uncovered_reasons(res, runner.states[v.camera.name], mask, case.config.output.eta_inlier)
+            row["uncovered"] = why
+            print("      pixels with truth and no fused range: " + ", ".join(f"{k2} {v2}" for k2, v2 in why.items()))
         for name, r in singles.items():
             if not np.isfinite(row[name][0]):
                 j = k - 1 if "newest" in name else jw

@@ -1,0 +1,52 @@
+"""bench fuse's diagnosis of the fused map: why pixels with truth have no range, and error / coverage by true range,
+on hand-built states whose answer is known cell by cell."""
+import numpy as np
+
+from eonav.app.bench_fuse import by_range, uncovered_reasons
+from eonav.geometry.camera import Camera, VehicleState
+from eonav.fusion.state import InverseRangeState
+from eonav.ranging.rangemap import OCCLUDED, TRUNCATION, VALID, RangeResult
+
+
+def _state_and_map():
+    c = Camera(name="c", width=20, height=20, fx=20.0, fy=20.0, cx=9.5, cy=9.5)
+    st = InverseRangeState.empty(c, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], 0.0), 0.0)
+    rng = np.full((20, 20), 10.0, np.float32)
+    # uncovered cells (no range in the map), one kind each, all at least 5 px from the border but (19, 10)
+    rng[10, 10] = np.nan; st.rho[10, 10] = 0.01; st.a[10, 10], st.b[10, 10] = 6.6, 3.4     # agrees (0.66): loose
+    rng[10, 11] = np.nan; st.rho[10, 11] = 0.01; st.a[10, 11], st.b[10, 11] = 6.4, 3.6     # 0.64: disagrees
+    rng[10, 12] = np.nan; st.flags[10, 12] = OCCLUDED                                         # empty, hidden in b
+    rng[10, 13] = np.nan; st.flags[10, 13] = TRUNCATION
+    rng[10, 14] = np.nan                                                                      # empty, other
+    rng[19, 10] = np.nan                                                                      # empty at the border
+    res = RangeResult(range_m=rng, confidence=rng, method="fused", inv_range_per_m=1 / rng,
+                      inv_range_std_per_m=np.full((20, 20), 1e-3, np.float32), flags=np.full((20, 20), VALID, np.uint8))
+    return st, res
+
+
+def test_uncovered_pixels_are_counted_by_their_reason():
+    st, res = _state_and_map()
+    mask = np.ones((20, 20), bool)
+    why = uncovered_reasons(res, st, mask, eta_inlier=0.65, border_px=4)
+    assert why == {"uncovered": 6, "loose": 1, "disagree": 1, "empty_occluded": 1, "empty_truncation": 1,
+                   "empty_other": 2, "border": 1}
+    # the inlier threshold moved past the loose cell's 0.66: it disagrees too
+    assert uncovered_reasons(res, st, mask, eta_inlier=0.67, border_px=4)["disagree"] == 2
+    # pixels without truth are not counted; the border band takes (19, 10) only when it reaches it
+    mask[10, 14] = False
+    why = uncovered_reasons(res, st, mask, eta_inlier=0.65, border_px=0)
+    assert why["uncovered"] == 5 and why["empty_other"] == 1 and why["border"] == 0
+    # a band of 6 px reaches (10, 14) (5 px from the right border) as well
+    mask[10, 14] = True
+    assert uncovered_reasons(res, st, mask, eta_inlier=0.65, border_px=6)["border"] == 2
+
+
+def test_error_and_coverage_by_true_range():
+    st, res = _state_and_map()
+    truth = np.full((20, 20), 8.0, np.float32)          # 10 m reported: 25 % error
+    truth[:5] = 200.0                                     # rows 0-4 far: 95 % error
+    rows = by_range(res, truth, np.ones((20, 20), bool), bins=(0.0, 150.0, np.inf))
+    (lo0, hi0, n0, e0, c0), (lo1, hi1, n1, e1, c1) = rows
+    assert (lo0, hi0, n0, lo1, hi1, n1) == (0.0, 150.0, 300, 150.0, np.inf, 100)
+    assert abs(e0 - 0.25) < 1e-6 and abs(c0 - 294 / 300) < 1e-9
+    assert abs(e1 - 0.95) < 1e-6 and c1 == 1.0
