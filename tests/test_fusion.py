@@ -773,3 +773,24 @@ def test_bench_fusion_time_reports_both_runners_against_the_plain_locate():
     assert 1 <= rows[0]["frames"] <= 3           # frames 2-4 where the pair policy found a pair
     assert all(rows[0][f"{n}_{k}_ms"] > 0 for n in ("plain", "serial", "beside") for k in ("wall", "cpu"))
     assert out.getvalue().count("the same maps") == 1 and "80x60 (scale 0.5): no frame" in out.getvalue()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_long_run_of_agreeing_measurements_keeps_the_cells_evidence_finite(kernels):
+    # 300 tight measurements in a row that all agree: b decays by ~8/9 a step; below ~1e-5 the Beta's moment match
+    # cancels in float32 (a_new inf, then NaN: the cell emptied itself) unless b is kept at least B_MIN
+    rng = np.random.default_rng(7)
+    w, h = 20, 16
+    cam = Camera("c", w, h, 40.0, 40.0, (w - 1) / 2, (h - 1) / 2)
+    st = InverseRangeState.empty(cam, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], 0.0), 0.0)
+    st.rho[...], st.var[...] = 0.02, 0.001 ** 2
+    st.a[...], st.b[...], st.n[...] = 7.0, 1.0, 30
+    flags = np.full(st.shape, VALID, np.uint8)
+    std_m = np.full(st.shape, 0.0002, np.float32)
+    for _ in range(300):
+        rho_m = (0.02 + 0.0002 * rng.standard_normal(st.shape)).astype(np.float32)
+        update(st, rho_m, std_m, flags, UpdateConfig(), kernels=kernels)
+    assert np.isfinite(st.rho).all() and np.isfinite(st.a).all() and np.isfinite(st.b).all()
+    assert (st.n == 330).mean() >= 0.98
+    assert (st.a / (st.a + st.b) > 0.99).all()
+    assert np.abs(st.rho - 0.02).max() < 0.0002

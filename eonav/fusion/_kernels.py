@@ -187,7 +187,7 @@ def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
 def update(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm):
     """update.update's arithmetic in place: every pixel's flags taken from the measurement's, and each measured one
     (``update.measured``; bits: VALID | FILLED, VALID, WEAK_BITS (0: no weak measurements), ILL_CONDITIONED) fused.
-    prm: float32 (max_rel_std, sigma_scale, rho_max, a_init, b_init, evidence_cap, eta_outlier). Returns (measured,
+    prm: float32 (max_rel_std, sigma_scale, rho_max, a_init, b_init, evidence_cap, eta_outlier, b_min). Returns (measured,
     started, inliers, outliers, restarted)."""
     cnt = np.zeros(5, np.int64)
     buf = np.empty((5, rho.shape[1]), np.float32)
@@ -236,6 +236,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
     garbage, never used), then per cell which of it applies."""
     w = rho.shape[1]
     max_rel_std, s, rho_max, a_init, b_init, cap, eta_outlier = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
+    b_min = prm[7]
     inv_u = np.float32(1.0) / rho_max
     inv_2pi = np.float32(1.0 / (2.0 * math.pi))
     one = np.float32(1.0)
@@ -272,7 +273,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         b_mu[x] = c1 * m + c2 * mu
         b_s2[x] = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
         b_a[x] = a_new * k
-        b_b[x] = b_new * k
+        b_b[x] = max(b_new * k, b_min)
         b_c1[x] = c1
     for x in range(w):
         fm = flags_m[y, x]

@@ -21,6 +21,9 @@ Beyond the published filter, for a stream that never ends and a scene that may m
 - the evidence is a window: when a + b exceeds ``evidence_cap`` both are scaled down to it (the inlier ratio of
   about the last ``evidence_cap`` measurements, so a cell whose point changed -- a moving object -- loses its
   confidence in a few frames instead of never);
+- b is kept at least ``B_MIN``: after ~100 agreeing measurements in a row b falls to ~1e-5, where the Beta's
+  variance (~a b / (a + b)^3) is below float32's resolution of f, f - e / f cancels to 0 and a_new becomes inf, then
+  NaN (the cell emptied itself);
 - a cell whose inlier ratio falls below ``eta_outlier`` (diverged) restarts from the measurement;
 - an empty cell starts from its first measurement (mu = x, s^2 = tau^2, Beta(a_init, b_init)).
 Measured pixels update, the rest keep their prediction: VALID ones (not FILLED), and, with ``weak`` (default),
@@ -57,6 +60,7 @@ from eonav.ranging.rangemap import (FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUD
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
 
 
+B_MIN = 1e-4       # the least b (module docstring): E[inlier ratio] at most 1 - B_MIN / evidence_cap
 # a weak measurement: of these bits only ILL_CONDITIONED set
 WEAK_BITS = np.uint8(VALID | FILLED | ILL_CONDITIONED | LOW_TEXTURE | OUT_OF_VIEW | OCCLUDED | TRUNCATION)
 
@@ -109,7 +113,7 @@ def kernel_params(cfg: UpdateConfig):
     """(bits, prm) of ``_kernels.update``."""
     bits = np.array([VALID | FILLED, VALID, WEAK_BITS if cfg.weak else 0, ILL_CONDITIONED], np.uint8)
     prm = np.array([cfg.max_rel_std, cfg.sigma_scale, cfg.rho_max_per_m, cfg.a_init, cfg.b_init, cfg.evidence_cap,
-                    cfg.eta_outlier], F32)
+                    cfg.eta_outlier, B_MIN], F32)
     return bits, prm
 
 
@@ -190,7 +194,7 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     over = tot > F32(cfg.evidence_cap)
     k = np.where(over, F32(cfg.evidence_cap) / tot, F32(1.0))
     a *= k
-    b *= k
+    b = np.maximum(b * k, F32(B_MIN))
     diverged = a / (a + b) < F32(cfg.eta_outlier)
     mu = np.where(diverged, x, mu)
     s2 = np.where(diverged, tau * tau, s2)
