@@ -288,3 +288,22 @@ def test_locator_pair_checks_rejects_a_bad_limit():
     args = p.parse_args(["--pair-checks", "--max-pose-shift-px", "0"])
     with pytest.raises(InputError, match="--max-pose-shift-px must be > 0"):
         locator.fusion_runner(args, {})
+
+
+def test_recent_tracks_reuses_only_the_same_arrays():
+    """The memo returns the tracks of the same two arrays (equal to track_points' own), tracks an equal copy or
+    the swapped pair anew, and forgets the oldest pair beyond its size."""
+    from eonav.ranging.tracks import RecentTracks
+    img = texture(120, 160, seed=3)
+    b = np.roll(img, 2, axis=1)
+    memo = RecentTracks(size=2)
+    t1 = memo(img, b)
+    direct = track_points(img, b)
+    assert np.array_equal(t1.pts_a, direct.pts_a) and np.array_equal(t1.pts_b, direct.pts_b)
+    assert memo(img, b) is t1 and memo.hits == 1
+    assert memo(img.copy(), b) is not t1 and memo.hits == 1        # an equal copy is another image
+    t_other = memo(img, np.roll(img, 3, axis=0))                   # the same image a, another image b
+    assert t_other is not t1 and memo.hits == 1
+    assert np.median(t_other.pts_b[:, 1] - t_other.pts_a[:, 1]) == pytest.approx(3.0, abs=0.2)
+    assert memo(img, b) is not t1                                  # pushed out by the two after it
+    assert RecentTracks(size=0)(img, b) is not RecentTracks(size=0)(img, b)

@@ -336,7 +336,7 @@ def run(args) -> int:
 
     import cv2
 
-    from eonav.ranging.methods.dense import prepare_kernels
+    from eonav.fusion.sequence import prepare_kernels      # the dense method's kernels and the fusion's passes
     from eonav.io.datasets import default_data_dir
     cv2.setNumThreads(args.cv_threads)
     prepare_kernels()

@@ -14,7 +14,8 @@ that one pair alone does not need but a filter fusing many does.
    pair's sigma at its word would fuse the pairs' pose errors as if they were independent image noise: a pair of a
    few pixels of parallax with a pixel of pose error would count as a good one.
 
-The tracks cost a few milliseconds per pair (``track_points``); the figures are in docs/methods.md.
+The tracks cost a few milliseconds per pair (``track_points``; the pair the scheduler's pose check tracked already is
+not tracked again, ``recent_tracks``); the figures are in docs/methods.md.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from eonav.geometry.camera import View, pair_geometry
 from eonav.ranging.methods._common import EpipolarMap
 from eonav.ranging.photometric import match_brightness
 from eonav.ranging.rangemap import RangeResult
-from eonav.ranging.tracks import pose_shift_px, track_points
+from eonav.ranging.tracks import pose_shift_px, recent_tracks
 
 
 def add_pose_sigma(res: RangeResult, geo, shift_px: float) -> None:
@@ -50,7 +51,7 @@ def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_s
     """The dense method on (a, b) without its fill, after the brightness match, its sigma with the pose term
     (module docstring); ``res.info["pair_check"]``: the brightness fit and the pose shift."""
     from eonav.ranging.methods.dense import locate_dense
-    tracks = track_points(view_a.image, view_b.image) if (brightness or pose_sigma) else None
+    tracks = recent_tracks(view_a.image, view_b.image) if (brightness or pose_sigma) else None
     check = {}
     if brightness:
         view_b, fit = match_brightness(view_a, view_b, tracks)

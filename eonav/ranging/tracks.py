@@ -63,6 +63,32 @@ def track_points(img_a: np.ndarray, img_b: np.ndarray, *, max_points: int = 200,
     return Tracks((pts[ok] * scale).astype(np.float32), (pb[ok] * scale).astype(np.float32))
 
 
+class RecentTracks:
+    """``track_points`` of the last ``size`` image pairs, looked up by the arrays' identity: the fusion's scheduler
+    tracks each frame against the camera's previous one (its pose check) and the measurement of that same pair
+    tracks it again (its pair checks); the second call gets the first's tracks (the same values). It holds the
+    images it saw, so an identity names the same array while it is held; the images must not be edited in place
+    after they are tracked (a View's image is not)."""
+
+    def __init__(self, size: int = 2):
+        self.size = int(size)
+        self._held: list = []            # (img_a, img_b, tracks), newest last
+        self.hits = 0
+
+    def __call__(self, img_a: np.ndarray, img_b: np.ndarray) -> Tracks:
+        for a, b, t in self._held:
+            if a is img_a and b is img_b:
+                self.hits += 1
+                return t
+        t = track_points(img_a, img_b)
+        self._held = (self._held + [(img_a, img_b, t)])[len(self._held) + 1 - self.size:] if self.size > 0 else []
+        return t
+
+
+recent_tracks = RecentTracks()
+"""The process's memo of the default ``track_points`` (one thread: the fusion runner's)."""
+
+
 def epipolar_residual_px(geo: PairGeometry, tracks: Tracks):
     """(d, normal): signed distance (px of b) of each match from its point's epipolar line under the pair's pose
     and the unit normal of that line (n x 2); NaN where the pose puts the point behind b or the pair has no
@@ -122,4 +148,4 @@ def pose_shift_px(geo: PairGeometry, tracks: Tracks, min_tracks: int = 20, min_s
     return float(np.hypot(*s))
 
 
-__all__ = ["Tracks", "track_points", "epipolar_residual_px", "pose_shift_px", "tukey_weights"]
+__all__ = ["Tracks", "track_points", "RecentTracks", "recent_tracks", "epipolar_residual_px", "pose_shift_px", "tukey_weights"]
