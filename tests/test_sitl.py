@@ -516,13 +516,16 @@ def test_px4_position_mode_full_stick_stops_before_a_wall(px4_loop):
     yaw_drift = math.degrees(np.abs((yaws - yaw0 + np.pi) % (2 * np.pi) - np.pi).max())
     print(f"PX4: {fwd.max():.2f} m ahead, closest {closest:.2f} m to the wall, back {-fwd.min():.2f} m, "
           f"across {np.abs(side).max():.2f} m, top speed {v_fwd.max():.2f} m/s, end speed {v_fwd[-1]:.2f} m/s, "
-          f"heading drift {yaw_drift:.1f} deg; collision_constraints {constraints}")
+          f"heading drift {yaw_drift:.1f} deg, top ground speed {np.hypot(track[:, 3], track[:, 4]).max():.2f} m/s; "
+          f"collision_constraints {constraints}")
     assert fwd.max() > 4.0, "the vehicle did not fly towards the wall at all"
     assert closest > 2.0, f"came within {closest:.2f} m of the wall (CP_DIST 3 m)"
     assert fwd.min() > -1.0, f"flew {-fwd.min():.2f} m backwards (full forward stick)"
-    # along the wall is allowed: the heading drifts a few degrees in 10 s (printed), the wall is then no longer square
-    # to the stick and PX4's guidance (CP_GUIDE_ANG) slides along it. A fly-away (the HFOV/72 layout: ~57 m at up to
-    # 9.7 m/s) leaves this circle within seconds
-    assert np.hypot(fwd, side).max() < 15.0, f"flew {np.hypot(fwd, side).max():.2f} m away from the start"
+    # along the wall is allowed: the heading drifts 10-16 deg in 10 s (printed), the wall is then no longer square
+    # to the stick and PX4's guidance (CP_GUIDE_ANG) slides along it at ~2 m/s (seen: 8.8-12.7 m across). A fly-away
+    # (the HFOV/72 layout: ~57 m at up to 9.7 m/s) is faster than any slide and leaves this circle within seconds
+    speed = np.hypot(track[:, 3], track[:, 4])
+    assert speed.max() < 5.0, f"flew at {speed.max():.2f} m/s (a fly-away: the sliding along the wall is ~2 m/s)"
+    assert np.hypot(fwd, side).max() < 25.0, f"flew {np.hypot(fwd, side).max():.2f} m away from the start"
     # stopped, or backing off to CP_DIST (PX4 pushes the vehicle back out when it is nearer), but not closing in
     assert v_fwd[-1] < 0.5, f"still closing in on the wall at {v_fwd[-1]:.2f} m/s after 10 s of full stick"
