@@ -81,7 +81,7 @@ class RecentTracks:
                 self.hits += 1
                 return t
         t = track_points(img_a, img_b)
-        self._held = (self._held + [(img_a, img_b, t)])[len(self._held) + 1 - self.size:] if self.size > 0 else []
+        self._held = (self._held + [(img_a, img_b, t)])[-self.size:] if self.size > 0 else []
         return t
 
 
