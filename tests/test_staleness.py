@@ -91,6 +91,9 @@ def test_frame_age_field_on_range_maps_and_obstacle_lists():
     assert o["frame_age_ms"] == 7.0
     assert schema.decode(schema.encode("obstacle_list", stamp_us=1, obstacles=[],
                                        frame_age_ms=-schema.MAX_AGE_MS))["frame_age_ms"] == -schema.MAX_AGE_MS
+    # a replay of a week-old recording with the age gates lifted (the golden recording's replay): a real age
+    week_ms = 7 * 86_400_000.0
+    assert schema.decode(schema.encode("range_map", **_map_fields(frame_age_ms=week_ms)))["frame_age_ms"] == week_ms
     for bad in (math.inf, schema.MAX_AGE_MS * 1.001):
         with pytest.raises(schema.SchemaError, match="frame_age_ms") as e:
             schema.decode(schema.encode("obstacle_list", stamp_us=NOW_US, obstacles=[], frame_age_ms=bad))

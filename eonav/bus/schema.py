@@ -39,7 +39,9 @@ MAX_POSITION_M = 1.0e7            # 10 000 km from the local origin
 MAX_SPEED_MPS = 1.0e4
 MAX_RATE_RADPS = 100.0
 MAX_IMAGE_SIDE_PX = 16384
-MAX_AGE_MS = 86_400_000.0         # a frame age of more than a day is a broken clock, not a measurement
+# the age of any stamp the schema accepts: a replayed recording's frames are as old as the recording (the services'
+# freshness gates, not the schema, decide what is too old: docs/bus.md, "Staleness")
+MAX_AGE_MS = MAX_STAMP_US / 1e3
 IMAGE_ENCODINGS = {"mono8": (np.uint8, 1), "mono16": (np.uint16, 1), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3)}
 FLOAT_DTYPES = ("float16", "float32", "float64")
 
