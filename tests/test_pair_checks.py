@@ -204,6 +204,33 @@ def test_pose_sigma_term_against_a_numerical_derivative_of_the_map():
     assert np.allclose(r.inv_range_std_per_m[inner], expect[inner], rtol=0.02)
 
 
+def test_pose_sigma_pass_equals_the_numpy_reference_bit_for_bit():
+    # a general pair moving towards the scene (den <= 0 for the nearest rho), with NaN rho, inf and NaN sigma, rho
+    # beyond the den limit: the numba pass gives the numpy reference's float32 values exactly, pixel by pixel
+    from eonav.fusion.measure import _pose_sigma_numpy
+    from eonav.fusion.state import optional_kernels
+    if optional_kernels() is None:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    cam_a = Camera("a", 97, 71, 90.0, 91.0, 47.3, 35.6)
+    cam_b = Camera("b", 97, 71, 88.0, 89.5, 48.1, 34.9)
+    a = View(cam_a, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((71, 97), np.float32))
+    b = View(cam_b, VehicleState.from_ypr([1.2, 0.3, -0.2], np.radians([3.0, -2.0, 1.0])), np.zeros((71, 97), np.float32))
+    geo = pair_geometry(a, b)
+    rng = np.random.default_rng(5)
+    rho = rng.uniform(0.0, 1.5, (71, 97)).astype(np.float32)      # den = A0 + B0 rho < 0 beyond ~0.8 (B0 -1.2)
+    std = rng.uniform(1e-4, 0.05, (71, 97)).astype(np.float32)
+    rho[rng.random(rho.shape) < 0.05] = np.nan
+    std[rng.random(std.shape) < 0.05] = np.inf
+    std[rng.random(std.shape) < 0.02] = np.nan
+    for shift in (0.37, 2.5):
+        r = SimpleNamespace(inv_range_per_m=rho, inv_range_std_per_m=std.copy())
+        add_pose_sigma(r, geo, shift)
+        ref = std.copy()
+        _pose_sigma_numpy(rho, ref, geo, shift)
+        assert np.array_equal(r.inv_range_std_per_m.view(np.uint32), ref.view(np.uint32))
+        assert (ref > std).sum() > 0.3 * rho.size and (ref == std).sum() > 0.3 * rho.size   # both kinds of pixel
+
+
 def test_bench_reason_for_a_pair_without_output():
     # camera b 0.5 m to the right of a (R = I), a wall 5 m ahead: every pixel moves f b / 5 = 8 px along the row
     from eonav.app.bench_fuse import no_output_reason

@@ -1,8 +1,9 @@
 """Fused per-pixel passes (numba) of the filter: the forward warp with its z-buffer and the crack closing
-(``predict``), and the Gaussian x uniform update (``update``). The numpy paths of those modules are the reference
-and do the same arithmetic in ~40 full-array passes each; these sweep the image once, per row first the arithmetic
-of every cell in a branch-free loop (LLVM vectorises it; a cell it does not apply to computes values never used),
-then the per-cell choices. tests/test_fusion.py compares the two.
+(``predict``), the Gaussian x uniform update (``update``) and the measurement's pose term (``measure``). The numpy
+paths of those modules are the reference and do the same arithmetic in many full-array passes; these sweep the image
+once, per row first the arithmetic of every cell in a branch-free loop (LLVM vectorises it; a cell it does not apply
+to computes values never used), then the per-cell choices. tests/test_fusion.py and tests/test_pair_checks.py
+compare the two.
 
 Imported only when numba is installed (``eonav.ranging.methods._common.optional_kernels``); without it the numpy paths run.
 """
@@ -454,3 +455,28 @@ def prior_arrays(rho, var, a, b, n, eta_inlier, n_min, o_rho, o_std):
                 o_rho[y, x] = np.float32(np.nan)
                 o_std[y, x] = np.float32(np.inf)
     return cnt
+
+
+@njit(**_JIT)
+def pose_sigma(rho, std, ra, ca, B, fxb, fyb, s):
+    """``eonav.fusion.measure.add_pose_sigma`` in one branch-free pass, in place on std: sigma^2 += (s den^2 / |C|)^2
+    where rho and sigma are finite and den = A0 + B0 rho > 0. The epipolar map's A_i = ra[i, x] + ca[i, y] (its row
+    and column parts, float32, as ``EpipolarMap.build`` sums them) and C per pixel, in the numpy path's float32 order
+    (no fastmath), |C| as glibc's hypotf computes it: the same values bit for bit (tests/test_pair_checks.py), and a
+    loop LLVM vectorises (a libm hypotf call per pixel took 3 x as long)."""
+    B0, B1, B2 = B[0], B[1], B[2]
+    for y in range(rho.shape[0]):
+        a0, a1, a2 = ca[0, y], ca[1, y], ca[2, y]
+        for x in range(rho.shape[1]):
+            r = rho[y, x]
+            sd = std[y, x]
+            A0 = ra[0, x] + a0
+            den = A0 + B0 * r
+            c1 = fxb * (B1 * A0 - B0 * (ra[1, x] + a1))
+            c2 = fyb * (B2 * A0 - B0 * (ra[2, x] + a2))
+            # |C| as glibc's hypotf: the float64 sum of the exact squares, its root rounded to float32
+            hc = np.float32(math.sqrt(np.float64(c1) * np.float64(c1) + np.float64(c2) * np.float64(c2)))
+            e = s * den * den / hc
+            new = np.sqrt(sd * sd + e * e)
+            ok = np.isfinite(r) and np.isfinite(sd) and den > 0
+            std[y, x] = new if ok else sd

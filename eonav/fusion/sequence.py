@@ -417,6 +417,8 @@ def prepare_kernels() -> None:
     if K is not None:       # the prior of a measurement (``FusionRunner.prior``), whether the probe reached it or not
         K.prior_arrays(st.rho, st.var, st.a, st.b, st.n, F32(0.65), 2, np.empty(st.shape, F32),
                        np.empty(st.shape, F32))
+        one = np.ones((3, 2), F32)     # the pair checks' pose term (``measure.add_pose_sigma``), off by default
+        K.pose_sigma(one[:2], one[:2].copy(), one, one, one[:, 0].copy(), F32(1.0), F32(1.0), F32(1.0))
     fused_map(st, probe.config.output)     # the map of a frame without a measurement (its own classification pass)
 
 
