@@ -334,3 +334,22 @@ def test_recent_tracks_reuses_only_the_same_arrays():
     assert np.median(t_other.pts_b[:, 1] - t_other.pts_a[:, 1]) == pytest.approx(3.0, abs=0.2)
     assert memo(img, b) is not t1                                  # pushed out by the two after it
     assert RecentTracks(size=0)(img, b) is not RecentTracks(size=0)(img, b)
+
+
+def test_recent_pose_shifts_reuse_only_the_same_tracks_and_geometry():
+    """The memo returns pose_shift_px's own value, again for the same tracks with an equal geometry (a fresh
+    pair_geometry of the same views), and fits anew for equal-valued copies of the tracks or another pose."""
+    from eonav.ranging.tracks import RecentShifts
+    va, vb = _plane_pair(192)
+    vr = _rotated(vb, 0.5)
+    tr = track_points(va.image, vr.image)
+    memo = RecentShifts(size=2)
+    s1 = memo(pair_geometry(va, vr), tr)
+    assert s1 == pose_shift_px(pair_geometry(va, vr), tr) and s1 > 0.5        # 0.5 deg of yaw: ~1.3 px
+    assert memo(pair_geometry(va, vr), tr) == s1 and memo.hits == 1
+    copy = Tracks(tr.pts_a.copy(), tr.pts_b.copy())
+    assert memo(pair_geometry(va, vr), copy) == s1 and memo.hits == 1          # same values, fitted anew
+    other = memo(pair_geometry(va, vb), tr)                                     # the exact pose: another shift
+    assert other == pose_shift_px(pair_geometry(va, vb), tr) and other < 0.5 * s1 and memo.hits == 1
+    memo(pair_geometry(va, vr), tr)
+    assert memo.hits == 1                                                       # pushed out by the two after it

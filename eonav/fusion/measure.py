@@ -15,7 +15,8 @@ that one pair alone does not need but a filter fusing many does.
    few pixels of parallax with a pixel of pose error would count as a good one.
 
 The tracks cost a few milliseconds per pair (``track_points``; the pair the scheduler's pose check tracked already is
-not tracked again, ``recent_tracks``); the figures are in docs/methods.md.
+not tracked again, ``recent_tracks``, nor its shift fitted again, ``recent_pose_shift``); the figures are in
+docs/methods.md.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from eonav.fusion.state import F32, optional_kernels
 from eonav.ranging.methods._common import EpipolarMap
 from eonav.ranging.photometric import match_brightness
 from eonav.ranging.rangemap import RangeResult
-from eonav.ranging.tracks import pose_shift_px, recent_tracks
+from eonav.ranging.tracks import recent_pose_shift, recent_tracks
 
 
 def add_pose_sigma(res: RangeResult, geo, shift_px: float) -> None:
@@ -77,7 +78,7 @@ def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_s
     res = locate_dense(view_a, view_b, fill=False, **dense_params)
     if pose_sigma:
         geo = pair_geometry(view_a, view_b)
-        shift = pose_shift_px(geo, tracks)
+        shift = recent_pose_shift(geo, tracks)
         add_pose_sigma(res, geo, shift)
         check.update(pose_shift_px=shift, tracks=len(tracks))
     res.info["pair_check"] = check

@@ -169,11 +169,12 @@ class Scheduler:
 
     def _check_pose(self, f, prev) -> None:
         """The pose shift between ``f`` and the camera's previous frame, kept as f's "before" and prev's "after"."""
-        from eonav.ranging.tracks import pose_shift_px, recent_tracks
+        from eonav.ranging.tracks import recent_pose_shift, recent_tracks
         from eonav.geometry.camera import pair_geometry
         s = math.nan
         if prev is not None and isinstance(f.payload, View) and isinstance(prev.payload, View):
-            s = pose_shift_px(pair_geometry(f.payload, prev.payload), recent_tracks(f.payload.image, prev.payload.image))
+            s = recent_pose_shift(pair_geometry(f.payload, prev.payload),
+                                  recent_tracks(f.payload.image, prev.payload.image))
         if len(self._shift) > 4 * self.config.history * max(len(self._hist), 1):
             live = {id(x) for h in self._hist.values() for x in h}
             self._shift = {k: v for k, v in self._shift.items() if k in live}

@@ -148,4 +148,38 @@ def pose_shift_px(geo: PairGeometry, tracks: Tracks, min_tracks: int = 20, min_s
     return float(np.hypot(*s))
 
 
-__all__ = ["Tracks", "track_points", "RecentTracks", "recent_tracks", "epipolar_residual_px", "pose_shift_px", "tukey_weights"]
+class RecentShifts:
+    """``pose_shift_px`` of the last ``size`` (tracks, pair geometry) asked for, looked up by the tracks' identity and
+    the geometry's values (relative pose and both cameras' intrinsics, bit for bit): the fusion's scheduler measures
+    each frame's shift to the camera's previous one (its pose check) and the measurement of that same pair asks
+    again with the same tracks (``recent_tracks``) and an equal geometry; the second call gets the first's value.
+    It holds the tracks it saw, so an identity names the same tracks while they are held."""
+
+    def __init__(self, size: int = 2):
+        self.size = int(size)
+        self._held: list = []            # (tracks, geometry key, shift), newest last
+        self.hits = 0
+
+    @staticmethod
+    def _key(geo: PairGeometry) -> tuple:
+        ca, cb = geo.cam_a, geo.cam_b
+        return (np.asarray(geo.R_ba, float).tobytes(), np.asarray(geo.t_ba_m, float).tobytes(),
+                (ca.fx, ca.fy, ca.cx, ca.cy), (cb.fx, cb.fy, cb.cx, cb.cy))
+
+    def __call__(self, geo: PairGeometry, tracks: Tracks) -> float:
+        key = self._key(geo)
+        for t, k, s in self._held:
+            if t is tracks and k == key:
+                self.hits += 1
+                return s
+        s = pose_shift_px(geo, tracks)
+        self._held = (self._held + [(tracks, key, s)])[-self.size:] if self.size > 0 else []
+        return s
+
+
+recent_pose_shift = RecentShifts()
+"""The process's memo of the default ``pose_shift_px`` (one thread: the fusion runner's)."""
+
+
+__all__ = ["Tracks", "track_points", "RecentTracks", "recent_tracks", "epipolar_residual_px", "pose_shift_px",
+           "RecentShifts", "recent_pose_shift", "tukey_weights"]
