@@ -365,6 +365,7 @@ def _forge(sessions: dict, stop: threading.Event, counts: dict) -> None:
             counts[kind] = counts.get(kind, 0) + 1
 
 
+@pytest.mark.pipeline
 def test_pipeline_under_eonav_run_access_control(tmp_path):
     """Five real services under ``run_pipeline(acl_dir=...)`` (what ``eonav run --acl DIR`` / ``--secure`` call),
     while wrong users forge nav, obstacles, range maps and health: the pipeline ranges and finds the pole as

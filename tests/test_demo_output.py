@@ -156,6 +156,7 @@ def test_cache_is_per_user_and_run_folders_are_per_run(tmp_path, monkeypatch):
     assert D.new_run_dir().parent == tmp_path / "alice"
 
 
+@pytest.mark.pipeline
 def test_demo_command_writes_its_run_folder_where_it_is_run(tmp_path):
     pytest.importorskip("zenoh")
     home, work = tmp_path / "home", tmp_path / "work"

@@ -22,6 +22,8 @@ from eonav.app.demo import _wait_port, replay_shift_us  # noqa: E402
 from eonav.app.launcher import run_pipeline  # noqa: E402
 from eonav.app.processes import free_port, wait_until  # noqa: E402
 
+pytestmark = pytest.mark.pipeline   # real services against real-time budgets: one such test at a time
+
 VEHICLE = "faults"
 FPS = 5.0
 MAP_MAX_AGE_MS = 800.0          # the locator's default --max-input-age-ms

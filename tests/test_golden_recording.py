@@ -31,6 +31,7 @@ def test_golden_inputs_are_what_the_docs_say():
     assert (DATA / golden.INPUTS).stat().st_size + (DATA / golden.EXPECTED_NPZ).stat().st_size < 3_000_000
 
 
+@pytest.mark.pipeline
 def test_golden_replay_reproduces_the_committed_outputs(tmp_path):
     out = golden.run_services(DATA / golden.INPUTS, tmp_path)
     assert out["exit_codes"] == {"replay": 0, "sync": 0, "locator": 0, "obstacles": 0}, out["exit_codes"]

@@ -55,8 +55,11 @@ def latest_health(samples):
 
 
 def frame_publisher_when_up(s, health_sub, health: list, **options):
-    """A posed-frame publisher for camera "nose" (zenoh publisher ``options``), once both services sent health and the
-    locator subscribed."""
+    """A posed-frame publisher for camera "nose" (zenoh publisher ``options``; CongestionControl.BLOCK unless given:
+    these tests score what the services make of every frame, and a frame put with DROP was seen lost on a loaded
+    machine), once both services sent health and the locator subscribed."""
+    import zenoh
+    options.setdefault("congestion_control", zenoh.CongestionControl.BLOCK)
     pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"), **options)
     wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
                timeout=30, what="both services' first health message")
@@ -527,7 +530,7 @@ def test_a_backlog_is_skipped_to_the_newest_frame_and_counted():
         health = []
         # (blocking, not the default dropping publisher: every frame reaches the locator's ring, whose drops are
         # the ones counted)
-        pub = frame_publisher_when_up(s, health_sub, health, congestion_control=zenoh.CongestionControl.BLOCK)
+        pub = frame_publisher_when_up(s, health_sub, health)
 
         def counters():
             return latest_health(drain(health_sub, health)).get("locator", {}).get("counters", {})

@@ -4,8 +4,11 @@ obstacles) fed by ``eonav.sim.record.record_flight``; the demo's monitor scores 
 recording's ground truth (range per pixel, true box positions)."""
 import math
 
+import pytest
 
 from eonav.app.demo import format_summary, run_demo
+
+pytestmark = pytest.mark.pipeline   # real services against real-time budgets: one such test at a time
 
 SERVICES = ("camera", "mavlink", "sync", "locator", "obstacles")
 

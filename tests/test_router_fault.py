@@ -23,6 +23,8 @@ from eonav.app.launcher import run_pipeline  # noqa: E402
 from eonav.app.processes import free_port, start_router, stop_processes, wait_until  # noqa: E402
 from test_faults import FPS, Pipe, _listening  # noqa: E402
 
+pytestmark = pytest.mark.pipeline   # real services against real-time budgets: one such test at a time
+
 VEHICLE = "routerfault"
 RESTART_AFTER_S = 3.0     # past zenoh's own first retries (1 s, 3 s after the loss): with them 3.4 s late
 RECOVERY_S = 1.5          # router listening again -> obstacle lists through it (a retry every 0.5 s, a frame, work)

@@ -177,6 +177,7 @@ def test_video_with_recorded_stamps_replays_at_the_shift(rec, tmp_path):
 # ---- a real run ----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("source", ["frames", "nose.avi"])
+@pytest.mark.pipeline
 def test_eonav_run_poses_and_ranges_every_frame_of_a_recording(rec, tmp_path, source):
     pytest.importorskip("zenoh")
     from eonav.app.processes import free_port, start_service, wait_until
