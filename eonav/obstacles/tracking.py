@@ -43,9 +43,11 @@ UNDECIDED in between. A real obstacle moving away along the vehicle's path faste
 and is held too (a monocular camera ranges such a mover as static anyway).
 
 Life cycle: tentative -> confirmed after ``confirm_hits`` hits and a STATIC verdict; a tentative track dies at its
-first miss or when not confirmed within ``confirm_window_s``; any track dies at a FOLLOWS verdict; a confirmed track
-dies after ``max_misses`` consecutive misses, after ``max_coast_s`` without a hit, or when its position 1-sigma
-exceeds ``max_position_sigma_m``. Without a ``FieldOfView`` the tracker knows no vehicle motion and the test passes.
+first miss or when not confirmed within ``confirm_window_s``, unless the test is still deciding it (UNDECIDED with a
+drift inside the static band: then at its second consecutive miss or after ``follow_window_s``, ``still_deciding``);
+any track dies at a FOLLOWS verdict; a confirmed track dies after ``max_misses`` consecutive misses, after
+``max_coast_s`` without a hit, or when its position 1-sigma exceeds ``max_position_sigma_m``. Without a
+``FieldOfView`` the tracker knows no vehicle motion and the test passes.
 
 Guidance (``assess``): for each track predicted to the current time, the distance and the bearing in body FRD of the
 current pose, and the collision cone along the current velocity. The obstacle is a box in NED centred on the track
@@ -96,7 +98,9 @@ class TrackerConfig:
     initial_speed_sigma_mps: float = 10.0  # velocity 1-sigma of a new track (velocity starts at 0)
     gate_chi2: float = CHI2_3_999          # association gate on d^2 (3 dof)
     confirm_hits: int = 3                  # N: hits that confirm a tentative track
-    confirm_window_s: float = 1.0          # a tentative track not confirmed this long after birth dies
+    confirm_window_s: float = 1.0          # a tentative track not confirmed this long after birth dies (one the
+                                           # static-world test is still deciding: up to follow_window_s, and it
+                                           # outlives a single miss)
     max_misses: int = 6                    # M: consecutive in-view misses that delete a confirmed track
     max_coast_s: float = 5.0               # no hit this long (coasting out of view or occluded): deleted
     max_position_sigma_m: float = 25.0     # largest position 1-sigma (any axis) a track may reach
@@ -482,6 +486,19 @@ def drift_test(stamps_us, positions_ned_m, distances_m, own_velocity_ned_mps, cf
     return UNDECIDED, b, sb
 
 
+def still_deciding(verdict: str, drift_mps: float, age_s: float, speed_mps: float, cfg: TrackerConfig) -> bool:
+    """Whether the static-world test is still deciding a tentative track, which then outlives ``confirm_window_s``
+    and a single miss: its verdict UNDECIDED, its drift estimate inside the static band (|drift| below
+    ``follow_fraction`` of the vehicle's speed: more detections could still make it STATIC) and its age within the
+    test's own window, ``follow_window_s``. At 100 m the fused maps scatter a static obstacle's detections by 3-4 m,
+    and a fit over 1 s cannot tell a drift of 0 from 0.6 of 20 m/s at 3 sigma; a thin object is missed in single
+    maps. Killed at 1 s or at a miss, the track restarts its fit from nothing (docs/guidance.md, "Confirmation on
+    fused maps")."""
+    if verdict != UNDECIDED or not (math.isfinite(drift_mps) and math.isfinite(speed_mps)):
+        return False
+    return age_s <= cfg.follow_window_s and abs(drift_mps) < cfg.follow_fraction * speed_mps
+
+
 @lru_cache(maxsize=256)
 def student_k(k_normal: float, dof: int) -> float:
     """The Student-t quantile with ``dof`` degrees of freedom at the normal distribution's one-sided level of
@@ -758,7 +775,11 @@ class Tracker:
         if (stamp_us - t.last_hit_us) * 1e-6 > cfg.max_coast_s:
             return True
         if not t.confirmed:
-            return t.misses >= 1 or (stamp_us - t.born_us) * 1e-6 > cfg.confirm_window_s
+            age_s = (stamp_us - t.born_us) * 1e-6
+            vel = self._own[0]
+            speed = float(np.linalg.norm(vel)) if vel is not None else math.nan
+            deciding = still_deciding(t.verdict, t.drift_mps, age_s, speed, cfg)
+            return t.misses >= (2 if deciding else 1) or (age_s > cfg.confirm_window_s and not deciding)
         return t.misses >= cfg.max_misses
 
     def _new_track(self, m: Measurement, stamp_us: int) -> Track:
