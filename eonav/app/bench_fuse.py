@@ -12,6 +12,9 @@ what fusion adds to the locator's time (the median, and the sums: between full s
 the prior and costs less, ``eonav.fusion.sequence.PriorConfig``). Targets of issue 11 are printed with "met" / "NOT met". Figures, not
 assertions.
 
+``--match-blur``: the dense method's resolution match (``locate_dense(match_blur=True)``, off by default) in the
+fused measurements and the single pairs alike.
+
 Sequences: the paper replica flown 1 s at 30 fps (31 frames, 512 x 512, last frame = the preset's reference with
 the Table I vehicles), the "fast" preset and the approach flight at 30 fps; the real HoloLens indoor sequence (20
 frames, depth-sensor reference); KITTI 00 frames 5 -> 0 pushed as a reversing camera so that the last frame is frame
@@ -180,13 +183,24 @@ def fmt(e, c):
     return f"{100 * e:6.2f}% {100 * c:5.1f}%" if np.isfinite(e) else "     -       -  "
 
 
-def run_case(case: SeqCase, out: list) -> dict:
+def run_case(case: SeqCase, out: list, dense_params: dict | None = None) -> dict:
+    """One sequence (module docstring); ``dense_params``: options of the dense method (``locate_dense``) for the
+    fused measurements and the single pairs alike (e.g. match_blur=True)."""
+    from functools import partial
+
     from eonav.app.bench_locate import z_by_range, z_range_line
-    from eonav.fusion.sequence import FusionRunner, frame
+    from eonav.fusion.sequence import FusionRunner, dense_measurement, frame
     from eonav.ranging.locate import get_method
     from eonav.ranging.rangemap import FILLED, VALID
     dense, dis = get_method("dense"), get_method("dis")
-    runner = FusionRunner(case.config)
+    if dense_params:
+        dense = partial(dense, **dense_params)
+
+        def measure(a, b, **kw):          # the runner's default measurement with the options (and the pair checks)
+            return dense_measurement(a, b, pair_checks=case.config.pair_checks, **dense_params, **kw)
+        runner = FusionRunner(case.config, measure=measure, fresh_measurements=True, takes_prior=True)
+    else:
+        runner = FusionRunner(case.config)
     n = len(case.views)
     checks = set(case.checkpoints or (k for k in (1, 2, 3, 5, 10, 15, 20, 30) if k < n)) | {n - 1}
     w, h = case.views[0].camera.width, case.views[0].camera.height
@@ -325,6 +339,8 @@ def add_arguments(p):
     p.add_argument("--seed", type=int, default=0, help="sensor-noise seed of the simulated sequences")
     p.add_argument("--data", default=None, help="real data folder (default: shared/data beside the checkout)")
     p.add_argument("--no-real", action="store_true", help="skip the HoloLens and KITTI sequences")
+    p.add_argument("--match-blur", action="store_true",
+                   help="the dense method's resolution match (locate_dense(match_blur=True); off by default)")
     p.add_argument("--cv-threads", type=int, default=1, metavar="N",
                    help="OpenCV threads, cv2.setNumThreads(N) (default 1: one core)")
     p.add_argument("--threads", dest="cv_threads", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -358,7 +374,7 @@ def run(args) -> int:
     rows, summaries = [], {}
     for make in cases:
         case = make()
-        summaries[case.name] = run_case(case, rows)
+        summaries[case.name] = run_case(case, rows, {"match_blur": True} if args.match_blur else None)
     print_targets(summaries)
     if args.json:
         with open(args.json, "w") as f:

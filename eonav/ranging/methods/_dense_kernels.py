@@ -1084,3 +1084,27 @@ def model_error_finish(rho, rs, k, S, M, inv_g2, m1, m0J, rx2, rx1, ry2, ry1, ha
                 conf[y, x] = _ZERO
                 lost += 1
     return lost
+
+
+@njit(**_JIT)
+def blend_ladder(need, rungs, v, out):
+    """dense._match_blur's per-pixel blend: out = the linear interpolation in variance between rungs[k] and
+    rungs[k + 1] (Gaussian blurs of one image of variances v[k] < v[k + 1]) with need in (v[k], v[k + 1]]; need at
+    or below v[0] takes rungs[0], above the last rung's variance the last rung."""
+    h, w = need.shape
+    n = v.shape[0]
+    for y in range(h):
+        for x in range(w):
+            q = need[y, x]
+            if q <= v[0]:
+                out[y, x] = rungs[0, y, x]
+                continue
+            if q >= v[n - 1]:
+                out[y, x] = rungs[n - 1, y, x]
+                continue
+            k = 0
+            while q > v[k + 1]:
+                k += 1
+            f = (q - v[k]) / (v[k + 1] - v[k])
+            lo = rungs[k, y, x]
+            out[y, x] = lo + f * (rungs[k + 1, y, x] - lo)

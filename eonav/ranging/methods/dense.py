@@ -387,7 +387,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
                  prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = False,
                  slant_curv: float = 0.05, window_noise: bool = True, centroid: bool = True,
-                 window_floor: str = "global") -> RangeResult:
+                 window_floor: str = "global", match_blur: bool = False) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -488,6 +488,15 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     Table I vehicles -0.5 / +2.3 / +0.7 %; +1.5 % locate time. At every level (level 0 too) the gains were the
     same at +6 % time; at 3 px with ratio 0.5 the small far Table I vehicle went +2.3 -> +7.4 %; without the ratio
     (least cost wins) the sim medians rose (noise picks the window).
+    match_blur: at level 0, image a blurred per pixel as much as image b is in a's pixels (``_match_blur``): b's
+    texture reaches the match through b's own pixels and pre-smoothing, scaled by the map's local magnification,
+    and through the bilinear interpolation of the warp, a's through neither. Brightness constancy then fails by a
+    blur difference tied to the texture, the same in every pair of a forward flight (b farther, its texture
+    smaller), which fusion cannot average. Only a is blurred (b finer than a, a camera moving away, is left as it
+    was). Off by default: it lowers the fused maps' error on every sequence (docs/methods.md, "The resolution
+    match"), but their sigma, not recalibrated for it, then over-reports more (the held-out flight of
+    tests/test_fusion.py: z spread 0.86 -> 0.72), and the fused map's slant term that would restore it leaves far
+    ground's sigma too tight.
     fill: pixels without a measurement (low texture, ill-conditioned, out of view of b; not occluded or truncated)
     get an inverse range inferred from the measured ones around them (``eonav.ranging.methods.fill``: plane fits in
     windows growing by octaves, sigma from the fit and its disagreement across scales), flagged FILLED (not VALID),
@@ -568,7 +577,11 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         n_it = max(iters[L - lev], 1 if lev == 0 else 0)
         if n_it == 0:
             continue
-        lv = first_lv if lev == start and first_lv is not None else _Level(geo, lev, pa[lev], pb[lev], rho_hi)
+        if lev == start and first_lv is not None:
+            lv = first_lv
+        else:
+            ia = _match_blur(geo, pa[0], rho, presmooth_sigma) if match_blur and lev == 0 else pa[lev]
+            lv = _Level(geo, lev, ia, pb[lev], rho_hi)
         # shiftable windows at the coarser levels, where a pixel's estimate settles on one surface or the other;
         # level 0 refines within a pixel, and its sigma and flags are those of the pixel's own (centred) window
         shift = int(shift_px) if bias and lev >= 1 else 0
@@ -682,6 +695,57 @@ def _pyramid(img: np.ndarray, key: str, n_levels: int, presmooth_sigma: float, h
     if highpass_sigma > 0:
         pyr = [x - _blur(x, highpass_sigma) if i < highpass_levels else x for i, x in enumerate(pyr)]
     return pyr
+
+
+# the blur a camera's pixel adds to its image (a box of one pixel: variance 1/12 per axis) and the bilinear
+# interpolation of the warp to image b (at fraction f the kernel (1 - f, f), variance f (1 - f); 1/6 on average)
+_PIXEL_VAR = 1.0 / 12.0
+_BILINEAR_VAR = 1.0 / 6.0
+_BLUR_LADDER = (0.0, 0.25, 0.5, 1.0, 2.0)   # variances (level-0 px^2) of the blurred copies of a, interpolated between
+
+
+def _magnification(geo, rho, step: int = 1) -> np.ndarray:
+    """The map a -> b's local linear magnification, sqrt |det d(u_b, v_b) / d(u_a, v_a)| (central differences,
+    one-sided at the borders), on every ``step``-th pixel of a (rows and columns) at the surface rho (its 3 x 3
+    mean; NaN taken as 0): below 1 where b sees the surface smaller (a farther view). The map is eqs. (25)-(26) as ``PairGeometry.map_to_b``,
+    X_b / x_c = R_ba m + t rho, m = [1, (u - cx) / fx, (v - cy) / fy], on the sub-grid only."""
+    r = cv2.blur(np.nan_to_num(np.asarray(rho, F32), nan=0.0, posinf=0.0, neginf=0.0), (3, 3), borderType=_BR)
+    r = np.ascontiguousarray(r[::step, ::step])
+    ca, cb = geo.cam_a, geo.cam_b
+    m1 = ((np.arange(0, r.shape[1] * step, step) - ca.cx) / ca.fx).astype(F32)[None, :]
+    m2 = ((np.arange(0, r.shape[0] * step, step) - ca.cy) / ca.fy).astype(F32)[:, None]
+    R = np.asarray(geo.R_ba, F32)
+    t = np.asarray(geo.t_ba_m, F32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = F32(1.0) / (R[0, 0] + R[0, 1] * m1 + R[0, 2] * m2 + t[0] * r)
+        ub = F32(cb.fx) * (R[1, 0] + R[1, 1] * m1 + R[1, 2] * m2 + t[1] * r) * inv
+        vb = F32(cb.fy) * (R[2, 0] + R[2, 1] * m1 + R[2, 2] * m2 + t[2] * r) * inv
+    (uy, ux), (vy, vx) = np.gradient(ub), np.gradient(vb)           # one-sided at the borders
+    return np.sqrt(np.abs(ux * vy - uy * vx)) / F32(step)
+
+
+def _match_blur(geo, ia: np.ndarray, rho, presmooth_sigma: float) -> np.ndarray:
+    """Level 0's image a blurred so that its texture reaches the match as blurred as b's (``locate_dense``,
+    match_blur). In b's pixels b carries its pixel's box, the pre-smoothing and the warp's bilinear interpolation,
+    s_b^2 = 1/12 + presmooth^2 + 1/6; a surface b sees with magnification m (``_magnification``, at the current
+    rho) has that blur s_b^2 / m^2 in a's pixels, where a carries s_a^2 = 1/12 + presmooth^2 (variances of
+    convolved kernels add). a gets the difference, max(s_b^2 / m^2 - s_a^2, 0), per pixel, as the linear
+    interpolation in variance between the two nearest of a few Gaussian blurs of a (``_BLUR_LADDER``; beyond its
+    last, the last). The magnification is taken on every other pixel and resized (it varies over tens of pixels
+    except at depth edges)."""
+    s_a2 = _PIXEL_VAR + float(presmooth_sigma) ** 2
+    m2 = np.square(_magnification(geo, rho, step=2))
+    need = np.clip(F32(s_a2 + _BILINEAR_VAR) / np.maximum(m2, F32(1e-6)) - F32(s_a2), 0.0, _BLUR_LADDER[-1])
+    need = cv2.resize(need, (ia.shape[1], ia.shape[0]), interpolation=cv2.INTER_LINEAR)
+    top = float(need.max())
+    n = next((j + 1 for j, vj in enumerate(_BLUR_LADDER) if vj >= top), len(_BLUR_LADDER))
+    rungs = np.empty((n,) + ia.shape, F32)
+    rungs[0] = ia
+    for j in range(1, n):
+        _blur(ia, math.sqrt(_BLUR_LADDER[j]), dst=rungs[j])
+    out = np.empty(ia.shape, F32)
+    _K.blend_ladder(need, rungs, np.asarray(_BLUR_LADDER[:n], F32), out)
+    return out
 
 
 def _search_epipolar(geo, a, b, L: int, shape0, max_disp_px, min_range_m, per_pixel_search: bool,
@@ -1016,10 +1080,11 @@ def prepare_kernels() -> None:
     seconds on a fresh install). numba compiles per argument type, and every locate passes each kernel the same
     types (C-contiguous float32 / uint8 arrays, the same scalar types) whatever the image size or the options: one
     small plane pair (``_plane_pair``) reaches them all, the fill's included, and once more with a prior (its
-    gate and its finish), and once with the slanted window (off by default)."""
+    gate and its finish), and once each with the slanted window and the resolution match (both off by default)."""
     a, b = _plane_pair(96)
     locate_dense(a, b)
     locate_dense(a, b, slant=True)
+    locate_dense(a, b, match_blur=True)
     locate_dense(a, b, fill=False, prior=(np.full(a.image.shape, 0.05, F32), np.full(a.image.shape, 1e-4, F32)))
 
 
