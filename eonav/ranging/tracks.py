@@ -63,26 +63,34 @@ def track_points(img_a: np.ndarray, img_b: np.ndarray, *, max_points: int = 200,
     return Tracks((pts[ok] * scale).astype(np.float32), (pb[ok] * scale).astype(np.float32))
 
 
-class RecentTracks:
-    """``track_points`` of the last ``size`` image pairs, looked up by the arrays' identity: the fusion's scheduler
-    tracks each frame against the camera's previous one (its pose check) and the measurement of that same pair
-    tracks it again (its pair checks); the second call gets the first's tracks (the same values). It holds the
-    images it saw, so an identity names the same array while it is held; the images must not be edited in place
-    after they are tracked (a View's image is not)."""
+class _Recent:
+    """The results of the last ``size`` calls, each held with the arguments it was computed from: a call whose
+    identity arguments are the very objects held (``is``) and whose value key is equal gets the held result. It holds
+    those objects, so an identity names the same object while it is held."""
 
     def __init__(self, size: int = 2):
         self.size = int(size)
-        self._held: list = []            # (img_a, img_b, tracks), newest last
+        self._held: list = []            # (identity arguments, value key, result), newest last
         self.hits = 0
 
-    def __call__(self, img_a: np.ndarray, img_b: np.ndarray) -> Tracks:
-        for a, b, t in self._held:
-            if a is img_a and b is img_b:
+    def _get(self, ids: tuple, key, compute):
+        for held_ids, k, v in self._held:
+            if all(a is b for a, b in zip(held_ids, ids)) and k == key:
                 self.hits += 1
-                return t
-        t = track_points(img_a, img_b)
-        self._held = (self._held + [(img_a, img_b, t)])[-self.size:] if self.size > 0 else []
-        return t
+                return v
+        v = compute()
+        self._held = (self._held + [(ids, key, v)])[-self.size:] if self.size > 0 else []
+        return v
+
+
+class RecentTracks(_Recent):
+    """``track_points`` of the last ``size`` image pairs, looked up by the arrays' identity: the fusion's scheduler
+    tracks each frame against the camera's previous one (its pose check) and the measurement of that same pair
+    tracks it again (its pair checks); the second call gets the first's tracks (the same values). The images must
+    not be edited in place after they are tracked (a View's image is not)."""
+
+    def __call__(self, img_a: np.ndarray, img_b: np.ndarray) -> Tracks:
+        return self._get((img_a, img_b), None, lambda: track_points(img_a, img_b))
 
 
 recent_tracks = RecentTracks()
@@ -148,17 +156,11 @@ def pose_shift_px(geo: PairGeometry, tracks: Tracks, min_tracks: int = 20, min_s
     return float(np.hypot(*s))
 
 
-class RecentShifts:
+class RecentShifts(_Recent):
     """``pose_shift_px`` of the last ``size`` (tracks, pair geometry) asked for, looked up by the tracks' identity and
     the geometry's values (relative pose and both cameras' intrinsics, bit for bit): the fusion's scheduler measures
     each frame's shift to the camera's previous one (its pose check) and the measurement of that same pair asks
-    again with the same tracks (``recent_tracks``) and an equal geometry; the second call gets the first's value.
-    It holds the tracks it saw, so an identity names the same tracks while they are held."""
-
-    def __init__(self, size: int = 2):
-        self.size = int(size)
-        self._held: list = []            # (tracks, geometry key, shift), newest last
-        self.hits = 0
+    again with the same tracks (``recent_tracks``) and an equal geometry; the second call gets the first's value."""
 
     @staticmethod
     def _key(geo: PairGeometry) -> tuple:
@@ -167,14 +169,7 @@ class RecentShifts:
                 (ca.fx, ca.fy, ca.cx, ca.cy), (cb.fx, cb.fy, cb.cx, cb.cy))
 
     def __call__(self, geo: PairGeometry, tracks: Tracks) -> float:
-        key = self._key(geo)
-        for t, k, s in self._held:
-            if t is tracks and k == key:
-                self.hits += 1
-                return s
-        s = pose_shift_px(geo, tracks)
-        self._held = (self._held + [(tracks, key, s)])[-self.size:] if self.size > 0 else []
-        return s
+        return self._get((tracks,), self._key(geo), lambda: pose_shift_px(geo, tracks))
 
 
 recent_pose_shift = RecentShifts()
