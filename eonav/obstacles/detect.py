@@ -345,13 +345,18 @@ class GroundPlane:
         ned_m = np.asarray(ned_m, float)
         return self.a + self.b * ned_m[..., 0] + self.c * ned_m[..., 1]
 
-    def inverse_range_per_m(self, lens_ned_m, ray_ned) -> np.ndarray:
-        """1 / x_c at which each ray lens + x_c ray (``ray_ned`` = NED direction per metre of x_c) meets the plane;
-        <= 0 where the ray does not descend onto it (at or above the horizon). Linear in the ray: the plane law."""
+    def height_and_descent(self, lens_ned_m, ray_ned) -> tuple[float, np.ndarray]:
+        """(H, descent): the lens' height above the plane (> 0: above it) and how fast each ray lens + x_c ray
+        (``ray_ned`` = NED direction per metre of x_c) comes down onto it per metre of x_c; the point at x_c stands
+        H - x_c descent above the plane."""
         lens = np.asarray(lens_ned_m, float)
-        below = float(self.down_m(lens) - lens[2])               # > 0: the lens above the plane
         ray = np.asarray(ray_ned, float)
-        descent = ray[..., 2] - self.b * ray[..., 0] - self.c * ray[..., 1]
+        return float(self.down_m(lens) - lens[2]), ray[..., 2] - self.b * ray[..., 0] - self.c * ray[..., 1]
+
+    def inverse_range_per_m(self, lens_ned_m, ray_ned) -> np.ndarray:
+        """1 / x_c at which each ray lens + x_c ray meets the plane; <= 0 where the ray does not descend onto it (at
+        or above the horizon). Linear in the ray: the plane law."""
+        below, descent = self.height_and_descent(lens_ned_m, ray_ned)
         return descent / below if below > 0 else np.zeros(descent.shape)
 
 
@@ -364,10 +369,7 @@ def height_above_plane_low(plane: GroundPlane, lens_ned_m, ray_ned, rho_per_m, s
     first-order range sigma (sigma_rho / rho^2) puts the far end at x_c + k sigma_r instead of 1 / (rho - k sigma),
     short of it by k^2 sigma_r sigma_rho / (rho - k sigma): at 3 sigma and sigma_rho / rho = 0.2 the far end is
     1.6 x_c, not 2.5 x_c, and far ground ranged at half its range stands metres above its clearance."""
-    lens = np.asarray(lens_ned_m, float)
-    ray = np.asarray(ray_ned, float)
-    H = float(plane.down_m(lens) - lens[2])                      # the lens' height above the plane
-    descent = ray[..., 2] - plane.b * ray[..., 0] - plane.c * ray[..., 1]
+    H, descent = plane.height_and_descent(lens_ned_m, ray_ned)
     rho = np.asarray(rho_per_m, float)
     dr = 0.0 if sigma_rho_per_m is None else k * np.asarray(sigma_rho_per_m, float)
     with np.errstate(divide="ignore", invalid="ignore"):
