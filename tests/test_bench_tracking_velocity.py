@@ -68,3 +68,24 @@ def test_box_in_view_boundaries():
     assert B.box_in_view(r, 1)
     assert not B.box_in_view(frame(0, [], set(), 11, 100.0), 1)
     assert not B.box_in_view(frame(0, [], set(), 12, 100.5), 1)
+
+
+def test_recorded_hits_on_a_rendered_flight_leave_the_coast_unscored():
+    """Truth maps (1 % noise, seed 0) of the ``moving`` scenario at 160 x 120, 8 s: the oncoming vehicle passes below
+    the image at about 6.3 s and its track coasts on. The record's ``hit`` ids are confirmed tracks; the main track is
+    never recorded as updated in a frame without any of the mover's pixels; its frames not updated after the
+    settling second repeat one velocity (a constant-velocity prediction leaves the velocity as it is), and they are
+    the ones left out of the score."""
+    sc = B.scenario("moving", 8.0)
+    rec, _ = B.track_maps(B.range_maps(sc, RATE_HZ, (160, 120), "truth", seed=0), sc)
+    s = B.score(rec, RATE_HZ, sc=sc)
+    tid = s["boxes"]["oncoming"]["main_id"]
+    i = next(k for k, b in enumerate(rec[0]["scene"].boxes) if b.name == "oncoming")
+    for r in rec:
+        assert r["hit"] <= {j for j, _, _ in r["confirmed"]}
+        if r["visible_px"].get(i, 0) == 0:
+            assert tid not in r["hit"]
+    v = s["velocity"]["oncoming"]
+    assert v["frames"] >= 5 and v["coast_frames"] >= 20
+    assert len(set(v["coast_rel_err"])) == 1                       # one coasting value, counted once a frame
+    assert min(v["rel_err"]) < 0.05 < v["coast_rel_err"][0]       # while measured it is near the truth
