@@ -35,7 +35,12 @@ Per box (ground truth: the renderer's object ids and the solid box):
   the true entry time of the vehicle's velocity ray into the wall grown by the vehicle radius, for every frame at most
   3 s from contact, both its ``time_to_contact_s`` (the earliest contact consistent with the cone's k sigma) and its
   ``expected_time_to_contact_s`` (without that margin); also the track's surface distance over the closing speed;
-- velocity (moving): over the frames from 1 s after a mover's track is confirmed, |v_track - v_true| / |v_true|;
+- velocity (moving): |v_track - v_true| / |v_true| of the mover's main track, scored in the frames from 1 s after
+  that track's first confirmed frame (the filter's settling: its velocity starts at 0 +- 10 m/s) in which the mover
+  is in view (the rule above) and the track was updated by a measurement of that map; the frames from then on in
+  which the track is confirmed but not updated (coasting out of view, occluded or without data, or missed) are
+  reported apart, as are updated frames with the mover out of view (a track not updated repeats its last velocity:
+  scored, that one value would count once for every frame it coasts);
 - a mover's pixels (moving): of its visible pixels while in view, the share the map ranges VALID within 10 % of the
   true range, VALID off by more, FILLED, flagged OCCLUDED (``mover_pixels``).
 
@@ -301,6 +306,7 @@ def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, t
         rec.append({"stamp_us": m["stamp_us"], "state": st_true, "scene": m["scene"], "visible_px": m["visible_px"],
                     "velocity_ned_mps": v_true,
                     "confirmed": [(t.id, R.T @ t.x[:3], R.T @ t.x[3:]) for t in tracker.confirmed()],
+                    "hit": {t.id for t in tracker.confirmed() if t.last_hit_us == m["stamp_us"]},
                     "surface": {tv.track.id: (tv.surface_distance_m, tv.closing_speed_mps) for tv in views},
                     "threat": None if threat is None else (threat.track.id, threat.time_to_contact_s,
                                                            threat.expected_time_to_contact_s),
@@ -339,6 +345,13 @@ def true_ttc(box: Box, pos_ned, vel_ned, radius_m: float) -> float | None:
     """Entry time of the ray pos + vel t into the (axis-aligned, yaw 0) box grown by ``radius_m``."""
     c = np.asarray(box.center_ned_m) - np.asarray(pos_ned)
     return box_entry_time(c, box.half_m + radius_m, np.asarray(vel_ned))
+
+
+def box_in_view(r: dict, i: int, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> bool:
+    """Box ``i`` of the record's scene in view (module docstring): at least ``min_obstacle_pixels`` visible and
+    within ``max_obstacle_distance_m`` of the vehicle."""
+    return (r["visible_px"].get(i, 0) >= ocfg.min_obstacle_pixels
+            and box_distance(r["scene"].boxes[i], r["state"].position_ned_m) <= ocfg.max_obstacle_distance_m)
 
 
 def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Scenario | None = None,
@@ -405,7 +418,7 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Sce
     if sc is not None and sc.ttc_box:
         out["ttc"] = score_ttc(rec, sc.ttc_box, boxes.get(sc.ttc_box, {}).get("main_id"), cone)
     if sc is not None and sc.movers:
-        out["velocity"] = {m.box.name: score_velocity(rec, m, boxes.get(m.box.name, {})) for m in sc.movers}
+        out["velocity"] = {m.box.name: score_velocity(rec, m, boxes.get(m.box.name, {}), ocfg) for m in sc.movers}
     return out
 
 
@@ -434,20 +447,34 @@ def score_ttc(rec, box_name: str, main_id, cone: ConeConfig, horizon_s: float = 
             "expected_rel_err": expected_err, "plain_rel_err": plain_err}
 
 
-def score_velocity(rec, mover: Mover, box_score: dict) -> dict:
-    """|v_track - v_true| / |v_true| of the mover's main track, from 1 s after its confirmation."""
+def score_velocity(rec, mover: Mover, box_score: dict, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
+                   settle_s: float = 1.0) -> dict:
+    """|v_track - v_true| / |v_true| of the mover's main track from ``settle_s`` after its first confirmed frame
+    (module docstring): ``rel_err`` over the frames with the mover in view (``box_in_view``) and the track updated by
+    a measurement of that map (the record's ``hit`` ids); ``coast_rel_err`` over the frames the track was not updated;
+    ``measured_out_of_view``: frames it was updated with the mover out of view (not scored)."""
     tid = box_score.get("main_id")
     v_true = np.asarray(mover.velocity_ned_mps)
     first = None
-    errs = []
+    errs, coast, out_of_view = [], [], 0
     for r in rec:
-        for i, p, v in r["confirmed"]:
-            if i != tid:
-                continue
-            first = r["stamp_us"] if first is None else first
-            if r["stamp_us"] - first >= 1_000_000:
-                errs.append(float(np.linalg.norm(v - v_true) / np.linalg.norm(v_true)))
-    return {"frames": len(errs), "rel_err": errs}
+        v = next((v for i, _, v in r["confirmed"] if i == tid), None)
+        if v is None:
+            continue
+        first = r["stamp_us"] if first is None else first
+        if r["stamp_us"] - first < settle_s * 1e6:
+            continue
+        err = float(np.linalg.norm(v - v_true) / np.linalg.norm(v_true))
+        if tid not in r.get("hit", ()):
+            coast.append(err)
+            continue
+        i = next(k for k, b in enumerate(r["scene"].boxes) if b.name == mover.box.name)
+        if box_in_view(r, i, ocfg):
+            errs.append(err)
+        else:
+            out_of_view += 1
+    return {"frames": len(errs), "rel_err": errs, "coast_frames": len(coast), "coast_rel_err": coast,
+            "measured_out_of_view": out_of_view}
 
 
 def _size(s: str):
@@ -520,6 +547,11 @@ def _pct(errs, q):
     return float(np.percentile(a, q, method="nearest")) if a.size else math.nan
 
 
+def _within(errs, tol) -> str:
+    """Percentage of ``errs`` within ``tol`` (0 decimals), "-" for none."""
+    return f"{100 * np.mean(np.abs(np.asarray(errs, float)) <= tol):.0f}" if len(errs) else "-"
+
+
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
            stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
@@ -567,9 +599,11 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
               f"VALID off by more {100 * c['wrong'] / n:.0f} %, FILLED {100 * c['filled'] / n:.0f} %, OCCLUDED "
               f"{100 * c['occluded'] / n:.0f} %")
     for name, v in s.get("velocity", {}).items():
-        print(f"  velocity of {name}: {v['frames']} frames from 1 s after confirmation, |error| / speed median "
-              f"{100 * _pct(v['rel_err'], 50):.1f} %, p90 {100 * _pct(v['rel_err'], 90):.1f} %, within 20 % in "
-              f"{100 * np.mean(np.asarray(v['rel_err']) <= 0.2) if v['frames'] else math.nan:.0f} %")
+        print(f"  velocity of {name}: {v['frames']} frames in view and measured from 1 s after confirmation, "
+              f"|error| / speed median {100 * _pct(v['rel_err'], 50):.1f} %, p90 {100 * _pct(v['rel_err'], 90):.1f} "
+              f"%, within 20 % in {_within(v['rel_err'], 0.2)} %; not scored: {v['coast_frames']} not updated (median "
+              f"{100 * _pct(v['coast_rel_err'], 50):.1f} %, within 20 % in {_within(v['coast_rel_err'], 0.2)} %), "
+              f"{v['measured_out_of_view']} measured out of view")
     print("", flush=True)
     return s
 
