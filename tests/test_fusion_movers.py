@@ -10,9 +10,9 @@ from eonav.app.bench_tracking import PARTNER_ID, Mover, Scenario, frames
 from eonav.fusion.schedule import ScheduleConfig
 from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
 from eonav.fusion.state import InverseRangeState
-from eonav.fusion.update import UpdateConfig, gate_motion, stereo_restart
+from eonav.fusion.update import UpdateConfig, gate_motion, stereo_restart, stereo_skipped_free
 from eonav.geometry.camera import Camera, VehicleState
-from eonav.ranging.rangemap import FILLED, OCCLUDED, OUT_OF_VIEW, VALID
+from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 from eonav.sim.scene import Box, Scene
 
 F32 = np.float32
@@ -75,6 +75,43 @@ def test_a_cell_the_stereo_measurement_disagrees_with_beyond_k_sigma_restarts_fr
     assert not stereo_restart(st2, np.array([[0.5]], F32), np.array([[0.004]], F32), np.array([[VALID]], np.uint8),
                               UpdateConfig(stereo_lead_k=0.0)).any()
     assert st2.rho[0, 0] == F32(0.02)
+
+
+
+def test_a_skipped_stereo_pixel_seeing_beyond_k_sigma_past_a_cell_empties_it():
+    # cells at 50 m, sigma 0.0003 (converged); skipped stereo pixels of sigma 0.002: sqrt(s^2 + tau^2) = 0.0020224,
+    # k = 3 -> 0.0060673. ILL_CONDITIONED with a tight sigma (0.002 <= 0.34 x 0.0139, 0.0139 >= 2 x 0.002) is not
+    # fused (``measured`` False): the pixel ranged 0.00610 farther empties its cell, 0.00600 farther keeps it.
+    cfg = UpdateConfig(skipped_free_k=3.0)
+    mu = 0.02
+    rho_s = np.array([[mu - 0.00610, mu - 0.00600, mu - 0.01, mu + 0.02, mu - 0.01, mu - 0.01, mu - 0.01,
+                       mu - 0.01, 0.005]], F32)
+    std_s = np.full((1, 9), 0.002, F32)
+    std_s[0, 6] = 0.004                                  # relative sigma 0.4 > 0.34: a weak pixel, fused
+    flags_s = np.array([[ILL_CONDITIONED, ILL_CONDITIONED, TRUNCATION, ILL_CONDITIONED, ILL_CONDITIONED | OCCLUDED,
+                         TRUNCATION | OUT_OF_VIEW, ILL_CONDITIONED, VALID, TRUNCATION]], np.uint8)
+    st = _state([mu] * 8 + [np.nan], [0.0003 ** 2] * 9)
+    rho_before = rho_s.copy()
+    freed = stereo_skipped_free(st, rho_s, std_s, flags_s, cfg)
+    # 0: 3.02 sigma farther, emptied; 1: 2.97 sigma, kept; 2: TRUNCATION 4.9 sigma farther, emptied; 3: nearer by
+    # 10 sigma, kept (one-sided); 4, 5: OCCLUDED / OUT_OF_VIEW, the partner does not see the point; 6: weak (fused
+    # by the update); 7: VALID (fused: the stereo restart's business); 8: an empty cell stays empty
+    assert freed.tolist() == [[True, False, True, False, False, False, False, False, False]]
+    assert np.isnan(st.rho[0, [0, 2]]).all() and (st.var[0, [0, 2]] == np.inf).all()
+    assert (st.a[0, [0, 2]] == 0).all() and (st.n[0, [0, 2]] == 0).all()
+    kept = [1, 3, 4, 5, 6, 7]
+    assert (st.rho[0, kept] == F32(mu)).all() and (st.n[0, kept] == 12).all()
+    assert np.isnan(st.rho[0, 8])
+    np.testing.assert_array_equal(rho_s, rho_before)     # the measurement is not edited
+    # k = 0 (the default): off
+    st0 = _state([mu], [0.0003 ** 2])
+    assert not stereo_skipped_free(st0, np.array([[0.005]], F32), np.array([[0.002]], F32),
+                                   np.array([[TRUNCATION]], np.uint8), UpdateConfig()).any()
+    assert st0.rho[0, 0] == F32(mu)
+    with pytest.raises(InputError, match="skipped_free_k"):
+        UpdateConfig(skipped_free_k=-1.0)
+    with pytest.raises(InputError, match="shape"):
+        stereo_skipped_free(st, rho_s[:, :4], std_s[:, :4], flags_s[:, :4], cfg)
 
 
 # a van 90 m ahead of the approach flight (20 m/s) driving towards it at 8 m/s, 4 m left of its path, for 2 s (to
@@ -178,3 +215,30 @@ def test_stereo_leads_does_not_edit_the_arrays_of_a_measurement_the_caller_holds
     assert restarted > 0
     for res, rho in held:
         np.testing.assert_array_equal(res.inv_range_per_m, rho)
+
+
+def test_skipped_free_space_needs_a_rig_and_empties_cells_with_one(oncoming_frames):
+    # one camera: the maps with skipped_free_k = 3 are those without it, bit for bit; with the rig it empties cells
+    def run(k, rig):
+        cfg = FusionConfig(update=UpdateConfig(skipped_free_k=k))
+        if rig:
+            cfg = replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
+        runner = FusionRunner(cfg)
+        maps, freed = [], 0
+        for i, (stamp, view, _, _, partner) in enumerate(oncoming_frames[:12]):
+            if rig:
+                runner.remember(frame(PARTNER_ID, partner, stamp, i))
+            for m in runner.push(frame("nose", view, stamp, i)):
+                maps.append(m.result)
+                freed += sum(x.get("skipped_free", 0) for x in m.measurements)
+        return maps, freed
+
+    mono_off, _ = run(0.0, False)
+    mono_on, freed_mono = run(3.0, False)
+    assert freed_mono == 0 and len(mono_on) == len(mono_off) > 0
+    for a, b in zip(mono_off, mono_on):
+        np.testing.assert_array_equal(a.inv_range_per_m, b.inv_range_per_m)
+        np.testing.assert_array_equal(a.inv_range_std_per_m, b.inv_range_std_per_m)
+        np.testing.assert_array_equal(a.flags, b.flags)
+    _, freed_rig = run(3.0, True)
+    assert freed_rig > 0

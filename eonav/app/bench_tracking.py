@@ -47,7 +47,7 @@ Per box (ground truth: the renderer's object ids and the solid box):
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
         [--follow-k K] [--follow-fraction F] [--rig-baseline-m M] [--rig-order partner-first|arrival]
-        [--stereo-lead-k K] [--lr-check KINDS] [--slant] [--cache-dir DIR]
+        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -175,7 +175,7 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
 
 def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
-               lr_check: tuple = (), slant: bool = False):
+               lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
     confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene.
     ``lr_check``: fused, the measurement kinds checked left-right (``FusionConfig.lr_check_kinds``); dense, any: every
@@ -190,7 +190,8 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
     if maps == "fused":
         from eonav.fusion.schedule import ScheduleConfig
         from eonav.fusion.sequence import FusionConfig, FusionRunner
-        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k), lr_check_kinds=tuple(lr_check))
+        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k, skipped_free_k=skipped_free_k),
+                           lr_check_kinds=tuple(lr_check))
         if sc.rig_baseline_m > 0:
             cfg = replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
         if slant:
@@ -243,9 +244,10 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
                 stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
-                lr_check: tuple = (), slant: bool = False):
+                lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed, rig baseline, the left-right check, the slanted window and, fused with a rig, ``stereo_lead_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
+    seed, rig baseline, the left-right check, the slanted window and, fused with a rig, ``stereo_lead_k`` and a
+    non-zero ``skipped_free_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
             else {})
@@ -253,6 +255,8 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
         lead["lr_check"] = tuple(lr_check)
     if slant and maps == "fused":
         lead["slant"] = True
+    if skipped_free_k and "stereo_lead_k" in lead:
+        lead["skipped_free_k"] = skipped_free_k
     if not cache_dir:
         return range_maps(sc, rate_hz, size, maps, seed, **lead)
     import pickle
@@ -263,7 +267,8 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
                               f"{f'_lead{stereo_lead_k:g}' if 'stereo_lead_k' in lead else ''}"
                               f"{'_arrival' if rig_order == 'arrival' and 'rig_order' in lead else ''}"
                               f"{'_lr-' + '-'.join(lr_check) if lr_check else ''}"
-                              f"{'_slant' if lead.get('slant') else ''}.pkl")
+                              f"{'_slant' if lead.get('slant') else ''}"
+                              f"{f'_free{skipped_free_k:g}' if 'skipped_free_k' in lead else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
             return pickle.load(f)
@@ -514,6 +519,9 @@ def add_arguments(p) -> None:
     p.add_argument("--stereo-lead-k", type=float, default=UpdateConfig().stereo_lead_k, metavar="K",
                    help="UpdateConfig.stereo_lead_k: a rig's stereo measurement leads where it disagrees by K sigma "
                         "(0: off)")
+    p.add_argument("--skipped-free-k", type=float, default=UpdateConfig().skipped_free_k, metavar="K",
+                   help="UpdateConfig.skipped_free_k: with a rig, the stereo pixels the update skips empty the cells "
+                        "they see farther by K sigma (0: off)")
     p.add_argument("--lr-check", default="", metavar="KINDS",
                    help="comma list of the measurement kinds (stereo, near, wide) the fused maps check left-right "
                         "(FusionConfig.lr_check_kinds; default none); dense maps: any checks every pair")
@@ -538,7 +546,7 @@ def main(argv=None) -> int:
         for name in [s for s in args.scenarios.split(",") if s]:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
                    tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order,
-                   tuple(k for k in args.lr_check.split(",") if k), args.slant)
+                   tuple(k for k in args.lr_check.split(",") if k), args.slant, args.skipped_free_k)
     return 0
 
 
@@ -555,15 +563,16 @@ def _within(errs, tol) -> str:
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
            stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
-           lr_check: tuple = (), slant: bool = False) -> dict:
+           lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
-    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check, slant),
-                         sc, ocfg, tcfg)
+    rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check, slant,
+                                     skipped_free_k), sc, ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = (f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
              f"{', left-right check ' + ','.join(lr_check) if lr_check else ''}"
-             f"{', slanted window' if slant and maps == 'fused' else ''}")
+             f"{', slanted window' if slant and maps == 'fused' else ''}"
+             f"{f', skipped_free_k {skipped_free_k:g}' if skipped_free_k and maps == 'fused' else ''}")
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
           f"{s['mean_obstacles']:.1f} obstacles / {s['mean_measurements']:.1f} measurements a map; tracker p50 "
           f"{np.median(tt) * 1e3:.2f} ms, max {max(tt) * 1e3:.2f} ms a map ({time.perf_counter() - t0:.0f} s run)")

@@ -49,7 +49,8 @@ from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.predict import ProcessNoise, predict
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
-from eonav.fusion.update import UpdateConfig, clear_cells, gate_motion, stereo_restart, update
+from eonav.fusion.update import (UpdateConfig, clear_cells, gate_motion, stereo_restart, stereo_skipped_free,
+                                 update)
 
 
 def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrameInfo:
@@ -293,8 +294,9 @@ class FusionRunner:
         with, and, when the frame's motion measurement was fused in an earlier push (the partner's frame came
         second), the cells where that motion measurement disagrees with it. With the stereo pair's b -> a (``back``,
         the left-right check's) and ``stereo_free_space``, first the cells of the state the partner camera sees
-        through (``_free_space``) are emptied. Edits ``res``'s inverse range in place; returns the counts (gated,
-        stereo_restarted, seen_through)."""
+        through (``_free_space``) are emptied; with ``UpdateConfig.skipped_free_k`` the cells the stereo pixels the
+        update skips see past (``stereo_skipped_free``). Edits ``res``'s inverse range in place; returns the counts
+        (gated, stereo_restarted, seen_through, skipped_free)."""
         ucfg = self.config.update
         rig = self.config.schedule.stereo_rig
         if ucfg.stereo_lead_k == 0 or rig is None:
@@ -307,9 +309,13 @@ class FusionRunner:
             if kept is not None and kept[0] == (m.a.seq, m.a.stamp_us):
                 extra = gate_motion(kept[1], kept[2], kept[3], res.inv_range_per_m, res.inv_range_std_per_m,
                                     res.flags, ucfg)
-            out = {"stereo_restarted": int(stereo_restart(self.states[ref], res.inv_range_per_m,
-                                                          res.inv_range_std_per_m, res.flags, ucfg,
-                                                          also=extra).sum())}
+            out = {}
+            if ucfg.skipped_free_k > 0:
+                out["skipped_free"] = int(stereo_skipped_free(self.states[ref], res.inv_range_per_m,
+                                                              res.inv_range_std_per_m, res.flags, ucfg).sum())
+            out["stereo_restarted"] = int(stereo_restart(self.states[ref], res.inv_range_per_m,
+                                                         res.inv_range_std_per_m, res.flags, ucfg,
+                                                         also=extra).sum())
             return out if seen is None else dict(out, seen_through=seen)
         if stereo_res is None:
             if ref == rig[0]:       # its frame's stereo measurement may come with the partner's frame

@@ -46,6 +46,16 @@ mover like anything else. So, when a reference frame has both:
   same frame was fused before the stereo one arrived (the partner camera's frame second) and disagrees with it.
 A static cell whose stereo measurement is a mismatch is restarted too; the next frame's stereo measurement disagrees
 with that wrong start and restarts it again, so one bad stereo pixel costs its cell a frame or two.
+
+Free space seen past a mover (``skipped_free_k`` > 0, off by default; docs/guidance.md, "Moving obstacles on fused
+maps"): a mover leaves its range in the cells it uncovers (its trailing edge), and the motion pairs see those cells
+OCCLUDED or with a sigma wide enough to agree with the old range, so nothing corrects them. The same frame's stereo
+pair often ranges them -- farther -- on pixels the update skips (``measured`` is False: ILL_CONDITIONED with a tight
+sigma from the dense method's orientation or point-at-infinity tests, TRUNCATION, LOW_TEXTURE). Too doubtful to
+fuse, such a pixel still says the space up to its range is free: ``stereo_skipped_free`` empties a cell it sees
+farther than the cell holds by more than ``skipped_free_k`` sigma (both), one-sided (a skipped pixel nearer than
+the cell says nothing). Pixels OCCLUDED or OUT_OF_VIEW in the stereo pair (the partner does not see the point) are
+not used.
 """
 from __future__ import annotations
 
@@ -76,10 +86,14 @@ class UpdateConfig:
     weak: bool = True                 # fuse ILL_CONDITIONED pixels whose only fault is their sigma (module docstring)
     max_rel_std: float = 0.34         # the dense method's VALID limit of the relative sigma (what "weak" means)
     stereo_lead_k: float = 3.0        # stereo leads where it disagrees by more sigma than this (0: off; docstring)
+    skipped_free_k: float = 0.0       # with stereo leading: skipped stereo pixels farther by this many sigma empty
+    #                                   the cell (0: off; module docstring, "Free space seen past a mover")
 
     def __post_init__(self):
-        if not (math.isfinite(self.stereo_lead_k) and self.stereo_lead_k >= 0):
-            raise InputError(f"fusion update: stereo_lead_k must be a finite number >= 0, got {self.stereo_lead_k!r}")
+        for name in ("stereo_lead_k", "skipped_free_k"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"fusion update: {name} must be a finite number >= 0, got {v!r}")
         for name in ("rho_max_per_m", "sigma_scale", "a_init", "b_init", "evidence_cap", "max_rel_std"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -266,3 +280,24 @@ def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateC
     state.flags[off] = np.asarray(flags_s, np.uint8)[off]
     rho_s[off] = np.nan
     return off
+
+
+def stereo_skipped_free(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateConfig = UpdateConfig()) -> np.ndarray:
+    """Empty the cells of ``state`` (in place) that a stereo pixel the update skips sees farther than they hold
+    (module docstring, "Free space seen past a mover"): the pixel not ``measured`` but with a finite inverse range
+    and sigma > 0, neither OCCLUDED nor OUT_OF_VIEW, and x < mu - k sqrt(s^2 + tau^2) with k = ``cfg.skipped_free_k``
+    and tau the pixel's sigma scaled by ``sigma_scale``. Returns the mask of emptied cells (none with k = 0)."""
+    if np.shape(rho_s) != state.shape:
+        raise InputError(f"fusion update: measurement shape {np.shape(rho_s)} differs from the state {state.shape}")
+    if cfg.skipped_free_k == 0:
+        return np.zeros(state.shape, bool)
+    flags_s = np.asarray(flags_s, np.uint8)
+    rho_s = np.asarray(rho_s, F32)
+    tau = np.asarray(std_s, F32) * F32(cfg.sigma_scale)
+    with np.errstate(invalid="ignore"):
+        skipped = (~measured(rho_s, std_s, flags_s, cfg) & np.isfinite(rho_s) & np.isfinite(tau) & (tau > 0)
+                   & ((flags_s & np.uint8(OCCLUDED | OUT_OF_VIEW)) == 0) & state.occupied())
+        d = state.rho - rho_s                            # > 0: the pixel sees past the cell's point
+        free = skipped & (d > 0) & (d * d > F32(cfg.skipped_free_k) ** 2 * (state.var + tau * tau))
+    state.clear(free)
+    return free
