@@ -167,8 +167,8 @@ class ArduPilot:
         self.link = None
         self.workdir = None
 
-    def _instance(self) -> int:
-        for i in range(1, 40):
+    def _instance(self, first: int = 1) -> int:
+        for i in range(first, 40):
             base = 5760 + 10 * i
             if all(_free(p) for p in (base, base + 2, base + 3)) and _free(5501 + 10 * i, socket.SOCK_DGRAM):
                 return i
@@ -179,17 +179,24 @@ class ArduPilot:
         extra = self.workdir / "eonav-test.parm"
         extra.write_text("".join(f"{k} {v}\n" for k, v in self.params.items()))
         defaults = ",".join(str(p) for p in (self.tool / "copter.parm", self.tool / "proximity-mavlink.parm", extra))
-        self.instance = self._instance()
-        self.proc = subprocess.Popen([str(self.tool / "arducopter"), "--model", "+", "--speedup", "1",
-                                      f"-I{self.instance}", "--defaults", defaults],
-                                     cwd=self.workdir, stdout=open(self.workdir / "console.txt", "wb"),
-                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
-        try:
-            self._connect()
-        except BaseException:
-            self.__exit__(None, None, None)
-            raise
-        return self
+        self.instance = 0
+        for attempt in range(3):
+            # a port seen free can be taken before arducopter binds it (seen once in a full parallel run: "bind
+            # failed on port 5770"): the next free instance then, at most three times
+            self.instance = self._instance(self.instance + 1)
+            self.proc = subprocess.Popen([str(self.tool / "arducopter"), "--model", "+", "--speedup", "1",
+                                          f"-I{self.instance}", "--defaults", defaults],
+                                         cwd=self.workdir, stdout=open(self.workdir / "console.txt", "wb"),
+                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+            try:
+                self._connect()
+                return self
+            except BaseException:
+                bind_failed = self.proc.poll() is not None and "bind failed" in self.console()
+                self._stop_process()
+                if not bind_failed or attempt == 2:
+                    self.__exit__(None, None, None)
+                    raise
 
     @property
     def gcs_port(self) -> int:
@@ -297,6 +304,13 @@ class ArduPilot:
         if self.link is not None:
             self.link.close()
             self.link = None
+        self._stop_process()
+        if self.workdir is not None:
+            shutil.rmtree(self.workdir, ignore_errors=True)
+            self.workdir = None
+        return False
+
+    def _stop_process(self):
         if self.proc is not None:
             if self.proc.poll() is None:
                 self.proc.terminate()
@@ -306,10 +320,6 @@ class ArduPilot:
                     self.proc.kill()
                     self.proc.wait()
             self.proc = None
-        if self.workdir is not None:
-            shutil.rmtree(self.workdir, ignore_errors=True)
-            self.workdir = None
-        return False
 
 
 # PX4 custom modes (px4_custom_mode.h): main mode in bits 16..23, sub mode in bits 24..31

@@ -523,7 +523,9 @@ def test_a_backlog_is_skipped_to_the_newest_frame_and_counted():
     import zenoh
 
     from eonav.sim.flight import render_flight
-    frames = list(render_flight("approach", n_frames=13, rate_hz=RATE_HZ, size=128, t0_s=T0_S, seed=2))
+    # 256 px: a fused map takes several times a put on any load (at 128 px a loaded machine once ranged every other
+    # frame as it arrived, the ring never full)
+    frames = list(render_flight("approach", n_frames=13, rate_hz=RATE_HZ, size=256, t0_s=T0_S, seed=2))
     burst = len(frames) - 1
     with locator_and_obstacles(("--max-input-age-ms", "10000", "--scale", "1", "--no-warmup")) as (
             s, procs, maps_sub, obs_sub, health_sub):
