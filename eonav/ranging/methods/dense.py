@@ -502,7 +502,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     gradients lie mostly across the epipolar direction (a straight edge within a few degrees of it) turns such a
     shift into a disparity error of up to shift / tan(angle). 0 (default): off. Off by default because the exact-pose
     sim presets pay for it (0.1 px: coverage of the approach pair's VALID pixels 80.3 -> 76.7 %, z spread of the sim
-    presets 0.75-0.99 -> 0.57-0.94, i.e. more over-reported; 0.05 px: -1.0 point, 0.66-0.98) and the false track it was
+    presets 0.71-0.99 -> 0.57-0.94, i.e. more over-reported; 0.05 px: -1.0 point, 0.66-0.98) and the false track it was
     built for (the runway's edge on approach-clear) is not a line-position error (docs/methods.md, "Known limits").
     For a pose whose error is known, e.g. the pair checks' ``pose_shift_px``, pass that.
     fill: pixels without a measurement (low texture, ill-conditioned, out of view of b; not occluded or truncated)
