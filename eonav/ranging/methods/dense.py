@@ -50,7 +50,7 @@ from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.methods._common import (F32, EpipolarMap, far_inverse_range, make_result, no_motion_result,
                                            numba_kernels, pyr_up_to, pyramid)
 from eonav.ranging.methods.fill import fill_unmeasured
-from eonav.ranging.rangemap import AT_INFINITY, OCCLUDED, TRUNCATION, VALID, RangeResult
+from eonav.ranging.rangemap import AT_INFINITY, ILL_CONDITIONED, OCCLUDED, TRUNCATION, VALID, RangeResult
 
 _K = numba_kernels("_dense_kernels")
 
@@ -387,7 +387,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
                  prior=None, prior_level: int = 1, prior_k: float = 3.0, prior_reach_px: float = 1.0,
                  prior_min_fraction: float = 0.5, prior_max_bad: float = 0.1, slant: bool = False,
                  slant_curv: float = 0.05, window_noise: bool = True, centroid: bool = True,
-                 window_floor: str = "global", match_blur: bool = False) -> RangeResult:
+                 window_floor: str = "global", match_blur: bool = False, aperture_px: float = 0.0) -> RangeResult:
     """Dense inverse range of every pixel of view a from the pair (a, b) with known poses.
 
     max_disp_px / min_range_m: search range: displacements up to max_disp_px (default 0.3 * image size) along
@@ -497,6 +497,14 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     match"), but their sigma, not recalibrated for it, then over-reports more (the held-out flight of
     tests/test_fusion.py: z spread 0.86 -> 0.72), and the fused map's slant term that would restore it leaves far
     ground's sigma too tight.
+    aperture_px: the 1-sigma misregistration of image b ACROSS the epipolar direction (pixels at level 0) that the
+    sigma allows for (``_apply_aperture``): a pose error moves b's epipolar line sideways, and a window whose
+    gradients lie mostly across the epipolar direction (a straight edge within a few degrees of it) turns such a
+    shift into a disparity error of up to shift / tan(angle). 0 (default): off. Off by default because the exact-pose
+    sim presets pay for it (0.1 px: coverage of the approach pair's VALID pixels 80.3 -> 76.7 %, z spread of the sim
+    presets 0.71-0.99 -> 0.57-0.94, i.e. more over-reported; 0.05 px: -1.0 point, 0.66-0.98) and the false track it was
+    built for (the runway's edge on approach-clear) is not a line-position error (docs/methods.md, "Known limits").
+    For a pose whose error is known, e.g. the pair checks' ``pose_shift_px``, pass that.
     fill: pixels without a measurement (low texture, ill-conditioned, out of view of b; not occluded or truncated)
     get an inverse range inferred from the measured ones around them (``eonav.ranging.methods.fill``: plane fits in
     windows growing by octaves, sigma from the fit and its disagreement across scales), flagged FILLED (not VALID),
@@ -596,6 +604,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
             if window_noise:
                 floor2 = _window_floor2(window_floor, g0, img_sigma, fin.sigma)
                 _apply_model_error(lv, rho, fin, window, floor2, centroid and not slant, max_rel_std, slant_curv)
+            if aperture_px > 0:
+                _apply_aperture(lv, rho, fin, window, F32(std_scale * aperture_px), max_rel_std)
 
     prior_info = None
     if first_lv is not None:
@@ -1051,6 +1061,56 @@ def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floo
                                  F32(max(fin.sigma, 1e-6) ** 2), lv.rw, lv.kc, lv.B0, fin.floor2, F32(max_rel_std),
                                  bool(centroid), fin.std, fin.flags, fin.rng, fin.conf)
     fin.n_val -= int(lost)
+
+
+def _aperture_gain(lv: "_Level", rho, window: int) -> np.ndarray:
+    """Per pixel, q = d(disparity) / d(shift of image b across the epipolar direction) of the window's estimate.
+
+    The window's normal equations (brightness offset eliminated) solve the disparity change along the unit epipolar
+    direction l from sum_j g_l,j (r_j - mean r) = sum_j g_l,j (g_l,j - mean g_l) dd, g_l = grad I . l. A shift s of
+    b along the unit normal p = (-l_2, l_1) adds g_p,j s to every residual, so it moves the estimate by
+    dd = -q s with q = cov(g_l, g_p) / var(g_l) over the window (gradients of image a at level 0, l from the
+    epipolar map's derivative (C1, C2)). Isotropic texture has q ~ 0 (its cross-products cancel); a straight edge at
+    angle theta to l has q = cot(theta) (g_l = -|g| sin theta, g_p = |g| cos theta): the aperture problem. This is
+    LSD-SLAM's geometric disparity error sigma_l^2 / <g, l>^2 (Engel, Sturm, Cremers 2013, "Semi-dense visual
+    odometry for a monocular camera", ICCV 2013, section 2.1.3), written for a window's least-squares fit instead of one pixel."""
+    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
+    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
+    n = np.sqrt(c1 * c1 + c2 * c2)
+    n[n == 0] = F32(1.0)
+    l1, l2 = c1 / n, c2 / n
+    gl = lv.gxa * l1 + lv.gya * l2
+    gp = lv.gya * l1 - lv.gxa * l2
+    m_l, m_p = _box(gl, window), _box(gp, window)
+    var_l = _box(gl * gl, window) - m_l * m_l
+    cov = _box(gl * gp, window) - m_l * m_p
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = cov / var_l
+    return np.where(np.isfinite(q), q, F32(0.0)).astype(F32)
+
+
+def _apply_aperture(lv: "_Level", rho, fin: "_Final", window: int, sigma_l: float, max_rel_std: float) -> None:
+    """In place on level 0's final estimate: each VALID (not AT_INFINITY) pixel's sigma^2 gains the geometric term
+    (sigma_l q / E)^2 in quadrature, q the window's gain from a shift of b across the epipolar direction to its
+    disparity (``_aperture_gain``), E = |d map / d rho| (pixels of disparity per unit rho), sigma_l the shift's
+    1-sigma (std_scale x ``aperture_px``). A pixel whose relative sigma then exceeds max_rel_std loses VALID
+    (ILL_CONDITIONED, as the kernels' rule)."""
+    q = _aperture_gain(lv, rho, window)
+    ok = ((fin.flags & VALID) > 0) & ((fin.flags & AT_INFINITY) == 0)
+    den = rho * lv.B0 + lv.rw[0][None, :] + lv.kc[0][:, None]
+    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
+    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        E = 2.0 * np.sqrt(c1 * c1 + c2 * c2) / (den * den)     # rows 3, 4 hold C / 2
+        add = (sigma_l * q / E) ** 2
+        sd = np.sqrt(fin.std * fin.std + add).astype(F32)
+        fin.std[ok] = sd[ok]
+        bad = ok & ~((sd <= max_rel_std * rho) & np.isfinite(sd))
+        fin.conf[ok] = (rho / sd)[ok]
+    fin.flags[bad] = (fin.flags[bad] & ~np.uint8(VALID)) | np.uint8(ILL_CONDITIONED)
+    fin.rng[bad] = np.nan
+    fin.conf[bad] = 0.0
+    fin.n_val -= int(bad.sum())
 
 
 def _plane_pair(size: int, range_m: float = 20.0, seed: int = 0) -> tuple[View, View]:
