@@ -17,6 +17,11 @@ tracked velocity) and ``moving-stereo`` (the same, the nose camera with a stereo
 its right: fused maps take the rig's stereo pair of each instant besides the motion pair, the partner's frame handed
 over first or, ``--rig-order arrival``, pushed after the reference's; dense maps are the stereo pair alone). The simulator's scene is static; a moving box is rendered at its place at each frame's time.
 
+Renders (``--supersample N``): each pixel the mean of N x N samples over its area, as a camera pixel integrates the
+light falling on it; N = 1 (the default) is one point sample at the pixel centre, which aliases edges into steps that
+do not move with the scene (docs/guidance.md, "The long box-free flights' false tracks": the approach's false track
+at 17 s). Ground truth (range, object id) is the pixel-centre ray's either way. The render cache is keyed by N.
+
 Per box (ground truth: the renderer's object ids and the solid box):
 - in view: at least ``min_obstacle_pixels`` of its pixels in the frame and its distance within the obstacle list's
   ``max_obstacle_distance_m``;
