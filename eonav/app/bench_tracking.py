@@ -17,6 +17,11 @@ tracked velocity) and ``moving-stereo`` (the same, the nose camera with a stereo
 its right: fused maps take the rig's stereo pair of each instant besides the motion pair, the partner's frame handed
 over first or, ``--rig-order arrival``, pushed after the reference's; dense maps are the stereo pair alone). The simulator's scene is static; a moving box is rendered at its place at each frame's time.
 
+Renders (``--supersample N``): each pixel the mean of N x N samples over its area, as a camera pixel integrates the
+light falling on it; N = 1 (the default) is one point sample at the pixel centre, which aliases edges into steps that
+do not move with the scene (docs/guidance.md, "The long box-free flights' false tracks": the approach's false track
+at 17 s). Ground truth (range, object id) is the pixel-centre ray's either way. The render cache is keyed by N.
+
 Per box (ground truth: the renderer's object ids and the solid box):
 - in view: at least ``min_obstacle_pixels`` of its pixels in the frame and its distance within the obstacle list's
   ``max_obstacle_distance_m``;
@@ -47,7 +52,7 @@ Per box (ground truth: the renderer's object ids and the solid box):
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
         [--follow-k K] [--follow-fraction F] [--rig-baseline-m M] [--rig-order partner-first|arrival]
-        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--cache-dir DIR]
+        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--supersample N] [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -74,6 +79,7 @@ MAP_SOURCES = ("truth", "dense", "fused")
 GROUND_TRACK_M = 1.0
 STEREO_BASELINE_M = 0.8            # the simulator's stereo preset's rig
 PARTNER_ID = "right"
+SUPERSAMPLE = 1                    # renders' samples per pixel along each axis (1: one point sample)
 
 
 @dataclass(frozen=True)
@@ -151,9 +157,10 @@ def rig_camera(cam, baseline_m: float):
     return replace(cam, name=PARTNER_ID, l_body_m=l)
 
 
-def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
+def frames(sc: Scenario, rate_hz: float, size, seed: int = 0, supersample: int = SUPERSAMPLE):
     """Yield (stamp_us, View, Render, scene, partner View or None) of a scenario's frames (true NED); with
-    ``sc.rig_baseline_m`` the partner camera's frame of the same instant (its own sensor noise)."""
+    ``sc.rig_baseline_m`` the partner camera's frame of the same instant (its own sensor noise). ``supersample``:
+    the renderer's samples per pixel along each axis (``render(supersample=)``, averaged: a pixel's area)."""
     from eonav.sim.flight import flight, flight_states
     from eonav.sim.presets import scale_camera
     from eonav.sim.render import render
@@ -163,11 +170,11 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
     times = np.arange(int(round(sc.seconds * rate_hz))) / rate_hz
     for i, st in enumerate(flight_states(sc.flight, times)):
         scene = scene_at(sc, fl.scene, float(times[i]))
-        r = render(scene, cam, st, supersample=1, noise_sigma=1.0,
+        r = render(scene, cam, st, supersample=supersample, noise_sigma=1.0,
                    seed=int(np.random.SeedSequence([seed, i]).generate_state(1)[0]))
         pv = None
         if partner is not None:
-            rp = render(scene, partner, st, supersample=1, noise_sigma=1.0,
+            rp = render(scene, partner, st, supersample=supersample, noise_sigma=1.0,
                         seed=int(np.random.SeedSequence([seed, i, 1]).generate_state(1)[0]))
             pv = View(partner, st, rp.image)
         yield int(round(times[i] * 1e6)), View(cam, st, r.image), r, scene, pv
@@ -175,12 +182,13 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0):
 
 def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
-               lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k):
+               lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
+               supersample: int = SUPERSAMPLE):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
     confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene.
     ``lr_check``: fused, the measurement kinds checked left-right (``FusionConfig.lr_check_kinds``); dense, any: every
     pair checked (method "dense_lr"). ``slant``: fused, measured by the dense method's slanted window
-    (``locate_dense(slant=True)``)."""
+    (``locate_dense(slant=True)``). ``supersample``: the renders' samples per pixel along each axis (``frames``)."""
     from eonav.ranging.locate import locate
     from eonav.ranging.rangemap import AT_INFINITY, VALID
     if maps not in MAP_SOURCES:
@@ -202,7 +210,7 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
         else:
             runner = FusionRunner(cfg)
     rng = np.random.default_rng(seed)
-    for k, (stamp, view, rnd, scene, pview) in enumerate(frames(sc, rate_hz, size, seed)):
+    for k, (stamp, view, rnd, scene, pview) in enumerate(frames(sc, rate_hz, size, seed, supersample)):
         cam, st = view.camera, view.state
         n_fused = None
         if maps == "truth":
@@ -244,9 +252,10 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
                 stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
-                lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k):
+                lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
+                supersample: int = SUPERSAMPLE):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed, rig baseline, the left-right check, the slanted window and, fused with a rig, ``stereo_lead_k`` and a
+    seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window and, fused with a rig, ``stereo_lead_k`` and a
     non-zero ``skipped_free_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
@@ -257,11 +266,14 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
         lead["slant"] = True
     if skipped_free_k and "stereo_lead_k" in lead:
         lead["skipped_free_k"] = skipped_free_k
+    if supersample != 1:
+        lead["supersample"] = supersample
     if not cache_dir:
         return range_maps(sc, rate_hz, size, maps, seed, **lead)
     import pickle
     from pathlib import Path
     path = Path(cache_dir) / (f"{sc.name}_{sc.seconds:g}s_{rate_hz:g}hz_{size[0]}x{size[1]}_{maps}_seed{seed}"
+                              f"{f'_ss{supersample}' if supersample != 1 else ''}"
                               f"{f'_slope{sc.slope_deg:g}' if sc.slope_deg else ''}"
                               f"{f'_rig{sc.rig_baseline_m:g}' if sc.rig_baseline_m > 0 else ''}"
                               f"{f'_lead{stereo_lead_k:g}' if 'stereo_lead_k' in lead else ''}"
@@ -527,6 +539,8 @@ def add_arguments(p) -> None:
                         "(FusionConfig.lr_check_kinds; default none); dense maps: any checks every pair")
     p.add_argument("--slant", action="store_true",
                    help="fused maps: the dense method's slanted window (slant=True)")
+    p.add_argument("--supersample", type=int, default=SUPERSAMPLE, metavar="N",
+                   help="render each pixel as the mean of N x N samples over its area (1: point sampling)")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="store the range maps here and reuse them on the next run with the same settings")
     p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -546,7 +560,7 @@ def main(argv=None) -> int:
         for name in [s for s in args.scenarios.split(",") if s]:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
                    tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order,
-                   tuple(k for k in args.lr_check.split(",") if k), args.slant, args.skipped_free_k)
+                   tuple(k for k in args.lr_check.split(",") if k), args.slant, args.skipped_free_k, args.supersample)
     return 0
 
 
@@ -563,17 +577,19 @@ def _within(errs, tol) -> str:
 def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVICE_OBSTACLES,
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
            stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
-           lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k) -> dict:
+           lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
+           supersample: int = SUPERSAMPLE) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
     rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check, slant,
-                                     skipped_free_k), sc, ocfg, tcfg)
+                                     skipped_free_k, supersample), sc, ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = (f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
              f"{', left-right check ' + ','.join(lr_check) if lr_check else ''}"
              f"{', slanted window' if slant and maps == 'fused' else ''}"
              f"{f', skipped_free_k {skipped_free_k:g}' if skipped_free_k and maps == 'fused' else ''}")
-    print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]}, "
+    print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]} "
+          f"({supersample} x {supersample} samples a pixel), "
           f"{s['mean_obstacles']:.1f} obstacles / {s['mean_measurements']:.1f} measurements a map; tracker p50 "
           f"{np.median(tt) * 1e3:.2f} ms, max {max(tt) * 1e3:.2f} ms a map ({time.perf_counter() - t0:.0f} s run)")
     for bname, b in sorted(s["boxes"].items()):
