@@ -335,7 +335,7 @@ def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, t
 
 
 def mover_pixels(m: dict, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES) -> dict:
-    """Per mover in view (``score``'s rule), its visible pixels by what the map says of them: VALID (not FILLED)
+    """Per mover in view (``box_in_view``), its visible pixels by what the map says of them: VALID (not FILLED)
     within 10 % of the true range (right), VALID off by more (wrong), FILLED, OCCLUDED, other (no range)."""
     out = {}
     if "object_id" not in m:
@@ -343,9 +343,7 @@ def mover_pixels(m: dict, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES
     boxes = m["scene"].boxes
     for j in range(len(sc.movers)):
         i = len(boxes) - len(sc.movers) + j
-        if m["visible_px"].get(i, 0) < ocfg.min_obstacle_pixels:
-            continue
-        if box_distance(boxes[i], m["state"].position_ned_m) > ocfg.max_obstacle_distance_m:
+        if not box_in_view(m, i, ocfg):
             continue
         px = m["object_id"] == i + 2
         fl = m["flags"][px]
@@ -391,9 +389,9 @@ def score(rec, rate_hz: float, ocfg: ObstacleConfig = SERVICE_OBSTACLES, sc: Sce
                 if box_distance(b, p) <= max(2.0, 0.05 * np.linalg.norm(p - pos)):
                     near_box_ids.add(tid)
         for i, b in enumerate(boxes):
-            dist = box_distance(b, pos)
-            if r["visible_px"].get(i, 0) < ocfg.min_obstacle_pixels or dist > ocfg.max_obstacle_distance_m:
+            if not box_in_view(r, i, ocfg):
                 continue
+            dist = box_distance(b, pos)
             s = per_box[b.name]
             if s["first_in_view_us"] is None:
                 s["first_in_view_us"] = r["stamp_us"]

@@ -1063,7 +1063,7 @@ def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floo
     fin.n_val -= int(lost)
 
 
-def _aperture_gain(lv: "_Level", rho, window: int) -> np.ndarray:
+def _aperture_gain(lv: "_Level", c1, c2, window: int) -> np.ndarray:
     """Per pixel, q = d(disparity) / d(shift of image b across the epipolar direction) of the window's estimate.
 
     The window's normal equations (brightness offset eliminated) solve the disparity change along the unit epipolar
@@ -1073,9 +1073,8 @@ def _aperture_gain(lv: "_Level", rho, window: int) -> np.ndarray:
     epipolar map's derivative (C1, C2)). Isotropic texture has q ~ 0 (its cross-products cancel); a straight edge at
     angle theta to l has q = cot(theta) (g_l = -|g| sin theta, g_p = |g| cos theta): the aperture problem. This is
     LSD-SLAM's geometric disparity error sigma_l^2 / <g, l>^2 (Engel, Sturm, Cremers 2013, "Semi-dense visual
-    odometry for a monocular camera", ICCV 2013, section 2.1.3), written for a window's least-squares fit instead of one pixel."""
-    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
-    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
+    odometry for a monocular camera", ICCV 2013, section 2.1.3), written for a window's least-squares fit instead of one pixel.
+    (c1, c2): the epipolar map's derivative on level 0's grid (``_apply_aperture``)."""
     n = np.sqrt(c1 * c1 + c2 * c2)
     n[n == 0] = F32(1.0)
     l1, l2 = c1 / n, c2 / n
@@ -1095,11 +1094,11 @@ def _apply_aperture(lv: "_Level", rho, fin: "_Final", window: int, sigma_l: floa
     disparity (``_aperture_gain``), E = |d map / d rho| (pixels of disparity per unit rho), sigma_l the shift's
     1-sigma (std_scale x ``aperture_px``). A pixel whose relative sigma then exceeds max_rel_std loses VALID
     (ILL_CONDITIONED, as the kernels' rule)."""
-    q = _aperture_gain(lv, rho, window)
+    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]          # the epipolar map's derivative C / 2 (rows 3, 4)
+    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
+    q = _aperture_gain(lv, c1, c2, window)
     ok = ((fin.flags & VALID) > 0) & ((fin.flags & AT_INFINITY) == 0)
     den = rho * lv.B0 + lv.rw[0][None, :] + lv.kc[0][:, None]
-    c1 = lv.rw[3][None, :] + lv.kc[3][:, None]
-    c2 = lv.rw[4][None, :] + lv.kc[4][:, None]
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         E = 2.0 * np.sqrt(c1 * c1 + c2 * c2) / (den * den)     # rows 3, 4 hold C / 2
         add = (sigma_l * q / E) ** 2
