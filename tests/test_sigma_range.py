@@ -131,16 +131,19 @@ def _half_spreads(res, rho_true):
 def test_sigma_follows_each_windows_own_misfit(seed):
     """Where image b's right half holds a misfit (extra noise 3 x the sensor's), the errors there are larger; the
     window's own residual puts that into the sigma. Measured z spread left / right half (seeds 1 / 2): image-wide
-    noise (window_noise=False) 0.58 / 1.29, 0.63 / 1.27; floor at the image's residual noise (default) 0.58 / 1.04,
-    0.65 / 1.02; floor at the sensor noise 0.72 / 1.04, 0.79 / 1.02 (the clean half's windows fit below the
+    noise (window_noise=False) 0.58 / 1.29, 0.63 / 1.27; floor at the VALID pixels' residual noise s_v (default)
+    0.61 / 1.04, 0.67 / 1.02 (s_v, at the final estimate, is 5 % below the image-wide figure sigma_n, taken before
+    the last step); floor at the sensor noise 0.72 / 1.04, 0.79 / 1.02 (the clean half's windows fit below the
     image-wide figure the noisy half raises). Held: the misfit half's spread down by more than 12 % with the
-    window's residual, the clean half's within 5 % at the default floor and up by more than 15 % at the sensor's;
-    without the misfit both halves alike (within 25 %)."""
+    window's residual, the clean half's within 5 % of the image-wide model's scaled by sigma_n / s_v at the default
+    floor and up by more than 15 % at the sensor's; without the misfit both halves alike (within 25 %)."""
     (a, b), rho = _misfit_pair(seed, 3.0)
     left0, right0 = _half_spreads(locate_dense(a, b, fill=False, window_noise=False), rho)
-    left, right = _half_spreads(locate_dense(a, b, fill=False), rho)
+    res = locate_dense(a, b, fill=False)
+    left, right = _half_spreads(res, rho)
     assert right / right0 < 0.88, (right0, right)
-    assert 0.95 < left / left0 < 1.05, (left0, left)
+    s_ratio = res.info["noise_sigma"] / res.info["noise_sigma_valid"]
+    assert 0.95 < left / (left0 * s_ratio) < 1.05, (left0, left, s_ratio)
     left_s, right_s = _half_spreads(locate_dense(a, b, fill=False, window_floor="sensor"), rho)
     assert right_s / right0 < 0.88 and left_s / left0 > 1.15, (left0, left_s, right0, right_s)
     (a, b), rho = _misfit_pair(seed, 0.0)
@@ -197,10 +200,11 @@ def test_no_valid_range_where_the_infinity_test_cannot_look():
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_the_window_term_only_widens_the_sigma_at_the_global_floor(seed):
-    """With the floor at the image's residual noise (window_floor="global", the default) no VALID pixel's sigma
-    falls below the image-wide model's (window_noise=False); with the floor at the sensor noise, the windows of
-    the misfit pair's clean left half (which fit to the sensor noise, below the image-wide figure the noisy right
-    half raises) get a smaller one. The centroid term is off: it moves rho, not only the sigma."""
+    """With the floor at the residual's noise over the VALID pixels (window_floor="global", the default) no VALID
+    pixel's sigma falls below the image-wide model's (window_noise=False) by more than that figure's ratio to the
+    image-wide one, s_v / sigma_n (the window term itself only widens it); with the floor at the sensor noise, the
+    windows of the misfit pair's clean left half (which fit to the sensor noise, below the image-wide figure the
+    noisy right half raises) get a smaller one. The centroid term is off: it moves rho, not only the sigma."""
     (a, b), _ = _misfit_pair(seed, 3.0)
     plain = locate_dense(a, b, fill=False, window_noise=False, centroid=False)
     both = lambda r: ((r.flags & VALID) != 0) & ((plain.flags & VALID) != 0)
@@ -212,8 +216,53 @@ def test_the_window_term_only_widens_the_sigma_at_the_global_floor(seed):
         if lowered:
             assert np.mean(ratio < 0.95) > 0.2, np.percentile(ratio, [5, 50, 95])
         else:
-            assert ratio.min() >= 1.0 - 1e-5, ratio.min()
+            s_ratio = min(res.info["noise_sigma_valid"] / res.info["noise_sigma"], 1.0)
+            assert s_ratio > 0.85                            # every pixel in view is VALID here but a few
+            assert ratio.min() >= s_ratio - 1e-5, (ratio.min(), s_ratio)
             assert np.mean(ratio > 1.2) > 0.2               # the noisy half's windows widen it
+
+
+def _half_rejected_pair(seed, rejected):
+    """The faint textured plane of ``_misfit_pair`` (no extra noise) whose columns from ``rejected`` x the width on
+    are unrelated textures in the two images: no range there (the method rejects them, OCCLUDED), a residual ~15 x
+    the noise."""
+    h, w, f, bl, d = 160, 240, 500.0, 0.1, 6.3
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    rng = np.random.default_rng(seed)
+    tex = lambda xx: (sine_texture(xx, y) - 128) * 0.15 + 128
+    left = tex(x) + rng.normal(0, 1.0, (h, w))
+    right = tex(x + d) + rng.normal(0, 1.0, (h, w))
+    if rejected < 1:
+        out = x >= rejected * w
+        left = np.where(out, sine_texture(x, y, seed=5), left)
+        right = np.where(out, sine_texture(x, y, seed=9) + rng.normal(0, 1.0, (h, w)), right)
+    return rectified_views(left.astype(F32), right.astype(F32), 500.0, 0.1), d / (f * bl)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_pixels_without_a_range_do_not_widen_the_sigma_of_the_ranged_ones(seed):
+    """The floor is the residual's noise over the VALID pixels, not over every pixel in view: pixels the method
+    rejects (here 45 % of the image, unrelated textures in a and b; on the sim flights the sky and the occluded
+    pixels, 47-57 % of those in view, residual 2-15 x the VALID pixels') say nothing about the noise of the ones it
+    ranges. Measured z spread of the clean part (columns 20-120), without -> with the rejected part (seeds 1 / 2):
+    floor over every pixel in view (before) 0.71 -> 0.32, 0.78 -> 0.35 (the rejected pixels' residual tripled the
+    image-wide figure); over the VALID pixels 0.73 -> 0.71, 0.80 -> 0.79. Held: within 10 % at the default floor,
+    down by more than 40 % at the floor over every pixel in view (window_floor="inview")."""
+    spreads = {}
+    for floor in ("global", "inview"):
+        for rejected in (1.0, 0.55):
+            (a, b), rho = _half_rejected_pair(seed, rejected)
+            res = locate_dense(a, b, fill=False, window_floor=floor)
+            val = (res.flags & VALID) != 0
+            if rejected < 1:
+                assert val[:, 140:].mean() < 0.05 and res.info["noise_sigma"] > 2.5 * res.info["noise_sigma_valid"]
+            z = (res.inv_range_per_m - rho) / res.inv_range_std_per_m
+            sl = (slice(10, -10), slice(20, 120))
+            assert val[sl].mean() > 0.95
+            zz = z[sl][val[sl]]
+            spreads[floor, rejected] = 1.4826 * np.median(np.abs(zz - np.median(zz)))
+    assert 0.9 < spreads["global", 0.55] / spreads["global", 1.0] < 1.1, spreads
+    assert spreads["inview", 0.55] / spreads["inview", 1.0] < 0.6, spreads
 
 
 def test_an_unknown_window_floor_is_an_input_error():
