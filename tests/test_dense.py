@@ -362,11 +362,12 @@ def z_spread(res, gt, mask):
 
 def test_reported_sigma_is_calibrated():
     """The sigma of VALID pixels against the truth, on every motion preset and the stereo rig at 256 px (23-30k
-    pixels each; the noise seed moves a spread by <= 0.03). Measured z spread: fast 1.06, paper 1.07, turning 0.87,
-    climbing 0.82, stereo 1.24; geometric mean 1.00 (0.85 while the window's residual was floored at the residual
-    noise of every pixel in view, sky and occluded pixels included, instead of the VALID pixels': docs/methods.md
-    "The sigma across range"). The mean's band is 1 +- 0.1 and fails for the sigma scaled by 1.2 (0.83) or 0.8
-    (1.25); each scene within 0.6 .. 1.3. (FILLED pixels have the fill's own sigma: tests/test_fill.py.)"""
+    pixels each; the noise seed moves a spread by <= 0.03). Measured z spread: fast 0.84, paper 0.85, turning 0.74,
+    climbing 0.80, stereo 1.09; geometric mean 0.85. The sim over-reports: std_scale is set so that real images
+    (Middlebury) do not under-report (docs/methods.md "The sigma across range"; with the window's residual floored
+    at the sensor noise instead the mean was 1.02). The mean's band holds the measured value, not 1.05, and fails for
+    the sigma scaled by 1.2 (0.71) or 0.8 (1.07); each scene within 0.6 .. 1.3. (FILLED pixels have the fill's own
+    sigma: tests/test_fill.py.)"""
     spreads = {}
     for preset in ("fast", "paper", "turning", "climbing", "stereo"):
         sp = sim(preset)
@@ -376,7 +377,7 @@ def test_reported_sigma_is_calibrated():
         assert valid.sum() > 20000, preset
         spreads[preset] = z_spread(res, gt, valid)
     mean = float(np.exp(np.mean(np.log(list(spreads.values())))))
-    assert 0.9 < mean < 1.1, (mean, spreads)
+    assert 0.75 < mean < 1.0, (mean, spreads)
     assert all(0.6 < s < 1.3 for s in spreads.values()), spreads
 
 

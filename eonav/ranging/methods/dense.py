@@ -461,22 +461,24 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     with a median error of 1 %, since the reported estimate is the one after that step).
     std_scale: calibration factor of the reported sigma, from the measured robust spread of (rho - rho_true) / sigma
     (the window's samples are correlated by the pre-smoothing and the interpolation): None (default) takes the one
-    for the window model, 1.35 with one rho per window (at the global window floor the geometric mean spread of the
-    four Middlebury pairs is then 1.05, of the five sim presets 0.95; 0.98 and 0.83 at "inview"), 1.25 with the slanted window (measured
+    for the window model, 1.35 with one rho per window (at the global window floor the Middlebury pairs' spread is
+    then 0.98 and the sim presets' 0.83: real images do not under-report; at the "valid" floor 1.05 and 0.95), 1.25 with the slanted window (measured
     on the sim presets with the sensor floor; docs/methods.md "The sigma across range"). max_rel_std (0.34) was set
     as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
     window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit)
     where that exceeds the floor, instead of the image's noise alone (``_apply_model_error``): the image-wide figure
     under-reports the sigma of far ground near the horizon and of edges, where the window's model does not hold.
-    window_floor: the floor of the window's residual variance (``_window_floor2``). "global" (default), the final
-    residual's robust noise over the VALID pixels: the window term only raises the sigma above the image-wide
-    figure of the pixels the method ranges, where its window misfits. "inview" (the default before) takes that
-    figure over every pixel in view, whose residual at the estimates the method rejects (sky, occlusions) tripled
-    it on synthetic scenes and raised it 1.5 x on the sim flights: their near ground's sigma over-reported (pair z
-    0.61-0.67 there), and so did the fused sigma (docs/methods.md "The sigma across range"). "sensor" (the sensor
-    noise alone) also lowers it where a window fits better than the image-wide figure: on real images the window's
-    residual misses part of the error and Middlebury teddy / cones, HoloLens under-reported (z 1.49 / 1.31 / 1.74
-    against 0.95 / 0.61 / 1.18 at "inview"); "mid", the geometric mean of "sensor" and "global", lies between.
+    window_floor: the floor of the window's residual variance (``_window_floor2``). "global" (default), the image's
+    final residual noise over every pixel in view: the window term only raises the sigma above the image-wide model's,
+    where its window misfits. "valid" takes that figure over the VALID pixels alone: on the sim flights 47-57 % of the
+    pixels in view are ones the method rejects (sky, occlusions), whose residual raises the "global" figure 1.5 x and
+    makes the near ground's sigma over-report (pair z 0.61-0.67 there; 0.87-0.94 with "valid"); not the default, since
+    on the real HoloLens sequence, whose pairs' sigma under-reports, the fused z at frame 10 went 1.18 -> 1.37 and the
+    obstacle list found one more false track per seed (docs/methods.md "The sigma across range"). "sensor" (the
+    sensor noise alone) also lowers it where a window fits better than the image-wide figure (near sim ground): even
+    sim bins, but on real images the window's residual misses part of the error and Middlebury teddy / cones,
+    HoloLens under-reported (z 1.49 / 1.31 / 1.74 against 0.95 / 0.61 / 1.18); "mid", the geometric mean of
+    "sensor" and "global", lies between.
     centroid: with window_noise and one rho per window, each VALID rho moved from the window's effective centre
     (the texture-weighted centroid the normal equations measure) back to the pixel along rho's slope, where rho is
     planar about the pixel (the slanted window's gate); elsewhere that bias goes into the sigma (``_model_error``).
@@ -541,8 +543,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
-    if window_floor not in ("sensor", "global", "mid", "inview"):
-        raise InputError(f"window_floor {window_floor!r}: expected 'sensor', 'global', 'mid' or 'inview'")
+    if window_floor not in ("sensor", "global", "mid", "valid"):
+        raise InputError(f"window_floor {window_floor!r}: expected 'sensor', 'global', 'mid' or 'valid'")
     if std_scale is None:
         std_scale = 1.25 if slant else 1.35
     if not (math.isfinite(slant_curv) and slant_curv > 0):
@@ -1024,14 +1026,14 @@ def _window_means(lv: "_Level", rho, window: int):
 
 def _window_floor2(kind: str, g0: float, img_sigma: float | None, inview_sigma: float, valid_sigma: float) -> float:
     """The floor of the window's residual variance in ``_apply_model_error``: "sensor" the sensor noise's own
-    (2 g0 sigma_img^2), "global" ``valid_sigma``^2, the final residual's robust noise over the VALID pixels (the
-    window can only raise the sigma above the image-wide figure of the pixels it ranges), "mid" their geometric
-    mean, "inview" ``inview_sigma``^2, the residual's noise over every pixel in view (the classification's,
-    ``_Final.sigma``; the default until the VALID pixels' replaced it) (``locate_dense`` has checked the name)."""
+    (2 g0 sigma_img^2), "global" ``inview_sigma``^2, the image's final residual noise over every pixel in view (the
+    classification's, ``_Final.sigma``: the window can only raise the sigma), "mid" their geometric mean, "valid"
+    ``valid_sigma``^2, the final residual's robust noise over the VALID pixels (``locate_dense`` has checked the
+    name)."""
     sensor = 2.0 * g0 * img_sigma ** 2 if img_sigma is not None else 0.0
-    glob = max(float(valid_sigma), 1e-6) ** 2
+    glob = max(float(inview_sigma), 1e-6) ** 2
     return {"sensor": sensor, "global": glob, "mid": math.sqrt(sensor * glob),
-            "inview": max(float(inview_sigma), 1e-6) ** 2}[kind]
+            "valid": max(float(valid_sigma), 1e-6) ** 2}[kind]
 
 
 def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2, centroid: bool,
@@ -1047,12 +1049,11 @@ def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floo
     sensor noise (near sim ground) the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
     max(s_w^2, noise_floor2) / sigma_n^2: s_w^2 the window's residual variance (over its pixels in view of b, the
     brightness offset removed, times n / (n - 2) for the two parameters it fitted), its floor noise_floor2(s_v)
-    (``_window_floor2`` with the kind bound): by default s_v^2, the residual's robust noise over the VALID pixels
-    (``fin.sigma_valid``), so that a window can only widen the sigma above the image-wide figure (on real images a
-    window's small residual does not mean a small error), or the sensor noise's own. s_v, not sigma_n: sigma_n is
-    taken over every pixel in view, sky and untextured or ill-conditioned pixels included, whose residual at an
-    estimate the method rejects says nothing about the noise of the ones it ranges (sim flights: sigma_n 1.37-1.39,
-    s_v 0.90).
+    (``_window_floor2`` with the kind bound, s_v the residual's robust noise over the VALID pixels,
+    ``fin.sigma_valid``): by default sigma_n^2 itself, so that a window can only widen the sigma (on real images a
+    window's small residual does not mean a small error); "valid" s_v^2 (sigma_n is taken over every pixel in view,
+    sky and occluded pixels included, whose residual at an estimate the method rejects is not the noise of the ones
+    it ranges: sim flights sigma_n 1.37-1.39, s_v 0.90); or the sensor noise's own.
 
     One rho per window measures rho not at the pixel but at the window's effective centre: its normal equations
     (brightness offset eliminated) solve rho = sum_j W_j rho_j / sum_j W_j, W_j = J_j (J_j - mean J), J_j the
