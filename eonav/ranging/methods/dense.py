@@ -464,8 +464,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     for the window model, 1.35 with one rho per window (at the global window floor the Middlebury pairs' spread is
     then 0.98 and the sim presets' 0.83: real images do not under-report; at the "valid" floor 1.05 and 0.95), 1.25
     with the slanted window (measured on the sim presets with the sensor floor; docs/methods.md "The sigma across
-    range"). max_rel_std (0.34) was set
-    as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
+    range"). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
     window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit)
     where that exceeds the floor, instead of the image's noise alone (``_apply_model_error``): the image-wide figure
     under-reports the sigma of far ground near the horizon and of edges, where the window's model does not hold.
