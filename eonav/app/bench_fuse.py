@@ -13,7 +13,8 @@ the prior and costs less, ``eonav.fusion.sequence.PriorConfig``). Targets of iss
 assertions.
 
 ``--match-blur``: the dense method's resolution match (``locate_dense(match_blur=True)``, off by default) in the
-fused measurements and the single pairs alike.
+fused measurements and the single pairs alike; ``--window-floor``: its window residual's floor likewise
+(``locate_dense(window_floor=...)``, e.g. "valid").
 
 Sequences: the paper replica flown 1 s at 30 fps (31 frames, 512 x 512, last frame = the preset's reference with
 the Table I vehicles), the "fast" preset and the approach flight at 30 fps; the real HoloLens indoor sequence (20
@@ -341,6 +342,9 @@ def add_arguments(p):
     p.add_argument("--no-real", action="store_true", help="skip the HoloLens and KITTI sequences")
     p.add_argument("--match-blur", action="store_true",
                    help="the dense method's resolution match (locate_dense(match_blur=True); off by default)")
+    p.add_argument("--window-floor", default=None, choices=("global", "valid", "sensor", "mid"),
+                   help="the dense method's floor of the window residual (locate_dense(window_floor=...); default: "
+                        "the method's own, 'global')")
     p.add_argument("--cv-threads", type=int, default=1, metavar="N",
                    help="OpenCV threads, cv2.setNumThreads(N) (default 1: one core)")
     p.add_argument("--threads", dest="cv_threads", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -374,7 +378,9 @@ def run(args) -> int:
     rows, summaries = [], {}
     for make in cases:
         case = make()
-        summaries[case.name] = run_case(case, rows, {"match_blur": True} if args.match_blur else None)
+        params = dict({"match_blur": True} if args.match_blur else {},
+                      **({"window_floor": args.window_floor} if args.window_floor else {}))
+        summaries[case.name] = run_case(case, rows, params or None)
     print_targets(summaries)
     if args.json:
         with open(args.json, "w") as f:

@@ -40,7 +40,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, replace
-from functools import lru_cache
+from functools import lru_cache, partial
 
 import cv2
 import numpy as np
@@ -462,18 +462,23 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     std_scale: calibration factor of the reported sigma, from the measured robust spread of (rho - rho_true) / sigma
     (the window's samples are correlated by the pre-smoothing and the interpolation): None (default) takes the one
     for the window model, 1.35 with one rho per window (at the global window floor the Middlebury pairs' spread is
-    then 0.98 and the sim presets' 0.83: real images do not under-report), 1.25 with the slanted window (measured
-    on the sim presets with the sensor floor; docs/methods.md "The sigma across range"). max_rel_std (0.34) was set
-    as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
+    then 0.98 and the sim presets' 0.83: real images do not under-report; at the "valid" floor 1.05 and 0.95), 1.25
+    with the slanted window (measured on the sim presets with the sensor floor; docs/methods.md "The sigma across
+    range"). max_rel_std (0.34) was set as 0.25 x 1.35 and kept: the VALID rule is on the calibrated sigma.
     window_noise: each VALID pixel's sigma from its own window's residual (noise plus the window model's misfit)
     where that exceeds the floor, instead of the image's noise alone (``_apply_model_error``): the image-wide figure
     under-reports the sigma of far ground near the horizon and of edges, where the window's model does not hold.
     window_floor: the floor of the window's residual variance (``_window_floor2``). "global" (default), the image's
-    final residual noise: the window term only raises the sigma above the image-wide model's, where its window
-    misfits. "sensor" (the sensor noise alone) also lowers it where a window fits better than the image-wide
-    figure (near sim ground): even sim bins, but on real images the window's residual misses part of the error and
-    Middlebury teddy / cones, HoloLens under-reported (z 1.49 / 1.31 / 1.74 against 0.95 / 0.61 / 1.18);
-    "mid", their geometric mean, lies between (docs/methods.md "The sigma across range").
+    final residual noise over every pixel in view: the window term only raises the sigma above the image-wide model's,
+    where its window misfits. "valid" takes that figure over the VALID pixels alone: on the sim flights 47-57 % of the
+    pixels in view are ones the method rejects (sky, occlusions), whose residual raises the "global" figure 1.5 x and
+    makes the near ground's sigma over-report (pair z 0.61-0.67 there; 0.87-0.94 with "valid"); not the default, since
+    on the real HoloLens sequence, whose pairs' sigma under-reports, the fused z at frame 10 went 1.18 -> 1.37 and the
+    obstacle list found one more false track per seed (docs/methods.md "The sigma across range"). "sensor" (the
+    sensor noise alone) also lowers it where a window fits better than the image-wide figure (near sim ground): even
+    sim bins, but on real images the window's residual misses part of the error and Middlebury teddy / cones,
+    HoloLens under-reported (z 1.49 / 1.31 / 1.74 against 0.95 / 0.61 / 1.18); "mid", the geometric mean of
+    "sensor" and "global", lies between.
     centroid: with window_noise and one rho per window, each VALID rho moved from the window's effective centre
     (the texture-weighted centroid the normal equations measure) back to the pixel along rho's slope, where rho is
     planar about the pixel (the slanted window's gate); elsewhere that bias goes into the sigma (``_model_error``).
@@ -538,8 +543,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     if geo.baseline_m <= 1e-12:
         return no_motion_result((ha, wa), METHOD, "zero baseline")
     L = _default_search_level(view_a.image.shape, view_b.image.shape) if search_level is None else search_level
-    if window_floor not in ("sensor", "global", "mid"):
-        raise InputError(f"window_floor {window_floor!r}: expected 'sensor', 'global' or 'mid'")
+    if window_floor not in ("sensor", "global", "mid", "valid"):
+        raise InputError(f"window_floor {window_floor!r}: expected 'sensor', 'global', 'mid' or 'valid'")
     if std_scale is None:
         std_scale = 1.25 if slant else 1.35
     if not (math.isfinite(slant_curv) and slant_curv > 0):
@@ -602,7 +607,7 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
         else:
             rho, fin = _refine_level(lv, rho, n_it, steps_l, shift, rules=rules, inf_mask=inf_mask)
             if window_noise:
-                floor2 = _window_floor2(window_floor, g0, img_sigma, fin.sigma)
+                floor2 = partial(_window_floor2, window_floor, g0, img_sigma, fin.sigma)
                 _apply_model_error(lv, rho, fin, window, floor2, centroid and not slant, max_rel_std, slant_curv)
             if aperture_px > 0:
                 _apply_aperture(lv, rho, fin, window, F32(std_scale * aperture_px), max_rel_std)
@@ -618,7 +623,8 @@ def locate_dense(view_a: View, view_b: View, *, max_disp_px: float | None = None
     # 4. fill the pixels without a measurement
     n_filled = fill_unmeasured(rho, fin.std, fin.flags, fin.rng, fin.conf, max_rel_std, rho_far=fin.rho_far,
                                exclude=fin.amb) if fill else 0
-    info = {"seconds": time.perf_counter() - t_start, "noise_sigma": fin.sigma, "rho_max_per_m": rho_max,
+    info = {"seconds": time.perf_counter() - t_start, "noise_sigma": fin.sigma, "noise_sigma_valid": fin.sigma_valid,
+            "rho_max_per_m": rho_max,
             "n_hypotheses": n_hyp, "search_level": L, "baseline_m": geo.baseline_m,
             "filled_fraction": n_filled / max(rho.size, 1)}
     if prior is not None:
@@ -890,6 +896,7 @@ class _Final:
     def __init__(self, shape, sigma, img_sigma, g0, gG, window, tex_k, occ_k, occ_px, trunc_px, match_floor_px,
                  noise_info, inf_test, std_scale, orient_min, rho_far, max_rel_std):
         self.sigma = sigma
+        self.sigma_valid = sigma        # the residual's noise over the VALID pixels (``_apply_model_error``)
         n_win = float(window * window)
         sc2 = float(std_scale) ** 2
         self.var_k = F32(sc2 * sigma * sigma / n_win)
@@ -1000,7 +1007,8 @@ def _window_means(lv: "_Level", rho, window: int):
     """The window means the model error needs (``_dense_kernels.model_error_finish``): of the epipolar gradient J
     at rho and of J^2 (m1, and m0J = mean J^2 - m1^2), of J^2 and J weighted by the pixel's column and row offset
     from the window's centre (rx2, rx1, ry2, ry1), and of the residual I_b(map(rho)) - I_a, its square and the
-    in-view mask over the pixels in view of b (mr, mr2, mv)."""
+    in-view mask over the pixels in view of b (mr, mr2, mv); and the residual (0 out of view) and the in-view mask
+    themselves (r, m)."""
     h, w = rho.shape
     J, J2 = _ws("me_J", (h, w)), _ws("me_J2", (h, w))
     r, iv = _ws("me_r", (h, w)), _ws("me_iv", (h, w), np.uint8)
@@ -1013,19 +1021,22 @@ def _window_means(lv: "_Level", rho, window: int):
     rx2, rx1 = (cv2.sepFilter2D(t, -1, ramp, box, borderType=_BR) for t in (J2, J))
     ry2, ry1 = (cv2.sepFilter2D(t, -1, box, ramp, borderType=_BR) for t in (J2, J))
     mr, mr2, mv = _box(r, window), _box(r * r, window), _box(m, window)
-    return m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv
+    return m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv, r, m
 
 
-def _window_floor2(kind: str, g0: float, img_sigma: float | None, resid_sigma: float) -> float:
+def _window_floor2(kind: str, g0: float, img_sigma: float | None, inview_sigma: float, valid_sigma: float) -> float:
     """The floor of the window's residual variance in ``_apply_model_error``: "sensor" the sensor noise's own
-    (2 g0 sigma_img^2), "global" the image's final residual noise (the window can only raise the sigma), "mid"
-    their geometric mean (``locate_dense`` has checked the name)."""
+    (2 g0 sigma_img^2), "global" ``inview_sigma``^2, the image's final residual noise over every pixel in view (the
+    classification's, ``_Final.sigma``: the window can only raise the sigma), "mid" their geometric mean, "valid"
+    ``valid_sigma``^2, the final residual's robust noise over the VALID pixels (``locate_dense`` has checked the
+    name)."""
     sensor = 2.0 * g0 * img_sigma ** 2 if img_sigma is not None else 0.0
-    glob = max(float(resid_sigma), 1e-6) ** 2
-    return {"sensor": sensor, "global": glob, "mid": math.sqrt(sensor * glob)}[kind]
+    glob = max(float(inview_sigma), 1e-6) ** 2
+    return {"sensor": sensor, "global": glob, "mid": math.sqrt(sensor * glob),
+            "valid": max(float(valid_sigma), 1e-6) ** 2}[kind]
 
 
-def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2: float, centroid: bool,
+def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floor2, centroid: bool,
                        max_rel_std: float, curv: float) -> None:
     """In place on level 0's final estimate: the sigma of each VALID pixel with its own window's noise and model
     error instead of the image's noise alone, and (``centroid``) rho corrected by the window model's bias.
@@ -1037,9 +1048,12 @@ def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floo
     of the noise, sigma_n^2 + sigma_model^2, and the match is worse by as much; where the window fits to the
     sensor noise (near sim ground) the image-wide figure over-reports it. So the noise part of sigma^2 is scaled by
     max(s_w^2, noise_floor2) / sigma_n^2: s_w^2 the window's residual variance (over its pixels in view of b, the
-    brightness offset removed, times n / (n - 2) for the two parameters it fitted), noise_floor2 its floor
-    (``_window_floor2``): the image's residual noise sigma_n^2 by default, so that a window can only widen the
-    sigma (on real images a window's small residual does not mean a small error), or the sensor noise's own.
+    brightness offset removed, times n / (n - 2) for the two parameters it fitted), its floor noise_floor2(s_v)
+    (``_window_floor2`` with the kind bound, s_v the residual's robust noise over the VALID pixels,
+    ``fin.sigma_valid``): by default sigma_n^2 itself, so that a window can only widen the sigma (on real images a
+    window's small residual does not mean a small error); "valid" s_v^2 (sigma_n is taken over every pixel in view,
+    sky and occluded pixels included, whose residual at an estimate the method rejects is not the noise of the ones
+    it ranges: sim flights sigma_n 1.37-1.39, s_v 0.90); or the sensor noise's own.
 
     One rho per window measures rho not at the pixel but at the window's effective centre: its normal equations
     (brightness offset eliminated) solve rho = sum_j W_j rho_j / sum_j W_j, W_j = J_j (J_j - mean J), J_j the
@@ -1050,7 +1064,11 @@ def _apply_model_error(lv: "_Level", rho, fin: "_Final", window: int, noise_floo
     ``_slant_shape``), and what the gate leaves, (1 - A) b, goes into the sigma in quadrature. A pixel whose
     relative sigma then exceeds max_rel_std loses VALID (ILL_CONDITIONED, as the kernels' rule)
     (``_dense_kernels.model_error_finish``)."""
-    m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv = _window_means(lv, rho, window)
+    m1, m0J, rx2, rx1, ry2, ry1, mr, mr2, mv, r, m = _window_means(lv, rho, window)
+    measured = ((fin.flags & VALID) != 0) & ((fin.flags & AT_INFINITY) == 0) & (m > 0)
+    enough = np.count_nonzero(measured[::3, ::3]) >= 16
+    fin.sigma_valid = _robust_sigma(r, measured) if enough else fin.sigma
+    noise_floor2 = noise_floor2(fin.sigma_valid)
     rs = _box(rho, 3, dst=_ws("me_rs", rho.shape))
     if centroid:
         S, M = _slant_shape(rho, _Steps(window, 3, 0.0, 0.0, F32(0.0), slant_curv=curv))
