@@ -261,6 +261,22 @@ def test_single_measurement_rule_stops_at_the_horizon():
     assert not res.data_mask[64:128, 128:192].any() and res.data_mask[128:, 128:192].all()
 
 
+def test_range_jump_cut_in_units_of_the_pixels_sigma():
+    # two walls side by side, 20 m (columns 96..127) and 27 m (128..159): a log-range jump of ln 1.35 = 0.300 at
+    # their common edge; every pixel with a relative sigma of 0.1, so the cut needs 0.300 > k hypot(0.1, 0.1) =
+    # 0.1414 k: k < 2.12 cuts (two obstacles), k > 2.12 joins them (one)
+    r = add_wall(add_wall(ground_and_sky(), 20.0, 96, 128), 27.0, 128, 160)
+    std = np.where(np.isfinite(r), 0.1 / r, 0.0).astype(np.float32)          # sigma_r / r = sigma_rho r = 0.1
+    def n_obstacles(k):
+        return len(ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(CFG, jump_sigma_k=k)).obstacles)
+    assert n_obstacles(2.25) == 1 and n_obstacles(3.0) == 1
+    assert n_obstacles(2.0) == 2 and n_obstacles(1.5) == 2
+    # k 0: max_rel_jump (8 %) alone decides; 35 % beats it
+    assert n_obstacles(0.0) == 2
+    with pytest.raises(InputError, match="jump_sigma_k"):
+        ob.ObstacleConfig(jump_sigma_k=-1.0)
+
+
 def test_ground_estimated_from_points_when_not_configured():
     r = add_wall(ground_and_sky(alt_m=25.0), 30.0, 128, 192, alt_m=25.0)
     st = VehicleState.from_ypr([0.0, 0.0, -25.0], [0.0, 0.0, 0.0])

@@ -514,6 +514,9 @@ def add_arguments(p) -> None:
     p.add_argument("--horizon-min-fused", type=int, default=SERVICE_OBSTACLES.horizon_min_fused,
                    help="ObstacleConfig.horizon_min_fused: fused-map pixels at or above the ground plane's horizon "
                         "need this many measurements")
+    p.add_argument("--jump-sigma-k", type=float, default=SERVICE_OBSTACLES.jump_sigma_k, metavar="K",
+                   help="ObstacleConfig.jump_sigma_k: a range jump between neighbours cuts two objects beyond K x "
+                        "the hypot of their relative sigmas (and max_rel_jump)")
     p.add_argument("--see-through-k", type=float, default=TrackerConfig().see_through_k, metavar="K",
                    help="TrackerConfig.see_through_k: farther measurements bearing-only beyond K track sigma (0: off)")
     p.add_argument("--duplicate-chi2", type=float, default=TrackerConfig().duplicate_chi2, metavar="D2",
@@ -550,7 +553,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_arguments(p)
     args = p.parse_args(argv)
-    ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused, horizon_min_fused=args.horizon_min_fused)
+    ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused, horizon_min_fused=args.horizon_min_fused,
+                   jump_sigma_k=args.jump_sigma_k)
     tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2,
                    follow_k=args.follow_k, follow_fraction=args.follow_fraction)
     print(f"obstacle config: {ocfg}")

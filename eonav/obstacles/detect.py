@@ -51,7 +51,8 @@ class ObstacleConfig:
     min_sector_pixels: int = 4         # obstacle pixels a sector needs to report a distance
     min_clear_pixels: int = 20         # evidence pixels a sector needs to report "clear"
     max_obstacle_distance_m: float = 100.0   # obstacle list: only components nearer than this
-    max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative)
+    max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative) ...
+    jump_sigma_k: float = 3.0          # ... and beyond this many times the hypot of the two pixels' relative sigmas
     min_obstacle_pixels: int = 12      # smallest component kept (list and sectors)
     min_obstacle_height_m: float = 0.3  # flatter components (5..95 % of down) are mismatch speckle, dropped
     max_obstacles: int = 32            # nearest first
@@ -86,6 +87,8 @@ class ObstacleConfig:
             raise InputError(f"obstacle config: max_width_px must be an integer >= 0, got {self.max_width_px!r}")
         if not 0 <= self.ground_max_slope_deg < 90:
             raise InputError(f"obstacle config: ground_max_slope_deg must be in [0, 90), got {self.ground_max_slope_deg}")
+        if not (math.isfinite(self.jump_sigma_k) and self.jump_sigma_k >= 0):
+            raise InputError(f"obstacle config: jump_sigma_k must be a finite number >= 0, got {self.jump_sigma_k!r}")
         if not (0 < self.plane_law_beta and self.plane_law_min_span > 0):
             raise InputError("obstacle config: plane_law_beta and plane_law_min_span must be > 0")
         if self.ground_down_m is not None and not math.isfinite(self.ground_down_m):
@@ -670,8 +673,9 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
     r = np.full(n_cells, np.nan)
     r[cells] = pts.range_m[sel]
     r = r.reshape(gh, gw)
-    # relative 1-sigma per pixel: a jump must beat both max_rel_jump and 3 sigma of the difference, or noisy
-    # far objects shatter into speckle
+    # relative 1-sigma per pixel: a jump must beat both max_rel_jump and jump_sigma_k x hypot of the two sigmas, or
+    # noisy far objects shatter into speckle (neighbours share most of their matching window, so their errors
+    # correlate and their difference's sigma is below the hypot: docs/methods.md, "Obstacles")
     rel_sig = np.zeros(n_cells)
     if pts.sigma_m is not None:
         rel_sig[pts.cell] = np.nan_to_num(pts.sigma_m / pts.range_m, nan=0.0, posinf=0.0)
@@ -681,11 +685,11 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
         lr = np.log(r)
         cut = np.zeros((gh, gw), bool)
         dx = lr[:, 1:] - lr[:, :-1]                       # > 0: right pixel farther
-        jump = np.abs(dx) > np.maximum(base, 3.0 * np.hypot(rel_sig[:, 1:], rel_sig[:, :-1]))
+        jump = np.abs(dx) > np.maximum(base, cfg.jump_sigma_k * np.hypot(rel_sig[:, 1:], rel_sig[:, :-1]))
         cut[:, 1:] |= jump & (dx > 0)
         cut[:, :-1] |= jump & (dx < 0)
         dy = lr[1:, :] - lr[:-1, :]
-        jump = np.abs(dy) > np.maximum(base, 3.0 * np.hypot(rel_sig[1:, :], rel_sig[:-1, :]))
+        jump = np.abs(dy) > np.maximum(base, cfg.jump_sigma_k * np.hypot(rel_sig[1:, :], rel_sig[:-1, :]))
         cut[1:, :] |= jump & (dy > 0)
         cut[:-1, :] |= jump & (dy < 0)
     labels, n = ndimage.label(mask & ~cut)
