@@ -219,6 +219,64 @@ def test_fused_evidence_count_gates_pixels():
         ob.ObstacleConfig(min_fused=0)
 
 
+def test_single_measurement_above_the_horizon_is_not_an_obstacle():
+    # fused map: sky over rows 40..79 (rays above the horizon) ranged 40 m by one measurement, as a faint cloud one
+    # pair mismatched and no pair measured since; everything else fused from 9
+    r = ground_and_sky()
+    r[40:80, 128:192] = 40.0
+    n = np.full(r.shape, 9, np.uint16)
+    n[40:80, 128:192] = 1
+    assert ob.analyse(r, CAM, LEVEL, cfg=CFG, n_fused=n).obstacles == []           # 1 < horizon_min_fused 2
+    off = ob.analyse(r, CAM, LEVEL, cfg=replace(CFG, horizon_min_fused=1), n_fused=n)
+    assert len(off.obstacles) == 1                                                  # the rule off: kept
+    n[40:80, 128:192] = 2
+    res = ob.analyse(r, CAM, LEVEL, cfg=CFG, n_fused=n)
+    assert len(res.obstacles) == 1                                                  # 2 measurements: kept
+    # the patch's nearest pixel (row 79, column 128): x_c 40 m, (v - cy, u - cx) = (-48.5, 0.5) px at f = 128 px;
+    # distance_m is the 5th percentile, a little farther
+    d = 40.0 * math.sqrt(1.0 + (0.5 / 128.0) ** 2 + (48.5 / 128.0) ** 2)
+    assert d <= res.obstacles[0].distance_m <= 1.03 * d
+    n[40:80, 128:192] = 1
+    assert len(ob.analyse(r, CAM, LEVEL, cfg=CFG).obstacles) == 1                  # a single pair's map: no n_fused
+    with pytest.raises(InputError, match="horizon_min_fused"):
+        ob.ObstacleConfig(horizon_min_fused=0)
+
+
+def test_single_measurement_rule_stops_at_the_horizon():
+    # a wall 20 m ahead from the ground up to 20 m (rows 64..191), every wall pixel from one measurement: rows below
+    # cy = 127.5 look down onto the ground (the ground tests vet them) and stay; rows above it look up and go
+    r = add_wall(ground_and_sky(), 20.0, 128, 192)
+    n = np.full(r.shape, 9, np.uint16)
+    wall = np.zeros(r.shape, bool)
+    wall[64:192, 128:192] = True
+    assert np.all(r[wall] == 20.0) and not np.any(r[:64, 128:192] == 20.0)
+    n[wall] = 1
+    full = ob.analyse(r, CAM, LEVEL, cfg=replace(CFG, horizon_min_fused=1), n_fused=n)
+    res = ob.analyse(r, CAM, LEVEL, cfg=CFG, n_fused=n)
+    assert len(full.obstacles) == 1 and len(res.obstacles) == 1
+    assert full.obstacles[0].bbox_px[1] == 64                                      # the wall's top row
+    assert res.obstacles[0].bbox_px[1] == 128                                      # the first row below the horizon
+    assert res.obstacles[0].bbox_px[3] == full.obstacles[0].bbox_px[3]
+    assert full.n_confident - res.n_confident == 64 * 64                           # rows 64..127 not confident
+    assert not res.data_mask[64:128, 128:192].any() and res.data_mask[128:, 128:192].all()
+
+
+def test_range_jump_cut_in_units_of_the_pixels_sigma():
+    # two walls side by side, 20 m (columns 96..127) and 27 m (128..159): a log-range jump of ln 1.35 = 0.300 at
+    # their common edge; every pixel with a relative sigma of 0.1, so the cut needs 0.300 > k hypot(0.1, 0.1) =
+    # 0.1414 k: k < 2.12 cuts (two obstacles), k > 2.12 joins them (one)
+    r = add_wall(add_wall(ground_and_sky(), 20.0, 96, 128), 27.0, 128, 160)
+    std = np.where(np.isfinite(r), 0.1 / r, 0.0).astype(np.float32)          # sigma_r / r = sigma_rho r = 0.1
+    def n_obstacles(k):
+        return len(ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(CFG, jump_sigma_k=k)).obstacles)
+    assert n_obstacles(2.25) == 1 and n_obstacles(3.0) == 1
+    assert n_obstacles(2.0) == 2 and n_obstacles(1.5) == 2
+    # k 0: max_rel_jump (8 %) alone decides; 35 % beats it
+    assert n_obstacles(0.0) == 2
+    with pytest.raises(InputError, match="jump_sigma_k"):
+        ob.ObstacleConfig(jump_sigma_k=-1.0)
+
+
 def test_ground_estimated_from_points_when_not_configured():
     r = add_wall(ground_and_sky(alt_m=25.0), 30.0, 128, 192, alt_m=25.0)
     st = VehicleState.from_ypr([0.0, 0.0, -25.0], [0.0, 0.0, 0.0])

@@ -65,7 +65,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from eonav.geometry.camera import VehicleState, View
-from eonav.obstacles.detect import ObstacleConfig, analyse, confident_mask, infinity_mask
+from eonav.obstacles.detect import ObstacleConfig, analyse
 from eonav.obstacles.tracking import (ConeConfig, FieldOfView, Ownship, Tracker, TrackerConfig, assess,
                                       box_entry_time, measurements_from_obstacles, nearest_threat)
 from eonav.fusion.update import UpdateConfig
@@ -300,7 +300,7 @@ def to_analysis(st: VehicleState, R: np.ndarray) -> VehicleState:
 def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, tcfg: TrackerConfig = TrackerConfig(),
                cone: ConeConfig = ConeConfig()):
     """Analyse and track a stream of ``range_maps``; returns the per-map record (tracks and threat in true NED) and
-    the tracker's time per map (measurements + visibility mask + update)."""
+    the tracker's time per map (measurements + update; the visibility mask is the analysis' ``data_mask``)."""
     R = tilt(sc.slope_deg)
     tracker = Tracker(tcfg)
     rec, t_track = [], []
@@ -312,8 +312,7 @@ def track_maps(stream, sc: Scenario, ocfg: ObstacleConfig = SERVICE_OBSTACLES, t
                      **({"n_fused": m["n_fused"]} if m.get("n_fused") is not None else {}))
         t0 = time.perf_counter()
         meas = measurements_from_obstacles(ob.obstacles, cam, st, tcfg, camera_id="nose")
-        mask = confident_mask(r, conf, flags, std, ocfg, m.get("n_fused"))
-        fov = FieldOfView(cam, st, ocfg.max_obstacle_distance_m, ocfg.min_distance_m, r, mask | infinity_mask(r, flags))
+        fov = FieldOfView(cam, st, ocfg.max_obstacle_distance_m, ocfg.min_distance_m, r, ob.data_mask)
         tracker.update(meas, m["stamp_us"], fov)
         t_track.append(time.perf_counter() - t0)
         v_true = velocity_at(sc.flight, st_true.t_s)
@@ -512,6 +511,12 @@ def add_arguments(p) -> None:
     p.add_argument("--slope-deg", type=float, default=5.0, metavar="DEG", help="the slope scenario's ground slope")
     p.add_argument("--min-fused", type=int, default=SERVICE_OBSTACLES.min_fused,
                    help="ObstacleConfig.min_fused: fused-map pixels need this many measurements")
+    p.add_argument("--horizon-min-fused", type=int, default=SERVICE_OBSTACLES.horizon_min_fused,
+                   help="ObstacleConfig.horizon_min_fused: fused-map pixels at or above the ground plane's horizon "
+                        "need this many measurements")
+    p.add_argument("--jump-sigma-k", type=float, default=SERVICE_OBSTACLES.jump_sigma_k, metavar="K",
+                   help="ObstacleConfig.jump_sigma_k: a range jump between neighbours cuts two objects beyond K x "
+                        "the hypot of their relative sigmas (and max_rel_jump)")
     p.add_argument("--see-through-k", type=float, default=TrackerConfig().see_through_k, metavar="K",
                    help="TrackerConfig.see_through_k: farther measurements bearing-only beyond K track sigma (0: off)")
     p.add_argument("--duplicate-chi2", type=float, default=TrackerConfig().duplicate_chi2, metavar="D2",
@@ -548,7 +553,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_arguments(p)
     args = p.parse_args(argv)
-    ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused)
+    ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused, horizon_min_fused=args.horizon_min_fused,
+                   jump_sigma_k=args.jump_sigma_k)
     tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2,
                    follow_k=args.follow_k, follow_fraction=args.follow_fraction)
     print(f"obstacle config: {ocfg}")

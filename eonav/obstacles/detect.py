@@ -51,12 +51,15 @@ class ObstacleConfig:
     min_sector_pixels: int = 4         # obstacle pixels a sector needs to report a distance
     min_clear_pixels: int = 20         # evidence pixels a sector needs to report "clear"
     max_obstacle_distance_m: float = 100.0   # obstacle list: only components nearer than this
-    max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative)
+    max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative) ...
+    jump_sigma_k: float = 3.0          # ... and beyond this many times the hypot of the two pixels' relative sigmas
     min_obstacle_pixels: int = 12      # smallest component kept (list and sectors)
     min_obstacle_height_m: float = 0.3  # flatter components (5..95 % of down) are mismatch speckle, dropped
     max_obstacles: int = 32            # nearest first
     min_fused: int = 1                 # fused maps: pixels fused from fewer measurements are ignored (agreement
                                        # needs at least two); maps without n_fused are not affected
+    horizon_min_fused: int = 2         # fused maps: pixels whose ray does not come down onto the ground plane (at or
+                                       # above its horizon: no ground test can vet them) need this many measurements
     max_width_px: int = 160            # pool the map to at most this many columns (0: full resolution)
     pool_percentile: float = 10.0      # which confident pixel of a pooling block stands for it (0 = the nearest)
 
@@ -84,13 +87,16 @@ class ObstacleConfig:
             raise InputError(f"obstacle config: max_width_px must be an integer >= 0, got {self.max_width_px!r}")
         if not 0 <= self.ground_max_slope_deg < 90:
             raise InputError(f"obstacle config: ground_max_slope_deg must be in [0, 90), got {self.ground_max_slope_deg}")
+        if not (math.isfinite(self.jump_sigma_k) and self.jump_sigma_k >= 0):
+            raise InputError(f"obstacle config: jump_sigma_k must be a finite number >= 0, got {self.jump_sigma_k!r}")
         if not (0 < self.plane_law_beta and self.plane_law_min_span > 0):
             raise InputError("obstacle config: plane_law_beta and plane_law_min_span must be > 0")
         if self.ground_down_m is not None and not math.isfinite(self.ground_down_m):
             raise InputError("obstacle config: ground_down_m must be finite or None")
         if not (math.isfinite(self.ground_window_px) and self.ground_window_px >= 0):
             raise InputError(f"obstacle config: ground_window_px must be a finite number >= 0, got {self.ground_window_px}")
-        for name in ("min_sector_pixels", "min_clear_pixels", "min_obstacle_pixels", "max_obstacles", "min_fused"):
+        for name in ("min_sector_pixels", "min_clear_pixels", "min_obstacle_pixels", "max_obstacles", "min_fused",
+                     "horizon_min_fused"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise InputError(f"obstacle config: {name} must be an integer >= 1, got {v!r}")
@@ -238,6 +244,26 @@ def infinity_mask(range_m, flags=None):
     if flags is not None:
         m |= (np.asarray(flags) & AT_INFINITY) != 0
     return m
+
+
+def unconfirmed_above_horizon(conf_m, n_fused, min_fused: int, range_m, camera: Camera, state: VehicleState,
+                              plane: "GroundPlane") -> np.ndarray | None:
+    """Pixels of ``conf_m`` fused from fewer than ``min_fused`` measurements whose ray does not come down onto
+    ``plane`` (at or above its horizon), or None when there are none. Below the horizon a range too near lifts a
+    point off the ground and the ground tests weigh it; above it any range is clear of the ground, and a cell that
+    one measurement started and nothing measured since (sky: LOW_TEXTURE pair after pair) is held at that range
+    for as long as it stays in view: faint cloud ranged at 20-90 m (docs/guidance.md)."""
+    cand = np.flatnonzero(conf_m & (np.asarray(n_fused) < min_fused))
+    if not cand.size:
+        return None
+    p = pixel_points(range_m, camera, state, None, idx=cand)
+    lens = state.position_ned_m + state.T_body_ned.T @ camera.l_body_m
+    up = plane.inverse_range_per_m(lens, (p.ned_m - lens) / p.range_m[:, None]) <= 0
+    if not up.any():
+        return None
+    out = np.zeros(conf_m.shape, bool)
+    out.flat[cand[up]] = True
+    return out
 
 
 def pool_factor(width: int, cfg: ObstacleConfig) -> int:
@@ -494,17 +520,25 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
         raise InputError(f"n_fused has shape {np.shape(n_fused)}, expected {np.shape(range_m)} like range_m")
     conf_m = confident_mask(range_m, confidence, flags, inv_range_std_per_m, cfg, n_fused)
     k = pool_factor(camera.width, cfg)
-    idx, weight, cell, grid = pool_confident(np.asarray(range_m, np.float32), conf_m, k, cfg.pool_percentile)
-    if area != 1.0:
-        weight = weight * area
-    pts = pixel_points(range_m, camera, state, None, confidence, inv_range_std_per_m, idx=idx)
-    pts.weight, pts.cell = weight, cell
+
+    def points():
+        idx, weight, cell, grid = pool_confident(np.asarray(range_m, np.float32), conf_m, k, cfg.pool_percentile)
+        pts = pixel_points(range_m, camera, state, None, confidence, inv_range_std_per_m, idx=idx)
+        pts.weight, pts.cell = (weight * area if area != 1.0 else weight), cell
+        return pts, grid
+
+    pts, grid = points()
     inf_m = infinity_mask(range_m, flags)
     inf_cols = np.count_nonzero(inf_m, axis=0)                              # pixels at infinity per image column
     if area != 1.0:
         inf_cols = inf_cols * area
     plane = ground if ground is not None else fit_ground(pts, state, cfg)
     ground = float(plane.down_m(state.position_ned_m))
+    if n_fused is not None and cfg.horizon_min_fused > cfg.min_fused:
+        doubt = unconfirmed_above_horizon(conf_m, n_fused, cfg.horizon_min_fused, range_m, camera, state, plane)
+        if doubt is not None:                       # not confident: neither obstacle nor evidence of free space
+            conf_m &= ~doubt
+            pts, grid = points()
     z = pts.ned_m[:, 2]
     lens = state.position_ned_m + state.T_body_ned.T @ camera.l_body_m
     ray = (pts.ned_m - lens) / pts.range_m[:, None]               # NED direction per metre of x_c
@@ -531,7 +565,7 @@ def analyse(range_m, camera: Camera, state: VehicleState, confidence=None, flags
         sectors_now = _sectors(moved, kept & (moved.hdist_m <= cfg.max_distance_m),
                                in_band & (moved.hdist_m > cfg.max_distance_m) | ~in_band, camera, inf_cols, cfg)
     return ObstacleResult(sectors, obstacles, ground, int(round(np.count_nonzero(conf_m) * area)),
-                          int(round(weight[kept].sum())), sectors_now, conf_m | inf_m, plane)
+                          int(round(pts.weight[kept].sum())), sectors_now, conf_m | inf_m, plane)
 
 
 def relative_to(pts: Points, state: VehicleState) -> Points:
@@ -639,8 +673,9 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
     r = np.full(n_cells, np.nan)
     r[cells] = pts.range_m[sel]
     r = r.reshape(gh, gw)
-    # relative 1-sigma per pixel: a jump must beat both max_rel_jump and 3 sigma of the difference, or noisy
-    # far objects shatter into speckle
+    # relative 1-sigma per pixel: a jump must beat both max_rel_jump and jump_sigma_k x hypot of the two sigmas, or
+    # noisy far objects shatter into speckle (neighbours share most of their matching window, so their errors
+    # correlate and their difference's sigma is below the hypot: docs/methods.md, "Obstacles")
     rel_sig = np.zeros(n_cells)
     if pts.sigma_m is not None:
         rel_sig[pts.cell] = np.nan_to_num(pts.sigma_m / pts.range_m, nan=0.0, posinf=0.0)
@@ -650,11 +685,11 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
         lr = np.log(r)
         cut = np.zeros((gh, gw), bool)
         dx = lr[:, 1:] - lr[:, :-1]                       # > 0: right pixel farther
-        jump = np.abs(dx) > np.maximum(base, 3.0 * np.hypot(rel_sig[:, 1:], rel_sig[:, :-1]))
+        jump = np.abs(dx) > np.maximum(base, cfg.jump_sigma_k * np.hypot(rel_sig[:, 1:], rel_sig[:, :-1]))
         cut[:, 1:] |= jump & (dx > 0)
         cut[:, :-1] |= jump & (dx < 0)
         dy = lr[1:, :] - lr[:-1, :]
-        jump = np.abs(dy) > np.maximum(base, 3.0 * np.hypot(rel_sig[1:, :], rel_sig[:-1, :]))
+        jump = np.abs(dy) > np.maximum(base, cfg.jump_sigma_k * np.hypot(rel_sig[1:, :], rel_sig[:-1, :]))
         cut[1:, :] |= jump & (dy > 0)
         cut[:-1, :] |= jump & (dy < 0)
     labels, n = ndimage.label(mask & ~cut)
