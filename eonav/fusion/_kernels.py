@@ -154,33 +154,43 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
 
 @njit(**_JIT)
 def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
-    """predict.close_cracks in one pass per axis (horizontal neighbours first, then vertical). Returns the count."""
+    """predict.close_cracks (horizontal neighbours first, then vertical) in one sweep over the rows: row y closed
+    across, then row y - 1 down (its neighbours' rows are final across by then). The same cells and values as two
+    passes: a cell closed in one axis had an empty neighbour in it, so no other cell of that axis used it.
+    Returns the count."""
     h, w = rho.shape
     closed = 0
-    for axis in range(2):
-        oy = 1 if axis == 1 else 0
-        ox = 1 - oy
-        todo = np.zeros((h, w), np.bool_)
-        for y in range(oy, h - oy):
-            for x in range(ox, w - ox):         # (branch-free: vectorised)
-                d = rho[y + oy, x + ox] - rho[y - oy, x - ox]
-                todo[y, x] = (not math.isfinite(rho[y, x])) & (d * d <= k2 * (var[y - oy, x - ox]
-                                                                             + var[y + oy, x + ox]))
-        for y in range(oy, h - oy):
-            for x in range(ox, w - ox):
-                if not todo[y, x]:
-                    continue
-                ya, xa, yb, xb = y - oy, x - ox, y + oy, x + ox
-                d = rho[yb, xb] - rho[ya, xa]
-                rho[y, x] = np.float32(0.5) * (rho[ya, xa] + rho[yb, xb])
-                var[y, x] = max(var[ya, xa], var[yb, xb]) + np.float32(0.25) * d * d
-                a[y, x] = min(a[ya, xa], a[yb, xb])
-                b[y, x] = max(b[ya, xa], b[yb, xb])
-                n[y, x] = min(n[ya, xa], n[yb, xb])
-                flags[y, x] = flags[ya, xa] & flags[yb, xb]
-                du[y, x] = 0.0
-                dv[y, x] = 0.0
-                closed += 1
+    todo = np.empty(w, np.bool_)
+    for y in range(h):
+        closed += _close_row(rho, var, a, b, n, du, dv, flags, k2, y, 0, 1, 1, w - 1, todo)
+        if y >= 2:
+            closed += _close_row(rho, var, a, b, n, du, dv, flags, k2, y - 1, 1, 0, 0, w, todo)
+    return closed
+
+
+@njit(**_JIT)
+def _close_row(rho, var, a, b, n, du, dv, flags, k2, y, oy, ox, x0, x1, todo):
+    """The cracks of row y between its neighbours (y - oy, x - ox) and (y + oy, x + ox), columns x0..x1 - 1:
+    which first (branch-free: vectorised), then those closed. Returns the count."""
+    ya, yb = y - oy, y + oy
+    for x in range(x0, x1):
+        d = rho[yb, x + ox] - rho[ya, x - ox]
+        todo[x] = (not math.isfinite(rho[y, x])) & (d * d <= k2 * (var[ya, x - ox] + var[yb, x + ox]))
+    closed = 0
+    for x in range(x0, x1):
+        if not todo[x]:
+            continue
+        xa, xb = x - ox, x + ox
+        d = rho[yb, xb] - rho[ya, xa]
+        rho[y, x] = np.float32(0.5) * (rho[ya, xa] + rho[yb, xb])
+        var[y, x] = max(var[ya, xa], var[yb, xb]) + np.float32(0.25) * d * d
+        a[y, x] = min(a[ya, xa], a[yb, xb])
+        b[y, x] = max(b[ya, xa], b[yb, xb])
+        n[y, x] = min(n[ya, xa], n[yb, xb])
+        flags[y, x] = flags[ya, xa] & flags[yb, xb]
+        du[y, x] = 0.0
+        dv[y, x] = 0.0
+        closed += 1
     return closed
 
 
