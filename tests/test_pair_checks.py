@@ -336,6 +336,25 @@ def test_recent_tracks_reuses_only_the_same_arrays():
     assert RecentTracks(size=0)(img, b) is not RecentTracks(size=0)(img, b)
 
 
+def test_recent_tracks_of_a_stream_reuse_each_images_level_and_corners_with_the_same_tracks():
+    """Along a stream (each frame tracked against the one before, then the newest against an older one) the memo
+    prepares each image once and finds the newest image's corners once, and every pair's tracks are track_points'
+    own, bit for bit; a 360-row image is tracked a level down (the level is memoised, not the full image)."""
+    from eonav.ranging.tracks import RecentTracks
+    base = texture(360, 480, seed=5)
+    frames = [np.roll(base, (k, 2 * k), axis=(0, 1)) for k in range(5)]
+    memo = RecentTracks(size=2)
+    for k in range(1, 5):
+        for j in ([k - 1, 0] if k >= 2 else [k - 1]):
+            t = memo(frames[k], frames[j])
+            direct = track_points(frames[k], frames[j])
+            assert len(t) > 50
+            assert np.array_equal(t.pts_a, direct.pts_a) and np.array_equal(t.pts_b, direct.pts_b)
+    levels, corners = memo.images._levels, memo.images._corners
+    assert levels.hits == 14 - 5 and corners.hits == 3      # 14 look-ups, each of the 5 images prepared once
+    assert all(lv.shape == (180, 240) and lv.dtype == np.uint8 for _, _, lv in levels._held)
+
+
 def test_recent_pose_shifts_reuse_only_the_same_tracks_and_geometry():
     """The memo returns pose_shift_px's own value, again for the same tracks with an equal geometry (a fresh
     pair_geometry of the same views), and fits anew for equal-valued copies of the tracks or another pose."""
