@@ -21,6 +21,9 @@ from numba.extending import intrinsic
 _JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
 # reciprocals, contractions and approximate functions allowed; not "no NaN / no inf" (empty cells are NaN)
 _FAST = dict(_JIT, fastmath={"arcp", "contract", "afn"})
+# contractions and approximate functions, divisions exact (a vectorised loop with "arcp" may multiply by a shared
+# reciprocal instead: another rounding)
+_CONTRACT = dict(_JIT, fastmath={"contract", "afn"})
 
 
 @intrinsic
@@ -286,6 +289,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         b_a[x] = a_new * k
         b_b[x] = max(b_new * k, b_min)
         b_c1[x] = c1
+    n_meas = started = inl = outl = rest = 0     # (local counters: stores to cnt would be reloaded per cell)
     for x in range(w):
         fm = flags_m[y, x]
         flags[y, x] = fm
@@ -297,22 +301,22 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
             if not (bits[2] != 0 and (fm & bits[2]) == bits[3]
                     and not (sd <= max_rel_std * xm and xm >= np.float32(2.0) * sd)):
                 continue
-        cnt[0] += 1
+        n_meas += 1
         tau = sd * s
         tau2 = tau * tau
         if not math.isfinite(rho[y, x]):
             _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
-            cnt[1] += 1
+            started += 1
             continue
         a_new = b_a[x]
         b_new = b_b[x]
         if b_c1[x] > 0.5:
-            cnt[2] += 1
+            inl += 1
         else:
-            cnt[3] += 1
+            outl += 1
         if a_new / (a_new + b_new) < eta_outlier:
             _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
-            cnt[4] += 1
+            rest += 1
             continue
         rho[y, x] = b_mu[x]
         var[y, x] = b_s2[x]
@@ -320,6 +324,11 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         b[y, x] = b_new
         if n[y, x] < 65535:
             n[y, x] += 1
+    cnt[0] += n_meas
+    cnt[1] += started
+    cnt[2] += inl
+    cnt[3] += outl
+    cnt[4] += rest
 
 
 @njit(**_FAST)
@@ -338,7 +347,7 @@ def classify_state(rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far
     return cc[0], cc[1], cc[2], cc[3]
 
 
-@njit(**_FAST)
+@njit(**_CONTRACT)
 def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
                   o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, g2):
     """One row of ``classify_state``; cc (int64[4]) gains its counts; g2 (float32[w]): room for the row's
@@ -347,18 +356,19 @@ def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_f
     _slant_row(rho, var, y, g2)
     reason_bits, ILL, BAD, INF, VAL = bits[0], bits[1], bits[2], bits[3], bits[4]
     two_f = np.float32(2.0)
+    n_val = n_inf = n_occ = n_dis = 0             # (local counters, as _update_row's)
     for x in range(w):
         r = rho[y, x]
         o_rho[y, x] = r
         occ = math.isfinite(r)
         if occ:
-            cc[2] += 1
+            n_occ += 1
             A = a[y, x]
             agree = A >= eta_inlier * (A + b[y, x])
             f = np.uint8(0) if agree else ILL
             sd = np.float32(math.sqrt(var[y, x] + slant2 * g2[x]))
             if not agree:
-                cc[3] += 1
+                n_dis += 1
         else:
             agree = False
             f = flags[y, x] & reason_bits
@@ -379,17 +389,21 @@ def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_f
         conf = np.float32(0.0)
         if ok and inf_ok:
             f |= INF | VAL
-            cc[1] += 1
+            n_inf += 1
             rng = np.float32(np.inf)
             conf = max(np.float32(rho_far) / sd, np.float32(0.0))
         elif ok:
             f |= VAL
-            cc[0] += 1
+            n_val += 1
             rng = np.float32(1.0) / abs(r)
             conf = max(r / sd, np.float32(0.0))
         o_flags[y, x] = f
         o_rng[y, x] = rng
         o_conf[y, x] = conf
+    cc[0] += n_val
+    cc[1] += n_inf
+    cc[2] += n_occ
+    cc[3] += n_dis
 
 
 @njit(**_FAST)
