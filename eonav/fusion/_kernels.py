@@ -36,6 +36,22 @@ def _fma(typingctx, a, b, c):
     return types.float64(types.float64, types.float64, types.float64), codegen
 
 
+@intrinsic
+def _bits(typingctx, x):
+    """The bits of a float64 as an int64 (no conversion)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+    return types.int64(types.float64), codegen
+
+
+@intrinsic
+def _from_bits(typingctx, i):
+    """The float64 of the bits of an int64 (no conversion)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+    return types.float64(types.int64), codegen
+
+
 def _exp2_table(n: int) -> np.ndarray:
     with localcontext() as ctx:
         ctx.prec = 40
@@ -47,12 +63,12 @@ def _exp2_table(n: int) -> np.ndarray:
 # the update's arithmetic loop vectorises with it (docs/methods.md, "Fusion over the stream": timing)
 _EXP_N = 32
 _EXP_TAB = _exp2_table(_EXP_N)
-_EXP_POW2 = np.ldexp(1.0, np.arange(-160, 1))          # 2^(k >> 5) for the k of x in [-104, 0]
 _EXP_C0 = float.fromhex("0x1.c6af84b912394p-5") / _EXP_N ** 3
 _EXP_C1 = float.fromhex("0x1.ebfce50fac4f3p-3") / _EXP_N ** 2
 _EXP_C2 = float.fromhex("0x1.62e42ff0c52d6p-1") / _EXP_N
 _EXP_INV_LN2_N = float.fromhex("0x1.71547652b82fep+0") * _EXP_N
 _EXP_SHIFT = float.fromhex("0x1.8p+52")                 # adding it rounds to an integer
+_EXP_SHIFT_BITS = int(np.float64(_EXP_SHIFT).view(np.int64))
 _EXP_UNDERFLOW = np.float32(float.fromhex("-0x1.9fe368p6"))   # log(2^-150): below it exp rounds to 0
 
 
@@ -62,10 +78,12 @@ def exp_nonpositive(x):
     clamped, the special cases selected at the end) so that a loop calling it vectorises."""
     ok = x >= _EXP_UNDERFLOW
     xd = np.float64(x) if ok else np.float64(_EXP_UNDERFLOW)
-    kd = _fma(_EXP_INV_LN2_N, xd, _EXP_SHIFT) - _EXP_SHIFT     # k = round(x * 32 / ln 2)
+    z = _fma(_EXP_INV_LN2_N, xd, _EXP_SHIFT)                 # k = round(x * 32 / ln 2) in z's low bits
+    kd = z - _EXP_SHIFT
     r = _fma(_EXP_INV_LN2_N, xd, -kd)                        # x * 32 / ln 2 - k, |r| <= 1/2
-    k = np.int64(kd)
-    sc = _EXP_TAB[k & (_EXP_N - 1)] * _EXP_POW2[(k >> 5) + 160]    # 2^(k / 32)
+    k = _bits(z) - _EXP_SHIFT_BITS
+    # 2^(k / 32) = 2^((k & 31) / 32) from the table times 2^(k >> 5), added to its exponent (exact: a normal double)
+    sc = _from_bits(_bits(_EXP_TAB[k & (_EXP_N - 1)]) + ((k >> 5) << 52))
     y = np.float32(_fma(_fma(_EXP_C0, r, _EXP_C1), r * r, _fma(_EXP_C2, r, 1.0)) * sc)
     return y if ok else (x + x if x != x else np.float32(0.0))
 
