@@ -308,40 +308,35 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         b_b[x] = max(b_new * k, b_min)
         b_c1[x] = c1
     n_meas = started = inl = outl = rest = 0     # (local counters: stores to cnt would be reloaded per cell)
-    for x in range(w):
+    weak_bits, weak_want, two = bits[2], bits[3], np.float32(2.0)
+    for x in range(w):                           # (branch-free select and store: vectorised)
         fm = flags_m[y, x]
         flags[y, x] = fm
         xm = rho_m[y, x]
         sd = std_m[y, x]
-        if not (math.isfinite(xm) and math.isfinite(sd) and sd > 0):
-            continue
-        if (fm & bits[0]) != bits[1]:
-            if not (bits[2] != 0 and (fm & bits[2]) == bits[3]
-                    and not (sd <= max_rel_std * xm and xm >= np.float32(2.0) * sd)):
-                continue
-        n_meas += 1
+        weak = (weak_bits != 0) & ((fm & weak_bits) == weak_want) & ~((sd <= max_rel_std * xm) & (xm >= two * sd))
+        meas = math.isfinite(xm) & math.isfinite(sd) & (sd > 0) & (((fm & bits[0]) == bits[1]) | weak)
         tau = sd * s
         tau2 = tau * tau
-        if not math.isfinite(rho[y, x]):
-            _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
-            started += 1
-            continue
+        occ = math.isfinite(rho[y, x])
         a_new = b_a[x]
         b_new = b_b[x]
-        if b_c1[x] > 0.5:
-            inl += 1
-        else:
-            outl += 1
-        if a_new / (a_new + b_new) < eta_outlier:
-            _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
-            rest += 1
-            continue
-        rho[y, x] = b_mu[x]
-        var[y, x] = b_s2[x]
-        a[y, x] = a_new
-        b[y, x] = b_new
-        if n[y, x] < 65535:
-            n[y, x] += 1
+        diverged = a_new / (a_new + b_new) < eta_outlier
+        start = meas & (~occ | diverged)
+        fuse = meas & occ & ~diverged
+        n_meas += meas
+        started += meas & ~occ
+        inl += meas & occ & (b_c1[x] > 0.5)
+        outl += meas & occ & ~(b_c1[x] > 0.5)
+        rest += meas & occ & diverged
+        nn = n[y, x]
+        rho[y, x] = xm if start else (b_mu[x] if fuse else rho[y, x])
+        var[y, x] = tau2 if start else (b_s2[x] if fuse else var[y, x])
+        a[y, x] = a_init if start else (a_new if fuse else a[y, x])
+        b[y, x] = b_init if start else (b_new if fuse else b[y, x])
+        n[y, x] = 1 if start else (nn + (nn < 65535) if fuse else nn)
+        du[y, x] = 0.0 if start else du[y, x]
+        dv[y, x] = 0.0 if start else dv[y, x]
     cnt[0] += n_meas
     cnt[1] += started
     cnt[2] += inl
