@@ -122,7 +122,9 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
     # index of its target pixel (-1: none), then the scatter of the valid ones into the flat outputs
     buf = np.empty((4, w), np.float32)
     b_du, b_dv, b_rn, b_var = buf[0], buf[1], buf[2], buf[3]
-    b_tgt = np.empty(w, np.int64)
+    b_tgt = np.empty(w, np.int32)            # (int32 and the columns as float32 loads, not int64 conversions
+    colf = np.arange(w).astype(np.float32)   # per cell: LLVM then vectorises the loop 8 cells wide)
+    w1i = np.int32(w1)
     # (views: the outputs must be C-contiguous, reshape raises otherwise; predict makes sure they are)
     f_rho, f_var, f_a, f_b = o_rho.reshape(-1), o_var.reshape(-1), o_a.reshape(-1), o_b.reshape(-1)
     f_n, f_du, f_dv, f_flags = o_n.reshape(-1), o_du.reshape(-1), o_dv.reshape(-1), o_flags.reshape(-1)
@@ -131,7 +133,7 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
         fy = f32(y)
         for x in range(w):
             r = rho[y, x]
-            m1 = (f32(x) + du[y, x] - cx0) / fx0
+            m1 = (colf[x] + du[y, x] - cx0) / fx0
             m2 = (fy + dv[y, x] - cy0) / fy0
             A0 = r00 + r01 * m1 + r02 * m2
             A1 = r10 + r11 * m1 + r12 * m2
@@ -146,7 +148,7 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
             j = A0 * inv * inv
             ok = (math.isfinite(r) and den > eps and A0 > eps
                   and ui >= zero and ui <= wmax and vi >= zero and vi <= hmax)
-            b_tgt[x] = np.int64(vi) * w1 + np.int64(ui) if ok else -1
+            b_tgt[x] = np.int32(vi) * w1i + np.int32(ui) if ok else np.int32(-1)
             b_du[x] = un - ui
             b_dv[x] = vn - vi
             b_rn[x] = rn
