@@ -109,6 +109,25 @@ def test_brightness_gain_beyond_max_gain_ratio_is_not_trusted():
     assert not fit.used and "outside" in fit.reason
 
 
+def test_brightness_fit_through_the_memo_of_box_means_is_the_direct_fit():
+    """Along a stream of gain-changed frames (each fitted against the one before) the memo blurs each image once
+    and the fits are the direct ones exactly; the match's image b is gain * b + offset in float32."""
+    from eonav.ranging.photometric import RecentMeans
+    a, _ = _gain_pair(1.0, 0.0)
+    frames = [(a * np.float32(g) + np.float32(o)).astype(np.float32) for g, o in ((1.0, 0), (1.1, -5), (1.25, -20))]
+    memo = RecentMeans(4)
+    for k in (1, 2):
+        tr = track_points(frames[k], frames[k - 1])
+        assert fit_brightness(frames[k], frames[k - 1], tr, means=memo) == fit_brightness(frames[k], frames[k - 1], tr)
+    assert memo.hits == 1                           # frame 1 blurred once, as image a and then as image b
+    va, vb = _plane_pair(192)
+    bright = replace(vb, image=vb.image * np.float32(1.3) + np.float32(4.0))
+    vb2, fit = match_brightness(va, bright)
+    assert fit.used
+    want = bright.image.astype(np.float32) * np.float32(fit.gain) + np.float32(fit.offset)
+    assert vb2.image.dtype == np.float32 and np.array_equal(vb2.image, want)
+
+
 def test_brightness_of_a_flat_pair_and_bad_input():
     flat = np.full((120, 160), 100.0, np.float32)
     fit = fit_brightness(flat, flat)
