@@ -224,7 +224,7 @@ def update(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm):
     prm: float32 (max_rel_std, sigma_scale, rho_max, a_init, b_init, evidence_cap, eta_outlier, b_min). Returns (measured,
     started, inliers, outliers, restarted)."""
     cnt = np.zeros(5, np.int64)
-    buf = np.empty((5, rho.shape[1]), np.float32)
+    buf = np.empty((6, rho.shape[1]), np.float32)
     for y in range(rho.shape[0]):
         _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt, buf)
     return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]
@@ -239,14 +239,14 @@ def update_classify(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bit
     h = rho.shape[0]
     cnt = np.zeros(5, np.int64)
     cc = np.zeros(4, np.int64)
-    buf = np.empty((6, rho.shape[1]), np.float32)
+    buf = np.empty((7, rho.shape[1]), np.float32)
     for y in range(h):
         _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt, buf)
         if y >= 1:
             _classify_row(y - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
-                          o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[5])
+                          o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[6])
     _classify_row(h - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
-                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[5])
+                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[6])
     return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4], cc[0], cc[1], cc[2], cc[3]
 
 
@@ -274,7 +274,15 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
     inv_u = np.float32(1.0) / rho_max
     inv_2pi = np.float32(1.0 / (2.0 * math.pi))
     one = np.float32(1.0)
-    b_mu, b_s2, b_a, b_b, b_c1 = buf[0], buf[1], buf[2], buf[3], buf[4]
+    b_mu, b_s2, b_a, b_b, b_c1, b_t2 = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
+    for x in range(w):               # the exp (float64 inside) in a loop of its own: the rest vectorises wider
+        tau = std_m[y, x] * s
+        tau2 = tau * tau
+        b_t2[x] = tau2               # (a second use of tau^2, as below: S rounded as there, not contracted)
+        S = var[y, x] + tau2
+        iS = one / S
+        d = rho_m[y, x] - rho[y, x]
+        b_c1[x] = exp_nonpositive(np.float32(-0.5) * d * d * iS)
     for x in range(w):
         tau = std_m[y, x] * s
         tau2 = tau * tau
@@ -287,7 +295,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         iS = one / S
         d = rho_m[y, x] - mu
         iab = one / (A + B)
-        c1 = A * iab * exp_nonpositive(np.float32(-0.5) * d * d * iS) * np.sqrt(iS * inv_2pi)
+        c1 = A * iab * b_c1[x] * np.sqrt(iS * inv_2pi)
         c2 = B * iab * inv_u
         c1 = c1 / (c1 + c2)
         c2 = one - c1
