@@ -242,6 +242,31 @@ def test_numba_and_numpy_paths_agree_on_a_random_state():
 
 
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
+def test_crack_closing_kernel_equals_the_numpy_passes_bit_for_bit():
+    """The one-sweep kernel closes the same cells with the same values as predict.close_cracks' two passes, on
+    random states with cracks of both axes, runs of empty cells and one-row / one-column grids."""
+    from eonav.fusion.predict import close_cracks
+    K = optional_kernels()
+    rng = np.random.default_rng(11)
+    total = 0
+    for h, w in [(1, 9), (9, 1), (2, 2), (3, 3), (17, 23), (48, 64)] + [tuple(rng.integers(1, 40, 2)) for _ in range(40)]:
+        st, _ = _random_state(cam(int(w), int(h)), rng, rho_lo=0.01, var_hi=1e-3)
+        st.rho[rng.random(st.shape) < rng.uniform(0.1, 0.6)] = np.nan         # empty cells: singles and runs
+        st.var[~np.isfinite(st.rho)] = np.inf
+        st.n[...] = rng.integers(0, 9, st.shape)
+        st.du[...], st.dv[...] = rng.uniform(-0.5, 0.5, (2,) + st.shape)
+        st.flags[...] = rng.integers(0, 256, st.shape)
+        ref, ker = copy.deepcopy(st), copy.deepcopy(st)
+        n_ref = close_cracks(ref, 3.0)
+        n_ker = K.close_cracks(ker.rho, ker.var, ker.a, ker.b, ker.n, ker.du, ker.dv, ker.flags, np.float32(9.0))
+        assert n_ker == n_ref
+        for name in ("rho", "var", "a", "b", "n", "du", "dv", "flags"):
+            assert np.array_equal(getattr(ref, name), getattr(ker, name), equal_nan=True), name
+        total += n_ref
+    assert total > 500                     # the states had cracks to close
+
+
+@pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
 def test_the_update_kernels_inline_exp_is_the_float32_exp():
     """The update's inline exp (of x <= 0) against exp in float64 rounded to float32: at most 1 ulp apart (the
     rounding of the float32 result), and its special values exact."""

@@ -109,6 +109,25 @@ def test_brightness_gain_beyond_max_gain_ratio_is_not_trusted():
     assert not fit.used and "outside" in fit.reason
 
 
+def test_brightness_fit_through_the_memo_of_box_means_is_the_direct_fit():
+    """Along a stream of gain-changed frames (each fitted against the one before) the memo blurs each image once
+    and the fits are the direct ones exactly; the match's image b is gain * b + offset in float32."""
+    from eonav.ranging.photometric import RecentMeans
+    a, _ = _gain_pair(1.0, 0.0)
+    frames = [(a * np.float32(g) + np.float32(o)).astype(np.float32) for g, o in ((1.0, 0), (1.1, -5), (1.25, -20))]
+    memo = RecentMeans(4)
+    for k in (1, 2):
+        tr = track_points(frames[k], frames[k - 1])
+        assert fit_brightness(frames[k], frames[k - 1], tr, means=memo) == fit_brightness(frames[k], frames[k - 1], tr)
+    assert memo.hits == 1                           # frame 1 blurred once, as image a and then as image b
+    va, vb = _plane_pair(192)
+    bright = replace(vb, image=vb.image * np.float32(1.3) + np.float32(4.0))
+    vb2, fit = match_brightness(va, bright)
+    assert fit.used
+    want = bright.image.astype(np.float32) * np.float32(fit.gain) + np.float32(fit.offset)
+    assert vb2.image.dtype == np.float32 and np.array_equal(vb2.image, want)
+
+
 def test_brightness_of_a_flat_pair_and_bad_input():
     flat = np.full((120, 160), 100.0, np.float32)
     fit = fit_brightness(flat, flat)
@@ -334,6 +353,25 @@ def test_recent_tracks_reuses_only_the_same_arrays():
     assert np.median(t_other.pts_b[:, 1] - t_other.pts_a[:, 1]) == pytest.approx(3.0, abs=0.2)
     assert memo(img, b) is not t1                                  # pushed out by the two after it
     assert RecentTracks(size=0)(img, b) is not RecentTracks(size=0)(img, b)
+
+
+def test_recent_tracks_of_a_stream_reuse_each_images_level_and_corners_with_the_same_tracks():
+    """Along a stream (each frame tracked against the one before, then the newest against an older one) the memo
+    prepares each image once and finds the newest image's corners once, and every pair's tracks are track_points'
+    own, bit for bit; a 360-row image is tracked a level down (the level is memoised, not the full image)."""
+    from eonav.ranging.tracks import RecentTracks
+    base = texture(360, 480, seed=5)
+    frames = [np.roll(base, (k, 2 * k), axis=(0, 1)) for k in range(5)]
+    memo = RecentTracks(size=2)
+    for k in range(1, 5):
+        for j in ([k - 1, 0] if k >= 2 else [k - 1]):
+            t = memo(frames[k], frames[j])
+            direct = track_points(frames[k], frames[j])
+            assert len(t) > 50
+            assert np.array_equal(t.pts_a, direct.pts_a) and np.array_equal(t.pts_b, direct.pts_b)
+    levels, corners = memo.images._levels, memo.images._corners
+    assert levels.hits == 14 - 5 and corners.hits == 3      # 14 look-ups, each of the 5 images prepared once
+    assert all(lv.shape == (180, 240) and lv.dtype == np.uint8 for _, _, lv in levels._held)
 
 
 def test_recent_pose_shifts_reuse_only_the_same_tracks_and_geometry():

@@ -21,6 +21,9 @@ from numba.extending import intrinsic
 _JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
 # reciprocals, contractions and approximate functions allowed; not "no NaN / no inf" (empty cells are NaN)
 _FAST = dict(_JIT, fastmath={"arcp", "contract", "afn"})
+# contractions and approximate functions, divisions exact (a vectorised loop with "arcp" may multiply by a shared
+# reciprocal instead: another rounding)
+_CONTRACT = dict(_JIT, fastmath={"contract", "afn"})
 
 
 @intrinsic
@@ -31,6 +34,22 @@ def _fma(typingctx, a, b, c):
         return builder.call(cgutils.get_or_insert_function(builder.module, ir.FunctionType(d, [d, d, d]),
                                                            "llvm.fma.f64"), args)
     return types.float64(types.float64, types.float64, types.float64), codegen
+
+
+@intrinsic
+def _bits(typingctx, x):
+    """The bits of a float64 as an int64 (no conversion)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+    return types.int64(types.float64), codegen
+
+
+@intrinsic
+def _from_bits(typingctx, i):
+    """The float64 of the bits of an int64 (no conversion)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+    return types.float64(types.int64), codegen
 
 
 def _exp2_table(n: int) -> np.ndarray:
@@ -44,12 +63,12 @@ def _exp2_table(n: int) -> np.ndarray:
 # the update's arithmetic loop vectorises with it (docs/methods.md, "Fusion over the stream": timing)
 _EXP_N = 32
 _EXP_TAB = _exp2_table(_EXP_N)
-_EXP_POW2 = np.ldexp(1.0, np.arange(-160, 1))          # 2^(k >> 5) for the k of x in [-104, 0]
 _EXP_C0 = float.fromhex("0x1.c6af84b912394p-5") / _EXP_N ** 3
 _EXP_C1 = float.fromhex("0x1.ebfce50fac4f3p-3") / _EXP_N ** 2
 _EXP_C2 = float.fromhex("0x1.62e42ff0c52d6p-1") / _EXP_N
 _EXP_INV_LN2_N = float.fromhex("0x1.71547652b82fep+0") * _EXP_N
 _EXP_SHIFT = float.fromhex("0x1.8p+52")                 # adding it rounds to an integer
+_EXP_SHIFT_BITS = int(np.float64(_EXP_SHIFT).view(np.int64))
 _EXP_UNDERFLOW = np.float32(float.fromhex("-0x1.9fe368p6"))   # log(2^-150): below it exp rounds to 0
 
 
@@ -59,10 +78,12 @@ def exp_nonpositive(x):
     clamped, the special cases selected at the end) so that a loop calling it vectorises."""
     ok = x >= _EXP_UNDERFLOW
     xd = np.float64(x) if ok else np.float64(_EXP_UNDERFLOW)
-    kd = _fma(_EXP_INV_LN2_N, xd, _EXP_SHIFT) - _EXP_SHIFT     # k = round(x * 32 / ln 2)
+    z = _fma(_EXP_INV_LN2_N, xd, _EXP_SHIFT)                 # k = round(x * 32 / ln 2) in z's low bits
+    kd = z - _EXP_SHIFT
     r = _fma(_EXP_INV_LN2_N, xd, -kd)                        # x * 32 / ln 2 - k, |r| <= 1/2
-    k = np.int64(kd)
-    sc = _EXP_TAB[k & (_EXP_N - 1)] * _EXP_POW2[(k >> 5) + 160]    # 2^(k / 32)
+    k = _bits(z) - _EXP_SHIFT_BITS
+    # 2^(k / 32) = 2^((k & 31) / 32) from the table times 2^(k >> 5), added to its exponent (exact: a normal double)
+    sc = _from_bits(_bits(_EXP_TAB[k & (_EXP_N - 1)]) + ((k >> 5) << 52))
     y = np.float32(_fma(_fma(_EXP_C0, r, _EXP_C1), r * r, _fma(_EXP_C2, r, 1.0)) * sc)
     return y if ok else (x + x if x != x else np.float32(0.0))
 
@@ -101,7 +122,9 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
     # index of its target pixel (-1: none), then the scatter of the valid ones into the flat outputs
     buf = np.empty((4, w), np.float32)
     b_du, b_dv, b_rn, b_var = buf[0], buf[1], buf[2], buf[3]
-    b_tgt = np.empty(w, np.int64)
+    b_tgt = np.empty(w, np.int32)            # (int32 and the columns as float32 loads, not int64 conversions
+    colf = np.arange(w).astype(np.float32)   # per cell: LLVM then vectorises the loop 8 cells wide)
+    w1i = np.int32(w1)
     # (views: the outputs must be C-contiguous, reshape raises otherwise; predict makes sure they are)
     f_rho, f_var, f_a, f_b = o_rho.reshape(-1), o_var.reshape(-1), o_a.reshape(-1), o_b.reshape(-1)
     f_n, f_du, f_dv, f_flags = o_n.reshape(-1), o_du.reshape(-1), o_dv.reshape(-1), o_flags.reshape(-1)
@@ -110,7 +133,7 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
         fy = f32(y)
         for x in range(w):
             r = rho[y, x]
-            m1 = (f32(x) + du[y, x] - cx0) / fx0
+            m1 = (colf[x] + du[y, x] - cx0) / fx0
             m2 = (fy + dv[y, x] - cy0) / fy0
             A0 = r00 + r01 * m1 + r02 * m2
             A1 = r10 + r11 * m1 + r12 * m2
@@ -125,7 +148,7 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
             j = A0 * inv * inv
             ok = (math.isfinite(r) and den > eps and A0 > eps
                   and ui >= zero and ui <= wmax and vi >= zero and vi <= hmax)
-            b_tgt[x] = np.int64(vi) * w1 + np.int64(ui) if ok else -1
+            b_tgt[x] = np.int32(vi) * w1i + np.int32(ui) if ok else np.int32(-1)
             b_du[x] = un - ui
             b_dv[x] = vn - vi
             b_rn[x] = rn
@@ -154,33 +177,43 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
 
 @njit(**_JIT)
 def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
-    """predict.close_cracks in one pass per axis (horizontal neighbours first, then vertical). Returns the count."""
+    """predict.close_cracks (horizontal neighbours first, then vertical) in one sweep over the rows: row y closed
+    across, then row y - 1 down (its neighbours' rows are final across by then). The same cells and values as two
+    passes: a cell closed in one axis had an empty neighbour in it, so no other cell of that axis used it.
+    Returns the count."""
     h, w = rho.shape
     closed = 0
-    for axis in range(2):
-        oy = 1 if axis == 1 else 0
-        ox = 1 - oy
-        todo = np.zeros((h, w), np.bool_)
-        for y in range(oy, h - oy):
-            for x in range(ox, w - ox):         # (branch-free: vectorised)
-                d = rho[y + oy, x + ox] - rho[y - oy, x - ox]
-                todo[y, x] = (not math.isfinite(rho[y, x])) & (d * d <= k2 * (var[y - oy, x - ox]
-                                                                             + var[y + oy, x + ox]))
-        for y in range(oy, h - oy):
-            for x in range(ox, w - ox):
-                if not todo[y, x]:
-                    continue
-                ya, xa, yb, xb = y - oy, x - ox, y + oy, x + ox
-                d = rho[yb, xb] - rho[ya, xa]
-                rho[y, x] = np.float32(0.5) * (rho[ya, xa] + rho[yb, xb])
-                var[y, x] = max(var[ya, xa], var[yb, xb]) + np.float32(0.25) * d * d
-                a[y, x] = min(a[ya, xa], a[yb, xb])
-                b[y, x] = max(b[ya, xa], b[yb, xb])
-                n[y, x] = min(n[ya, xa], n[yb, xb])
-                flags[y, x] = flags[ya, xa] & flags[yb, xb]
-                du[y, x] = 0.0
-                dv[y, x] = 0.0
-                closed += 1
+    todo = np.empty(w, np.bool_)
+    for y in range(h):
+        closed += _close_row(rho, var, a, b, n, du, dv, flags, k2, y, 0, 1, 1, w - 1, todo)
+        if y >= 2:
+            closed += _close_row(rho, var, a, b, n, du, dv, flags, k2, y - 1, 1, 0, 0, w, todo)
+    return closed
+
+
+@njit(**_JIT)
+def _close_row(rho, var, a, b, n, du, dv, flags, k2, y, oy, ox, x0, x1, todo):
+    """The cracks of row y between its neighbours (y - oy, x - ox) and (y + oy, x + ox), columns x0..x1 - 1:
+    which first (branch-free: vectorised), then those closed. Returns the count."""
+    ya, yb = y - oy, y + oy
+    for x in range(x0, x1):
+        d = rho[yb, x + ox] - rho[ya, x - ox]
+        todo[x] = (not math.isfinite(rho[y, x])) & (d * d <= k2 * (var[ya, x - ox] + var[yb, x + ox]))
+    closed = 0
+    for x in range(x0, x1):
+        if not todo[x]:
+            continue
+        xa, xb = x - ox, x + ox
+        d = rho[yb, xb] - rho[ya, xa]
+        rho[y, x] = np.float32(0.5) * (rho[ya, xa] + rho[yb, xb])
+        var[y, x] = max(var[ya, xa], var[yb, xb]) + np.float32(0.25) * d * d
+        a[y, x] = min(a[ya, xa], a[yb, xb])
+        b[y, x] = max(b[ya, xa], b[yb, xb])
+        n[y, x] = min(n[ya, xa], n[yb, xb])
+        flags[y, x] = flags[ya, xa] & flags[yb, xb]
+        du[y, x] = 0.0
+        dv[y, x] = 0.0
+        closed += 1
     return closed
 
 
@@ -191,7 +224,7 @@ def update(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm):
     prm: float32 (max_rel_std, sigma_scale, rho_max, a_init, b_init, evidence_cap, eta_outlier, b_min). Returns (measured,
     started, inliers, outliers, restarted)."""
     cnt = np.zeros(5, np.int64)
-    buf = np.empty((5, rho.shape[1]), np.float32)
+    buf = np.empty((6, rho.shape[1]), np.float32)
     for y in range(rho.shape[0]):
         _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt, buf)
     return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4]
@@ -206,14 +239,14 @@ def update_classify(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bit
     h = rho.shape[0]
     cnt = np.zeros(5, np.int64)
     cc = np.zeros(4, np.int64)
-    buf = np.empty((6, rho.shape[1]), np.float32)
+    buf = np.empty((7, rho.shape[1]), np.float32)
     for y in range(h):
         _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt, buf)
         if y >= 1:
             _classify_row(y - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
-                          o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[5])
+                          o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[6])
     _classify_row(h - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
-                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[5])
+                  o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[6])
     return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4], cc[0], cc[1], cc[2], cc[3]
 
 
@@ -241,7 +274,15 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
     inv_u = np.float32(1.0) / rho_max
     inv_2pi = np.float32(1.0 / (2.0 * math.pi))
     one = np.float32(1.0)
-    b_mu, b_s2, b_a, b_b, b_c1 = buf[0], buf[1], buf[2], buf[3], buf[4]
+    b_mu, b_s2, b_a, b_b, b_c1, b_t2 = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
+    for x in range(w):               # the exp (float64 inside) in a loop of its own: the rest vectorises wider
+        tau = std_m[y, x] * s
+        tau2 = tau * tau
+        b_t2[x] = tau2               # (a second use of tau^2, as below: S rounded as there, not contracted)
+        S = var[y, x] + tau2
+        iS = one / S
+        d = rho_m[y, x] - rho[y, x]
+        b_c1[x] = exp_nonpositive(np.float32(-0.5) * d * d * iS)
     for x in range(w):
         tau = std_m[y, x] * s
         tau2 = tau * tau
@@ -254,7 +295,7 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         iS = one / S
         d = rho_m[y, x] - mu
         iab = one / (A + B)
-        c1 = A * iab * exp_nonpositive(np.float32(-0.5) * d * d * iS) * np.sqrt(iS * inv_2pi)
+        c1 = A * iab * b_c1[x] * np.sqrt(iS * inv_2pi)
         c2 = B * iab * inv_u
         c1 = c1 / (c1 + c2)
         c2 = one - c1
@@ -276,40 +317,41 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
         b_a[x] = a_new * k
         b_b[x] = max(b_new * k, b_min)
         b_c1[x] = c1
-    for x in range(w):
+    n_meas = started = inl = outl = rest = 0     # (local counters: stores to cnt would be reloaded per cell)
+    weak_bits, weak_want, two = bits[2], bits[3], np.float32(2.0)
+    for x in range(w):                           # (branch-free select and store: vectorised)
         fm = flags_m[y, x]
         flags[y, x] = fm
         xm = rho_m[y, x]
         sd = std_m[y, x]
-        if not (math.isfinite(xm) and math.isfinite(sd) and sd > 0):
-            continue
-        if (fm & bits[0]) != bits[1]:
-            if not (bits[2] != 0 and (fm & bits[2]) == bits[3]
-                    and not (sd <= max_rel_std * xm and xm >= np.float32(2.0) * sd)):
-                continue
-        cnt[0] += 1
+        weak = (weak_bits != 0) & ((fm & weak_bits) == weak_want) & ~((sd <= max_rel_std * xm) & (xm >= two * sd))
+        meas = math.isfinite(xm) & math.isfinite(sd) & (sd > 0) & (((fm & bits[0]) == bits[1]) | weak)
         tau = sd * s
         tau2 = tau * tau
-        if not math.isfinite(rho[y, x]):
-            _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
-            cnt[1] += 1
-            continue
+        occ = math.isfinite(rho[y, x])
         a_new = b_a[x]
         b_new = b_b[x]
-        if b_c1[x] > 0.5:
-            cnt[2] += 1
-        else:
-            cnt[3] += 1
-        if a_new / (a_new + b_new) < eta_outlier:
-            _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init)
-            cnt[4] += 1
-            continue
-        rho[y, x] = b_mu[x]
-        var[y, x] = b_s2[x]
-        a[y, x] = a_new
-        b[y, x] = b_new
-        if n[y, x] < 65535:
-            n[y, x] += 1
+        diverged = a_new / (a_new + b_new) < eta_outlier
+        start = meas & (~occ | diverged)
+        fuse = meas & occ & ~diverged
+        n_meas += meas
+        started += meas & ~occ
+        inl += meas & occ & (b_c1[x] > 0.5)
+        outl += meas & occ & ~(b_c1[x] > 0.5)
+        rest += meas & occ & diverged
+        nn = n[y, x]
+        rho[y, x] = xm if start else (b_mu[x] if fuse else rho[y, x])
+        var[y, x] = tau2 if start else (b_s2[x] if fuse else var[y, x])
+        a[y, x] = a_init if start else (a_new if fuse else a[y, x])
+        b[y, x] = b_init if start else (b_new if fuse else b[y, x])
+        n[y, x] = 1 if start else (nn + (nn < 65535) if fuse else nn)
+        du[y, x] = 0.0 if start else du[y, x]
+        dv[y, x] = 0.0 if start else dv[y, x]
+    cnt[0] += n_meas
+    cnt[1] += started
+    cnt[2] += inl
+    cnt[3] += outl
+    cnt[4] += rest
 
 
 @njit(**_FAST)
@@ -328,7 +370,7 @@ def classify_state(rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far
     return cc[0], cc[1], cc[2], cc[3]
 
 
-@njit(**_FAST)
+@njit(**_CONTRACT)
 def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
                   o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, g2):
     """One row of ``classify_state``; cc (int64[4]) gains its counts; g2 (float32[w]): room for the row's
@@ -337,18 +379,19 @@ def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_f
     _slant_row(rho, var, y, g2)
     reason_bits, ILL, BAD, INF, VAL = bits[0], bits[1], bits[2], bits[3], bits[4]
     two_f = np.float32(2.0)
+    n_val = n_inf = n_occ = n_dis = 0             # (local counters, as _update_row's)
     for x in range(w):
         r = rho[y, x]
         o_rho[y, x] = r
         occ = math.isfinite(r)
         if occ:
-            cc[2] += 1
+            n_occ += 1
             A = a[y, x]
             agree = A >= eta_inlier * (A + b[y, x])
             f = np.uint8(0) if agree else ILL
             sd = np.float32(math.sqrt(var[y, x] + slant2 * g2[x]))
             if not agree:
-                cc[3] += 1
+                n_dis += 1
         else:
             agree = False
             f = flags[y, x] & reason_bits
@@ -369,17 +412,21 @@ def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_f
         conf = np.float32(0.0)
         if ok and inf_ok:
             f |= INF | VAL
-            cc[1] += 1
+            n_inf += 1
             rng = np.float32(np.inf)
             conf = max(np.float32(rho_far) / sd, np.float32(0.0))
         elif ok:
             f |= VAL
-            cc[0] += 1
+            n_val += 1
             rng = np.float32(1.0) / abs(r)
             conf = max(r / sd, np.float32(0.0))
         o_flags[y, x] = f
         o_rng[y, x] = rng
         o_conf[y, x] = conf
+    cc[0] += n_val
+    cc[1] += n_inf
+    cc[2] += n_occ
+    cc[3] += n_dis
 
 
 @njit(**_FAST)

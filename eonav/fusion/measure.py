@@ -15,8 +15,9 @@ that one pair alone does not need but a filter fusing many does.
    few pixels of parallax with a pixel of pose error would count as a good one.
 
 The tracks cost a few milliseconds per pair (``track_points``; the pair the scheduler's pose check tracked already is
-not tracked again, ``recent_tracks``, nor its shift fitted again, ``recent_pose_shift``); the figures are in
-docs/methods.md.
+not tracked again, ``recent_tracks``, nor its shift fitted again, ``recent_pose_shift``; each frame's tracking level,
+corners and window means are computed once for the pairs it is in, ``ImageMemo``, ``recent_means``); the figures
+are in docs/methods.md.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ import numpy as np
 from eonav.geometry.camera import View, pair_geometry
 from eonav.fusion.state import F32, optional_kernels
 from eonav.ranging.methods._common import EpipolarMap
-from eonav.ranging.photometric import match_brightness
+from eonav.ranging.photometric import match_brightness, recent_means
 from eonav.ranging.rangemap import RangeResult
 from eonav.ranging.tracks import recent_pose_shift, recent_tracks
 
@@ -73,7 +74,7 @@ def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_s
     tracks = recent_tracks(view_a.image, view_b.image) if (brightness or pose_sigma) else None
     check = {}
     if brightness:
-        view_b, fit = match_brightness(view_a, view_b, tracks)
+        view_b, fit = match_brightness(view_a, view_b, tracks, means=recent_means)
         check.update(gain=fit.gain, offset=fit.offset, brightness_used=fit.used, brightness=fit.reason)
     res = locate_dense(view_a, view_b, fill=False, **dense_params)
     if pose_sigma:

@@ -91,6 +91,8 @@ def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_
     K = optional_kernels() if kernels is None or kernels else None
     if kernels and K is None:
         raise ImportError("predict(kernels=True) needs numba")
+    if K is not None and out.rho.size >= 2 ** 31:
+        raise InputError(f"predict: a grid of {out.rho.size} cells is beyond the warp's int32 pixel index")
     if K is not None:
         c0, p0 = state.camera, state.pose
         R, t = relative_pose(c0.T_cam_body, p0.T_body_ned, p0.position_ned_m, c0.l_body_m,

@@ -19,7 +19,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import View
-from eonav.ranging.tracks import Tracks, track_points, tukey_weights
+from eonav.ranging.tracks import Tracks, _Recent, track_points, tukey_weights
 
 
 @dataclass(frozen=True)
@@ -38,9 +38,27 @@ def _sample(img_f32: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return cv2.remap(img_f32, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
 
 
+def box_means(img: np.ndarray, window: int) -> np.ndarray:
+    """The mean of the window x window box about every pixel (float32, ``cv2.blur``)."""
+    return cv2.blur(np.asarray(img, np.float32), (window, window))
+
+
+class RecentMeans(_Recent):
+    """``box_means`` of the last ``size`` images, looked up by the array's identity: in a stream each frame's
+    brightness fit blurs it as image a and, a frame later, as image b (the same values; the images must not be edited
+    in place, as a View's image is not)."""
+
+    def __call__(self, img: np.ndarray, window: int) -> np.ndarray:
+        return self._get((img,), window, lambda: box_means(img, window))
+
+
+recent_means = RecentMeans(4)
+"""The process's memo of ``box_means`` for the fusion's pair checks (one thread: the fusion runner's)."""
+
+
 def fit_brightness(img_a: np.ndarray, img_b: np.ndarray, tracks: Tracks | None = None, *, window: int = 7,
                    min_points: int = 30, min_spread: float = 8.0, max_gain_ratio: float = 1.5,
-                   min_change: float = 2.0) -> BrightnessFit:
+                   min_change: float = 2.0, means=box_means) -> BrightnessFit:
     """Robust affine brightness I_a ~ gain I_b + offset between two grey images (module docstring).
 
     tracks: the pair's point tracks (``eonav.ranging.tracks.track_points``; computed here when None). window: side
@@ -48,15 +66,16 @@ def fit_brightness(img_a: np.ndarray, img_b: np.ndarray, tracks: Tracks | None =
     misregistration). min_spread: least robust spread (grey levels) of the points' brightness in b: with less, a
     gain cannot be told from an offset. max_gain_ratio: a gain beyond [1 / r, r] is not an exposure change but a
     bad fit. min_change: the least brightness change (grey levels, the larger at the points' 10th and 90th
-    percentile of b) worth correcting: below the residual's own noise a correction adds its fit's error only."""
+    percentile of b) worth correcting: below the residual's own noise a correction adds its fit's error only.
+    means: ``box_means`` or a memo of it (``recent_means``)."""
     if img_a.ndim != 2 or img_b.ndim != 2:
         raise InputError(f"fit_brightness: expected two grey images, got shapes {img_a.shape} and {img_b.shape}")
     tracks = tracks if tracks is not None else track_points(img_a, img_b)
     n = len(tracks)
     if n < min_points:
         return BrightnessFit(1.0, 0.0, n, False, f"{n} tracked points (< {min_points})")
-    ma = _sample(cv2.blur(img_a.astype(np.float32), (window, window)), tracks.pts_a)
-    mb = _sample(cv2.blur(img_b.astype(np.float32), (window, window)), tracks.pts_b)
+    ma = _sample(means(img_a, window), tracks.pts_a)
+    mb = _sample(means(img_b, window), tracks.pts_b)
     if 1.4826 * np.median(np.abs(mb - np.median(mb))) < min_spread:
         return BrightnessFit(1.0, 0.0, n, False, f"brightness spread of the points below {min_spread:g} grey levels")
     X = np.stack([mb, np.ones_like(mb)], axis=1).astype(np.float64)
@@ -85,8 +104,9 @@ def match_brightness(view_a: View, view_b: View, tracks: Tracks | None = None, *
     fit = fit_brightness(view_a.image, view_b.image, tracks, **fit_params)
     if not fit.used:
         return view_b, fit
-    img = view_b.image.astype(np.float32) * np.float32(fit.gain) + np.float32(fit.offset)
+    img = np.multiply(view_b.image, np.float32(fit.gain), dtype=np.float32)
+    img += np.float32(fit.offset)
     return replace(view_b, image=img), fit
 
 
-__all__ = ["BrightnessFit", "fit_brightness", "match_brightness"]
+__all__ = ["BrightnessFit", "box_means", "RecentMeans", "recent_means", "fit_brightness", "match_brightness"]

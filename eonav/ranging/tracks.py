@@ -36,20 +36,25 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
 
 
 def track_points(img_a: np.ndarray, img_b: np.ndarray, *, max_points: int = 200, min_distance_px: int = 10,
-                 win_px: int = 15, levels: int = 3, fb_max_px: float = 0.5, max_side_px: int = 180) -> Tracks:
+                 win_px: int = 15, levels: int = 3, fb_max_px: float = 0.5, max_side_px: int = 180,
+                 memo: "ImageMemo | None" = None) -> Tracks:
     """Forward-backward checked Lucas-Kanade tracks of image a's corners into image b (grey, any sizes), on the
     coarsest pyramid level whose shorter side is still at least ``max_side_px`` (points in level-0 pixels, pyrDown alignment:
-    level-L pixel x is level-0 pixel 2^L x; ``fb_max_px`` holds on that level)."""
+    level-L pixel x is level-0 pixel 2^L x; ``fb_max_px`` holds on that level). memo: an ``ImageMemo`` whose
+    tracking levels and corners of the images it holds are used (the same values)."""
     if img_a.ndim != 2 or img_b.ndim != 2:
         raise InputError(f"track_points: expected two grey images, got shapes {img_a.shape} and {img_b.shape}")
-    a8, b8 = _to_u8(img_a), _to_u8(img_b)
     scale = 1
-    while min(*a8.shape, *b8.shape) // (2 * scale) >= max_side_px:
+    while min(*img_a.shape, *img_b.shape) // (2 * scale) >= max_side_px:
         scale *= 2
-    for _ in range(scale.bit_length() - 1):     # track on a coarser level of a large image (pyrDown alignment)
-        a8, b8 = cv2.pyrDown(a8), cv2.pyrDown(b8)
-    pts = cv2.goodFeaturesToTrack(a8, maxCorners=max_points, qualityLevel=0.01,
-                                  minDistance=max(min_distance_px // scale, 3), blockSize=7)
+    n_down = scale.bit_length() - 1           # track on a coarser level of a large image (pyrDown alignment)
+    min_dist = max(min_distance_px // scale, 3)
+    if memo is None:
+        a8, b8 = _tracking_level(img_a, n_down), _tracking_level(img_b, n_down)
+        pts = _corners(a8, max_points, min_dist)
+    else:
+        a8, b8 = memo.level(img_a, n_down), memo.level(img_b, n_down)
+        pts = memo.corners(a8, max_points, min_dist)
     if pts is None:
         return Tracks(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32))
     lk = dict(winSize=(win_px, win_px), maxLevel=levels,
@@ -61,6 +66,19 @@ def track_points(img_a: np.ndarray, img_b: np.ndarray, *, max_points: int = 200,
     ok = ((st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(pa - pts, axis=1) <= fb_max_px)
           & (pb[:, 0] >= 0) & (pb[:, 0] <= wb - 1) & (pb[:, 1] >= 0) & (pb[:, 1] <= hb - 1))
     return Tracks((pts[ok] * scale).astype(np.float32), (pb[ok] * scale).astype(np.float32))
+
+
+def _tracking_level(img: np.ndarray, n_down: int) -> np.ndarray:
+    """The image as uint8, ``n_down`` times pyrDown'ed: what the tracks run on."""
+    img8 = _to_u8(img)
+    for _ in range(n_down):
+        img8 = cv2.pyrDown(img8)
+    return img8
+
+
+def _corners(img8: np.ndarray, max_points: int, min_dist: int):
+    """Shi-Tomasi corners of a tracking level (n x 1 x 2 float32, or None)."""
+    return cv2.goodFeaturesToTrack(img8, maxCorners=max_points, qualityLevel=0.01, minDistance=min_dist, blockSize=7)
 
 
 class _Recent:
@@ -83,14 +101,36 @@ class _Recent:
         return v
 
 
+class ImageMemo:
+    """The tracking levels (``_tracking_level``) of the last ``size`` images and the corners of the last two levels,
+    looked up by the arrays' identity: in a stream each frame is tracked as image a and then, a frame later, as
+    image b, and a wide pair tracks the newest frame's corners again (the same values; the images must not be
+    edited in place, as a View's image is not)."""
+
+    def __init__(self, size: int = 4):
+        self._levels = _Recent(size)
+        self._corners = _Recent(min(size, 2))
+
+    def level(self, img: np.ndarray, n_down: int) -> np.ndarray:
+        return self._levels._get((img,), n_down, lambda: _tracking_level(img, n_down))
+
+    def corners(self, img8: np.ndarray, max_points: int, min_dist: int):
+        return self._corners._get((img8,), (max_points, min_dist), lambda: _corners(img8, max_points, min_dist))
+
+
 class RecentTracks(_Recent):
     """``track_points`` of the last ``size`` image pairs, looked up by the arrays' identity: the fusion's scheduler
     tracks each frame against the camera's previous one (its pose check) and the measurement of that same pair
-    tracks it again (its pair checks); the second call gets the first's tracks (the same values). The images must
-    not be edited in place after they are tracked (a View's image is not)."""
+    tracks it again (its pair checks); the second call gets the first's tracks (the same values). A new pair reuses
+    its images' tracking levels and image a's corners where they were computed for an earlier pair
+    (``ImageMemo``). The images must not be edited in place after they are tracked (a View's image is not)."""
+
+    def __init__(self, size: int = 2):
+        super().__init__(size)
+        self.images = ImageMemo(2 * self.size) if self.size > 0 else None
 
     def __call__(self, img_a: np.ndarray, img_b: np.ndarray) -> Tracks:
-        return self._get((img_a, img_b), None, lambda: track_points(img_a, img_b))
+        return self._get((img_a, img_b), None, lambda: track_points(img_a, img_b, memo=self.images))
 
 
 recent_tracks = RecentTracks()
@@ -176,5 +216,5 @@ recent_pose_shift = RecentShifts()
 """The process's memo of the default ``pose_shift_px`` (one thread: the fusion runner's)."""
 
 
-__all__ = ["Tracks", "track_points", "RecentTracks", "recent_tracks", "epipolar_residual_px", "pose_shift_px",
+__all__ = ["Tracks", "track_points", "ImageMemo", "RecentTracks", "recent_tracks", "epipolar_residual_px", "pose_shift_px",
            "RecentShifts", "recent_pose_shift", "tukey_weights"]
