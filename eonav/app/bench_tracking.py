@@ -52,7 +52,8 @@ Per box (ground truth: the renderer's object ids and the solid box):
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
         [--follow-k K] [--follow-fraction F] [--rig-baseline-m M] [--rig-order partner-first|arrival]
-        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--supersample N] [--cache-dir DIR]
+        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--window-floor KIND] [--supersample N]
+        [--cache-dir DIR]
 """
 from __future__ import annotations
 
@@ -183,12 +184,14 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0, supersample: int =
 def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
                lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
-               supersample: int = SUPERSAMPLE):
+               supersample: int = SUPERSAMPLE, window_floor: str | None = None):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
     confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene.
     ``lr_check``: fused, the measurement kinds checked left-right (``FusionConfig.lr_check_kinds``); dense, any: every
     pair checked (method "dense_lr"). ``slant``: fused, measured by the dense method's slanted window
-    (``locate_dense(slant=True)``). ``supersample``: the renders' samples per pixel along each axis (``frames``)."""
+    (``locate_dense(slant=True)``). ``window_floor``: fused and dense, the dense method's floor of the window residual
+    (``locate_dense(window_floor=...)``; None: its default). ``supersample``: the renders' samples per pixel along each
+    axis (``frames``)."""
     from eonav.ranging.locate import locate
     from eonav.ranging.rangemap import AT_INFINITY, VALID
     if maps not in MAP_SOURCES:
@@ -202,13 +205,16 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
                            lr_check_kinds=tuple(lr_check))
         if sc.rig_baseline_m > 0:
             cfg = replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
-        if slant:
+        dense_params = dict({"slant": True} if slant else {},
+                            **({"window_floor": window_floor} if window_floor else {}))
+        if dense_params:
             from functools import partial
             from eonav.fusion.sequence import dense_measurement
-            runner = FusionRunner(cfg, partial(dense_measurement, slant=True), fresh_measurements=True,
+            runner = FusionRunner(cfg, partial(dense_measurement, **dense_params), fresh_measurements=True,
                                   takes_prior=True)
         else:
             runner = FusionRunner(cfg)
+    floor = {"window_floor": window_floor} if window_floor else {}
     rng = np.random.default_rng(seed)
     for k, (stamp, view, rnd, scene, pview) in enumerate(frames(sc, rate_hz, size, seed, supersample)):
         cam, st = view.camera, view.state
@@ -221,13 +227,13 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
             flags = np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8)
             conf = np.ones(r.shape, np.float32)
         elif maps == "dense" and pview is not None:      # the rig's stereo pair of the instant
-            res = locate(view, pview, method="dense_lr" if lr_check else "dense")
+            res = locate(view, pview, method="dense_lr" if lr_check else "dense", **floor)
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         elif maps == "dense":
             d = policy.offer(PosedFrameInfo("nose", k, stamp, cam, st, view))
             if not d.ok:
                 continue
-            res = locate(d.a.payload, d.b.payload, method="dense_lr" if lr_check else "dense")
+            res = locate(d.a.payload, d.b.payload, method="dense_lr" if lr_check else "dense", **floor)
             r, conf, flags, std = res.range_m, res.confidence, res.flags, res.inv_range_std_per_m
         else:
             from eonav.fusion.sequence import frame
@@ -253,9 +259,9 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
                 stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
                 lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
-                supersample: int = SUPERSAMPLE):
+                supersample: int = SUPERSAMPLE, window_floor: str | None = None):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window and, fused with a rig, ``stereo_lead_k`` and a
+    seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window, the window floor (``_floor<KIND>``, dense and fused maps) and, fused with a rig, ``stereo_lead_k`` and a
     non-zero ``skipped_free_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
@@ -264,6 +270,8 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
         lead["lr_check"] = tuple(lr_check)
     if slant and maps == "fused":
         lead["slant"] = True
+    if window_floor and maps in ("dense", "fused"):
+        lead["window_floor"] = window_floor
     if skipped_free_k and "stereo_lead_k" in lead:
         lead["skipped_free_k"] = skipped_free_k
     if supersample != 1:
@@ -280,6 +288,7 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
                               f"{'_arrival' if rig_order == 'arrival' and 'rig_order' in lead else ''}"
                               f"{'_lr-' + '-'.join(lr_check) if lr_check else ''}"
                               f"{'_slant' if lead.get('slant') else ''}"
+                              f"{'_floor' + lead['window_floor'] if 'window_floor' in lead else ''}"
                               f"{f'_free{skipped_free_k:g}' if 'skipped_free_k' in lead else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
@@ -544,6 +553,9 @@ def add_arguments(p) -> None:
                    help="fused maps: the dense method's slanted window (slant=True)")
     p.add_argument("--supersample", type=int, default=SUPERSAMPLE, metavar="N",
                    help="render each pixel as the mean of N x N samples over its area (1: point sampling)")
+    p.add_argument("--window-floor", default=None, choices=("global", "valid", "sensor", "mid"),
+                   help="dense and fused maps: the dense method's floor of the window residual "
+                        "(locate_dense(window_floor=...); default: the method's own, 'global')")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="store the range maps here and reuse them on the next run with the same settings")
     p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -564,7 +576,8 @@ def main(argv=None) -> int:
         for name in [s for s in args.scenarios.split(",") if s]:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
                    tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order,
-                   tuple(k for k in args.lr_check.split(",") if k), args.slant, args.skipped_free_k, args.supersample)
+                   tuple(k for k in args.lr_check.split(",") if k), args.slant, args.skipped_free_k, args.supersample,
+                   args.window_floor)
     return 0
 
 
@@ -582,15 +595,16 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
            stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
            lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
-           supersample: int = SUPERSAMPLE) -> dict:
+           supersample: int = SUPERSAMPLE, window_floor: str | None = None) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
     rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check, slant,
-                                     skipped_free_k, supersample), sc, ocfg, tcfg)
+                                     skipped_free_k, supersample, window_floor), sc, ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = (f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
              f"{', left-right check ' + ','.join(lr_check) if lr_check else ''}"
              f"{', slanted window' if slant and maps == 'fused' else ''}"
+             f"{f', window floor {window_floor}' if window_floor and maps in ('dense', 'fused') else ''}"
              f"{f', skipped_free_k {skipped_free_k:g}' if skipped_free_k and maps == 'fused' else ''}")
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]} "
           f"({supersample} x {supersample} samples a pixel), "

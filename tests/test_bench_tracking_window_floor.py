@@ -1,0 +1,40 @@
+"""The tracking benchmark's ``--window-floor KIND``: the dense method's window-residual floor reaches every fused
+measurement (``dense_measurement(window_floor=KIND)``) and keys the map cache (a default-floor cache must not be read
+back for a run with another floor, nor the reverse)."""
+from __future__ import annotations
+
+import eonav.fusion.sequence as S
+from eonav.app import bench_tracking as B
+
+TINY = ["--maps", "fused", "--scenarios", "approach-clear", "--duration-s", "0.5", "--size", "64x48"]  # 8 frames
+
+
+def _run(monkeypatch, tmp_path, *extra) -> list:
+    """Run the benchmark's CLI on 8 small frames; return the ``window_floor`` of every fused measurement (None: the
+    method's default)."""
+    seen = []
+    real = S.dense_measurement
+
+    def spy(*args, **kw):
+        seen.append(kw.get("window_floor"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(S, "dense_measurement", spy)
+    assert B.main([*TINY, "--cache-dir", str(tmp_path), *extra]) == 0
+    return seen
+
+
+def test_window_floor_reaches_the_measurements_and_the_cache_key(monkeypatch, tmp_path):
+    floors = _run(monkeypatch, tmp_path, "--window-floor", "valid")
+    assert floors and set(floors) == {"valid"}
+    assert [p.name for p in tmp_path.iterdir()] == ["approach-clear_0.5s_15hz_64x48_fused_seed0_floorvalid.pkl"]
+    assert _run(monkeypatch, tmp_path, "--window-floor", "valid") == []        # read back: nothing measured
+    assert set(_run(monkeypatch, tmp_path)) == {None}                           # default: another key, measured
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["approach-clear_0.5s_15hz_64x48_fused_seed0.pkl",
+                                                           "approach-clear_0.5s_15hz_64x48_fused_seed0_floorvalid.pkl"]
+
+
+def test_window_floor_default_is_the_methods_own(monkeypatch, tmp_path):
+    floors = _run(monkeypatch, tmp_path)
+    assert floors and set(floors) == {None}                                     # no window_floor passed at all
+    assert [p.name for p in tmp_path.iterdir()] == ["approach-clear_0.5s_15hz_64x48_fused_seed0.pkl"]
