@@ -181,8 +181,9 @@ class ArduPilot:
         defaults = ",".join(str(p) for p in (self.tool / "copter.parm", self.tool / "proximity-mavlink.parm", extra))
         self.instance = 0
         for attempt in range(3):
-            # a port seen free can be taken before arducopter binds it (seen once in a full parallel run: "bind
-            # failed on port 5770"): the next free instance then, at most three times
+            # a port seen free can be taken before arducopter binds it (seen in full parallel runs: "bind failed on
+            # port 5770", and once an exit whose console was lost): after any exit during start-up the next free
+            # instance, at most three times; the last attempt's console goes into the error
             self.instance = self._instance(self.instance + 1)
             self.proc = subprocess.Popen([str(self.tool / "arducopter"), "--model", "+", "--speedup", "1",
                                           f"-I{self.instance}", "--defaults", defaults],
@@ -192,9 +193,9 @@ class ArduPilot:
                 self._connect()
                 return self
             except BaseException:
-                bind_failed = self.proc.poll() is not None and "bind failed" in self.console()
+                exited = self.proc.poll() is not None
                 self._stop_process()
-                if not bind_failed or attempt == 2:
+                if not exited or attempt == 2:
                     self.__exit__(None, None, None)
                     raise
 
