@@ -121,7 +121,7 @@ def uncovered_reasons(res, state, mask, eta_inlier: float, border_px: int = 8) -
             "empty_other": int((empty & ~occl & ~trunc).sum()), "border": int((unc & edge).sum())}
 
 
-def held_single_line(res, state, truth, mask, mcfg):
+def held_single_line(state, truth, mask, mcfg):
     """The map without the held-single rule (``MapConfig.held_single`` off; the state is the same, only the map
     differs): its (error, coverage, z), and what the held cells with truth were (how many, how many it reported
     VALID, their median error there, the last measurement's flags). None when the rule is off or holds nothing."""
@@ -280,7 +280,7 @@ def run_case(case: SeqCase, out: list, dense_params: dict | None = None) -> dict
         summary[k] = row
         print(f"   {k:>3} {fmt(*row['fused'])} {fmt(*row['fused_valid'])} {fmt(*row['dense newest'])} "
               f"{fmt(*row['dense widest'])} {fmt(*row['DIS newest'])} {fmt(*row['DIS widest'])} {row['z']:>8.2f} {row['z_filled']:>8.2f}")
-        held = held_single_line(res, runner.states[v.camera.name], truth, mask, case.config.output)
+        held = held_single_line(runner.states[v.camera.name], truth, mask, case.config.output)
         if held is not None:
             row["held_single_off"], line = held
             print(line)
