@@ -50,3 +50,24 @@ def test_error_and_coverage_by_true_range():
     assert (lo0, hi0, n0, lo1, hi1, n1) == (0.0, 150.0, 300, 150.0, np.inf, 100)
     assert abs(e0 - 0.25) < 1e-6 and abs(c0 - 294 / 300) < 1e-9
     assert abs(e1 - 0.95) < 1e-6 and c1 == 1.0
+
+
+def test_the_held_cells_are_counted_with_the_map_without_the_rule():
+    # a 20 x 20 plane at 10 m, converged (n 3) but for two cells held from one measurement the last pair flagged
+    # LOW_TEXTURE: (5, 5) ranged 10.5 m (5 % off, tight: VALID without the rule), (12, 12) with a loose sigma (no
+    # range either way)
+    from eonav.app.bench_fuse import held_single_line
+    from eonav.fusion.fused_map import MapConfig
+    from eonav.ranging.rangemap import LOW_TEXTURE
+    c = Camera(name="c", width=20, height=20, fx=20.0, fy=20.0, cx=9.5, cy=9.5)
+    st = InverseRangeState.empty(c, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], 0.0), 0.0)
+    st.rho[...], st.var[...], st.a[...], st.b[...], st.n[...], st.flags[...] = 0.1, 1e-8, 5.0, 1.0, 3, VALID
+    st.rho[5, 5], st.n[5, 5], st.flags[5, 5] = 1 / 10.5, 1, LOW_TEXTURE
+    st.var[12, 12], st.n[12, 12], st.flags[12, 12] = 0.05 ** 2, 1, LOW_TEXTURE
+    truth = np.full((20, 20), 10.0, np.float32)
+    mask = np.ones((20, 20), bool)
+    fig, line = held_single_line(st, truth, mask, MapConfig(fill=False))
+    assert fig["held"] == 2 and fig["held_valid"] == 1 and abs(fig["held_valid_error"] - 0.05) < 1e-4
+    assert fig["held_last_flags"] == {"low_texture": 2} and fig["fused"][1] == 399 / 400   # off: all but (12, 12)
+    assert "held cells with truth 2" in line
+    assert held_single_line(st, truth, mask, MapConfig(fill=False, held_single=False)) is None

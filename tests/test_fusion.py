@@ -819,3 +819,73 @@ def test_a_long_run_of_agreeing_measurements_keeps_the_cells_evidence_finite(ker
     assert (st.n == 330).mean() >= 0.98
     assert (st.a / (st.a + st.b) > 0.99).all()
     assert np.abs(st.rho - 0.02).max() < 0.0002
+
+
+def _held_cell(kernels, n_valid, last_flags, mcfg=MapConfig(fill=False)):
+    """One cell ranged 25 m by ``n_valid`` VALID measurements, then one with ``last_flags``, mapped with ``mcfg``
+    by update_and_map (the locator's sweep) and by update then fused_map; both maps returned."""
+    from eonav.fusion.fused_map import update_and_map
+    st = one_cell_state()
+    for _ in range(n_valid):
+        measure(st, 0.04, 2e-3, kernels)
+    s2 = copy.deepcopy(st)
+    shape = st.shape
+    args = (np.full(shape, 0.04, np.float32), np.full(shape, 2e-3, np.float32), np.full(shape, last_flags, np.uint8))
+    update(st, *args, kernels=kernels)
+    _, m2 = update_and_map(s2, *args, mcfg=mcfg, kernels=kernels)
+    return fused_map(st, mcfg, kernels=kernels), m2, st
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_single_measurement_no_later_pair_repeated_is_not_reported(kernels):
+    # ranged once (n 1), then LOW_TEXTURE (faint sky ranged by one pair's mismatch, then never again): held, not
+    # VALID (ILL_CONDITIONED, no range, confidence 0, counted as held; not contested); the rule off reports it at 25 m
+    for m in _held_cell(kernels, 1, LOW_TEXTURE)[:2]:
+        assert (m.flags == ILL_CONDITIONED).all() and np.isnan(m.range_m).all() and (m.confidence == 0).all()
+        assert m.info["valid_fraction"] == 0 and m.info["held_fraction"] == 1.0
+        assert m.info["disagree_fraction"] == 0            # its evidence itself agrees
+    st = one_cell_state()                                # one loose (weak) measurement, then LOW_TEXTURE: held,
+    measure(st, 0.04, 0.02, kernels, flags=ILL_CONDITIONED)  # but no range to withdraw (relative sigma 0.5)
+    measure(st, 0.04, 0.02, kernels, flags=LOW_TEXTURE)
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert (st.n == 1).all() and (m.flags == ILL_CONDITIONED).all() and m.info["held_fraction"] == 0
+    for last in (ILL_CONDITIONED, TRUNCATION):          # the pair looked and could not range it: held as well
+        for m in _held_cell(kernels, 1, last)[:2]:
+            assert (m.flags == ILL_CONDITIONED).all() and m.info["held_fraction"] == 1.0
+    for m in _held_cell(kernels, 1, ILL_CONDITIONED | TRUNCATION, MapConfig(fill=False, held_single=False))[:2]:
+        assert (m.flags == VALID).all() and np.allclose(m.range_m, 25.0) and m.info["held_fraction"] == 0
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_fresh_single_measurement_and_two_held_ones_are_reported(kernels):
+    # a cell started by this frame's pair (n 1, VALID in the last measurement): fresh, reported; one the last pair
+    # did not see (OUT_OF_VIEW, or OCCLUDED in its image b: a partner that says nothing of the point): reported; two
+    # measurements then one LOW_TEXTURE pair (n 2, held): the stream repeated it, reported
+    for n_valid, last, n in ((0, VALID, 1), (1, OUT_OF_VIEW, 1), (1, OUT_OF_VIEW | OCCLUDED, 1), (1, VALID, 2),
+                             (2, LOW_TEXTURE, 2)):
+        m1, m2, st = _held_cell(kernels, n_valid, last)
+        assert (st.n == n).all()
+        for m in (m1, m2):
+            assert (m.flags == VALID).all() and np.allclose(m.range_m, 25.0, rtol=1e-5)
+            assert m.info["held_fraction"] == 0
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_held_cell_in_a_converged_plane_is_filled_from_it_not_its_own_range(kernels):
+    # a cell of the converged plane restarted 10 % nearer by one measurement the last pair did not range: the plane
+    # stands in for it (as for any cell without a range, also with contested cells never filled); without the fill it
+    # has no range at all
+    c, plane, st = converged_plane()
+    st.flags[...] = VALID
+    st.rho[20, 30], st.var[20, 30], st.n[20, 30] = plane[20, 30] / 0.9, 1e-8, 1
+    st.flags[20, 30] = LOW_TEXTURE
+    m = fused_map(st, MapConfig(), kernels=kernels)
+    assert m.flags[20, 30] & FILLED and not m.flags[20, 30] & VALID
+    assert m.range_m[20, 30] == pytest.approx(1 / plane[20, 30], rel=1e-3)
+    never = fused_map(st, MapConfig(contested_rel_std=0.0), kernels=kernels)
+    assert never.flags[20, 30] & FILLED and never.range_m[20, 30] == pytest.approx(1 / plane[20, 30], rel=1e-3)
+    bare = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert np.isnan(bare.range_m[20, 30]) and bare.flags[20, 30] == ILL_CONDITIONED
+    assert bare.info["held_fraction"] == pytest.approx(1 / st.rho.size) and bare.info["disagree_fraction"] == 0
+    off = fused_map(st, MapConfig(held_single=False), kernels=kernels)
+    assert off.flags[20, 30] & VALID and off.range_m[20, 30] == pytest.approx(0.9 / plane[20, 30], rel=1e-4)

@@ -121,6 +121,33 @@ def uncovered_reasons(res, state, mask, eta_inlier: float, border_px: int = 8) -
             "empty_other": int((empty & ~occl & ~trunc).sum()), "border": int((unc & edge).sum())}
 
 
+def held_single_line(state, truth, mask, mcfg):
+    """The map without the held-single rule (``MapConfig.held_single`` off; the state is the same, only the map
+    differs): its (error, coverage, z), and what the held cells with truth were (how many, how many it reported
+    VALID, their median error there, the last measurement's flags). None when the rule is off or holds nothing."""
+    from dataclasses import replace
+
+    from eonav.fusion.fused_map import fused_map, held_single
+    from eonav.ranging.rangemap import FLAG_NAMES, VALID
+    if not mcfg.held_single:
+        return None
+    off = fused_map(state, replace(mcfg, held_single=False))
+    held = held_single(state) & mask
+    was = held & ((off.flags & VALID) != 0) & np.isfinite(off.range_m)
+    e_was, _ = errors(off.range_m, truth, was)
+    names = {}
+    for bit, name in FLAG_NAMES.items():
+        c = int(np.count_nonzero(held & ((state.flags & bit) != 0)))
+        if c:
+            names[name] = c
+    fig = {"fused": errors(off.range_m, truth, mask), "z": z_spread(off, truth, mask), "held": int(held.sum()),
+           "held_valid": int(was.sum()), "held_valid_error": e_was, "held_last_flags": names}
+    line = (f"         without held_single: {fmt(*fig['fused']).strip()}, z {fig['z']:.2f}; held cells with truth "
+            f"{fig['held']} ({100 * fig['held'] / max(int(mask.sum()), 1):.2f} %), VALID without the rule "
+            f"{fig['held_valid']} at {100 * e_was:.1f} % median error; last flags {names}")
+    return fig, line
+
+
 def by_range(res, truth, mask, bins=(0.0, 30.0, 60.0, 100.0, 150.0, 300.0, np.inf)) -> list:
     """Per true-range bin [lo, hi) (m): (lo, hi, pixels of ``mask``, median relative error, coverage) of ``res``."""
     out = []
@@ -253,6 +280,10 @@ def run_case(case: SeqCase, out: list, dense_params: dict | None = None) -> dict
         summary[k] = row
         print(f"   {k:>3} {fmt(*row['fused'])} {fmt(*row['fused_valid'])} {fmt(*row['dense newest'])} "
               f"{fmt(*row['dense widest'])} {fmt(*row['DIS newest'])} {fmt(*row['DIS widest'])} {row['z']:>8.2f} {row['z_filled']:>8.2f}")
+        held = held_single_line(runner.states[v.camera.name], truth, mask, case.config.output)
+        if held is not None:
+            row["held_single_off"], line = held
+            print(line)
         if k == 10 or k == n - 1:
             zf, zd = z_by_range(res, truth, mask), z_by_range(singles["dense newest"], truth, mask)
             row["z_by_range"], row["z_by_range_dense_newest"] = [list(r) for r in zf], [list(r) for r in zd]

@@ -24,6 +24,9 @@ neighbourhood is one surface whose plane the stream has pinned down; a looser pl
 the edge that hides or contradicts the cell, and its sigma does not say so. An empty cell within ``border_px`` of
 the image border (content that entered the view and no pair has measured yet) is extrapolated to like a pixel out
 of view of b -- the neighbours' plane carried on for those few pixels -- unless it is LOW_TEXTURE (may be sky).
+A VALID cell from a single measurement that the last measurement looked at and did not range (``held_single``: one
+pair's guess the stream has not repeated, such as faint sky ranged once and LOW_TEXTURE after) is reported without a
+range (``MapConfig.held_single``); the fill may stand in for it.
 """
 from __future__ import annotations
 
@@ -36,8 +39,8 @@ import numpy as np
 from eonav import InputError
 from eonav.ranging.methods._common import classify_into, make_result
 from eonav.ranging.methods.fill import fill_unmeasured
-from eonav.ranging.rangemap import (AT_INFINITY, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION,
-                                   VALID, RangeResult)
+from eonav.ranging.rangemap import (AT_INFINITY, FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW,
+                                   TRUNCATION, VALID, RangeResult)
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
 from eonav.fusion.update import (UpdateConfig, counts_dict, kernel_params, measurement_arrays, update,
                                  update_rho_far)
@@ -63,6 +66,8 @@ class MapConfig:
     no_fill: int = NO_FILL_FUSED   # flag bits of the empty cells contested (module docstring)
     contested_rel_std: float = 0.05  # largest relative sigma of a contested cell's fill (0: never filled)
     border_px: int = 4             # empty cells this near the image border are extrapolated to (0: not)
+    held_single: bool = True       # a VALID cell from one measurement the last pair looked at and did not range is
+                                   # not reported (``held_single``; docs/methods.md, "Fusion over the stream")
 
     def __post_init__(self):
         if not 0 < self.eta_inlier < 1:
@@ -158,6 +163,10 @@ def _outputs(shape, reuse):
 
 
 def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude) -> RangeResult:
+    n_held = 0
+    if cfg.held_single:
+        n_held, d_val, d_inf = _demote_held(state, flags, rng, conf)
+        n_val, n_inf = int(n_val) - d_val, int(n_inf) - d_inf
     # a cell whose measurements disagree, or that the last pair saw hidden, is filled only by a tight plane
     n_filled = 0
     if cfg.fill:
@@ -172,8 +181,35 @@ def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude
             flags[edge] &= np.uint8(~OUT_OF_VIEW & 0xFF)
     size = max(rho.size, 1)
     info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(np.count_nonzero(exclude)) / size,
-            "filled_fraction": n_filled / size, "n_fused": state.n.copy()}
+            "filled_fraction": n_filled / size, "held_fraction": n_held / size, "n_fused": state.n.copy()}
     return make_result(rho, std, flags, rng, conf, METHOD, int(n_val), int(n_inf), info)
+
+
+def held_single(state: InverseRangeState) -> np.ndarray:
+    """Cells holding a single measurement (n == 1) that the last measurement looked at and did not range: the
+    state's flags (the last measurement's, carried with the cell) not VALID, or FILLED, and not OUT_OF_VIEW (a
+    partner that does not see the point, or sees it hidden, says nothing of it). One pair's guess the stream has not
+    repeated since: faint sky ranged once, then LOW_TEXTURE pair after pair. A cell (re)started by the last
+    measurement is VALID there: fresh, not held."""
+    last = state.flags
+    said = ((last & np.uint8(VALID | FILLED)) != np.uint8(VALID)) & ((last & np.uint8(OUT_OF_VIEW)) == 0)
+    return (state.n == 1) & said & state.occupied()
+
+
+def _demote_held(state, flags, rng, conf):
+    """The ``held_single`` cells the map reports VALID, in place: ILL_CONDITIONED, no range, confidence 0 (held
+    cells already without a range, a loose sigma, are left as they are). The fill may stand in for them as for any
+    cell without a range. Returns (cells demoted, VALID ones, AT_INFINITY ones)."""
+    held = held_single(state)
+    held &= (flags & np.uint8(VALID)) != 0
+    n_held = int(np.count_nonzero(held))
+    if not n_held:
+        return 0, 0, 0
+    d_inf = int(np.count_nonzero(flags[held] & np.uint8(AT_INFINITY)))
+    flags[held] = np.uint8(ILL_CONDITIONED)
+    rng[held] = np.nan
+    conf[held] = 0.0
+    return n_held, n_held - d_inf, d_inf
 
 
 def _border_cells(state, flags, cfg):
