@@ -527,3 +527,26 @@ def pose_sigma(rho, std, ra, ca, B, fxb, fyb, s):
             new = np.sqrt(sd * sd + e * e)
             ok = np.isfinite(r) and np.isfinite(sd) and den > 0
             std[y, x] = new if ok else sd
+
+
+@njit(**_JIT)
+def demote_held(n, last, rho, valid, filled, out_of_view, at_infinity, ill, flags, rng, conf):
+    """fused_map._demote_held in one pass (the numpy path is the reference): the held single cells (n == 1, the
+    last measurement's flags ``last`` not VALID or FILLED and not OUT_OF_VIEW, occupied) that ``flags`` reports
+    VALID become ILL_CONDITIONED with no range and confidence 0. Returns (cells demoted, AT_INFINITY ones)."""
+    fn, fl, fr, fo, fg, fc = (n.reshape(-1), last.reshape(-1), rho.reshape(-1), flags.reshape(-1), rng.reshape(-1),
+                              conf.reshape(-1))
+    vf = valid | filled
+    n_held = 0
+    n_inf = 0
+    nan = np.float32(np.nan)
+    zero = np.float32(0.0)
+    for i in range(fn.size):                      # (branch-free select and store: vectorised)
+        held = ((fn[i] == 1) & ((fl[i] & vf) != valid) & ((fl[i] & out_of_view) == 0) & (fr[i] == fr[i])
+                & ((fo[i] & valid) != 0))
+        n_held += held
+        n_inf += held & ((fo[i] & at_infinity) != 0)
+        fo[i] = ill if held else fo[i]
+        fg[i] = nan if held else fg[i]
+        fc[i] = zero if held else fc[i]
+    return n_held, n_inf

@@ -118,11 +118,11 @@ def fused_map(state: InverseRangeState, cfg: MapConfig = MapConfig(), kernels: b
         raise ImportError("fused_map(kernels=True) needs numba")
     if K is None:
         rho, std, flags, rng, conf, n_val, n_inf, occ, exclude = _classify_numpy(state, cfg)
-        return _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, int(occ.sum()), exclude)
+        return _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, int(occ.sum()), exclude, False)
     out = _outputs(state.shape, reuse)
     n_val, n_inf, n_occ, n_dis = K.classify_state(state.rho, state.var, state.a, state.b, state.flags,
                                                   *_classify_params(state, cfg), *out)
-    return _finish(state, cfg, *out[:5], n_val, n_inf, n_occ, out[5])
+    return _finish(state, cfg, *out[:5], n_val, n_inf, n_occ, out[5], True)
 
 
 def update_and_map(state: InverseRangeState, rho_m, std_m, flags_m, ucfg: UpdateConfig = UpdateConfig(),
@@ -143,7 +143,7 @@ def update_and_map(state: InverseRangeState, rho_m, std_m, flags_m, ucfg: Update
     out = _outputs(state.shape, reuse)
     r = K.update_classify(state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags, *meas,
                           *kernel_params(ucfg), *_classify_params(state, mcfg), *out)
-    res = _finish(state, mcfg, *out[:5], r[5], r[6], r[7], out[5])
+    res = _finish(state, mcfg, *out[:5], r[5], r[6], r[7], out[5], True)
     return counts_dict(*r[:5]), res
 
 
@@ -162,10 +162,10 @@ def _outputs(shape, reuse):
     return rho, std, flags, rng, conf, np.empty(shape, np.bool_)
 
 
-def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude) -> RangeResult:
+def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude, kernels: bool) -> RangeResult:
     n_held = 0
     if cfg.held_single:
-        n_held, d_val, d_inf = _demote_held(state, flags, rng, conf)
+        n_held, d_val, d_inf = _demote_held(state, flags, rng, conf, kernels)
         n_val, n_inf = int(n_val) - d_val, int(n_inf) - d_inf
     # a cell whose measurements disagree, or that the last pair saw hidden, is filled only by a tight plane
     n_filled = 0
@@ -196,10 +196,16 @@ def held_single(state: InverseRangeState) -> np.ndarray:
     return (state.n == 1) & said & state.occupied()
 
 
-def _demote_held(state, flags, rng, conf):
+def _demote_held(state, flags, rng, conf, kernels: bool | None = None):
     """The ``held_single`` cells the map reports VALID, in place: ILL_CONDITIONED, no range, confidence 0 (held
     cells already without a range, a loose sigma, are left as they are). The fill may stand in for them as for any
-    cell without a range. Returns (cells demoted, VALID ones, AT_INFINITY ones)."""
+    cell without a range. Returns (cells demoted, VALID ones, AT_INFINITY ones). kernels: as ``fused_map``."""
+    K = optional_kernels() if kernels is None or kernels else None
+    if K is not None and all(x.flags.c_contiguous for x in (state.n, state.flags, state.rho, flags, rng, conf)):
+        n_held, d_inf = K.demote_held(state.n, state.flags, state.rho, np.uint8(VALID), np.uint8(FILLED),
+                                      np.uint8(OUT_OF_VIEW), np.uint8(AT_INFINITY), np.uint8(ILL_CONDITIONED),
+                                      flags, rng, conf)
+        return int(n_held), int(n_held - d_inf), int(d_inf)
     held = held_single(state)
     held &= (flags & np.uint8(VALID)) != 0
     n_held = int(np.count_nonzero(held))
