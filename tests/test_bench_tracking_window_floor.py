@@ -6,7 +6,8 @@ from __future__ import annotations
 import eonav.fusion.sequence as S
 from eonav.app import bench_tracking as B
 
-TINY = ["--maps", "fused", "--scenarios", "approach-clear", "--duration-s", "0.5", "--size", "64x48"]  # 8 frames
+TINY = ["--maps", "fused", "--scenarios", "approach-clear", "--duration-s", "0.5", "--size", "64x48",
+        "--supersample", "1"]  # 8 point-sampled frames (cache names without _ss)
 
 
 def _run(monkeypatch, tmp_path, *extra) -> list:

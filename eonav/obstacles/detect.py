@@ -58,8 +58,10 @@ class ObstacleConfig:
     max_obstacles: int = 32            # nearest first
     min_fused: int = 1                 # fused maps: pixels fused from fewer measurements are ignored (agreement
                                        # needs at least two); maps without n_fused are not affected
-    horizon_min_fused: int = 2         # fused maps: pixels whose ray does not come down onto the ground plane (at or
+    horizon_min_fused: int = 1         # fused maps: pixels whose ray does not come down onto the ground plane (at or
                                        # above its horizon: no ground test can vet them) need this many measurements
+                                       # (1: off; the fused map's held-single rule covers the sky one pair ranged;
+                                       # 2 helps on point-sampled renders, docs/guidance.md)
     max_width_px: int = 160            # pool the map to at most this many columns (0: full resolution)
     pool_percentile: float = 10.0      # which confident pixel of a pooling block stands for it (0 = the nearest)
 
