@@ -180,7 +180,7 @@ def test_bench_map_cache_computes_once(tmp_path, monkeypatch):
     from eonav.app import bench_tracking as B
     calls = []
 
-    def fake(sc, rate, size, maps, seed):
+    def fake(sc, rate, size, maps, seed, **kw):
         calls.append(seed)
         yield {"stamp_us": 0, "seed": seed}
 
