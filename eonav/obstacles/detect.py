@@ -53,8 +53,8 @@ class ObstacleConfig:
     max_obstacle_distance_m: float = 100.0   # obstacle list: only components nearer than this
     max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative) ...
     jump_sigma_k: float = 3.0          # ... and beyond this many times the hypot of the two pixels' relative sigmas
-    layer_gap_rel: float = 0.3         # a component whose ranges fall into two layers this far apart (the near
-                                       # layer's 95th percentile to the far one's 5th, relative) is two objects,
+    layer_gap_rel: float = 0.4         # a component whose ranges fall into two layers this far apart (the near
+                                       # layer's 90th percentile to the far one's 10th, relative) is two objects,
                                        # however smoothly a halo joins them (0: off; ``split_layers``)
     min_obstacle_pixels: int = 12      # smallest component kept (list and sectors)
     min_obstacle_height_m: float = 0.3  # flatter components (5..95 % of down) are mismatch speckle, dropped
@@ -778,10 +778,12 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
 def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) -> tuple:
     """Components that hold two layers of range, relabelled as the connected parts of each layer: (labels, n).
     A component's log ranges are split in two at Otsu's threshold; they are two layers when both hold at least
-    ``min_cells`` cells and the far layer's 5th percentile lies more than ``gap`` beyond the near layer's 95th. A thin
-    object before a far background is one component when the map's window fattens it into a halo of intermediate
-    ranges (no jump between neighbours beats the cut); its median point is then the background's. One surface
-    receding smoothly (a wall seen obliquely) has no such gap."""
+    ``min_cells`` cells and the far layer's 10th percentile lies more than ``gap`` (log) beyond the near layer's 90th. A
+    thin object before a far background is one component when the map's window fattens it into a halo of intermediate
+    ranges (no jump between neighbours beats the cut); its median point is then the background's. The halo may take a
+    tenth of either layer; one surface receding smoothly (a wall seen obliquely) has no such gap. A layer's connected
+    pieces smaller than ``min_cells`` go with the other layer (alone they would be dropped as speckle: a split loses
+    no pixel of the list)."""
     from scipy import ndimage
     flat = labels.ravel()
     sel = np.flatnonzero(flat)
@@ -793,7 +795,9 @@ def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) ->
     far = np.zeros(flat.size, bool)
     split = False
     lr = log_range.ravel()
-    for s0, s1 in zip(starts, ends):
+    boxes = ndimage.find_objects(labels)
+    far2d = far.reshape(labels.shape)                        # a view: writes go to ``far``
+    for lab_j, (s0, s1) in enumerate(zip(starts, ends), start=1):
         m = s1 - s0
         if m < 2 * min_cells:
             continue
@@ -801,15 +805,24 @@ def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) ->
         c = np.cumsum(x)
         k = np.arange(1, m)                                  # the near layer: x[:k]
         mu0, mu1 = c[:-1] / k, (c[-1] - c[:-1]) / (m - k)
-        j = int(np.argmax(k * (m - k) * (mu1 - mu0) ** 2))  # Otsu: the largest between-class variance
-        k0 = j + 1
+        k0 = int(np.argmax(k * (m - k) * (mu1 - mu0) ** 2)) + 1  # Otsu: the largest between-class variance
         if min(k0, m - k0) < min_cells:
             continue
         near, farx = x[:k0], x[k0:]
-        if _pct_sorted(farx, 5.0) - _pct_sorted(near, 95.0) <= gap:
+        if _pct_sorted(farx, 10.0) - _pct_sorted(near, 90.0) <= gap:
             continue
-        cells = sel[s0:s1]
-        far[cells[lr[cells] >= x[k0]]] = True
+        box = boxes[lab_j - 1]
+        comp = labels[box] == lab_j
+        is_far = comp & (log_range[box] >= x[k0])
+        small = []
+        for part in (comp & ~is_far, is_far):               # a layer's fragments would be dropped as speckle:
+            pl, _ = ndimage.label(part)                      # they go with the other layer
+            sizes = np.bincount(pl.ravel())
+            small.append(part & (sizes < min_cells)[pl])
+        is_far = (is_far & ~small[1]) | small[0]
+        if min(np.count_nonzero(is_far), np.count_nonzero(comp & ~is_far)) < min_cells:
+            continue
+        far2d[box] |= is_far
         split = True
     if not split:
         return labels, n
