@@ -270,14 +270,101 @@ def test_range_jump_cut_in_units_of_the_pixels_sigma():
     # 0.1414 k: k < 2.12 cuts (two obstacles), k > 2.12 joins them (one)
     r = add_wall(add_wall(ground_and_sky(), 20.0, 96, 128), 27.0, 128, 160)
     std = np.where(np.isfinite(r), 0.1 / r, 0.0).astype(np.float32)          # sigma_r / r = sigma_rho r = 0.1
-    def n_obstacles(k):
-        return len(ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(CFG, jump_sigma_k=k)).obstacles)
+    def n_obstacles(k):                      # the layer split off: it would part them (35 % > 30 %, below)
+        return len(ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std,
+                              cfg=replace(CFG, jump_sigma_k=k, layer_gap_rel=0.0)).obstacles)
     assert n_obstacles(2.25) == 1 and n_obstacles(3.0) == 1
     assert n_obstacles(2.0) == 2 and n_obstacles(1.5) == 2
     # k 0: max_rel_jump (8 %) alone decides; 35 % beats it
     assert n_obstacles(0.0) == 2
     with pytest.raises(InputError, match="jump_sigma_k"):
         ob.ObstacleConfig(jump_sigma_k=-1.0)
+
+
+def test_layer_split_parts_two_ranges_the_jump_test_joins():
+    # two walls side by side, 30 m (columns 96..127) and 40 m (128..159), relative sigma 0.1 on every pixel: the jump
+    # ln(40 / 30) = 0.288 is below 3 hypot(0.1, 0.1) = 0.424, so the neighbour cut joins them; the two layers lie
+    # 33 % apart (the near one's 90th percentile 30 m, the far one's 10th 40 m): two objects below that gap, one above
+    r = add_wall(add_wall(ground_and_sky(), 30.0, 96, 128), 40.0, 128, 160)
+    std = np.where(np.isfinite(r), 0.1 / r, 0.0).astype(np.float32)
+
+    def obstacles(gap):
+        return ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(CFG, layer_gap_rel=gap)).obstacles
+    assert len(obstacles(0.0)) == 1 and len(obstacles(0.35)) == 1
+    two = obstacles(0.30)
+    assert len(two) == 2
+    near, far = sorted(two, key=lambda o: o.distance_median_m)
+    assert near.bbox_px[0] >= 96 and near.bbox_px[2] <= 127 and far.bbox_px[0] >= 128 and far.bbox_px[2] <= 159
+    with pytest.raises(InputError, match="layer_gap_rel"):
+        ob.ObstacleConfig(layer_gap_rel=-0.1)
+
+
+def test_thin_mast_before_a_far_wall_joined_by_a_halo_is_its_own_obstacle():
+    # a mast 4 px wide at 30 m (columns 126..129) before a wall at 70 m (96..159); between them, 3 px each side, a
+    # halo of intermediate ranges (38, 48, 60 m) with a relative sigma of 0.2 (mast and wall 0.05), as a fused map's
+    # window fattens a thin object: no neighbour jump beats 3 hypot of the sigmas, so the cut leaves one component,
+    # whose median point is the wall's. Split into layers, the mast is listed at its own range.
+    r = add_wall(ground_and_sky(), 70.0, 96, 160)
+    rows = np.flatnonzero(r[:, 100] == 70.0)
+    r = add_wall(r, 30.0, 126, 130)
+    rel = np.where(np.isfinite(r), 0.05, 0.0)
+    for c, x in ((125, 38.0), (124, 48.0), (123, 60.0), (130, 38.0), (131, 48.0), (132, 60.0)):
+        r[rows, c] = x
+        rel[rows, c] = 0.2
+    std = (rel / r).astype(np.float32)
+
+    def obstacles(gap):
+        return ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(CFG, layer_gap_rel=gap)).obstacles
+    assert CFG.layer_gap_rel == 0.4
+    one = obstacles(0.0)
+    assert len(one) == 1 and one[0].bbox_px[0] <= 96 and one[0].bbox_px[2] >= 159   # mast, halo and wall: one
+    assert one[0].position_ned_m[0] > 60.0 and one[0].distance_m < 31.0    # its median point on the wall
+    split = obstacles(CFG.layer_gap_rel)
+    mast = [o for o in split if o.bbox_px[0] >= 120 and o.bbox_px[2] <= 135]
+    assert len(mast) == 1
+    assert abs(mast[0].position_ned_m[0] - 30.0) < 0.05 * 30.0           # its median point on the mast
+    assert all(o.distance_m > 55.0 for o in split if o is not mast[0])  # the wall is apart
+
+
+def test_layer_split_leaves_one_surface_receding_smoothly_whole():
+    # a wall seen obliquely: its range grows from 30 m (column 96) to 90 m (column 159), 1.8 % a column, relative
+    # sigma 0.1; the neighbour cut leaves one component. Its two halves at Otsu's split lie 10-20 % apart at their
+    # 90th / 10th percentiles (no gap, only the spread of each half): one obstacle at the default gap and at 20 %,
+    # two at 10 % (the two sides of what a ramp over a factor of 3 of range looks like)
+    r = ground_and_sky()
+    for c in range(96, 160):
+        r = add_wall(r, 30.0 * 3.0 ** ((c - 96) / 63.0), c, c + 1)
+    std = np.where(np.isfinite(r), 0.1 / r, 0.0).astype(np.float32)
+
+    def obstacles(gap):
+        return ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(CFG, layer_gap_rel=gap)).obstacles
+    for gap in (CFG.layer_gap_rel, 0.2):
+        obs = obstacles(gap)
+        assert len(obs) == 1 and obs[0].bbox_px[0] == 96 and obs[0].bbox_px[2] == 159
+    near, far = obstacles(0.1)
+    assert near.bbox_px[0] == 96 and far.bbox_px[2] == 159 and near.bbox_px[2] + 1 == far.bbox_px[0]
+
+
+def test_layer_split_loses_no_pixel():
+    # a 4 px mast at 30 m before a wall at 70 m, with a patch of 4 x 4 px at 32 m on the wall away from the mast
+    # (4 analysis cells, fewer than min_obstacle_pixels), every pixel's relative sigma 0.3 so the neighbour cut joins
+    # them all: alone the patch would be dropped as speckle; it goes with the wall's layer, so the split lists every
+    # pixel the unsplit component held
+    r = add_wall(ground_and_sky(), 70.0, 96, 160)
+    rows = np.flatnonzero(r[:, 100] == 70.0)
+    r = add_wall(r, 30.0, 126, 130)
+    r[rows[4]:rows[4] + 4, 150:154] = 32.0
+    std = np.where(np.isfinite(r), 0.3 / r, 0.0).astype(np.float32)      # 3 hypot(0.3, 0.3) = 1.27 > ln(70 / 30)
+
+    def obstacles(gap):
+        return ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=replace(CFG, layer_gap_rel=gap)).obstacles
+    whole, split = obstacles(0.0), obstacles(CFG.layer_gap_rel)
+    assert len(whole) == 1
+    mast, left, right = sorted(split, key=lambda o: o.bbox_px[0] != 126 and o.bbox_px[0])  # the mast parts the wall
+    assert mast.bbox_px[0] == 126 and mast.bbox_px[2] == 129 and abs(mast.position_ned_m[0] - 30.0) < 0.5
+    assert left.bbox_px[0] == 96 and right.bbox_px[2] == 159 and abs(left.position_ned_m[0] - 70.0) < 0.5
+    assert right.pixel_count == left.pixel_count                      # the patch's 16 px listed with the wall
+    assert sum(o.pixel_count for o in split) == whole[0].pixel_count
 
 
 def test_ground_estimated_from_points_when_not_configured():

@@ -27,7 +27,8 @@ NO_UNIT = {"--speed": "a factor of real time", "--min-scale": "a factor of the i
            "--minutes": "the name is the unit", "--see-through-k": "a number of sigmas",
            "--duplicate-chi2": "a squared Mahalanobis distance", "--stereo-lead-k": "a number of sigmas",
            "--follow-k": "a number of sigmas", "--follow-fraction": "a fraction of the own speed",
-           "--skipped-free-k": "a number of sigmas", "--jump-sigma-k": "a number of sigmas"}
+           "--skipped-free-k": "a number of sigmas", "--jump-sigma-k": "a number of sigmas",
+           "--layer-gap-rel": "a fraction of the range"}
 # one name per concept: the parsers that have the concept all spell it so
 CONCEPTS = {
     "--cv-threads": ("service locator", "eonav locate", "eonav bench locate", "eonav bench pipeline"),

@@ -52,7 +52,7 @@ Per box (ground truth: the renderer's object ids and the solid box):
 
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
-        [--follow-k K] [--follow-fraction F] [--rig-baseline-m M] [--rig-order partner-first|arrival]
+        [--follow-k K] [--follow-fraction F] [--layer-gap-rel G] [--rig-baseline-m M] [--rig-order partner-first|arrival]
         [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--window-floor KIND] [--supersample N]
         [--cache-dir DIR]
 """
@@ -527,6 +527,9 @@ def add_arguments(p) -> None:
     p.add_argument("--jump-sigma-k", type=float, default=SERVICE_OBSTACLES.jump_sigma_k, metavar="K",
                    help="ObstacleConfig.jump_sigma_k: a range jump between neighbours cuts two objects beyond K x "
                         "the hypot of their relative sigmas (and max_rel_jump)")
+    p.add_argument("--layer-gap-rel", type=float, default=SERVICE_OBSTACLES.layer_gap_rel, metavar="G",
+                   help="ObstacleConfig.layer_gap_rel: a component whose ranges fall into two layers this far apart "
+                        "(relative) is two objects (0: off)")
     p.add_argument("--see-through-k", type=float, default=TrackerConfig().see_through_k, metavar="K",
                    help="TrackerConfig.see_through_k: farther measurements bearing-only beyond K track sigma (0: off)")
     p.add_argument("--duplicate-chi2", type=float, default=TrackerConfig().duplicate_chi2, metavar="D2",
@@ -567,7 +570,7 @@ def main(argv=None) -> int:
     add_arguments(p)
     args = p.parse_args(argv)
     ocfg = replace(SERVICE_OBSTACLES, min_fused=args.min_fused, horizon_min_fused=args.horizon_min_fused,
-                   jump_sigma_k=args.jump_sigma_k)
+                   jump_sigma_k=args.jump_sigma_k, layer_gap_rel=args.layer_gap_rel)
     tcfg = replace(TrackerConfig(), see_through_k=args.see_through_k, duplicate_chi2=args.duplicate_chi2,
                    follow_k=args.follow_k, follow_fraction=args.follow_fraction)
     print(f"obstacle config: {ocfg}")

@@ -53,6 +53,9 @@ class ObstacleConfig:
     max_obstacle_distance_m: float = 100.0   # obstacle list: only components nearer than this
     max_rel_jump: float = 0.08         # range discontinuity that separates two objects (relative) ...
     jump_sigma_k: float = 3.0          # ... and beyond this many times the hypot of the two pixels' relative sigmas
+    layer_gap_rel: float = 0.4         # a component whose ranges fall into two layers this far apart (the near
+                                       # layer's 90th percentile to the far one's 10th, relative) is two objects,
+                                       # however smoothly a halo joins them (0: off; ``split_layers``)
     min_obstacle_pixels: int = 12      # smallest component kept (list and sectors)
     min_obstacle_height_m: float = 0.3  # flatter components (5..95 % of down) are mismatch speckle, dropped
     max_obstacles: int = 32            # nearest first
@@ -89,6 +92,8 @@ class ObstacleConfig:
             raise InputError(f"obstacle config: max_width_px must be an integer >= 0, got {self.max_width_px!r}")
         if not 0 <= self.ground_max_slope_deg < 90:
             raise InputError(f"obstacle config: ground_max_slope_deg must be in [0, 90), got {self.ground_max_slope_deg}")
+        if not (math.isfinite(self.layer_gap_rel) and self.layer_gap_rel >= 0):
+            raise InputError(f"obstacle config: layer_gap_rel must be a finite number >= 0, got {self.layer_gap_rel!r}")
         if not (math.isfinite(self.jump_sigma_k) and self.jump_sigma_k >= 0):
             raise InputError(f"obstacle config: jump_sigma_k must be a finite number >= 0, got {self.jump_sigma_k!r}")
         if not (0 < self.plane_law_beta and self.plane_law_min_span > 0):
@@ -697,6 +702,8 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
     labels, n = ndimage.label(mask & ~cut)
     if n == 0:
         return [], kept
+    if cfg.layer_gap_rel > 0:
+        labels, n = split_layers(labels, n, lr, mask & ~cut, math.log1p(cfg.layer_gap_rel), cfg.min_obstacle_pixels)
     wgrid = np.zeros(n_cells)
     wgrid[pts.cell] = pts.weight
     sizes = np.bincount(labels.ravel(), weights=wgrid, minlength=n + 1)     # full-resolution pixels per component
@@ -768,6 +775,63 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
                                 min(H - 1, gy.max() * k + k - 1), W, H, FW, FH)))
     out.sort(key=lambda o: o.distance_m)
     return out, kept
+
+
+def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) -> tuple:
+    """Components that hold two layers of range, relabelled as the connected parts of each layer: (labels, n).
+    A component's log ranges are split in two at Otsu's threshold; they are two layers when both hold at least
+    ``min_cells`` cells and the far layer's 10th percentile lies more than ``gap`` (log) beyond the near layer's 90th. A
+    thin object before a far background is one component when the map's window fattens it into a halo of intermediate
+    ranges (no jump between neighbours beats the cut); its median point is then the background's. The halo may take a
+    tenth of either layer; one surface receding smoothly (a wall seen obliquely) has no such gap. A layer's connected
+    pieces smaller than ``min_cells`` go with the other layer (alone they would be dropped as speckle: a split loses
+    no pixel of the list)."""
+    from scipy import ndimage
+    flat = labels.ravel()
+    sel = np.flatnonzero(flat)
+    order = np.argsort(flat[sel], kind="stable")
+    sel = sel[order]
+    lab = flat[sel]
+    starts = np.searchsorted(lab, np.arange(1, n + 1))
+    ends = np.searchsorted(lab, np.arange(1, n + 1), side="right")
+    far = np.zeros(flat.size, bool)
+    split = False
+    lr = log_range.ravel()
+    boxes = ndimage.find_objects(labels)
+    far2d = far.reshape(labels.shape)                        # a view: writes go to ``far``
+    for lab_j, (s0, s1) in enumerate(zip(starts, ends), start=1):
+        m = s1 - s0
+        if m < 2 * min_cells:
+            continue
+        x = np.sort(lr[sel[s0:s1]])
+        c = np.cumsum(x)
+        k = np.arange(1, m)                                  # the near layer: x[:k]
+        mu0, mu1 = c[:-1] / k, (c[-1] - c[:-1]) / (m - k)
+        k0 = int(np.argmax(k * (m - k) * (mu1 - mu0) ** 2)) + 1  # Otsu: the largest between-class variance
+        if min(k0, m - k0) < min_cells:
+            continue
+        near, farx = x[:k0], x[k0:]
+        if _pct_sorted(farx, 10.0) - _pct_sorted(near, 90.0) <= gap:
+            continue
+        box = boxes[lab_j - 1]
+        comp = labels[box] == lab_j
+        is_far = comp & (log_range[box] >= x[k0])
+        small = []
+        for part in (comp & ~is_far, is_far):               # a layer's fragments would be dropped as speckle:
+            pl, _ = ndimage.label(part)                      # they go with the other layer
+            sizes = np.bincount(pl.ravel())
+            small.append(part & (sizes < min_cells)[pl])
+        is_far = (is_far & ~small[1]) | small[0]
+        if min(np.count_nonzero(is_far), np.count_nonzero(comp & ~is_far)) < min_cells:
+            continue
+        far2d[box] |= is_far
+        split = True
+    if not split:
+        return labels, n
+    mask = mask.ravel()
+    a, na = ndimage.label((mask & ~far).reshape(labels.shape))
+    b, nb = ndimage.label((mask & far).reshape(labels.shape))
+    return np.where(b > 0, b + na, a), na + nb
 
 
 def _frame_bbox(u0, v0, u1, v1, W, H, FW, FH) -> list:
