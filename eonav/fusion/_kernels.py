@@ -266,7 +266,7 @@ def _start_cell(y, x, rho, var, a, b, n, du, dv, xm, tau2, a_init, b_init):
 @njit(**_FAST)
 def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt, buf):
     """One row of ``update``; cnt (int64[5]) gains its counts. First the update's arithmetic for every cell of the
-    row into buf (float32[5, w]) in a branch-free loop, which LLVM vectorises (a cell it does not apply to computes
+    row into buf (float32[6, w]) in a branch-free loop, which LLVM vectorises (a cell it does not apply to computes
     garbage, never used), then per cell which of it applies."""
     w = rho.shape[1]
     max_rel_std, s, rho_max, a_init, b_init, cap, eta_outlier = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]

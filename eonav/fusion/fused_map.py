@@ -42,8 +42,8 @@ from eonav.ranging.methods.fill import fill_unmeasured
 from eonav.ranging.rangemap import (AT_INFINITY, FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW,
                                    TRUNCATION, VALID, RangeResult)
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
-from eonav.fusion.update import (UpdateConfig, counts_dict, kernel_params, measurement_arrays, update,
-                                 update_rho_far)
+from eonav.fusion.update import (UpdateConfig, check_shape, counts_dict, kernel_params, measurement_arrays,
+                                 update, update_rho_far)
 
 METHOD = "fused"
 # empty cells contested (filled only from a plane tighter than contested_rel_std): those the last measurement saw
@@ -136,8 +136,7 @@ def update_and_map(state: InverseRangeState, rho_m, std_m, flags_m, ucfg: Update
     if K is None:
         counts = update(state, rho_m, std_m, flags_m, ucfg, rho_far=rho_far, kernels=False)
         return counts, fused_map(state, mcfg, kernels=False)
-    if np.shape(rho_m) != state.shape:
-        raise InputError(f"fusion update: measurement shape {np.shape(rho_m)} differs from the state {state.shape}")
+    check_shape(state, rho_m)
     update_rho_far(state, rho_far)
     meas = measurement_arrays(rho_m, std_m, flags_m)
     out = _outputs(state.shape, reuse)

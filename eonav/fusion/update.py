@@ -174,7 +174,7 @@ def _start_cells(state: InverseRangeState, sel, rho, var, cfg: UpdateConfig) -> 
         arr.ravel()[sel] = v
 
 
-def _check_shape(state: InverseRangeState, rho) -> None:
+def check_shape(state: InverseRangeState, rho) -> None:
     """A measurement on another grid than the state's is refused, naming both shapes."""
     if np.shape(rho) != state.shape:
         raise InputError(f"fusion update: measurement shape {np.shape(rho)} differs from the state {state.shape}")
@@ -186,7 +186,7 @@ def update(state: InverseRangeState, rho_m, std_m, flags_m, cfg: UpdateConfig = 
     (the state keeps the smallest seen). Returns counts: measured, started (empty cells), inliers (C1 > 0.5),
     outliers, restarted (diverged cells started again from the measurement). kernels: the numba pass
     (``_kernels.update``; None: when numba is installed; False: the numpy path, the reference)."""
-    _check_shape(state, rho_m)
+    check_shape(state, rho_m)
     flags_m = np.asarray(flags_m, np.uint8)
     update_rho_far(state, rho_far)
     K = optional_kernels() if kernels is None or kernels else None
@@ -270,7 +270,7 @@ def stereo_restart(state: InverseRangeState, rho_s, std_s, flags_s, cfg: UpdateC
     frame's motion measurement, fused before the stereo one arrived, disagreed with it: ``gate_motion``). The
     measurement is to be fused into the other cells as usual: its inverse range is set to NaN in ``rho_s`` (in
     place, a float32 array) where a cell restarted. Returns the mask of restarted cells (none with k = 0)."""
-    _check_shape(state, rho_s)
+    check_shape(state, rho_s)
     if cfg.stereo_lead_k == 0:
         return np.zeros(state.shape, bool)
     meas = measured(rho_s, std_s, flags_m=np.asarray(flags_s, np.uint8), cfg=cfg) & state.occupied()
@@ -291,7 +291,7 @@ def stereo_skipped_free(state: InverseRangeState, rho_s, std_s, flags_s, cfg: Up
     (module docstring, "Free space seen past a mover"): the pixel not ``measured`` but with a finite inverse range
     and sigma > 0, neither OCCLUDED nor OUT_OF_VIEW, and x < mu - k sqrt(s^2 + tau^2) with k = ``cfg.skipped_free_k``
     and tau the pixel's sigma scaled by ``sigma_scale``. Returns the mask of emptied cells (none with k = 0)."""
-    _check_shape(state, rho_s)
+    check_shape(state, rho_s)
     if cfg.skipped_free_k == 0:
         return np.zeros(state.shape, bool)
     flags_s = np.asarray(flags_s, np.uint8)

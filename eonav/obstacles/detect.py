@@ -787,23 +787,13 @@ def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) ->
     pieces smaller than ``min_cells`` go with the other layer (alone they would be dropped as speckle: a split loses
     no pixel of the list)."""
     from scipy import ndimage
-    flat = labels.ravel()
-    sel = np.flatnonzero(flat)
-    order = np.argsort(flat[sel], kind="stable")
-    sel = sel[order]
-    lab = flat[sel]
-    starts = np.searchsorted(lab, np.arange(1, n + 1))
-    ends = np.searchsorted(lab, np.arange(1, n + 1), side="right")
-    far = np.zeros(flat.size, bool)
-    split = False
-    lr = log_range.ravel()
-    boxes = ndimage.find_objects(labels)
-    far2d = far.reshape(labels.shape)                        # a view: writes go to ``far``
-    for lab_j, (s0, s1) in enumerate(zip(starts, ends), start=1):
-        m = s1 - s0
+    far = np.zeros(labels.shape, bool)
+    for lab_j, box in enumerate(ndimage.find_objects(labels), start=1):
+        comp = labels[box] == lab_j
+        m = int(np.count_nonzero(comp))
         if m < 2 * min_cells:
             continue
-        x = np.sort(lr[sel[s0:s1]])
+        x = np.sort(log_range[box][comp])
         c = np.cumsum(x)
         k = np.arange(1, m)                                  # the near layer: x[:k]
         mu0, mu1 = c[:-1] / k, (c[-1] - c[:-1]) / (m - k)
@@ -813,8 +803,6 @@ def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) ->
         near, farx = x[:k0], x[k0:]
         if _pct_sorted(farx, 10.0) - _pct_sorted(near, 90.0) <= gap:
             continue
-        box = boxes[lab_j - 1]
-        comp = labels[box] == lab_j
         is_far = comp & (log_range[box] >= x[k0])
         small = []
         for part in (comp & ~is_far, is_far):               # a layer's fragments would be dropped as speckle:
@@ -824,13 +812,11 @@ def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) ->
         is_far = (is_far & ~small[1]) | small[0]
         if min(np.count_nonzero(is_far), np.count_nonzero(comp & ~is_far)) < min_cells:
             continue
-        far2d[box] |= is_far
-        split = True
-    if not split:
+        far[box] |= is_far
+    if not far.any():
         return labels, n
-    mask = mask.ravel()
-    a, na = ndimage.label((mask & ~far).reshape(labels.shape))
-    b, nb = ndimage.label((mask & far).reshape(labels.shape))
+    a, na = ndimage.label(mask & ~far)
+    b, nb = ndimage.label(mask & far)
     return np.where(b > 0, b + na, a), na + nb
 
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import View
-from eonav.ranging.tracks import Tracks, _Recent, track_points, tukey_weights
+from eonav.ranging.tracks import IdentityMemo, Tracks, track_points, tukey_weights
 
 
 @dataclass(frozen=True)
@@ -43,13 +43,13 @@ def box_means(img: np.ndarray, window: int) -> np.ndarray:
     return cv2.blur(np.asarray(img, np.float32), (window, window))
 
 
-class RecentMeans(_Recent):
+class RecentMeans(IdentityMemo):
     """``box_means`` of the last ``size`` images, looked up by the array's identity: in a stream each frame's
     brightness fit blurs it as image a and, a frame later, as image b (the same values; the images must not be edited
     in place, as a View's image is not)."""
 
     def __call__(self, img: np.ndarray, window: int) -> np.ndarray:
-        return self._get((img,), window, lambda: box_means(img, window))
+        return self.get((img,), window, lambda: box_means(img, window))
 
 
 recent_means = RecentMeans(4)

@@ -81,7 +81,7 @@ def _corners(img8: np.ndarray, max_points: int, min_dist: int):
     return cv2.goodFeaturesToTrack(img8, maxCorners=max_points, qualityLevel=0.01, minDistance=min_dist, blockSize=7)
 
 
-class _Recent:
+class IdentityMemo:
     """The results of the last ``size`` calls, each held with the arguments it was computed from: a call whose
     identity arguments are the very objects held (``is``) and whose value key is equal gets the held result. It holds
     those objects, so an identity names the same object while it is held."""
@@ -91,7 +91,8 @@ class _Recent:
         self._held: list = []            # (identity arguments, value key, result), newest last
         self.hits = 0
 
-    def _get(self, ids: tuple, key, compute):
+    def get(self, ids: tuple, key, compute):
+        """The held result for the objects ``ids`` and the value ``key``, else ``compute()``, then held."""
         for held_ids, k, v in self._held:
             if all(a is b for a, b in zip(held_ids, ids)) and k == key:
                 self.hits += 1
@@ -108,17 +109,17 @@ class ImageMemo:
     edited in place, as a View's image is not)."""
 
     def __init__(self, size: int = 4):
-        self._levels = _Recent(size)
-        self._corners = _Recent(min(size, 2))
+        self._levels = IdentityMemo(size)
+        self._corners = IdentityMemo(min(size, 2))
 
     def level(self, img: np.ndarray, n_down: int) -> np.ndarray:
-        return self._levels._get((img,), n_down, lambda: _tracking_level(img, n_down))
+        return self._levels.get((img,), n_down, lambda: _tracking_level(img, n_down))
 
     def corners(self, img8: np.ndarray, max_points: int, min_dist: int):
-        return self._corners._get((img8,), (max_points, min_dist), lambda: _corners(img8, max_points, min_dist))
+        return self._corners.get((img8,), (max_points, min_dist), lambda: _corners(img8, max_points, min_dist))
 
 
-class RecentTracks(_Recent):
+class RecentTracks(IdentityMemo):
     """``track_points`` of the last ``size`` image pairs, looked up by the arrays' identity: the fusion's scheduler
     tracks each frame against the camera's previous one (its pose check) and the measurement of that same pair
     tracks it again (its pair checks); the second call gets the first's tracks (the same values). A new pair reuses
@@ -130,7 +131,7 @@ class RecentTracks(_Recent):
         self.images = ImageMemo(2 * self.size) if self.size > 0 else None
 
     def __call__(self, img_a: np.ndarray, img_b: np.ndarray) -> Tracks:
-        return self._get((img_a, img_b), None, lambda: track_points(img_a, img_b, memo=self.images))
+        return self.get((img_a, img_b), None, lambda: track_points(img_a, img_b, memo=self.images))
 
 
 recent_tracks = RecentTracks()
@@ -196,7 +197,7 @@ def pose_shift_px(geo: PairGeometry, tracks: Tracks, min_tracks: int = 20, min_s
     return float(np.hypot(*s))
 
 
-class RecentShifts(_Recent):
+class RecentShifts(IdentityMemo):
     """``pose_shift_px`` of the last ``size`` (tracks, pair geometry) asked for, looked up by the tracks' identity and
     the geometry's values (relative pose and both cameras' intrinsics, bit for bit): the fusion's scheduler measures
     each frame's shift to the camera's previous one (its pose check) and the measurement of that same pair asks
@@ -209,12 +210,12 @@ class RecentShifts(_Recent):
                 (ca.fx, ca.fy, ca.cx, ca.cy), (cb.fx, cb.fy, cb.cx, cb.cy))
 
     def __call__(self, geo: PairGeometry, tracks: Tracks) -> float:
-        return self._get((tracks,), self._key(geo), lambda: pose_shift_px(geo, tracks))
+        return self.get((tracks,), self._key(geo), lambda: pose_shift_px(geo, tracks))
 
 
 recent_pose_shift = RecentShifts()
 """The process's memo of the default ``pose_shift_px`` (one thread: the fusion runner's)."""
 
 
-__all__ = ["Tracks", "track_points", "ImageMemo", "RecentTracks", "recent_tracks", "epipolar_residual_px", "pose_shift_px",
+__all__ = ["Tracks", "track_points", "IdentityMemo", "ImageMemo", "RecentTracks", "recent_tracks", "epipolar_residual_px", "pose_shift_px",
            "RecentShifts", "recent_pose_shift", "tukey_weights"]
