@@ -352,8 +352,8 @@ class PX4:
         self._threads: list = []
         self.manual = None                     # (x, y, z, r) MANUAL_CONTROL sent at 25 Hz while set
 
-    def _instance(self) -> int:
-        for i in range(1, 10):
+    def _instance(self, first: int = 1) -> int:
+        for i in range(first, 10):
             ports = (18570 + i, 14580 + i, 14280 + i, 13030 + i, 19450 + i)
             if all(_free(p, socket.SOCK_DGRAM) for p in ports):
                 return i
@@ -368,15 +368,21 @@ class PX4:
         return f"udpout:127.0.0.1:{14580 + self.instance}"
 
     def __enter__(self):
-        self.workdir = Path(tempfile.mkdtemp(prefix="eonav-px4-")) / "w"
-        self.instance = self._instance()
-        self.proc = subprocess.Popen(["bash", str(self.tool / "run-px4-sitl.sh"), str(self.workdir),
-                                      str(self.instance)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, start_new_session=True)
-        self._spawn(self._read_console)
+        self.instance = 0
+        for attempt in range(2):
+            # PX4 does not always come up under a loaded machine (seen in a full parallel run: two starts in a row
+            # silent for 40 s): once more on the next free instance, with the first console's tail in the error
+            self._start(self._instance(self.instance + 1))
+            try:
+                wait_for(lambda: self.console_since(0, "Ready for takeoff"), self.ready_timeout_s,
+                         "PX4 'Ready for takeoff!'")
+                break
+            except AssertionError as e:
+                tail = [ln for _, ln in self.console_lines[-15:]]
+                self.__exit__(None, None, None)
+                if attempt == 1:
+                    raise AssertionError(f"{e}; console: {tail}") from None
         try:
-            wait_for(lambda: self.console_since(0, "Ready for takeoff"), self.ready_timeout_s,
-                     "PX4 'Ready for takeoff!'")
             for k, v in self.params.items():
                 self.param_set(k, v)
             mu = _mavutil()
@@ -389,6 +395,16 @@ class PX4:
             self.__exit__(None, None, None)
             raise
         return self
+
+    def _start(self, instance: int) -> None:
+        """run-px4-sitl.sh as ``instance`` in a fresh folder, its console read into ``console_lines``."""
+        self.workdir = Path(tempfile.mkdtemp(prefix="eonav-px4-")) / "w"
+        self.instance = instance
+        self.console_lines, self._stop, self._threads = [], threading.Event(), []
+        self.proc = subprocess.Popen(["bash", str(self.tool / "run-px4-sitl.sh"), str(self.workdir),
+                                      str(self.instance)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+        self._spawn(self._read_console)
 
     def _spawn(self, fn):
         t = threading.Thread(target=fn, daemon=True)
