@@ -381,7 +381,7 @@ def _classify_row(y, rho, var, a, b, n, flags, bits, eta_inlier, max_rel_std, rh
     _slant_row(rho, var, y, g2)
     reason_bits, ILL, BAD, INF, VAL, VF, OOV = bits[0], bits[1], bits[2], bits[3], bits[4], bits[5], bits[6]
     two_f = np.float32(2.0)
-    n_val = n_inf = n_occ = n_dis = n_held = 0    # (local counters, as _update_row's)
+    n_val = n_inf = n_occ = n_dis = n_held = n_held_inf = 0    # (local counters, as _update_row's)
     for x in range(w):
         r = rho[y, x]
         o_rho[y, x] = r
@@ -412,11 +412,7 @@ def _classify_row(y, rho, var, a, b, n, flags, bits, eta_inlier, max_rel_std, rh
         ok = (f & BAD) == 0
         rng = np.float32(np.nan)
         conf = np.float32(0.0)
-        # a held single cell (one measurement, the last pair looked and did not range it): no range
-        if ok and held and n[y, x] == 1 and (flags[y, x] & VF) != VAL and (flags[y, x] & OOV) == 0:
-            f = ILL
-            n_held += 1
-        elif ok and inf_ok:
+        if ok and inf_ok:
             f |= INF | VAL
             n_inf += 1
             rng = np.float32(np.inf)
@@ -426,11 +422,17 @@ def _classify_row(y, rho, var, a, b, n, flags, bits, eta_inlier, max_rel_std, rh
             n_val += 1
             rng = np.float32(1.0) / abs(r)
             conf = max(r / sd, np.float32(0.0))
-        o_flags[y, x] = f
-        o_rng[y, x] = rng
-        o_conf[y, x] = conf
-    cc[0] += n_val
-    cc[1] += n_inf
+        # a held single cell (one measurement, the last pair looked and did not range it) reported VALID: no range
+        # (branch-free: which cells are held is irregular, a branch on it is mispredicted)
+        last = flags[y, x]
+        hc = held & ok & (n[y, x] == 1) & ((last & VF) != VAL) & ((last & OOV) == 0)
+        n_held += hc
+        n_held_inf += hc & inf_ok
+        o_flags[y, x] = ILL if hc else f
+        o_rng[y, x] = np.float32(np.nan) if hc else rng
+        o_conf[y, x] = np.float32(0.0) if hc else conf
+    cc[0] += n_val - (n_held - n_held_inf)
+    cc[1] += n_inf - n_held_inf
     cc[2] += n_occ
     cc[3] += n_dis
     cc[4] += n_held

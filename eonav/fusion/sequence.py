@@ -224,7 +224,8 @@ class FusionRunner:
                 self.states[cid], cpu_s = pending.result()
                 self.worker_cpu_s += cpu_s
                 fusion_s += time.perf_counter() - t_wait
-        if old is not None and self.states[cid].occupied().any():     # nothing measured yet: no map to give
+        # nothing measured yet: no map to give (a state this push measures gives one: its cells not read for that)
+        if old is not None and (any(m.a.camera_id == cid for m in live) or self.states[cid].occupied().any()):
             touched[cid] = []
         last = {m.a.camera_id: i for i, m in enumerate(live)}
         maps = {}
