@@ -41,6 +41,28 @@ def test_uncovered_pixels_are_counted_by_their_reason():
     assert uncovered_reasons(res, st, mask, eta_inlier=0.65, border_px=6)["border"] == 2
 
 
+def test_uncovered_pixels_are_placed_by_the_truth():
+    # row 0 is sky; the uncovered cells lie on row 10 (10 px below it) and at (19, 10) (19 px); (10, 10) is far
+    st, res = _state_and_map()
+    truth = np.full((20, 20), 8.0, np.float32)
+    truth[0] = np.inf
+    truth[10, 10] = 200.0
+    mask = np.isfinite(truth)
+    why = uncovered_reasons(res, st, mask, eta_inlier=0.65, border_px=4, truth=truth, horizon_px=10)
+    assert why["uncovered"] == 6 and why["far"] == 1 and why["horizon"] == 5
+    # one pixel short of the sky: none of them under the skyline
+    assert uncovered_reasons(res, st, mask, eta_inlier=0.65, border_px=4, truth=truth, horizon_px=9)["horizon"] == 0
+    # 150 m is far (the bin's lower edge), 149.9 m not
+    truth[10, 10] = 150.0
+    assert uncovered_reasons(res, st, mask, eta_inlier=0.65, truth=truth)["far"] == 1
+    truth[10, 10] = 149.9
+    assert uncovered_reasons(res, st, mask, eta_inlier=0.65, truth=truth)["far"] == 0
+    # no sky in the truth: nothing under a skyline; without the truth neither key
+    truth[0] = 8.0
+    assert uncovered_reasons(res, st, np.ones((20, 20), bool), eta_inlier=0.65, truth=truth)["horizon"] == 0
+    assert "far" not in uncovered_reasons(res, st, mask, eta_inlier=0.65)
+
+
 def test_error_and_coverage_by_true_range():
     st, res = _state_and_map()
     truth = np.full((20, 20), 8.0, np.float32)          # 10 m reported: 25 % error

@@ -100,11 +100,15 @@ def errors(range_m, truth, mask):
     return (float(np.median(rel)) if rel.size else float("nan")), float(est.sum() / max(n, 1))
 
 
-def uncovered_reasons(res, state, mask, eta_inlier: float, border_px: int = 8) -> dict:
+def uncovered_reasons(res, state, mask, eta_inlier: float, border_px: int = 8, truth=None,
+                      horizon_px: int = 16) -> dict:
     """Why the pixels of ``mask`` (truth, not sky) have no fused range: counts of those whose cell holds an estimate
     the map does not report (``loose``: the evidence agrees but the sigma fails the rule; ``disagree``: the evidence
     disagrees), of the empty cells by the last measurement's verdict (``empty_occluded``, ``empty_truncation``,
-    ``empty_other``), and of all of them within ``border_px`` of the image border (``border``)."""
+    ``empty_other``), and of all of them within ``border_px`` of the image border (``border``). With ``truth``
+    (range_m, +inf sky) also where they are: beyond ``FAR_M`` (``far``) and within ``horizon_px`` of a sky pixel
+    (``horizon``: the terrain under the skyline, where one window spans a factor of 2 in range; docs/methods.md,
+    "Coverage after 10 frames")."""
     from eonav.ranging.rangemap import OCCLUDED, TRUNCATION
     unc = mask & ~(np.isfinite(res.range_m) & (res.range_m > 0))
     occ = state.occupied()
@@ -116,9 +120,17 @@ def uncovered_reasons(res, state, mask, eta_inlier: float, border_px: int = 8) -
     h, w = mask.shape
     yy, xx = np.mgrid[:h, :w]
     edge = np.minimum(np.minimum(xx, w - 1 - xx), np.minimum(yy, h - 1 - yy)) < border_px
-    return {"uncovered": int(unc.sum()), "loose": int((unc & agree).sum()), "disagree": int((unc & occ & ~agree).sum()),
-            "empty_occluded": int(occl.sum()), "empty_truncation": int(trunc.sum()),
-            "empty_other": int((empty & ~occl & ~trunc).sum()), "border": int((unc & edge).sum())}
+    out = {"uncovered": int(unc.sum()), "loose": int((unc & agree).sum()), "disagree": int((unc & occ & ~agree).sum()),
+           "empty_occluded": int(occl.sum()), "empty_truncation": int(trunc.sum()),
+           "empty_other": int((empty & ~occl & ~trunc).sum()), "border": int((unc & edge).sum())}
+    if truth is not None:
+        from scipy import ndimage
+        sky = np.isposinf(truth)
+        near_sky = (ndimage.distance_transform_edt(~sky) <= horizon_px) if sky.any() else np.zeros_like(sky)
+        with np.errstate(invalid="ignore"):
+            out["far"] = int((unc & (truth >= FAR_M)).sum())
+        out["horizon"] = int((unc & near_sky).sum())
+    return out
 
 
 def held_single_line(state, truth, mask, mcfg):
@@ -293,7 +305,8 @@ def run_case(case: SeqCase, out: list, dense_params: dict | None = None) -> dict
             print("      error, coverage by true range: fused | dense newest: " + "; ".join(
                 f"{lo:g}-{hi:g} m ({npx} px) {fmt(e, c).strip()} | {fmt(*d[3:]).strip()}"
                 for (lo, hi, npx, e, c), d in zip(rf, rd)))
-            why = uncovered_reasons(res, runner.states[v.camera.name], mask, case.config.output.eta_inlier)
+            why = uncovered_reasons(res, runner.states[v.camera.name], mask, case.config.output.eta_inlier,
+                                     truth=truth)
             row["uncovered"] = why
             print("      pixels with truth and no fused range: " + ", ".join(f"{k2} {v2}" for k2, v2 in why.items()))
         for name, r in singles.items():
