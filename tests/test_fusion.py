@@ -748,7 +748,8 @@ def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_fr
     """Each predict and measurement of a push wait (a bounded time) for the other to have started: they see each
     other only if they run at the same time. With the prior on (full_every 3) a measurement may start from the
     predicted state, so predict runs first, on the caller's thread, and never sees its measurement start; so it
-    does for a state (128 x 128) smaller than overlap_min_cells."""
+    does for a state (128 x 128) smaller than overlap_min_cells. Beside, the worker runs predict's kernels
+    (``predict_job``'s function), its Python part runs before on the caller's thread."""
     import threading
 
     import eonav.fusion.sequence as seq_mod
@@ -765,7 +766,10 @@ def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_fr
             return fn(*a, **kw)
         return run
 
-    monkeypatch.setattr(seq_mod, "predict", meeting("predict", "measure", seq_mod.predict))
+    job_of = seq_mod.predict_job
+    monkeypatch.setattr(seq_mod, "predict", meeting("predict", "measure", seq_mod.predict))       # in turn
+    monkeypatch.setattr(seq_mod, "predict_job",                                                  # beside: its kernels
+                        lambda *a, **kw: meeting("predict", "measure", job_of(*a, **kw)))
     runner = FusionRunner(FusionConfig(prior=PriorConfig(full_every=full_every), overlap_min_cells=min_cells),
                           measure=meeting("measure", "predict", dense_measurement),
                           fresh_measurements=True, takes_prior=True)
