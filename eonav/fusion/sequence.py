@@ -46,6 +46,8 @@ from eonav.ranging.methods._common import far_inverse_range
 from eonav.ranging.pair_policy import PosedFrameInfo
 from eonav.ranging.rangemap import VALID, RangeResult
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
+from eonav.fusion.measure import add_pose_sigma, state_shift_px
+from eonav.ranging.tracks import recent_tracks
 from eonav.fusion.predict import ProcessNoise, predict
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
@@ -233,6 +235,8 @@ class FusionRunner:
         for i, (m, (prior, res, _, _)) in enumerate(zip(live, results)):
             ref = m.a.camera_id
             t2 = time.perf_counter()
+            if "pair_check" in res.info:
+                self._pose_along(m, res, self.states[ref])
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
             lead = self._stereo_lead(m, res, stereo.get(ref), backs.get(i))
@@ -258,6 +262,23 @@ class FusionRunner:
             dt = time.perf_counter() - t3
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
+
+    def _pose_along(self, m, res, state: InverseRangeState) -> None:
+        """The pair checks' pose term along the epipolar lines too (``measure.state_shift_px``: the tracks' offsets
+        from where the predicted state puts their points): what it finds beyond the across-line shift already in
+        the sigma is added the same way (``add_pose_sigma``); ``res.info["pair_check"]["state_shift_px"]``."""
+        check = res.info["pair_check"]
+        if "tracks" not in check:
+            return
+        geo = pair_geometry(m.a.payload, m.b.payload)
+        tracks = recent_tracks(m.a.payload.image, m.b.payload.image)
+        s = state_shift_px(state.rho, state.var, state.n, geo, tracks)
+        check["state_shift_px"] = s
+        across = check.get("pose_shift_px", float("nan"))
+        across = across if math.isfinite(across) else 0.0
+        if math.isfinite(s) and s > across:
+            add_pose_sigma(res, geo, math.sqrt(s * s - across * across))
+            self.count("pose_along_added")
 
     def _overlap_predict(self, state: InverseRangeState) -> bool:
         """Whether predict of ``state`` runs beside the measurements (``FusionConfig.overlap_predict``): with numba,
