@@ -358,3 +358,32 @@ def test_a_track_without_its_fit_still_dies_at_the_confirmation_window():
         alive[k] = [(trk.id, trk.misses, T.awaiting_fit(trk.verdict, len(trk.detections), CFG)) for trk in tr.tracks]
     assert alive[14] == [(1, 0, True)]                                # 0.93 s: coasting, awaiting its fit
     assert alive[16] == []                                            # 1.07 s: past confirm_window_s, gone
+
+
+def test_a_track_without_its_fit_dies_when_its_miss_went_to_another_track():
+    """A confirmed track on a static obstacle 60 m ahead and a tentative one born beside it from a second measurement
+    3 m farther along the ray (inside both gates). In the next map one measurement at the obstacle: it goes to the
+    confirmed track, and the tentative one, without a fit yet but with that measurement inside its gate, dies at
+    this miss (a duplicate). In a map with nothing listed it outlives the miss (the list lost the object)."""
+    p = np.array([60.0, 2.0, -2.0])
+
+    def meas(q, st):
+        x_c = float(camera_from_ned(q, CAM.T_cam_body, st.T_body_ned, st.position_ned_m, CAM.l_body_m)[0])
+        return T.Measurement(q, T.camera_covariance(q, CAM, st, 0.04 * x_c, 1.0, 1.0), np.array([1.0, 1.0, 2.0]))
+
+    def run(last):
+        tr = T.Tracker(CFG)
+        for k in range(13):
+            t = k / RATE_HZ
+            st = state(t)
+            ray = (p - st.position_ned_m) / np.linalg.norm(p - st.position_ned_m)
+            z = [meas(p, st)] + ([meas(p + 3.0 * ray, st)] if k == 11 else [])
+            if k == 12:
+                z = z if last == "taken" else []
+            tr.update(z, us(t), T.FieldOfView(CAM, st, 100.0))
+            if k == 11:
+                assert [(trk.id, trk.confirmed) for trk in tr.tracks] == [(1, True), (2, False)]
+        return [(trk.id, trk.misses, trk.miss_taken) for trk in tr.tracks]
+
+    assert run("taken") == [(1, 0, False)]
+    assert run("nothing") == [(1, 1, False), (2, 1, False)]
