@@ -32,11 +32,13 @@ def meas(shape, flags_by_col):
     return np.full(shape, RHO, np.float32), np.full(shape, STD, np.float32), fl
 
 
-def instant(r, seq, flag_rows, kernels, restart=None):
+def instant(r, seq, flag_rows, kernels, restart=None, arrival=False):
     """One frame of the reference camera measured ``len(flag_rows)`` times (a rig: motion then stereo), as
     ``FusionRunner.push`` does: each measurement's update (the last with its map) and the instant's count.
     ``restart``: columns the first measurement restarts (a diverged cell started again from it; give it a flag
-    that is not VALID there so that it does not also fuse). Returns the map."""
+    that is not VALID there so that it does not also fuse). ``arrival``: each measurement in a push of its own with
+    its map (the partner's frame second: the reference's push maps its motion measurement, the partner's push the
+    stereo one, on the same frame). Returns the last map."""
     a = SimpleNamespace(seq=seq, stamp_us=seq * 66_667)
     st = r.states["nose"]
     res = None
@@ -47,12 +49,12 @@ def instant(r, seq, flag_rows, kernels, restart=None):
             sel[:, restart] = True
             _start_cells(st, sel.ravel(), RHO, STD ** 2, UpdateConfig())
         args = meas(st.shape, flags)
-        if j == len(flag_rows) - 1:
+        if j == len(flag_rows) - 1 or arrival:
             _, res = update_and_map(st, *args, UpdateConfig(), MAP, kernels=kernels)
         else:
             update(st, *args, kernels=kernels)
         if inst is not None:
-            r._count_instant("nose", inst, res if j == len(flag_rows) - 1 else None)
+            r._count_instant("nose", inst, res if j == len(flag_rows) - 1 or arrival else None)
     return res
 
 
@@ -107,3 +109,19 @@ def test_a_cell_restarted_within_the_frame_counts_one_and_one_measurement_a_fram
         m_on, m_off = instant(one, k, [(V, L)], kernels), instant(off, k, [(V, L)], kernels)
         assert np.array_equal(m_on.flags, m_off.flags) and np.array_equal(m_on.info["n_fused"], m_off.info["n_fused"])
     assert one.states["nose"].n[0].tolist() == [3, 0] and one.counts.get("n_instant_capped", 0) == 0
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_the_partner_frame_second_counts_the_frame_once_across_its_two_pushes(kernels):
+    # --rig-order arrival: the reference's push fuses and maps its motion measurement, the partner's push its stereo
+    # one, on the same reference frame: the same count as in one push, and the frame-1 look withdrawn in frame 2
+    one, two = runner(True), runner(True)
+    rows1 = [(V, V, V, L, V, L), (V, V, L, V, V, L)]
+    rows2 = [(L, V, L, L, V, L), (L, V, L, L, V, L)]
+    instant(one, 1, rows1, kernels)
+    m1 = instant(two, 1, rows1, kernels, arrival=True)
+    assert np.array_equal(m1.info["n_fused"], one.states["nose"].n)
+    instant(one, 2, rows2, kernels)
+    m2 = instant(two, 2, rows2, kernels, arrival=True)
+    assert one.states["nose"].n[0].tolist() == two.states["nose"].n[0].tolist() == [1, 2, 1, 1, 2, 0]
+    assert (m2.flags[:, 0] == ILL_CONDITIONED).all() and (m2.flags[:, 1] == VALID).all()
