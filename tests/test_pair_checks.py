@@ -391,3 +391,122 @@ def test_recent_pose_shifts_reuse_only_the_same_tracks_and_geometry():
     assert other == pose_shift_px(pair_geometry(va, vb), tr) and other < 0.5 * s1 and memo.hits == 1
     memo(pair_geometry(va, vr), tr)
     assert memo.hits == 1                                                       # pushed out by the two after it
+
+
+def _sideways_wall_pair(size=192, baseline_m=0.3, range_m=20.0, seed=3):
+    """A textured wall range_m ahead, camera b baseline_m to the right of a, same attitude: every epipolar line is a
+    row, so a pose error that moves b's points along the rows is invisible across the lines. Image b is image a
+    through the wall's homography (as ``_plane_pair``)."""
+    f = 0.8 * size
+    c = (size - 1) / 2.0
+    cam = Camera("wall", size, size, f, f, c, c)
+    img = texture(size, size, seed)
+    a = View(cam, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), img)
+    st_b = VehicleState.from_ypr([0.0, baseline_m, 0.0], [0.0, 0.0, 0.0])
+    geo = pair_geometry(a, View(cam, st_b, img))
+    to_m = np.array([[0.0, 0.0, 1.0], [1.0 / f, 0.0, -c / f], [0.0, 1.0 / f, -c / f]])
+    to_px = np.array([[c, f, 0.0], [c, 0.0, f], [1.0, 0.0, 0.0]])
+    H = to_px @ (geo.R_ba + np.outer(geo.t_ba_m, [1.0 / range_m, 0.0, 0.0])) @ to_m
+    img_b = cv2.warpPerspective(img, H, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    return a, View(cam, st_b, img_b.astype(np.float32))
+
+
+def _wall_state(shape, range_m=20.0, sigma_rel=0.001, n=3):
+    rho = np.full(shape, 1.0 / range_m, np.float32)
+    return rho, (rho * np.float32(sigma_rel)) ** 2, np.full(shape, n, np.uint16)
+
+
+def _yaw_shift_px(va, vb, yaw_deg, pts_a, range_m=20.0, of_a=False):
+    """Mean displacement (px of b, 2-vector) that a yaw error of b (of a: ``of_a``) puts on the wall's points at
+    pts_a: the place under the wrong pose minus the place under the right one (a yaw moves a point f delta
+    (1 + x_n^2) sideways)."""
+    def place(geo):
+        c = va.camera
+        m = np.stack([np.ones(len(pts_a)), (pts_a[:, 0] - c.cx) / c.fx, (pts_a[:, 1] - c.cy) / c.fy], 1)
+        X = m @ geo.R_ba.T + geo.t_ba_m / range_m
+        return np.stack([c.cx + c.fx * X[:, 1] / X[:, 0], c.cy + c.fy * X[:, 2] / X[:, 0]], 1)
+    wrong = pair_geometry(_rotated(va, yaw_deg), vb) if of_a else pair_geometry(va, _rotated(vb, yaw_deg))
+    return (place(wrong) - place(pair_geometry(va, vb))).mean(axis=0)
+
+
+def test_state_shift_sees_the_pose_error_along_the_lines():
+    # sideways pair: lines are rows. A yaw error of delta moves b's points along the rows by ~f delta: the
+    # across-line shift cannot see it, the state's inverse ranges put every point at one place and the offset shows
+    from eonav.fusion.measure import state_shift_px
+    va, vb = _sideways_wall_pair()
+    f = va.camera.fx
+    tr = track_points(va.image, vb.image)
+    rho, var, n = _wall_state(va.image.shape)
+    assert state_shift_px(rho, var, n, pair_geometry(va, vb), tr) < 0.1
+    for yaw_deg in (0.3, -0.6):
+        geo = pair_geometry(va, _rotated(vb, yaw_deg))
+        expect = float(np.hypot(*_yaw_shift_px(va, vb, yaw_deg, tr.pts_a.astype(float))))
+        assert f * np.radians(abs(yaw_deg)) < expect < 1.2 * f * np.radians(abs(yaw_deg))
+        got = state_shift_px(rho, var, n, geo, tr)
+        assert got == pytest.approx(expect, rel=0.05), (yaw_deg, got, expect)
+        assert pose_shift_px(geo, tr) < 0.2 * expect          # across the lines: (almost) nothing
+
+
+def test_state_shift_uses_only_cells_known_well_enough():
+    from eonav.fusion.measure import state_shift_px
+    va, vb = _sideways_wall_pair()
+    geo = pair_geometry(va, _rotated(vb, 0.3))
+    tr = track_points(va.image, vb.image)
+    shape = va.image.shape
+    # the place's 1-sigma spread is f b sigma_rho = 153.6 px x 0.3 m x sigma_rho: 0.29 px is used, 0.31 px is not
+    f, b = va.camera.fx, 0.3
+    for spread_px, used in ((0.29, True), (0.31, False)):
+        sd = spread_px / (f * b)
+        rho, _, n = _wall_state(shape)
+        var = np.full(shape, sd * sd, np.float32)
+        got = state_shift_px(rho, var, n, geo, tr)
+        assert np.isfinite(got) == used, (spread_px, got)
+    rho, var, n = _wall_state(shape, n=1)                      # one measurement: not enough
+    assert np.isnan(state_shift_px(rho, var, n, geo, tr))
+    assert np.isfinite(state_shift_px(rho, var, n, geo, tr, min_fused=1))
+    rho, var, n = _wall_state(shape)
+    assert np.isnan(state_shift_px(rho, var, n, geo, Tracks(tr.pts_a[:19], tr.pts_b[:19])))
+    assert np.isfinite(state_shift_px(rho, var, n, geo, Tracks(tr.pts_a[:40], tr.pts_b[:40])))
+    empty = np.full(shape, np.nan, np.float32)
+    assert np.isnan(state_shift_px(empty, var, n, geo, tr))
+
+
+def test_fusion_adds_the_along_line_pose_error_to_the_sigma():
+    # four frames of the sideways wall (b, a, b, then a with a yaw error): the fourth push's pair, with the state
+    # fused from two measurements on the wall, gets the along-line term, and its sigma grows by the yaw's shift in
+    # quadrature
+    from eonav.fusion import sequence as seq_mod
+    from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+    va, vb = _sideways_wall_pair(size=160)
+    f = va.camera.fx
+    yaw_deg = 0.4
+    seen = {}
+    orig = seq_mod.FusionRunner._pose_along
+
+    def spy(self, m, res, state):
+        before = res.inv_range_std_per_m.copy()
+        orig(self, m, res, state)
+        seen[m.a.seq] = (res.info["pair_check"], before, res.inv_range_std_per_m.copy(), m)
+
+    from eonav.fusion.schedule import ScheduleConfig
+    from eonav.ranging.pair_policy import PairPolicyConfig
+    runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(policy=PairPolicyConfig(ref_range_m=5.0)),
+                                       pair_checks=True))
+    runner._pose_along = spy.__get__(runner)
+    views = [vb, va, vb, _rotated(va, yaw_deg)]
+    for k, v in enumerate(views):
+        v = replace(v, state=VehicleState(v.state.position_ned_m, v.state.T_body_ned, t_s=0.1 * k))
+        runner.push(frame("wall", v, 100_000 * k, k))
+    assert np.isnan(seen[2][0]["state_shift_px"])               # one measurement fused so far: no term
+    check, before, after, m = seen[3]
+    tr = track_points(va.image, vb.image)
+    expect = float(np.hypot(*_yaw_shift_px(va, vb, yaw_deg, tr.pts_a.astype(float), of_a=True)))
+    assert check["state_shift_px"] == pytest.approx(expect, rel=0.1)
+    assert runner.counts.get("pose_along_added") == 1
+    ok = np.isfinite(before) & np.isfinite(after) & (before > 0)
+    assert ok.sum() > 1000
+    assert np.all(after[ok] >= before[ok])
+    # the added variance is (shift / sensitivity)^2 with sensitivity f b (px per 1/m) on the fronto-parallel wall
+    extra = np.sqrt(np.maximum(after[ok].astype(float) ** 2 - before[ok].astype(float) ** 2, 0))
+    along = np.sqrt(max(check["state_shift_px"] ** 2 - np.nan_to_num(check["pose_shift_px"]) ** 2, 0))
+    assert np.median(extra) == pytest.approx(along / (f * 0.3), rel=0.05)

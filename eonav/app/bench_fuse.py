@@ -15,6 +15,9 @@ assertions.
 ``--match-blur``: the dense method's resolution match (``locate_dense(match_blur=True)``, off by default) in the
 fused measurements and the single pairs alike; ``--window-floor``: its window residual's floor likewise
 (``locate_dense(window_floor=...)``, e.g. "valid").
+``--pair-checks``: the simulated sequences' measurements with the pair checks (``FusionConfig.pair_checks``, as the
+real sequences have them); ``--attitude-noise-deg S``: each simulated frame's attitude as a navigation source with a
+white error of S per body axis would give it (the images and the truth stay the true poses').
 
 Sequences: the paper replica flown 1 s at 30 fps (31 frames, 512 x 512, last frame = the preset's reference with
 the Table I vehicles), the "fast" preset and the approach flight at 30 fps; the real HoloLens indoor sequence (20
@@ -26,7 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -376,6 +379,22 @@ def print_targets(summaries: dict) -> None:
                   f"{verdict(s['time_added'] <= 0.30)}")
 
 
+def with_attitude_noise(views, sigma_deg: float, seed: int) -> list:
+    """The views with each frame's attitude turned by a rotation of ``sigma_deg`` 1-sigma per body axis (white,
+    ``numpy.random.default_rng((seed, 7))``): what a navigation source's attitude error does to the poses the
+    ranging is given; the images and the truth stay those of the true poses."""
+    import cv2
+
+    from eonav.geometry.camera import VehicleState
+    rng = np.random.default_rng((seed, 7))
+    out = []
+    for v in views:
+        turn = cv2.Rodrigues(np.radians(sigma_deg) * rng.standard_normal((3, 1)))[0]
+        st = v.state
+        out.append(replace(v, state=VehicleState(st.position_ned_m, turn @ st.T_body_ned, st.t_s)))
+    return out
+
+
 def add_arguments(p):
     p.add_argument("--sequences", default="paper,fast,flight:approach",
                    help="simulated sequences (eonav.sim.sequence: presets or flight:<name>)")
@@ -389,6 +408,12 @@ def add_arguments(p):
     p.add_argument("--window-floor", default=None, choices=("global", "valid", "sensor", "mid"),
                    help="the dense method's floor of the window residual (locate_dense(window_floor=...); default: "
                         "the method's own, 'global')")
+    p.add_argument("--pair-checks", action="store_true",
+                   help="simulated sequences: the measurement's pair checks (brightness match and pose term, "
+                        "FusionConfig.pair_checks; the real sequences have them on)")
+    p.add_argument("--attitude-noise-deg", type=float, default=0.0,
+                   help="simulated sequences: each frame's navigation attitude off by a rotation of this 1-sigma "
+                        "per body axis (white, seeded by --seed), as an attitude source's error")
     p.add_argument("--cv-threads", type=int, default=1, metavar="N",
                    help="OpenCV threads, cv2.setNumThreads(N) (default 1: one core)")
     p.add_argument("--threads", dest="cv_threads", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
@@ -422,6 +447,12 @@ def run(args) -> int:
     rows, summaries = [], {}
     for make in cases:
         case = make()
+        if args.attitude_noise_deg > 0 and case.name.startswith("sim:"):
+            case.views = with_attitude_noise(case.views, args.attitude_noise_deg, args.seed)
+            case.name += f", attitude noise {args.attitude_noise_deg:g} deg"
+        if args.pair_checks and case.name.startswith("sim:"):
+            case.config = replace(case.config, pair_checks=True)
+            case.name += ", pair checks"
         params = dict({"match_blur": True} if args.match_blur else {},
                       **({"window_floor": args.window_floor} if args.window_floor else {}))
         summaries[case.name] = run_case(case, rows, params or None)

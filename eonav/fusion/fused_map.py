@@ -192,7 +192,8 @@ def held_single(state: InverseRangeState) -> np.ndarray:
     state's flags (the last measurement's, carried with the cell) not VALID, or FILLED, and not OUT_OF_VIEW (a
     partner that does not see the point, or sees it hidden, says nothing of it). One pair's guess the stream has not
     repeated since: faint sky ranged once, then LOW_TEXTURE pair after pair. A cell (re)started by the last
-    measurement is VALID there: fresh, not held."""
+    measurement is VALID there: fresh, not held. With ``FusionConfig.n_per_instant`` the runner's n counts frames
+    (a rig frame's motion and stereo pairs once), so one frame's look by both pairs is held as well."""
     last = state.flags
     said = ((last & np.uint8(VALID | FILLED)) != np.uint8(VALID)) & ((last & np.uint8(OUT_OF_VIEW)) == 0)
     return (state.n == 1) & said & state.occupied()

@@ -13,6 +13,10 @@ that one pair alone does not need but a filter fusing many does.
    the sensitivity of eqs. (25)-(26) at the measured rho (``add_pose_sigma``). A filter that took each
    pair's sigma at its word would fuse the pairs' pose errors as if they were independent image noise: a pair of a
    few pixels of parallax with a pixel of pose error would count as a good one.
+3. Pose along the lines (``state_shift_px``, applied by the fusion runner, which holds the state): where the fused
+   state knows the tracks' points well, each point has one place in b under the pair's pose, and the tracks'
+   offsets from those places show the pose error's shift along the lines too; what exceeds the across-line shift
+   enters the sigma the same way.
 
 The tracks cost a few milliseconds per pair (``track_points``; the pair the scheduler's pose check tracked already is
 not tracked again, ``recent_tracks``, nor its shift fitted again, ``recent_pose_shift``; each frame's tracking level,
@@ -66,6 +70,53 @@ def _pose_sigma_numpy(rho, std, geo, shift_px: float) -> None:
                   where=np.isfinite(rho) & np.isfinite(std) & (den > 0))
 
 
+def state_shift_px(rho_state: np.ndarray, var_state: np.ndarray, n_state: np.ndarray, geo, tracks,
+                   min_fused: int = 2, max_pred_px: float = 0.3, min_tracks: int = 20) -> float:
+    """Length (px of b) of the shift that the pair's pose error puts on its matches, ALONG the epipolar lines too:
+    each track's point of image a, at the fused state's inverse range of its cell (state on a's grid), has one place
+    in b under the pair's pose; the 2-vector s fitted robustly (Tukey IRLS) to the tracks' offsets from those places
+    is the pose error's shift. Only cells of at least ``min_fused`` measurements whose 1-sigma moves the place by
+    at most ``max_pred_px`` count. ``pose_shift_px`` sees only s's part across the lines: a match anywhere on its
+    line fits some range. NaN with fewer than ``min_tracks`` such tracks."""
+    from eonav.ranging.tracks import tukey_weights
+    if len(tracks) == 0:
+        return float("nan")
+    pa, pb = tracks.pts_a.astype(np.float64), tracks.pts_b.astype(np.float64)
+    h, w = rho_state.shape
+    i, j = np.rint(pa[:, 1]).astype(int), np.rint(pa[:, 0]).astype(int)
+    inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    pa, pb, i, j = pa[inside], pb[inside], i[inside], j[inside]
+    rho, sd = rho_state[i, j].astype(np.float64), np.sqrt(var_state[i, j].astype(np.float64))
+    ok = np.isfinite(rho) & np.isfinite(sd) & (rho >= 0) & (n_state[i, j] >= min_fused)
+    pa, pb, rho, sd = pa[ok], pb[ok], rho[ok], sd[ok]
+    if len(rho) < min_tracks:
+        return float("nan")
+    ca, cb = geo.cam_a, geo.cam_b
+    m = np.stack([np.ones(len(pa)), (pa[:, 0] - ca.cx) / ca.fx, (pa[:, 1] - ca.cy) / ca.fy], 1)
+    A = m @ np.asarray(geo.R_ba, float).T
+    t = np.asarray(geo.t_ba_m, float)
+
+    def place(r):
+        X = A + r[:, None] * t[None, :]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.stack([cb.cx + cb.fx * X[:, 1] / X[:, 0], cb.cy + cb.fy * X[:, 2] / X[:, 0]], 1)
+
+    p0 = place(rho)
+    spread = np.linalg.norm(place(rho + sd) - p0, axis=1)
+    keep = np.isfinite(spread) & (spread <= max_pred_px) & np.all(np.isfinite(p0), axis=1)
+    r = (pb - p0)[keep]
+    if len(r) < min_tracks:
+        return float("nan")
+    s = np.median(r, axis=0)
+    for _ in range(8):
+        d = np.linalg.norm(r - s, axis=1)
+        wt = tukey_weights(d, 0.05)
+        if wt.sum() < min_tracks / 2:
+            return float("nan")
+        s = (wt[:, None] * r).sum(0) / wt.sum()
+    return float(np.hypot(*s))
+
+
 def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_sigma: bool = True,
                   **dense_params) -> RangeResult:
     """The dense method on (a, b) without its fill, after the brightness match, its sigma with the pose term
@@ -86,4 +137,4 @@ def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_s
     return res
 
 
-__all__ = ["checked_dense", "add_pose_sigma"]
+__all__ = ["checked_dense", "add_pose_sigma", "state_shift_px"]

@@ -47,6 +47,8 @@ from eonav.ranging.methods._common import far_inverse_range
 from eonav.ranging.pair_policy import PosedFrameInfo
 from eonav.ranging.rangemap import VALID, RangeResult
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
+from eonav.fusion.measure import add_pose_sigma, state_shift_px
+from eonav.ranging.tracks import recent_tracks
 from eonav.fusion.predict import ProcessNoise, predict, predict_job
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
@@ -114,6 +116,8 @@ class FusionConfig:
     lr_check_kinds: tuple = ()         # measurements also made b -> a, a's pixels b contradicts not fused (step 3)
     lr_check: LRCheckConfig = field(default_factory=LRCheckConfig)
     stereo_free_space: bool = True     # with the stereo pair checked both ways: cells its b -> a sees through emptied
+    n_per_instant: bool = True         # a state's n counts instants: a rig frame's motion and stereo measurements of
+                                       # one cell count once (``FusionRunner._count_instant``; docs/methods.md)
 
     def __post_init__(self):
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
@@ -131,7 +135,9 @@ class FusionConfig:
 class FusedMap:
     """The fused range map of ``frame`` (its camera's newest frame): ``result`` has the arrays of ``eonav locate``
     (method "fused") and ``n_fused`` the measurements fused per pixel; ``measurements``: what this push measured
-    into it (kind, other camera and seq, baseline, update counts)."""
+    into it (kind, other camera and seq, baseline, update counts). With ``FusionConfig.n_per_instant`` (default)
+    ``n_fused`` counts instants: the measurements of one frame of the reference camera (a rig's motion and stereo
+    pairs) count once."""
     frame: PosedFrameInfo
     result: RangeResult
     n_fused: object
@@ -161,6 +167,8 @@ class FusionRunner:
         self.counts: dict[str, int] = {}
         self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
         self._rig_motion: dict[str, tuple] = {}              # a rig reference's last motion measurement (stereo leads)
+        self._instants: dict[str, dict] = {}                 # per reference camera: its frame being measured, the n
+                                                             # before its first measurement (n_per_instant)
         self.worker_cpu_s = 0.0      # CPU seconds the predicts on the worker thread took so far (overlap_predict)
 
     def count(self, name: str, k: int = 1) -> None:
@@ -235,8 +243,11 @@ class FusionRunner:
         for i, (m, (prior, res, _, _)) in enumerate(zip(live, results)):
             ref = m.a.camera_id
             t2 = time.perf_counter()
+            if "pair_check" in res.info:
+                self._pose_along(m, res, self.states[ref])
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
+            inst = self._instant(ref, m.a) if self.config.n_per_instant else None
             lead = self._stereo_lead(m, res, stereo.get(ref), backs.get(i))
             args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
             if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
@@ -245,6 +256,8 @@ class FusionRunner:
                                                    reuse=res if self.fresh else None)
             else:
                 counts = update(*args, rho_far=rho_far)
+            if inst is not None:
+                self._count_instant(ref, inst, maps[ref] if last[ref] == i else None)
             if not used:
                 self._full_measured[ref] = counts["measured"]
             fusion_s += time.perf_counter() - t2
@@ -260,6 +273,58 @@ class FusionRunner:
             dt = time.perf_counter() - t3
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
+
+    def _instant(self, ref: str, a: PosedFrameInfo) -> dict:
+        """Before a measurement of ``ref``'s frame ``a`` touches the state (stereo lead included): the instant's
+        record, started at its first measurement (n then, the cells (re)started since), and the cells' n, rho and
+        variance now, to tell the cells this measurement (re)starts."""
+        st = self.states[ref]
+        key = (a.seq, a.stamp_us)
+        inst = self._instants.get(ref)
+        if inst is None or inst["key"] != key or inst["state"] is not st:
+            inst = self._instants[ref] = {"key": key, "state": st, "base": st.n.copy(),
+                                          "fresh": np.zeros(st.shape, bool)}
+        inst["n"], inst["rho"], inst["var"] = st.n.copy(), st.rho.copy(), st.var.copy()
+        return inst
+
+    def _count_instant(self, ref: str, inst: dict, res: RangeResult | None) -> int:
+        """After a measurement of the instant ``inst`` of ``ref``: a cell's n rises by at most one over the
+        instant's measurements (a cell (re)started in it: n 1), in the state and in ``res``'s ``n_fused`` (the map
+        this measurement made, if any). The held-single rule (``MapConfig.held_single``: n 1, the last measurement
+        looked and did not range it) then withdraws a cell both pairs of one rig frame ranged and no later frame
+        repeated, as it does one pair's guess: two pairs sharing a reference frame (its noise, its faint sky) are
+        one look, not two (docs/methods.md, "Fusion over the stream"). One measurement a frame (one camera): nothing
+        changes. Returns the cells capped."""
+        st = self.states[ref]
+        with np.errstate(invalid="ignore"):
+            started = (st.n == 1) & ((inst["n"] != 1) | ~(st.rho == inst["rho"]) | ~(st.var == inst["var"]))
+        inst["fresh"] |= started
+        cap = np.where(inst["fresh"], 1, inst["base"].astype(np.int64) + 1)
+        over = st.n > cap
+        k = int(np.count_nonzero(over))
+        if k:
+            st.n[over] = cap[over]
+            if res is not None and res.info.get("n_fused") is not None:
+                res.info["n_fused"][over] = cap[over]
+            self.count("n_instant_capped", k)
+        return k
+
+    def _pose_along(self, m, res, state: InverseRangeState) -> None:
+        """The pair checks' pose term along the epipolar lines too (``measure.state_shift_px``: the tracks' offsets
+        from where the predicted state puts their points): what it finds beyond the across-line shift already in
+        the sigma is added the same way (``add_pose_sigma``); ``res.info["pair_check"]["state_shift_px"]``."""
+        check = res.info["pair_check"]
+        if "tracks" not in check:
+            return
+        geo = pair_geometry(m.a.payload, m.b.payload)
+        tracks = recent_tracks(m.a.payload.image, m.b.payload.image)
+        s = state_shift_px(state.rho, state.var, state.n, geo, tracks)
+        check["state_shift_px"] = s
+        across = check.get("pose_shift_px", float("nan"))
+        across = across if math.isfinite(across) else 0.0
+        if math.isfinite(s) and s > across:
+            add_pose_sigma(res, geo, math.sqrt(s * s - across * across))
+            self.count("pose_along_added")
 
     def _overlap_predict(self, state: InverseRangeState) -> bool:
         """Whether predict of ``state`` runs beside the measurements (``FusionConfig.overlap_predict``): with numba,

@@ -6,7 +6,8 @@ match on its epipolar line (eqs. 25-26 for rho from 0 to infinity: a straight li
 matches from their lines measures the pose's error in pixels (``epipolar_residual_px``). The dense methods search
 along that line only, so a pose error shifts their matches by as much without their residual showing it: its robust
 spread (``pose_sigma_px``) is the pixel error a measurement of this pair shares, whatever its texture. (Its component
-along the lines, which changes the range, is not observed; it is taken to be as large.)
+along the lines, which changes the range, is not observed from one pair's images; it is taken to be as large. The
+fusion sees it where its state knows the points' ranges: ``eonav.fusion.measure.state_shift_px``.)
 """
 from __future__ import annotations
 
