@@ -245,7 +245,9 @@ class FusionRunner:
                 self._pose_along(m, res, self.states[ref])
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
-            inst = self._instant(ref, m.a) if self.config.n_per_instant else None
+            # (only a rig measures one frame twice: one camera's runs skip the copies)
+            inst = (self._instant(ref, m.a) if self.config.n_per_instant and self.config.schedule.stereo_rig is not None
+                    else None)
             lead = self._stereo_lead(m, res, stereo.get(ref), backs.get(i))
             args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
             if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
