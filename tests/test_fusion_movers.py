@@ -242,3 +242,27 @@ def test_skipped_free_space_needs_a_rig_and_empties_cells_with_one(oncoming_fram
         np.testing.assert_array_equal(a.flags, b.flags)
     _, freed_rig = run(3.0, True)
     assert freed_rig > 0
+
+
+@pytest.mark.parametrize("partner_first", [True, False])
+def test_a_rigs_frames_count_once_in_the_pushed_stream(oncoming_frames, partner_first):
+    # through FusionRunner.push (FusionConfig.n_per_instant, default): with the rig every frame is measured twice
+    # (motion and stereo) and no cell's n_fused passes the number of the reference camera's frames measured so far;
+    # one camera is measured once a frame and never capped
+    for rig in (True, False):
+        cfg = FusionConfig(schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID))) if rig else FusionConfig()
+        runner = FusionRunner(cfg)
+        most = []
+        for i, (stamp, view, truth, _, partner) in enumerate(oncoming_frames[:12]):
+            if rig and partner_first:
+                runner.remember(frame(PARTNER_ID, partner, stamp, i))
+            out = [m for m in runner.push(frame("nose", view, stamp, i)) if m.frame.camera_id == "nose"]
+            if rig and not partner_first:
+                out += [m for m in runner.push(frame(PARTNER_ID, partner, stamp, i)) if m.frame.camera_id == "nose"]
+            most += [(i, int(m.n_fused.max())) for m in out]
+        assert most and all(n <= i + 1 for i, n in most), most
+        if rig:
+            assert runner.counts.get("n_instant_capped", 0) > 0
+            assert runner.counts.get("measurements.stereo", 0) >= 10
+        else:
+            assert "n_instant_capped" not in runner.counts

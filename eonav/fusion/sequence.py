@@ -247,7 +247,9 @@ class FusionRunner:
                 self._pose_along(m, res, self.states[ref])
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
-            inst = self._instant(ref, m.a) if self._counts_instants() else None
+            # (only a rig measures one frame twice: one camera's runs skip the copies)
+            inst = (self._instant(ref, m.a) if self.config.n_per_instant and self.config.schedule.stereo_rig is not None
+                    else None)
             lead = self._stereo_lead(m, res, stereo.get(ref), backs.get(i))
             args = (self.states[ref], res.inv_range_per_m, res.inv_range_std_per_m, res.flags, self.config.update)
             if last[ref] == i:        # the state's last measurement of this push: update and map in one sweep;
@@ -273,12 +275,6 @@ class FusionRunner:
             dt = time.perf_counter() - t3
             out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
         return out
-
-    def _counts_instants(self) -> bool:
-        """Whether n is kept to one count an instant (``FusionConfig.n_per_instant``) by bookkeeping: only with a
-        stereo rig. Without one a frame gets one fused measurement (its motion pair), which raises a cell's n by one
-        at most: nothing to cap, and no copies of the state's arrays per measurement."""
-        return self.config.n_per_instant and self.config.schedule.stereo_rig is not None
 
     def _instant(self, ref: str, a: PosedFrameInfo) -> dict:
         """Before a measurement of ``ref``'s frame ``a`` touches the state (stereo lead included): the instant's
