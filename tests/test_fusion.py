@@ -748,7 +748,8 @@ def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_fr
     """Each predict and measurement of a push wait (a bounded time) for the other to have started: they see each
     other only if they run at the same time. With the prior on (full_every 3) a measurement may start from the
     predicted state, so predict runs first, on the caller's thread, and never sees its measurement start; so it
-    does for a state (128 x 128) smaller than overlap_min_cells."""
+    does for a state (128 x 128) smaller than overlap_min_cells. Beside, the worker runs predict's kernels
+    (``predict_job``'s function), its Python part runs before on the caller's thread."""
     import threading
 
     import eonav.fusion.sequence as seq_mod
@@ -765,7 +766,10 @@ def test_predict_runs_beside_the_measurement_unless_the_measurement_may_start_fr
             return fn(*a, **kw)
         return run
 
-    monkeypatch.setattr(seq_mod, "predict", meeting("predict", "measure", seq_mod.predict))
+    job_of = seq_mod.predict_job
+    monkeypatch.setattr(seq_mod, "predict", meeting("predict", "measure", seq_mod.predict))       # in turn
+    monkeypatch.setattr(seq_mod, "predict_job",                                                  # beside: its kernels
+                        lambda *a, **kw: meeting("predict", "measure", job_of(*a, **kw)))
     runner = FusionRunner(FusionConfig(prior=PriorConfig(full_every=full_every), overlap_min_cells=min_cells),
                           measure=meeting("measure", "predict", dense_measurement),
                           fresh_measurements=True, takes_prior=True)
@@ -837,28 +841,35 @@ def _held_cell(kernels, n_valid, last_flags, mcfg=MapConfig(fill=False)):
 
 
 @pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
-def test_demote_held_kernel_matches_the_numpy_reference():
-    """The numba pass of the held-single rule against the numpy path, on seeded random states and maps (every flag
-    byte, n 0-3, empty cells): the same cells demoted, the same arrays and counts."""
-    from eonav.fusion.fused_map import _demote_held
+def test_held_single_rule_in_the_classification_kernel_matches_the_numpy_reference():
+    """The held-single rule inside the numba classification (``_kernels.classify_state`` and ``update_classify``)
+    against the numpy path (``_demote_held``), on seeded random states (every flag byte, n 0-3, empty cells): the
+    same flags and counts, the same values to float rounding (the slant term's), with the rule on and off, by fused_map and by update_and_map."""
+    from eonav.fusion.fused_map import update_and_map
     rng = np.random.default_rng(11)
-    for trial in range(20):
+    held_seen = 0
+    for trial in range(12):
         h, w = 37 + trial, 53
-        st = InverseRangeState.empty(cam(w, h), pose(), 0.0)
-        st.rho[...] = np.where(rng.random((h, w)) < 0.8, rng.uniform(0.01, 0.1, (h, w)), np.nan)
-        st.n[...] = rng.integers(0, 4, (h, w))
+        st, occ = _random_state(cam(w, h), rng, rho_lo=0.0, var_hi=1e-4)
+        st.n[...] = np.where(occ, rng.integers(0, 4, (h, w)), 0)
         st.flags[...] = rng.integers(0, 256, (h, w))
-        flags = rng.integers(0, 256, (h, w)).astype(np.uint8)
-        rng_m = rng.uniform(5, 100, (h, w)).astype(np.float32)
-        conf = rng.uniform(0, 1, (h, w)).astype(np.float32)
-        outs = []
-        for k in (False, True):
-            f, r, c = flags.copy(), rng_m.copy(), conf.copy()
-            counts = _demote_held(st, f, r, c, kernels=k)
-            outs.append((counts, f, r, c))
-        (c0, f0, r0, q0), (c1, f1, r1, q1) = outs
-        assert c0 == c1 and c0[0] > 0
-        assert np.array_equal(f0, f1) and np.array_equal(r0, r1, equal_nan=True) and np.array_equal(q0, q1)
+        st.rho_far = 0.01
+        m_rho = np.where(rng.random((h, w)) < 0.2, np.nan, rng.uniform(0.01, 0.3, (h, w))).astype(np.float32)
+        m_std = rng.uniform(1e-3, 5e-2, (h, w)).astype(np.float32)
+        m_flags = rng.integers(0, 256, (h, w)).astype(np.uint8)
+        for cfg in (MapConfig(fill=False), MapConfig(), MapConfig(fill=False, held_single=False)):
+            maps = [fused_map(st, cfg, kernels=k) for k in (False, True)]
+            for k in (False, True):
+                s2 = copy.deepcopy(st)
+                maps.append(update_and_map(s2, m_rho, m_std, m_flags, mcfg=cfg, kernels=k)[1])
+            for m0, m1 in (maps[:2], maps[2:]):
+                assert same_info(m0, m1) and np.array_equal(m0.flags, m1.flags)
+                for name in ("inv_range_per_m", "inv_range_std_per_m", "range_m", "confidence"):
+                    a0, a1 = getattr(m0, name), getattr(m1, name)
+                    ok = np.isfinite(a0)
+                    assert np.array_equal(ok, np.isfinite(a1)) and np.allclose(a0[ok], a1[ok], rtol=1e-5), name
+            held_seen += maps[0].info["held_fraction"] > 0
+    assert held_seen >= 12                       # the rule demoted cells in the trials where it was on
 
 
 @pytest.mark.parametrize("kernels", PATHS)

@@ -232,22 +232,23 @@ def update(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm):
 
 @njit(**_FAST)
 def update_classify(rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm,
-                    cbits, eta_inlier, max_rel_std, rho_far, slant2, o_rho, o_std, o_flags, o_rng, o_conf, o_exclude):
+                    cbits, eta_inlier, max_rel_std, rho_far, slant2, held, o_rho, o_std, o_flags, o_rng, o_conf,
+                    o_exclude):
     """``update`` then ``classify_state`` in one sweep: row y-1 is classified once row y is updated (its slant
-    term needs its neighbours' rows), so the state is read once. Returns the five update counts then the four
+    term needs its neighbours' rows), so the state is read once. Returns the five update counts then the five
     classification counts."""
     h = rho.shape[0]
     cnt = np.zeros(5, np.int64)
-    cc = np.zeros(4, np.int64)
+    cc = np.zeros(5, np.int64)
     buf = np.empty((7, rho.shape[1]), np.float32)
     for y in range(h):
         _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits, prm, cnt, buf)
         if y >= 1:
-            _classify_row(y - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
+            _classify_row(y - 1, rho, var, a, b, n, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2, held,
                           o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[6])
-    _classify_row(h - 1, rho, var, a, b, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2,
+    _classify_row(h - 1, rho, var, a, b, n, flags, cbits, eta_inlier, max_rel_std, rho_far, slant2, held,
                   o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, buf[6])
-    return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4], cc[0], cc[1], cc[2], cc[3]
+    return cnt[0], cnt[1], cnt[2], cnt[3], cnt[4], cc[0], cc[1], cc[2], cc[3], cc[4]
 
 
 @njit(**_FAST)
@@ -355,31 +356,32 @@ def _update_row(y, rho, var, a, b, n, du, dv, flags, rho_m, std_m, flags_m, bits
 
 
 @njit(**_FAST)
-def classify_state(rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
+def classify_state(rho, var, a, b, n, flags, bits, eta_inlier, max_rel_std, rho_far, slant2, held,
                    o_rho, o_std, o_flags, o_rng, o_conf, o_exclude):
     """fused_map's arrays in one pass: o_rho = rho, o_std = sqrt(var + slant2 * g2) (g2: ``slant_g2``), the flags
     of fused_map and the rules of ``eonav.ranging.methods._common.classify_into`` (the same float32 arithmetic),
-    o_exclude = occupied cells whose evidence disagrees. bits: uint8 (reason bits kept for empty cells,
-    ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION, AT_INFINITY, VALID) of
-    ``eonav.ranging.rangemap``. Returns (n_valid, n_at_infinity, n_occupied, n_disagree)."""
-    cc = np.zeros(4, np.int64)
+    o_exclude = occupied cells whose evidence disagrees; with ``held`` the held single cells (``fused_map.held_single``)
+    reported without a range, as ``fused_map._demote_held``. bits: uint8 (reason bits kept for empty cells,
+    ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION, AT_INFINITY, VALID, VALID | FILLED,
+    OUT_OF_VIEW) of ``eonav.ranging.rangemap``. Returns (n_valid, n_at_infinity, n_occupied, n_disagree, n_held)."""
+    cc = np.zeros(5, np.int64)
     g2 = np.empty(rho.shape[1], np.float32)
     for y in range(rho.shape[0]):
-        _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
+        _classify_row(y, rho, var, a, b, n, flags, bits, eta_inlier, max_rel_std, rho_far, slant2, held,
                       o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, g2)
-    return cc[0], cc[1], cc[2], cc[3]
+    return cc[0], cc[1], cc[2], cc[3], cc[4]
 
 
 @njit(**_CONTRACT)
-def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_far, slant2,
+def _classify_row(y, rho, var, a, b, n, flags, bits, eta_inlier, max_rel_std, rho_far, slant2, held,
                   o_rho, o_std, o_flags, o_rng, o_conf, o_exclude, cc, g2):
-    """One row of ``classify_state``; cc (int64[4]) gains its counts; g2 (float32[w]): room for the row's
+    """One row of ``classify_state``; cc (int64[5]) gains its counts; g2 (float32[w]): room for the row's
     ``slant_g2``."""
     w = rho.shape[1]
     _slant_row(rho, var, y, g2)
-    reason_bits, ILL, BAD, INF, VAL = bits[0], bits[1], bits[2], bits[3], bits[4]
+    reason_bits, ILL, BAD, INF, VAL, VF, OOV = bits[0], bits[1], bits[2], bits[3], bits[4], bits[5], bits[6]
     two_f = np.float32(2.0)
-    n_val = n_inf = n_occ = n_dis = 0             # (local counters, as _update_row's)
+    n_val = n_inf = n_occ = n_dis = n_held = n_held_inf = 0    # (local counters, as _update_row's)
     for x in range(w):
         r = rho[y, x]
         o_rho[y, x] = r
@@ -420,13 +422,20 @@ def _classify_row(y, rho, var, a, b, flags, bits, eta_inlier, max_rel_std, rho_f
             n_val += 1
             rng = np.float32(1.0) / abs(r)
             conf = max(r / sd, np.float32(0.0))
-        o_flags[y, x] = f
-        o_rng[y, x] = rng
-        o_conf[y, x] = conf
-    cc[0] += n_val
-    cc[1] += n_inf
+        # a held single cell (one measurement, the last pair looked and did not range it) reported VALID: no range
+        # (branch-free: which cells are held is irregular, a branch on it is mispredicted)
+        last = flags[y, x]
+        hc = held & ok & (n[y, x] == 1) & ((last & VF) != VAL) & ((last & OOV) == 0)
+        n_held += hc
+        n_held_inf += hc & inf_ok
+        o_flags[y, x] = ILL if hc else f
+        o_rng[y, x] = np.float32(np.nan) if hc else rng
+        o_conf[y, x] = np.float32(0.0) if hc else conf
+    cc[0] += n_val - (n_held - n_held_inf)
+    cc[1] += n_inf - n_held_inf
     cc[2] += n_occ
     cc[3] += n_dis
+    cc[4] += n_held
 
 
 @njit(**_FAST)
@@ -527,26 +536,3 @@ def pose_sigma(rho, std, ra, ca, B, fxb, fyb, s):
             new = np.sqrt(sd * sd + e * e)
             ok = np.isfinite(r) and np.isfinite(sd) and den > 0
             std[y, x] = new if ok else sd
-
-
-@njit(**_JIT)
-def demote_held(n, last, rho, valid, filled, out_of_view, at_infinity, ill, flags, rng, conf):
-    """fused_map._demote_held in one pass (the numpy path is the reference): the held single cells (n == 1, the
-    last measurement's flags ``last`` not VALID or FILLED and not OUT_OF_VIEW, occupied) that ``flags`` reports
-    VALID become ILL_CONDITIONED with no range and confidence 0. Returns (cells demoted, AT_INFINITY ones)."""
-    fn, fl, fr, fo, fg, fc = (n.reshape(-1), last.reshape(-1), rho.reshape(-1), flags.reshape(-1), rng.reshape(-1),
-                              conf.reshape(-1))
-    vf = valid | filled
-    n_held = 0
-    n_inf = 0
-    nan = np.float32(np.nan)
-    zero = np.float32(0.0)
-    for i in range(fn.size):                      # (branch-free select and store: vectorised)
-        held = ((fn[i] == 1) & ((fl[i] & vf) != valid) & ((fl[i] & out_of_view) == 0) & (fr[i] == fr[i])
-                & ((fo[i] & valid) != 0))
-        n_held += held
-        n_inf += held & ((fo[i] & at_infinity) != 0)
-        fo[i] = ill if held else fo[i]
-        fg[i] = nan if held else fg[i]
-        fc[i] = zero if held else fc[i]
-    return n_held, n_inf

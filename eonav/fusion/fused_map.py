@@ -53,7 +53,7 @@ METHOD = "fused"
 NO_FILL_FUSED = OCCLUDED
 REASON_BITS = np.uint8(TRUNCATION | ILL_CONDITIONED | OUT_OF_VIEW | LOW_TEXTURE | OCCLUDED)
 _BITS = np.array([REASON_BITS, ILL_CONDITIONED, OUT_OF_VIEW | LOW_TEXTURE | ILL_CONDITIONED | TRUNCATION,
-                  AT_INFINITY, VALID], np.uint8)       # for _kernels.classify_state
+                  AT_INFINITY, VALID, VALID | FILLED, OUT_OF_VIEW], np.uint8)       # for _kernels.classify_state
 
 
 @dataclass(frozen=True)
@@ -110,19 +110,20 @@ def slant_g2(rho: np.ndarray, var: np.ndarray) -> np.ndarray:
 def fused_map(state: InverseRangeState, cfg: MapConfig = MapConfig(), kernels: bool | None = None,
               reuse: RangeResult | None = None) -> RangeResult:
     """A RangeResult of the state (method "fused"); ``info`` holds the counts and ``n_fused`` (uint16 H x W).
-    kernels: the numba pass (``_kernels.classify_state``; None: when numba is installed; False: the numpy path,
-    the reference). reuse: a range map of the state's shape that nobody holds any more (the measurement just fused)
+    kernels: the numba pass (``_kernels.classify_state``, the held single cells included; None: when numba is
+    installed; False: the numpy path, the reference). reuse: a range map of the state's shape that nobody holds any more (the measurement just fused)
     whose arrays to overwrite with the result (numba pass): no fresh memory to page in."""
     K = optional_kernels() if kernels is None or kernels else None
     if kernels and K is None:
         raise ImportError("fused_map(kernels=True) needs numba")
     if K is None:
         rho, std, flags, rng, conf, n_val, n_inf, occ, exclude = _classify_numpy(state, cfg)
-        return _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, int(occ.sum()), exclude, False)
+        return _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, int(occ.sum()),
+                       int(np.count_nonzero(exclude)), 0, exclude, False)
     out = _outputs(state.shape, reuse)
-    n_val, n_inf, n_occ, n_dis = K.classify_state(state.rho, state.var, state.a, state.b, state.flags,
-                                                  *_classify_params(state, cfg), *out)
-    return _finish(state, cfg, *out[:5], n_val, n_inf, n_occ, out[5], True)
+    counts = K.classify_state(state.rho, state.var, state.a, state.b, state.n, state.flags,
+                              *_classify_params(state, cfg), *out)
+    return _finish(state, cfg, *out[:5], *counts, out[5], True)
 
 
 def update_and_map(state: InverseRangeState, rho_m, std_m, flags_m, ucfg: UpdateConfig = UpdateConfig(),
@@ -142,12 +143,13 @@ def update_and_map(state: InverseRangeState, rho_m, std_m, flags_m, ucfg: Update
     out = _outputs(state.shape, reuse)
     r = K.update_classify(state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags, *meas,
                           *kernel_params(ucfg), *_classify_params(state, mcfg), *out)
-    res = _finish(state, mcfg, *out[:5], r[5], r[6], r[7], out[5], True)
+    res = _finish(state, mcfg, *out[:5], *r[5:], out[5], True)
     return counts_dict(*r[:5]), res
 
 
 def _classify_params(state, cfg):
-    return _BITS, F32(cfg.eta_inlier), F32(cfg.max_rel_std), F32(state.rho_far), F32(cfg.slant_px ** 2)
+    return (_BITS, F32(cfg.eta_inlier), F32(cfg.max_rel_std), F32(state.rho_far), F32(cfg.slant_px ** 2),
+            bool(cfg.held_single))
 
 
 def _outputs(shape, reuse):
@@ -161,10 +163,11 @@ def _outputs(shape, reuse):
     return rho, std, flags, rng, conf, np.empty(shape, np.bool_)
 
 
-def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude, kernels: bool) -> RangeResult:
-    n_held = 0
-    if cfg.held_single:
-        n_held, d_val, d_inf = _demote_held(state, flags, rng, conf, kernels)
+def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, n_dis, n_held, exclude,
+            kernels: bool) -> RangeResult:
+    """The map's held single cells (unless the kernel did them: ``kernels``), its fill and its RangeResult."""
+    if cfg.held_single and not kernels:
+        n_held, d_val, d_inf = _demote_held(state, flags, rng, conf)
         n_val, n_inf = int(n_val) - d_val, int(n_inf) - d_inf
     # a cell whose measurements disagree, or that the last pair saw hidden, is filled only by a tight plane
     n_filled = 0
@@ -179,8 +182,8 @@ def _finish(state, cfg, rho, std, flags, rng, conf, n_val, n_inf, n_occ, exclude
         if edge is not None:
             flags[edge] &= np.uint8(~OUT_OF_VIEW & 0xFF)
     size = max(rho.size, 1)
-    info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(np.count_nonzero(exclude)) / size,
-            "filled_fraction": n_filled / size, "held_fraction": n_held / size, "n_fused": state.n.copy()}
+    info = {"occupied_fraction": n_occ / size, "disagree_fraction": int(n_dis) / size,
+            "filled_fraction": n_filled / size, "held_fraction": int(n_held) / size, "n_fused": state.n.copy()}
     return make_result(rho, std, flags, rng, conf, METHOD, int(n_val), int(n_inf), info)
 
 
@@ -196,16 +199,11 @@ def held_single(state: InverseRangeState) -> np.ndarray:
     return (state.n == 1) & said & state.occupied()
 
 
-def _demote_held(state, flags, rng, conf, kernels: bool | None = None):
+def _demote_held(state, flags, rng, conf):
     """The ``held_single`` cells the map reports VALID, in place: ILL_CONDITIONED, no range, confidence 0 (held
     cells already without a range, a loose sigma, are left as they are). The fill may stand in for them as for any
-    cell without a range. Returns (cells demoted, VALID ones, AT_INFINITY ones). kernels: as ``fused_map``."""
-    K = optional_kernels() if kernels is None or kernels else None
-    if K is not None and all(x.flags.c_contiguous for x in (state.n, state.flags, state.rho, flags, rng, conf)):
-        n_held, d_inf = K.demote_held(state.n, state.flags, state.rho, np.uint8(VALID), np.uint8(FILLED),
-                                      np.uint8(OUT_OF_VIEW), np.uint8(AT_INFINITY), np.uint8(ILL_CONDITIONED),
-                                      flags, rng, conf)
-        return int(n_held), int(n_held - d_inf), int(d_inf)
+    cell without a range. Returns (cells demoted, VALID ones, AT_INFINITY ones). The numpy path's (the kernels do
+    it in their classification, ``_kernels.classify_state``)."""
     held = held_single(state)
     held &= (flags & np.uint8(VALID)) != 0
     n_held = int(np.count_nonzero(held))

@@ -76,34 +76,16 @@ def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_
             noise: ProcessNoise = ProcessNoise(), crack_k: float = 3.0,
             kernels: bool | None = None, out: InverseRangeState | None = None) -> InverseRangeState:
     """``state`` carried into the frame of ``camera`` at ``pose`` (time ``stamp_s``); see the module docstring.
-    kernels: the numba pass (``_kernels.warp``; None: when numba is installed; False: the numpy path, the
-    reference). out: a state (not ``state``) whose arrays to overwrite (a stream reuses its previous state's:
-    no fresh memory per frame); None: a new one."""
-    dt = float(stamp_s) - state.stamp_s
-    if not dt >= 0:
-        raise InputError(f"predict: the new frame ({stamp_s:.6f} s) is older than the state ({state.stamp_s:.6f} s)")
-    if (out is None or out is state or out.shape != (camera.height, camera.width)
-            or not all(getattr(out, k).flags.c_contiguous for k in _FIELDS)):
-        out = InverseRangeState.empty(camera, pose, stamp_s)
-    else:
-        out.camera, out.pose, out.stamp_s = camera, pose, float(stamp_s)
-    out.rho_far = state.rho_far
+    kernels: the numba pass (``_kernels.warp``, by ``predict_job``; None: when numba is installed; False: the numpy
+    path, the reference). out: a state (not ``state``) whose arrays to overwrite (a stream reuses its previous
+    state's: no fresh memory per frame); None: a new one."""
     K = optional_kernels() if kernels is None or kernels else None
     if kernels and K is None:
         raise ImportError("predict(kernels=True) needs numba")
-    if K is not None and out.rho.size >= 2 ** 31:
-        raise InputError(f"predict: a grid of {out.rho.size} cells is beyond the warp's int32 pixel index")
     if K is not None:
-        c0, p0 = state.camera, state.pose
-        R, t = relative_pose(c0.T_cam_body, p0.T_body_ned, p0.position_ned_m, c0.l_body_m,
-                             camera.T_cam_body, pose.T_body_ned, pose.position_ned_m, camera.l_body_m)
-        q = F32(noise.rel_per_sqrt_s ** 2 * dt + noise.rel_per_sqrt_m ** 2 * float(np.linalg.norm(t)))
-        K.warp(state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags,
-               R.astype(F32), t.astype(F32), _intrinsics(c0), _intrinsics(camera), q,
-               F32(noise.abs_per_sqrt_s ** 2 * dt), out.rho, out.var, out.a, out.b, out.n, out.du, out.dv, out.flags)
-        if crack_k > 0:
-            K.close_cracks(out.rho, out.var, out.a, out.b, out.n, out.du, out.dv, out.flags, F32(crack_k * crack_k))
-        return out
+        return predict_job(state, camera, pose, stamp_s, noise, crack_k, out)()
+    out = _target(state, camera, pose, stamp_s, out)
+    dt = float(stamp_s) - state.stamp_s
     out.clear()
     idx, u_new, v_new, rho_new, jac, baseline_m = transfer(state, camera, pose)
     ui = np.floor(u_new + F32(0.5))          # the nearest pixel (halves up: cheaper than rint in the kernel)
@@ -129,6 +111,53 @@ def predict(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_
     out.dv.ravel()[tgt] = v_new[win] - vi[win]
     if crack_k > 0:
         close_cracks(out, crack_k)
+    return out
+
+
+def predict_job(state: InverseRangeState, camera: Camera, pose: VehicleState, stamp_s: float,
+                noise: ProcessNoise = ProcessNoise(), crack_k: float = 3.0, out: InverseRangeState | None = None):
+    """``predict`` with the numba passes in two steps: this call does the Python part (the relative pose, the
+    kernels' arguments, the target state) and returns a function that runs the warp and the crack closing (GIL-free)
+    and returns the predicted state. The runner's worker thread runs only that function
+    (``FusionConfig.overlap_predict``): it needs the GIL just to start the kernels, not while the caller's
+    measurement runs its own Python."""
+    K = optional_kernels()
+    if K is None:
+        raise ImportError("predict_job needs numba")
+    out = _target(state, camera, pose, stamp_s, out)
+    if out.rho.size >= 2 ** 31:
+        raise InputError(f"predict: a grid of {out.rho.size} cells is beyond the warp's int32 pixel index")
+    dt = float(stamp_s) - state.stamp_s
+    c0, p0 = state.camera, state.pose
+    R, t = relative_pose(c0.T_cam_body, p0.T_body_ned, p0.position_ned_m, c0.l_body_m,
+                         camera.T_cam_body, pose.T_body_ned, pose.position_ned_m, camera.l_body_m)
+    q = F32(noise.rel_per_sqrt_s ** 2 * dt + noise.rel_per_sqrt_m ** 2 * float(np.linalg.norm(t)))
+    arrays = (out.rho, out.var, out.a, out.b, out.n, out.du, out.dv, out.flags)
+    warp_args = (state.rho, state.var, state.a, state.b, state.n, state.du, state.dv, state.flags,
+                 R.astype(F32), t.astype(F32), _intrinsics(c0), _intrinsics(camera), q,
+                 F32(noise.abs_per_sqrt_s ** 2 * dt)) + arrays
+    k2 = F32(crack_k * crack_k)
+
+    def run() -> InverseRangeState:
+        K.warp(*warp_args)
+        if crack_k > 0:
+            K.close_cracks(*arrays, k2)
+        return out
+    return run
+
+
+def _target(state, camera, pose, stamp_s, out):
+    """The state predict writes into (``out`` if it fits: its arrays overwritten, else a new one), on the new frame
+    (camera, pose, time) with ``state``'s far limit; a frame older than the state is refused."""
+    dt = float(stamp_s) - state.stamp_s
+    if not dt >= 0:
+        raise InputError(f"predict: the new frame ({stamp_s:.6f} s) is older than the state ({state.stamp_s:.6f} s)")
+    if (out is None or out is state or out.shape != (camera.height, camera.width)
+            or not all(getattr(out, k).flags.c_contiguous for k in _FIELDS)):
+        out = InverseRangeState.empty(camera, pose, stamp_s)
+    else:
+        out.camera, out.pose, out.stamp_s = camera, pose, float(stamp_s)
+    out.rho_far = state.rho_far
     return out
 
 

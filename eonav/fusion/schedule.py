@@ -122,23 +122,28 @@ class Scheduler:
             p = self._poses[id(f)] = (f, *_cam_pose(f))
         return p[1:]
 
-    def _metrics_of(self, a, bs):
-        """(rotation deg, disparity px, baseline m) arrays of ``a`` against each of ``bs`` (``wide_metrics``), those
-        not yet known for ``a`` computed together."""
+    def _known_metrics(self, a, bs) -> dict:
+        """{id(b): (b, rotation deg, disparity px, baseline m)} of ``a`` against (at least) each of ``bs``
+        (``wide_metrics``), those not yet known for ``a`` computed together."""
         if self._batch[0] is not a:
             self._batch = (a, {})
         known = self._batch[1]
         miss = [b for b in bs if id(b) not in known or known[id(b)][0] is not b]
         if miss:
-            rot, disp, base = wide_metrics(a, miss, self.config.policy.ref_range_m, [self._pose(b) for b in miss])
+            rot, disp, base = wide_metrics(a, miss, self.config.policy.ref_range_m, [self._pose(b) for b in miss],
+                                           pose_a=self._pose(a))
             for i, b in enumerate(miss):
                 known[id(b)] = (b, float(rot[i]), float(disp[i]), float(base[i]))
+        return known
+
+    def _metrics_of(self, a, bs):
+        """(rotation deg, disparity px, baseline m) arrays of ``a`` against each of ``bs`` (``_known_metrics``)."""
+        known = self._known_metrics(a, bs)
         rows = [known[id(b)] for b in bs]
         return (np.array([r[1] for r in rows]), np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
 
     def _policy_metrics(self, a, cands, b) -> PairMetrics:
-        self._metrics_of(a, cands)
-        _, rot, disp, base = self._batch[1][id(b)]
+        _, rot, disp, base = self._known_metrics(a, cands)[id(b)]
         return PairMetrics(base, rot, disp, (a.stamp_us - b.stamp_us) * 1e-6)
 
     def offer(self, f: PosedFrameInfo) -> tuple[list, str]:
@@ -262,12 +267,12 @@ def _probe_rays(cam):
 _RAYS: dict = {}
 
 
-def wide_metrics(a: PosedFrameInfo, bs: list, ref_range_m: float, poses=None):
+def wide_metrics(a: PosedFrameInfo, bs: list, ref_range_m: float, poses=None, pose_a=None):
     """``pair_metrics(a, b, ref_range_m)``'s rotation (deg), median translational disparity (px) and baseline (m) of
     a against every frame of ``bs`` in one pass (arrays): the same pose algebra as ``relative_pose`` (R_ba = R_b
-    R_a^T, t_ba = R_b (c_a - c_b) with the camera centres c in NED) and the same probe grid. ``poses``: the
-    ``_cam_pose`` of each of ``bs`` if known."""
-    Ra, ca = _cam_pose(a)
+    R_a^T, t_ba = R_b (c_a - c_b) with the camera centres c in NED) and the same probe grid. ``poses``, ``pose_a``:
+    the ``_cam_pose`` of each of ``bs`` and of ``a`` if known."""
+    Ra, ca = pose_a if pose_a is not None else _cam_pose(a)
     poses = poses if poses is not None else [_cam_pose(b) for b in bs]
     Rb = np.array([p[0] for p in poses])
     cb = np.array([p[1] for p in poses])

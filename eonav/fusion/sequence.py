@@ -21,8 +21,9 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
 reference's map, which it updated). A frame not newer than its camera's state is dropped (``counts``
 ``out_of_order``). Timing per map (wall): ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
 
-Predict needs only the state and the new frame's pose, so (``FusionConfig.overlap_predict``, with numba) it runs on a
-worker thread while the measurements run: its passes and the dense method's release the GIL, so on a machine with a
+Predict needs only the state and the new frame's pose, so (``FusionConfig.overlap_predict``, with numba) its kernels
+run on a worker thread while the measurements run (its Python part, ``predict_job``, on the caller's thread first:
+the worker then hardly needs the GIL): its passes and the dense method's release the GIL, so on a machine with a
 core to spare predict costs the push no wall time (``fusion_s`` then holds only the wait for it, if any). Only for
 states of ``overlap_min_cells`` and more: a small state's predict is short, and handing it to another core cost
 more CPU than it saved (docs/methods.md, "Fusion timing"). Not when a measurement may start from the predicted
@@ -48,7 +49,7 @@ from eonav.ranging.rangemap import VALID, RangeResult
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.measure import add_pose_sigma, state_shift_px
 from eonav.ranging.tracks import recent_tracks
-from eonav.fusion.predict import ProcessNoise, predict
+from eonav.fusion.predict import ProcessNoise, predict, predict_job
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
 from eonav.fusion.update import (UpdateConfig, clear_cells, gate_motion, stereo_restart, stereo_skipped_free,
@@ -207,8 +208,8 @@ class FusionRunner:
             else:
                 args = (old, f.camera, f.state, t_s, self.config.noise)
                 kw = {"out": self._spare.get(cid)}
-                if self._overlap_predict(old):
-                    pending = _worker().submit(_cpu_timed, predict, *args, **kw)
+                if self._overlap_predict(old):    # its Python here, its kernels on the worker
+                    pending = _worker().submit(_cpu_timed, predict_job(*args, **kw))
                 else:
                     self.states[cid] = predict(*args, **kw)
                 self._spare[cid] = old
@@ -232,7 +233,8 @@ class FusionRunner:
                 self.states[cid], cpu_s = pending.result()
                 self.worker_cpu_s += cpu_s
                 fusion_s += time.perf_counter() - t_wait
-        if old is not None and self.states[cid].occupied().any():     # nothing measured yet: no map to give
+        # nothing measured yet: no map to give (a state this push measures gives one: its cells not read for that)
+        if old is not None and (any(m.a.camera_id == cid for m in live) or self.states[cid].occupied().any()):
             touched[cid] = []
         last = {m.a.camera_id: i for i, m in enumerate(live)}
         maps = {}
