@@ -112,7 +112,7 @@ class FusionConfig:
     pair_checks: bool = False          # the default measurement's brightness match and pose term (fusion/measure.py)
     far_parallax_px: float = 0.5       # a pair's far limit, as the dense method's AT_INFINITY rule
     overlap_predict: bool = True       # predict on a worker thread beside the measurements (module docstring) ...
-    overlap_min_cells: int = 100_000   # ... for states of at least this many cells
+    overlap_min_cells: int = 150_000   # ... for states of at least this many cells (320 x 320 and smaller: in turn)
     lr_check_kinds: tuple = ()         # measurements also made b -> a, a's pixels b contradicts not fused (step 3)
     lr_check: LRCheckConfig = field(default_factory=LRCheckConfig)
     stereo_free_space: bool = True     # with the stereo pair checked both ways: cells its b -> a sees through emptied
