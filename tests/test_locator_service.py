@@ -487,8 +487,10 @@ def test_locator_publishes_fused_maps(flight_frames):
             errs.append(float(np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok])))
         assert peaks[0] == 1 and peaks[-1] >= 3 and peaks == sorted(peaks), peaks   # evidence accumulates
         assert max(errs) < 0.05, errs
-        c = counters()
-        assert c["maps_fused"] == N_FRAMES - 1 and c.get("locate_errors", 0) == 0
+        # health is published on its own period: the count may trail the last map by one period (seen under load)
+        c = wait_until(lambda: (lambda x: x if x.get("maps_fused") == N_FRAMES - 1 else None)(counters()), timeout=5,
+                       what="the health counting every fused map")
+        assert c.get("locate_errors", 0) == 0
         # per-stage timing (what eonav bench pipeline prints): one sample per fused map, the ages in pipeline order,
         # the locate's CPU apart from the fusion's
         lat = wait_until(lambda: (lambda x: x if x.get("cpu.publish", {}).get("n") == N_FRAMES - 1 else None)(
