@@ -46,9 +46,9 @@ from eonav.ranging.consistency import LRCheckConfig, inconsistent, lr_checked
 from eonav.ranging.methods._common import far_inverse_range
 from eonav.ranging.pair_policy import PosedFrameInfo
 from eonav.ranging.rangemap import VALID, RangeResult
+from eonav.ranging.tracks import recent_tracks
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
 from eonav.fusion.measure import add_pose_sigma, state_shift_px
-from eonav.ranging.tracks import recent_tracks
 from eonav.fusion.predict import ProcessNoise, predict, predict_job
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
