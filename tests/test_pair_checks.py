@@ -483,9 +483,9 @@ def test_fusion_adds_the_along_line_pose_error_to_the_sigma():
     seen = {}
     orig = seq_mod.FusionRunner._pose_along
 
-    def spy(self, m, res, state):
+    def spy(self, m, geo, res, state):
         before = res.inv_range_std_per_m.copy()
-        orig(self, m, res, state)
+        orig(self, m, geo, res, state)
         seen[m.a.seq] = (res.info["pair_check"], before, res.inv_range_std_per_m.copy(), m)
 
     from eonav.fusion.schedule import ScheduleConfig

@@ -78,8 +78,6 @@ def hololens_case(data):
 
 
 def kitti_case(data):
-    from dataclasses import replace
-
     from eonav.geometry.camera import VehicleState
     from eonav.fusion.sequence import FusionConfig
     from eonav.ranging.methods.flow_baseline import locate_sgbm
@@ -140,8 +138,6 @@ def held_single_line(state, truth, mask, mcfg):
     """The map without the held-single rule (``MapConfig.held_single`` off; the state is the same, only the map
     differs): its (error, coverage, z), and what the held cells with truth were (how many, how many it reported
     VALID, their median error there, the last measurement's flags). None when the rule is off or holds nothing."""
-    from dataclasses import replace
-
     from eonav.fusion.fused_map import fused_map, held_single
     from eonav.ranging.rangemap import FLAG_NAMES, VALID
     if not mcfg.held_single:

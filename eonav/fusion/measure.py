@@ -34,7 +34,7 @@ from eonav.fusion.state import F32, optional_kernels
 from eonav.ranging.methods._common import EpipolarMap
 from eonav.ranging.photometric import match_brightness, recent_means
 from eonav.ranging.rangemap import RangeResult
-from eonav.ranging.tracks import recent_pose_shift, recent_tracks
+from eonav.ranging.tracks import recent_pose_shift, recent_tracks, tukey_weights
 
 
 def add_pose_sigma(res: RangeResult, geo, shift_px: float) -> None:
@@ -78,7 +78,6 @@ def state_shift_px(rho_state: np.ndarray, var_state: np.ndarray, n_state: np.nda
     is the pose error's shift. Only cells of at least ``min_fused`` measurements whose 1-sigma moves the place by
     at most ``max_pred_px`` count. ``pose_shift_px`` sees only s's part across the lines: a match anywhere on its
     line fits some range. NaN with fewer than ``min_tracks`` such tracks."""
-    from eonav.ranging.tracks import tukey_weights
     if len(tracks) == 0:
         return float("nan")
     pa, pb = tracks.pts_a.astype(np.float64), tracks.pts_b.astype(np.float64)
@@ -91,15 +90,14 @@ def state_shift_px(rho_state: np.ndarray, var_state: np.ndarray, n_state: np.nda
     pa, pb, rho, sd = pa[ok], pb[ok], rho[ok], sd[ok]
     if len(rho) < min_tracks:
         return float("nan")
-    ca, cb = geo.cam_a, geo.cam_b
-    m = np.stack([np.ones(len(pa)), (pa[:, 0] - ca.cx) / ca.fx, (pa[:, 1] - ca.cy) / ca.fy], 1)
-    A = m @ np.asarray(geo.R_ba, float).T
-    t = np.asarray(geo.t_ba_m, float)
+    cb = geo.cam_b
+    A = geo.point_rays(pa)
+    t = np.asarray(geo.t_ba_m, float)[:, None]
 
-    def place(r):
-        X = A + r[:, None] * t[None, :]
+    def place(r):                            # eqs. (25)-(26) at each point's rho
+        X = A + r[None, :] * t
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.stack([cb.cx + cb.fx * X[:, 1] / X[:, 0], cb.cy + cb.fy * X[:, 2] / X[:, 0]], 1)
+            return np.stack([cb.cx + cb.fx * X[1] / X[0], cb.cy + cb.fy * X[2] / X[0]], 1)
 
     p0 = place(rho)
     spread = np.linalg.norm(place(rho + sd) - p0, axis=1)

@@ -243,10 +243,11 @@ class FusionRunner:
         for i, (m, (prior, res, _, _)) in enumerate(zip(live, results)):
             ref = m.a.camera_id
             t2 = time.perf_counter()
+            geo = pair_geometry(m.a.payload, m.b.payload)
             if "pair_check" in res.info:
-                self._pose_along(m, res, self.states[ref])
+                self._pose_along(m, geo, res, self.states[ref])
             used = self._after_measure(ref, prior, res)
-            rho_far = far_inverse_range(pair_geometry(m.a.payload, m.b.payload), self.config.far_parallax_px)
+            rho_far = far_inverse_range(geo, self.config.far_parallax_px)
             # (only a rig measures one frame twice: one camera's runs skip the copies)
             inst = (self._instant(ref, m.a) if self.config.n_per_instant and self.config.schedule.stereo_rig is not None
                     else None)
@@ -311,14 +312,13 @@ class FusionRunner:
             self.count("n_instant_capped", k)
         return k
 
-    def _pose_along(self, m, res, state: InverseRangeState) -> None:
+    def _pose_along(self, m, geo, res, state: InverseRangeState) -> None:
         """The pair checks' pose term along the epipolar lines too (``measure.state_shift_px``: the tracks' offsets
         from where the predicted state puts their points): what it finds beyond the across-line shift already in
         the sigma is added the same way (``add_pose_sigma``); ``res.info["pair_check"]["state_shift_px"]``."""
         check = res.info["pair_check"]
         if "tracks" not in check:
             return
-        geo = pair_geometry(m.a.payload, m.b.payload)
         tracks = recent_tracks(m.a.payload.image, m.b.payload.image)
         s = state_shift_px(state.rho, state.var, state.n, geo, tracks)
         check["state_shift_px"] = s

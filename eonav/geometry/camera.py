@@ -133,6 +133,14 @@ class PairGeometry:
         A2 = R[2, 0] * m0 + R[2, 1] * m1 + R[2, 2] * m2
         return A0, A1, A2, self.t_ba_m.astype(np.float32)
 
+    def point_rays(self, pts_a) -> np.ndarray:
+        """A = R_ba m (3 x n, float64) of points of a (n x 2, x y pixels): X_b / x_c = A + t rho, as ``ray_terms``
+        for any sub-pixel points (tracks) instead of the pixel grid."""
+        pts = np.asarray(pts_a, np.float64)
+        ca = self.cam_a
+        m = np.stack([np.ones(len(pts)), (pts[:, 0] - ca.cx) / ca.fx, (pts[:, 1] - ca.cy) / ca.fy])
+        return np.asarray(self.R_ba, float) @ m
+
     def map_to_b(self, inv_range_per_m, terms=None):
         """Exact pixel (u_b, v_b) in image b of each pixel of a at inverse range rho = 1/x_c (1/m).
 

@@ -145,10 +145,9 @@ def epipolar_residual_px(geo: PairGeometry, tracks: Tracks):
     baseline. The line runs through the point's image at rho = 0, (cx + fx A1 / A0, cy + fy A2 / A0), along the
     derivative of eqs. (25)-(26) there, (fx (B1 A0 - B0 A1), fy (B2 A0 - B0 A2)) (``EpipolarMap``'s C1, C2), with
     A = R_ba m, m = [1, x_p / fx, y_p / fy], B = t_ba."""
-    ca, cb = geo.cam_a, geo.cam_b
-    pa, pb = tracks.pts_a.astype(np.float64), tracks.pts_b.astype(np.float64)
-    m = np.stack([np.ones(len(pa)), (pa[:, 0] - ca.cx) / ca.fx, (pa[:, 1] - ca.cy) / ca.fy])
-    A = np.asarray(geo.R_ba, float) @ m
+    cb = geo.cam_b
+    pb = tracks.pts_b.astype(np.float64)
+    A = geo.point_rays(tracks.pts_a)
     B = np.asarray(geo.t_ba_m, float)
     with np.errstate(divide="ignore", invalid="ignore"):
         u0 = cb.cx + cb.fx * A[1] / A[0]
