@@ -1,6 +1,7 @@
 """The tracking benchmark's ``--window-floor KIND``: the dense method's window-residual floor reaches every fused
-measurement (``dense_measurement(window_floor=KIND)``) and keys the map cache (a default-floor cache must not be read
-back for a run with another floor, nor the reverse)."""
+measurement (``dense_measurement(window_floor=KIND)``) and keys the map cache by the floor the maps were made with (a
+cache of one floor must not be read back for a run with another; the fused measurement's default, "valid", is the
+same key as naming it)."""
 from __future__ import annotations
 
 import eonav.fusion.sequence as S
@@ -26,16 +27,27 @@ def _run(monkeypatch, tmp_path, *extra) -> list:
 
 
 def test_window_floor_reaches_the_measurements_and_the_cache_key(monkeypatch, tmp_path):
-    floors = _run(monkeypatch, tmp_path, "--window-floor", "valid")
-    assert floors and set(floors) == {"valid"}
-    assert [p.name for p in tmp_path.iterdir()] == ["approach-clear_0.5s_15hz_64x48_fused_seed0_floorvalid.pkl"]
-    assert _run(monkeypatch, tmp_path, "--window-floor", "valid") == []        # read back: nothing measured
-    assert set(_run(monkeypatch, tmp_path)) == {None}                           # default: another key, measured
+    floors = _run(monkeypatch, tmp_path, "--window-floor", "global")
+    assert floors and set(floors) == {"global"}
+    assert [p.name for p in tmp_path.iterdir()] == ["approach-clear_0.5s_15hz_64x48_fused_seed0.pkl"]
+    assert _run(monkeypatch, tmp_path, "--window-floor", "global") == []       # read back: nothing measured
+    assert set(_run(monkeypatch, tmp_path, "--window-floor", "sensor")) == {"sensor"}   # another key, measured
     assert sorted(p.name for p in tmp_path.iterdir()) == ["approach-clear_0.5s_15hz_64x48_fused_seed0.pkl",
-                                                           "approach-clear_0.5s_15hz_64x48_fused_seed0_floorvalid.pkl"]
+                                                           "approach-clear_0.5s_15hz_64x48_fused_seed0_floorsensor.pkl"]
 
 
-def test_window_floor_default_is_the_methods_own(monkeypatch, tmp_path):
+def test_window_floor_default_is_the_measurements_own(monkeypatch, tmp_path):
     floors = _run(monkeypatch, tmp_path)
     assert floors and set(floors) == {None}                                     # no window_floor passed at all
-    assert [p.name for p in tmp_path.iterdir()] == ["approach-clear_0.5s_15hz_64x48_fused_seed0.pkl"]
+    assert [p.name for p in tmp_path.iterdir()] == ["approach-clear_0.5s_15hz_64x48_fused_seed0_floorvalid.pkl"]
+    assert _run(monkeypatch, tmp_path, "--window-floor", "valid") == []        # the same maps: read back
+
+
+def test_the_fused_measurement_floors_at_the_valid_pixels_noise(monkeypatch):
+    """``dense_measurement`` hands the dense method window_floor="valid" unless told otherwise."""
+    import eonav.ranging.methods.dense as D
+    seen = []
+    monkeypatch.setattr(D, "locate_dense", lambda a, b, **kw: seen.append(kw.get("window_floor")))
+    S.dense_measurement(None, None)
+    S.dense_measurement(None, None, window_floor="global")
+    assert seen == ["valid", "global"]

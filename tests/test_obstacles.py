@@ -950,3 +950,36 @@ def test_latest_nav_joins_attitude_and_position_messages():
     assert stamp == 1_400_000 and state.position_ned_m[0] == pytest.approx(11.0)
     nav.add(1_500_000, [2.0, 0.0, 0.0, 0.0], nan3, nan3)                # not a unit quaternion: ignored
     assert nav.get()[1] == 1_400_000 and nav._q[0] == 1_400_000
+
+
+def test_mixture_sigma_against_a_sampled_mixture():
+    # equal sigmas: that sigma
+    assert ob.mixture_sigma(np.full(50, 2.0)) == pytest.approx(2.0, rel=1e-6)
+    # 80 % of the points with sigma 1, 20 % with 10: the 95 % quantile of |a sample of that mixture| / 1.645
+    # (an independent figure: 2e6 seeded draws), far above the median sigma (1)
+    rng = np.random.default_rng(11)
+    s = np.where(np.arange(100) < 80, 1.0, 10.0)
+    draws = rng.standard_normal(2_000_000) * np.repeat(s, 20_000)
+    q95 = np.quantile(draws, 0.95)
+    assert ob.mixture_sigma(s) == pytest.approx(q95 / 1.6448536, rel=0.01)
+    assert ob.mixture_sigma(s) > 4.0
+    assert math.isnan(ob.mixture_sigma(np.array([])))
+
+
+def test_obstacle_carries_its_pixels_range_noise():
+    # a wall at 20 m whose pixels have sigma_rho 1e-4 (4 cm) except a band of 16 of its 64 columns at 2e-3 (0.8 m; on the analysis grid's cells):
+    # the median sigma is the quiet pixels', the noise that spreads the face along the ray is the mixture's
+    r = add_wall(ground_and_sky(), 20.0, 128, 192)
+    std = np.full(r.shape, 1e-4, np.float32)
+    std[:, 144:160] = 2e-3
+    res = ob.analyse(r, CAM, LEVEL, inv_range_std_per_m=std, cfg=CFG)
+    o, = res.obstacles
+    assert o.range_std_m == pytest.approx(1e-4 * 400, rel=0.01)
+    # a quarter of the wall's cells are noisy; at its foot the component takes a few more ground rows in the quiet
+    # columns than in the noisy ones (the range jump test scales with the sigma): 22-25 % of its pixels
+    lo, hi = (ob.mixture_sigma(np.array([0.04, 0.8]), np.array([1.0 - f, f])) for f in (0.22, 0.25))
+    assert lo <= o.range_noise_std_m <= hi
+    # weighted: a point standing for more pixels counts more
+    assert ob.mixture_sigma(np.array([0.04, 0.8]), np.array([3.0, 1.0])) == pytest.approx(
+        ob.mixture_sigma(np.repeat([0.04, 0.8], [48, 16])), rel=1e-9)
+    assert o.range_noise_std_m > 5 * o.range_std_m

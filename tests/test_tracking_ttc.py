@@ -86,6 +86,28 @@ def test_range_noise_left_in_the_extent_makes_contact_early():
     assert early and max(early) < -0.10
 
 
+def test_the_noise_taken_out_is_the_pixels_mixture_not_their_median():
+    # a face head-on at 80 m: 80 % of its pixels with a 0.8 m range sigma, 20 % with 8 m (near the focus of
+    # expansion, little parallax); its points' 5..95 % spread along the ray is the mixture's, 3.29 x mixture_sigma
+    st = VehicleState.from_ypr([70.0, 0.0, -5.0], [0.0, 0.0, 0.0])
+    from eonav.obstacles.detect import mixture_sigma
+    s_mix = mixture_sigma(np.where(np.arange(100) < 80, 0.8, 8.0))
+    spread = 3.29 * s_mix
+
+    def measured(noise_std):
+        o = Obstacle(id=1, distance_m=80.0, distance_median_m=80.0, horizontal_distance_m=80.0, bearing_deg=0.0,
+                     elevation_deg=0.0, range_std_m=0.8, position_ned_m=[WALL_N, 0.0, -5.0],
+                     extent_ned_m=[spread, 12.0, 8.0], width_m=12.0, height_m=8.0, pixel_count=3000,
+                     confidence=0.9, bbox_px=[100, 80, 219, 159], range_noise_std_m=noise_std)
+        m, = T.measurements_from_obstacles([o], CAM, st)
+        return m.object_extent_ned_m[0]
+
+    assert measured(s_mix) == pytest.approx(0.0, abs=1e-6)        # the face: no depth of its own
+    # with the median sigma alone (an obstacle without the field) most of the spread stays as depth, and the box
+    # stands that much in front of the face
+    assert measured(float("nan")) > 0.9 * spread
+
+
 def test_range_noise_extent_per_axis():
     # on the axis the ray per metre of range is [1, 0, 0]; off the axis [1, a, b] spreads the noise sideways too
     np.testing.assert_allclose(T.range_noise_extent([1.0, 0.0, 0.0], 2.0), [6.58, 0.0, 0.0])

@@ -14,7 +14,8 @@ assertions.
 
 ``--match-blur``: the dense method's resolution match (``locate_dense(match_blur=True)``, off by default) in the
 fused measurements and the single pairs alike; ``--window-floor``: its window residual's floor likewise
-(``locate_dense(window_floor=...)``, e.g. "valid").
+(``locate_dense(window_floor=...)``; without it each takes its own default: "valid" for the fused measurements,
+``eonav.fusion.sequence.dense_measurement``, "global" for the single pairs, the dense method's).
 ``--pair-checks``: the simulated sequences' measurements with the pair checks (``FusionConfig.pair_checks``, as the
 real sequences have them); ``--attitude-noise-deg S``: each simulated frame's attitude as a navigation source with a
 white error of S per body axis would give it (the images and the truth stay the true poses').
@@ -402,8 +403,8 @@ def add_arguments(p):
     p.add_argument("--match-blur", action="store_true",
                    help="the dense method's resolution match (locate_dense(match_blur=True); off by default)")
     p.add_argument("--window-floor", default=None, choices=("global", "valid", "sensor", "mid"),
-                   help="the dense method's floor of the window residual (locate_dense(window_floor=...); default: "
-                        "the method's own, 'global')")
+                   help="the dense method's floor of the window residual (locate_dense(window_floor=...)) in the fused "
+                        "measurements and the single pairs alike (default: their own, 'valid' and 'global')")
     p.add_argument("--pair-checks", action="store_true",
                    help="simulated sequences: the measurement's pair checks (brightness match and pose term, "
                         "FusionConfig.pair_checks; the real sequences have them on)")

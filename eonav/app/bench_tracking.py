@@ -70,6 +70,7 @@ from eonav.geometry.camera import VehicleState, View
 from eonav.obstacles.detect import ObstacleConfig, analyse
 from eonav.obstacles.tracking import (ConeConfig, FieldOfView, Ownship, Tracker, TrackerConfig, assess,
                                       box_entry_time, measurements_from_obstacles, nearest_threat)
+from eonav.fusion.sequence import MEASUREMENT_WINDOW_FLOOR
 from eonav.fusion.update import UpdateConfig
 from eonav.ranging.pair_policy import PairPolicy, PosedFrameInfo
 from eonav.ranging.rangemap import FILLED, OCCLUDED, VALID
@@ -263,7 +264,7 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
                 lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
                 supersample: int = SUPERSAMPLE, window_floor: str | None = None):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window, the window floor (``_floor<KIND>``, dense and fused maps) and, fused with a rig, ``stereo_lead_k`` and a
+    seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window, the window floor the maps were made with (``_floor<KIND>`` unless "global"; fused maps' default is "valid") and, fused with a rig, ``stereo_lead_k`` and a
     non-zero ``skipped_free_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
@@ -274,6 +275,9 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
         lead["slant"] = True
     if window_floor and maps in ("dense", "fused"):
         lead["window_floor"] = window_floor
+    # the floor the maps were made with keys the cache (named unless "global"): the fused measurement's own default
+    # is "valid" (``dense_measurement``), the dense method's "global"
+    floor = window_floor or (MEASUREMENT_WINDOW_FLOOR if maps == "fused" else "global")
     if skipped_free_k and "stereo_lead_k" in lead:
         lead["skipped_free_k"] = skipped_free_k
     lead["supersample"] = supersample
@@ -289,7 +293,7 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
                               f"{'_arrival' if rig_order == 'arrival' and 'rig_order' in lead else ''}"
                               f"{'_lr-' + '-'.join(lr_check) if lr_check else ''}"
                               f"{'_slant' if lead.get('slant') else ''}"
-                              f"{'_floor' + lead['window_floor'] if 'window_floor' in lead else ''}"
+                              f"{'_floor' + floor if floor != 'global' and maps != 'truth' else ''}"
                               f"{f'_free{skipped_free_k:g}' if 'skipped_free_k' in lead else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
@@ -559,7 +563,8 @@ def add_arguments(p) -> None:
                    help="render each pixel as the mean of N x N samples over its area (1: point sampling)")
     p.add_argument("--window-floor", default=None, choices=("global", "valid", "sensor", "mid"),
                    help="dense and fused maps: the dense method's floor of the window residual "
-                        "(locate_dense(window_floor=...); default: the method's own, 'global')")
+                        "(locate_dense(window_floor=...); default: the measurement's own, 'valid' for fused maps "
+                             "(eonav.fusion.sequence.dense_measurement), 'global' for dense ones)")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="store the range maps here and reuse them on the next run with the same settings")
     p.add_argument("--rate", dest="rate_hz", type=float, default=argparse.SUPPRESS, help=argparse.SUPPRESS)

@@ -61,16 +61,23 @@ def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrame
     return PosedFrameInfo(str(camera_id), int(seq), int(stamp_us), view.camera, view.state, payload=view)
 
 
-def dense_measurement(view_a: View, view_b: View, pair_checks: bool = False, **prior) -> RangeResult:
+MEASUREMENT_WINDOW_FLOOR = "valid"
+
+
+def dense_measurement(view_a: View, view_b: View, pair_checks: bool = False,
+                      window_floor: str = MEASUREMENT_WINDOW_FLOOR, **prior) -> RangeResult:
     """The default measurement: the dense method, measured pixels only (the fused map fills once, at the end);
     ``pair_checks``: after the pair's brightness match and with its pose error in the sigma
     (``eonav.fusion.measure``); ``prior``: ``prior=(rho, sigma)`` on view a's grid (the predicted state) and its
-    options (``locate_dense``)."""
+    options (``locate_dense``). ``window_floor``: the window residual's floor, by default the noise of the pixels the
+    method ranges ("valid"), not of every pixel in view: the filter weighs each measurement by its sigma, and the
+    in-view figure scales every sigma with the share of sky and occlusions in the frame (docs/methods.md, "The
+    fused measurement's noise floor")."""
     if pair_checks:
         from eonav.fusion.measure import checked_dense
-        return checked_dense(view_a, view_b, **prior)
+        return checked_dense(view_a, view_b, window_floor=window_floor, **prior)
     from eonav.ranging.methods.dense import locate_dense
-    return locate_dense(view_a, view_b, fill=False, **prior)
+    return locate_dense(view_a, view_b, fill=False, window_floor=window_floor, **prior)
 
 
 @dataclass(frozen=True)

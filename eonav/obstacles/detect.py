@@ -163,6 +163,8 @@ class Obstacle:
     pixel_count: int
     confidence: float              # median confidence of its pixels
     bbox_px: list                  # [u_min, v_min, u_max, v_max]
+    range_noise_std_m: float = math.nan  # sigma of the 5..95 % span its pixels' range noise spreads them over
+                                         # (``mixture_sigma``; NaN: not given, range_std_m stands in)
 
     def to_msg(self) -> dict:
         # shallow (the fields are numbers and flat lists): dataclasses.asdict's deep copy costs more than the rest
@@ -758,9 +760,11 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
         sg = pts.sigma_m[grp_p] if pts.sigma_m is not None else None
         if sg is not None and np.isfinite(sg).any():
             std = float(_pct_sorted(np.sort(sg[np.isfinite(sg)]), 50.0))
+            noise_std = mixture_sigma(sg[np.isfinite(sg)], pts.weight[grp_p][np.isfinite(sg)])
         else:
             rmed = _pct_sorted(np.sort(rr), 50.0)
             std = float(1.4826 * _pct_sorted(np.sort(np.abs(rr - rmed)), 50.0))
+            noise_std = std                           # no per-pixel sigma: the spread, as range_std_m
         gy, gx = np.divmod(grp_px, gw)
         out.append(Obstacle(
             id=0, distance_m=float(_pct_sorted(dist_s, q)), distance_median_m=float(_pct_sorted(dist_s, 50.0)),
@@ -772,9 +776,32 @@ def _components(pts: Points, sel, camera: Camera, grid: tuple, k: int, state: Ve
             pixel_count=int(round(pts.weight[grp_p].sum())),
             confidence=float(_pct_sorted(np.sort(pts.confidence[grp_p]), 50.0)),
             bbox_px=_frame_bbox(gx.min() * k, gy.min() * k, min(W - 1, gx.max() * k + k - 1),
-                                min(H - 1, gy.max() * k + k - 1), W, H, FW, FH)))
+                                min(H - 1, gy.max() * k + k - 1), W, H, FW, FH), range_noise_std_m=noise_std))
     out.sort(key=lambda o: o.distance_m)
     return out, kept
+
+
+def mixture_sigma(sigma_m: np.ndarray, weight=None, p: float = 0.95) -> float:
+    """The sigma of the normal distribution whose 5..95 % span is that of the mixture of N(0, s_i^2) (weights
+    ``weight``: the full-resolution pixels each point stands for; equal by default): points each off by its own range
+    noise spread as the mixture does, wider than the median sigma says where a few pixels carry most of the noise
+    (a face near the focus of expansion, its centre ranged from little parallax). Bisection on the mixture's CDF."""
+    from scipy.special import ndtr
+    s = np.asarray(sigma_m, float)
+    w = np.ones(s.shape) if weight is None else np.asarray(weight, float)
+    keep = (s > 0) & (w > 0)
+    if not keep.any():
+        return math.nan
+    s, w = s[keep], w[keep] / w[keep].sum()
+    z = 1.6448536269514722                                # the standard normal's 95 % quantile
+    lo, hi = float(s.min()) * z, float(s.max()) * z
+    for _ in range(40):                                   # 2^-40 of the bracket
+        q = 0.5 * (lo + hi)
+        if float(w @ ndtr(q / s)) < p:
+            lo = q
+        else:
+            hi = q
+    return 0.5 * (lo + hi) / z
 
 
 def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) -> tuple:
