@@ -120,7 +120,9 @@ def scenario(name: str, seconds: float | None = None, slope_deg: float = 5.0,
         wall = Box.on_ground("wall", 150.0, 0.0, 3.0, 12.0, 8.0, albedo=120.0, contrast=30.0)
         return Scenario(name, "approach", seconds or 10.0, clear=True, boxes=(wall,), ttc_box="wall")
     if name in ("moving", "moving-stereo"):
-        crosser = Mover(Box.on_ground("crosser", 110.0, -30.0, 4.5, 2.0, 1.8, yaw_deg=90.0, albedo=110.0), (0.0, 6.0, 0.0))
+        # the crosser drives across the oncoming vehicle's lane 12-15 m behind it (it crossed at north 110 m until
+        # the two solid boxes passed through each other for 0.9 s: docs/guidance.md, "Moving obstacles")
+        crosser = Mover(Box.on_ground("crosser", 125.0, -30.0, 4.5, 2.0, 1.8, yaw_deg=90.0, albedo=110.0), (0.0, 6.0, 0.0))
         oncoming = Mover(Box.on_ground("oncoming", 140.0, -7.0, 5.0, 2.0, 2.2, albedo=140.0), (-8.0, 0.0, 0.0))
         return Scenario(name, "approach", seconds or 7.0, clear=True, movers=(crosser, oncoming),
                         rig_baseline_m=(rig_baseline_m or STEREO_BASELINE_M) if name == "moving-stereo" else 0.0)
