@@ -471,7 +471,13 @@ def test_locator_publishes_fused_maps(flight_frames):
                 wait_until(lambda: counters().get("fusion.policy.first_frame") == 1, timeout=10,
                            what="frame 0 taken as the first frame")
             else:
-                wait_until(lambda: len(drain(maps_sub, maps)) >= i, timeout=20, what=f"fused map {i}")
+                # the locator's own count (computed and put) apart from the delivery, so that a failure says which
+                try:
+                    wait_until(lambda: counters().get("maps_fused", 0) >= i, timeout=30,
+                               what=f"the locator's health counting fused map {i}")
+                    wait_until(lambda: len(drain(maps_sub, maps)) >= i, timeout=20, what=f"fused map {i} delivered")
+                except AssertionError as e:
+                    raise AssertionError(f"{e}; locator counters {counters()}") from None
                 wait_until(lambda: len(drain(obs_sub, obstacles)) >= i, timeout=20, what=f"obstacle list {i}")
             time.sleep(max(0.0, stamp / 1e6 + 2.0 / RATE_HZ - time.time()))
         peaks, errs = [], []
