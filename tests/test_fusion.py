@@ -582,6 +582,27 @@ def test_predict_into_a_used_state_equals_predict_into_a_fresh_one(kernels):
         assert np.array_equal(getattr(p0, name), getattr(p1, name), equal_nan=True), name
 
 
+@pytest.mark.skipif(optional_kernels() is None, reason="numba not installed")
+def test_a_warp_across_many_rows_into_a_used_state_equals_one_into_a_fresh_one():
+    # the warp empties its output rows as its scatter reaches them: points that move many rows up and down (a roll
+    # of 25 deg about the optical axis, a yaw of 10 deg) must meet emptied cells, not the used state's contents
+    rng = np.random.default_rng(4)
+    c = cam(80, 60)
+    st = planar_state(c, 1 / 15.0)
+    st.rho[rng.random(st.shape) < 0.3] = np.nan
+    new = VehicleState.from_ypr([0.5, 0.2, 0.0], np.deg2rad([10.0, 3.0, 25.0]), 0.1)
+    dirty = planar_state(c, 0.4, var=0.5)
+    dirty.n[...], dirty.flags[...], dirty.du[...] = 9, 255, 0.3
+    p0 = predict(st, c, new, 0.1, kernels=True)
+    p1 = predict(st, c, new, 0.1, kernels=True, out=dirty)
+    ref = predict(st, c, new, 0.1, kernels=False)
+    assert np.isnan(p0.rho).any() and np.isfinite(p0.rho).any()
+    for name in ("rho", "var", "a", "b", "n", "du", "dv", "flags"):
+        assert np.array_equal(getattr(p0, name), getattr(p1, name), equal_nan=True), name
+    assert np.array_equal(np.isfinite(p0.rho), np.isfinite(ref.rho))
+    assert np.allclose(p0.rho[np.isfinite(ref.rho)], ref.rho[np.isfinite(ref.rho)], rtol=1e-5)
+
+
 # --- weak measurements -------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("kernels", PATHS)

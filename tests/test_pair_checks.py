@@ -510,3 +510,23 @@ def test_fusion_adds_the_along_line_pose_error_to_the_sigma():
     extra = np.sqrt(np.maximum(after[ok].astype(float) ** 2 - before[ok].astype(float) ** 2, 0))
     along = np.sqrt(max(check["state_shift_px"] ** 2 - np.nan_to_num(check["pose_shift_px"]) ** 2, 0))
     assert np.median(extra) == pytest.approx(along / (f * 0.3), rel=0.05)
+
+
+def test_median_1d_is_np_median():
+    from eonav.ranging.photometric import _median
+    from eonav.ranging.tracks import median_1d
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 5, 10, 11, 100, 101):
+        for _ in range(50):
+            x = rng.standard_normal(n) * rng.uniform(1e-3, 1e3)
+            if rng.random() < 0.2:
+                x[rng.integers(n)] = np.nan
+            if rng.random() < 0.2:
+                x = np.round(x) * 0.0          # signed zeros
+            a, b = float(np.median(x)), median_1d(x)
+            assert (np.isnan(a) and np.isnan(b)) or a.hex() == b.hex()
+            x32 = x.astype(np.float32)
+            a32, b32 = np.median(x32), _median(x32)
+            assert type(a32) is type(b32) and (np.isnan(a32) and np.isnan(b32) or a32.tobytes() == b32.tobytes())
+    x = rng.standard_normal((6, 5))
+    assert median_1d(x) == float(np.median(x))

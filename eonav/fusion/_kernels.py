@@ -92,19 +92,14 @@ def exp_nonpositive(x):
 def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
          o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags):
     """Every occupied source cell's point into the new grid (predict's module docstring): the output arrays are
-    first emptied (any contents: a reused state; C-contiguous); where several points land on one pixel the largest
+    emptied (any contents: a reused state; C-contiguous); where several points land on one pixel the largest
     rho_new wins (the first of equal ones). cam0, cam1: (fx, fy, cx, cy) of the source and the new camera. Returns the number of
-    cells written."""
+    cells written. The output rows are emptied as the scatter first reaches them (``_clear_rows``; the rest at the
+    end), not all up front: a state larger than the core's cache then takes its empty values while the rows the
+    points land in are still cached (a motion moves points by a few rows), not once more from memory."""
     h, w = rho.shape
     h1, w1 = o_rho.shape
-    o_rho[:] = np.nan            # (whole-array fills: memset speed)
-    o_var[:] = np.inf
-    o_a[:] = 0.0
-    o_b[:] = 0.0
-    o_n[:] = 0
-    o_du[:] = 0.0
-    o_dv[:] = 0.0
-    o_flags[:] = 0
+    cleared = 0                  # output rows [0, cleared) emptied so far
     f32 = np.float32
     fx0, fy0, cx0, cy0 = cam0[0], cam0[1], cam0[2], cam0[3]
     fx1, fy1, cx1, cy1 = cam1[0], cam1[1], cam1[2], cam1[3]
@@ -153,6 +148,14 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
             b_dv[x] = vn - vi
             b_rn[x] = rn
             b_var[x] = var[y, x] * j * j + q * rn * rn + q_abs
+        top = -1                          # the row's farthest target row
+        for x in range(w):
+            T = b_tgt[x]
+            if T > top:
+                top = T
+        if top >= 0 and top // w1 >= cleared:
+            _clear_rows(o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags, cleared, top // w1 + 1)
+            cleared = top // w1 + 1
         for x in range(w):
             T = b_tgt[x]
             if T < 0:
@@ -172,7 +175,25 @@ def warp(rho, var, a, b, n, du, dv, flags, R, t, cam0, cam1, q, q_abs,
             f_flags[T] = flags[y, x]
             f_du[T] = b_du[x]
             f_dv[T] = b_dv[x]
+    _clear_rows(o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags, cleared, h1)
     return written
+
+
+@njit(**_JIT)
+def _clear_rows(o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags, y0, y1):
+    """Rows y0 .. y1 - 1 of the warp's outputs emptied (contiguous fills)."""
+    if y1 <= y0:
+        return
+    o_rho[y0:y1] = np.nan
+    o_var[y0:y1] = np.inf
+    o_a[y0:y1] = 0.0
+    o_b[y0:y1] = 0.0
+    o_n[y0:y1] = 0
+    o_du[y0:y1] = 0.0
+    o_dv[y0:y1] = 0.0
+    o_flags[y0:y1] = 0
+
+
 
 
 @njit(**_JIT)

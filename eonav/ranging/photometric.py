@@ -19,7 +19,7 @@ import numpy as np
 
 from eonav import InputError
 from eonav.geometry.camera import View
-from eonav.ranging.tracks import IdentityMemo, Tracks, track_points, tukey_weights
+from eonav.ranging.tracks import IdentityMemo, Tracks, median_1d, track_points, tukey_weights
 
 
 @dataclass(frozen=True)
@@ -36,6 +36,11 @@ def _sample(img_f32: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Bilinear samples of an image at points (n x 2, x y)."""
     m = pts.reshape(1, -1, 2).astype(np.float32)
     return cv2.remap(img_f32, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+
+
+def _median(x: np.ndarray):
+    """``np.median`` of a 1-D array, the same value in the array's dtype (``median_1d``, without its overhead)."""
+    return x.dtype.type(median_1d(x))
 
 
 def box_means(img: np.ndarray, window: int) -> np.ndarray:
@@ -76,7 +81,7 @@ def fit_brightness(img_a: np.ndarray, img_b: np.ndarray, tracks: Tracks | None =
         return BrightnessFit(1.0, 0.0, n, False, f"{n} tracked points (< {min_points})")
     ma = _sample(means(img_a, window), tracks.pts_a)
     mb = _sample(means(img_b, window), tracks.pts_b)
-    if 1.4826 * np.median(np.abs(mb - np.median(mb))) < min_spread:
+    if 1.4826 * _median(np.abs(mb - _median(mb))) < min_spread:
         return BrightnessFit(1.0, 0.0, n, False, f"brightness spread of the points below {min_spread:g} grey levels")
     X = np.stack([mb, np.ones_like(mb)], axis=1).astype(np.float64)
     y = ma.astype(np.float64)
@@ -86,7 +91,7 @@ def fit_brightness(img_a: np.ndarray, img_b: np.ndarray, tracks: Tracks | None =
         sw = np.sqrt(w)
         p = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)[0]
         w = tukey_weights(y - X @ p, 0.5)
-        if (w > 0).sum() < min_points:
+        if np.count_nonzero(w > 0) < min_points:
             return BrightnessFit(1.0, 0.0, n, False, "too few inliers of the brightness fit")
     gain, offset = float(p[0]), float(p[1])
     if not (1.0 / max_gain_ratio <= gain <= max_gain_ratio):
