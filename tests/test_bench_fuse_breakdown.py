@@ -112,3 +112,28 @@ def test_attitude_noise_turns_each_frame_by_the_given_sigma():
                and n.image is v.image for n, v in zip(noisy, views))
     again = with_attitude_noise(views, 0.1, seed=4)
     assert all(np.array_equal(a.state.T_body_ned, n.state.T_body_ned) for a, n in zip(again, noisy))
+
+
+def test_slant_goes_to_the_fused_measurements_only(monkeypatch):
+    # bench fuse --slant: the fused measurements take slant=True, the single pairs (the ratio's denominator) stay the
+    # default dense method: their rows are the same as without it
+    import eonav.fusion.sequence as sequence
+    from eonav.app.bench_fuse import run_case, sim_case
+    seen = []
+    plain = sequence.dense_measurement
+
+    def spy(a, b, **kw):
+        seen.append(kw.get("slant", False))
+        return plain(a, b, **kw)
+    monkeypatch.setattr(sequence, "dense_measurement", spy)
+    rows, slants = {}, {}
+    for fused in (None, {"slant": True}):
+        case = sim_case("fast", 3, 30.0, 160, seed=0)
+        out = []
+        seen.clear()
+        run_case(case, out, None, fused)
+        rows[bool(fused)], slants[bool(fused)] = out, list(seen)
+    assert slants[True] and all(slants[True]) and not any(slants[False])
+    assert rows[True] and [r["frame"] for r in rows[True]] == [r["frame"] for r in rows[False]]
+    assert [r["dense newest"] for r in rows[False]] == [r["dense newest"] for r in rows[True]]
+    assert [r["fused"] for r in rows[False]] != [r["fused"] for r in rows[True]]

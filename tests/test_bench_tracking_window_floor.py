@@ -51,3 +51,32 @@ def test_the_fused_measurement_floors_at_the_valid_pixels_noise(monkeypatch):
     S.dense_measurement(None, None)
     S.dense_measurement(None, None, window_floor="global")
     assert seen == ["valid", "global"]
+
+
+def test_match_blur_and_slant_px_reach_the_fused_maps_and_key_the_cache(monkeypatch, tmp_path):
+    # --match-blur: every fused measurement with match_blur=True; --slant-px: the fused map's slant term; both key
+    # the cache (_mb, _spx<PX>), so neither reads back maps made without them
+    seen, cfgs = [], []
+    real = S.dense_measurement
+
+    def spy(*args, **kw):
+        seen.append((kw.get("slant", False), kw.get("match_blur", False)))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(S, "dense_measurement", spy)
+    runner = S.FusionRunner.__init__
+
+    def keep(self, config=None, *a, **kw):
+        cfgs.append(config)
+        return runner(self, config, *a, **kw)
+
+    monkeypatch.setattr(S.FusionRunner, "__init__", keep)
+    assert B.main([*TINY, "--cache-dir", str(tmp_path), "--slant", "--match-blur", "--slant-px", "0.9"]) == 0
+    assert seen and set(seen) == {(True, True)}
+    assert [c.output.slant_px for c in cfgs] == [0.9]
+    assert [p.name for p in tmp_path.iterdir()] == [
+        "approach-clear_0.5s_15hz_64x48_fused_seed0_slant_mb_spx0.9_floorvalid.pkl"]
+    seen.clear()
+    assert B.main([*TINY, "--cache-dir", str(tmp_path), "--slant"]) == 0
+    assert seen and set(seen) == {(True, False)}
+    assert len(list(tmp_path.iterdir())) == 2

@@ -16,6 +16,9 @@ assertions.
 fused measurements and the single pairs alike; ``--window-floor``: its window residual's floor likewise
 (``locate_dense(window_floor=...)``; without it each takes its own default: "valid" for the fused measurements,
 ``eonav.fusion.sequence.dense_measurement``, "global" for the single pairs, the dense method's).
+``--slant``: the dense method's slanted window (``locate_dense(slant=True)``, off by default) in the fused
+measurements only: the single pairs, the ratio's denominator, stay the default dense method. ``--slant-px PX``: the
+fused map's slant term (``MapConfig.slant_px``) for every sequence.
 ``--pair-checks``: the simulated sequences' measurements with the pair checks (``FusionConfig.pair_checks``, as the
 real sequences have them); ``--attitude-noise-deg S``: each simulated frame's attitude as a navigation source with a
 white error of S per body axis would give it (the images and the truth stay the true poses').
@@ -223,9 +226,10 @@ def fmt(e, c):
     return f"{100 * e:6.2f}% {100 * c:5.1f}%" if np.isfinite(e) else "     -       -  "
 
 
-def run_case(case: SeqCase, out: list, dense_params: dict | None = None) -> dict:
+def run_case(case: SeqCase, out: list, dense_params: dict | None = None, fused_params: dict | None = None) -> dict:
     """One sequence (module docstring); ``dense_params``: options of the dense method (``locate_dense``) for the
-    fused measurements and the single pairs alike (e.g. match_blur=True)."""
+    fused measurements and the single pairs alike (e.g. match_blur=True); ``fused_params``: more options for the
+    fused measurements only (e.g. slant=True)."""
     from functools import partial
 
     from eonav.app.bench_locate import z_by_range, z_range_line
@@ -235,9 +239,11 @@ def run_case(case: SeqCase, out: list, dense_params: dict | None = None) -> dict
     dense, dis = get_method("dense"), get_method("dis")
     if dense_params:
         dense = partial(dense, **dense_params)
+    if dense_params or fused_params:
+        mparams = dict(dense_params or {}, **(fused_params or {}))
 
         def measure(a, b, **kw):          # the runner's default measurement with the options (and the pair checks)
-            return dense_measurement(a, b, pair_checks=case.config.pair_checks, **dense_params, **kw)
+            return dense_measurement(a, b, pair_checks=case.config.pair_checks, **mparams, **kw)
         runner = FusionRunner(case.config, measure=measure, fresh_measurements=True, takes_prior=True)
     else:
         runner = FusionRunner(case.config)
@@ -405,6 +411,11 @@ def add_arguments(p):
     p.add_argument("--window-floor", default=None, choices=("global", "valid", "sensor", "mid"),
                    help="the dense method's floor of the window residual (locate_dense(window_floor=...)) in the fused "
                         "measurements and the single pairs alike (default: their own, 'valid' and 'global')")
+    p.add_argument("--slant", action="store_true",
+                   help="the dense method's slanted window (locate_dense(slant=True)) in the fused measurements only "
+                        "(the single pairs stay the default dense method)")
+    p.add_argument("--slant-px", type=float, default=None,
+                   help="the fused map's slant term (MapConfig.slant_px; default its own)")
     p.add_argument("--pair-checks", action="store_true",
                    help="simulated sequences: the measurement's pair checks (brightness match and pose term, "
                         "FusionConfig.pair_checks; the real sequences have them on)")
@@ -452,7 +463,12 @@ def run(args) -> int:
             case.name += ", pair checks"
         params = dict({"match_blur": True} if args.match_blur else {},
                       **({"window_floor": args.window_floor} if args.window_floor else {}))
-        summaries[case.name] = run_case(case, rows, params or None)
+        if args.slant_px is not None:
+            case.config = replace(case.config, output=replace(case.config.output, slant_px=args.slant_px))
+            case.name += f", slant_px {args.slant_px:g}"
+        if args.slant:
+            case.name += ", fused slanted window"
+        summaries[case.name] = run_case(case, rows, params or None, {"slant": True} if args.slant else None)
     print_targets(summaries)
     if args.json:
         with open(args.json, "w") as f:

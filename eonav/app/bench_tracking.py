@@ -53,7 +53,8 @@ Per box (ground truth: the renderer's object ids and the solid box):
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
         [--follow-k K] [--follow-fraction F] [--layer-gap-rel G] [--rig-baseline-m M] [--rig-order partner-first|arrival]
-        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--window-floor KIND] [--supersample N]
+        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--match-blur] [--slant-px PX] [--window-floor KIND]
+        [--supersample N]
         [--cache-dir DIR]
 """
 from __future__ import annotations
@@ -189,12 +190,15 @@ def frames(sc: Scenario, rate_hz: float, size, seed: int = 0, supersample: int =
 def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: int = 0,
                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
                lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
-               supersample: int = SUPERSAMPLE, window_floor: str | None = None):
+               supersample: int = SUPERSAMPLE, window_floor: str | None = None, match_blur: bool = False,
+               slant_px: float | None = None):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
     confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene.
     ``lr_check``: fused, the measurement kinds checked left-right (``FusionConfig.lr_check_kinds``); dense, any: every
     pair checked (method "dense_lr"). ``slant``: fused, measured by the dense method's slanted window
-    (``locate_dense(slant=True)``). ``window_floor``: fused and dense, the dense method's floor of the window residual
+    (``locate_dense(slant=True)``); ``match_blur``: fused, the dense method's resolution match
+    (``locate_dense(match_blur=True)``); ``slant_px``: fused, the fused map's slant term (``MapConfig.slant_px``; None:
+    its default). ``window_floor``: fused and dense, the dense method's floor of the window residual
     (``locate_dense(window_floor=...)``; None: its default). ``supersample``: the renders' samples per pixel along each
     axis (``frames``)."""
     from eonav.ranging.locate import locate
@@ -210,7 +214,9 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
                            lr_check_kinds=tuple(lr_check))
         if sc.rig_baseline_m > 0:
             cfg = replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
-        dense_params = dict({"slant": True} if slant else {},
+        if slant_px is not None:
+            cfg = replace(cfg, output=replace(cfg.output, slant_px=float(slant_px)))
+        dense_params = dict({"slant": True} if slant else {}, **({"match_blur": True} if match_blur else {}),
                             **({"window_floor": window_floor} if window_floor else {}))
         if dense_params:
             from functools import partial
@@ -264,9 +270,10 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
 def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_dir: str | None,
                 stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
                 lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
-                supersample: int = SUPERSAMPLE, window_floor: str | None = None):
+                supersample: int = SUPERSAMPLE, window_floor: str | None = None, match_blur: bool = False,
+                slant_px: float | None = None):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
-    seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window, the window floor the maps were made with (``_floor<KIND>`` unless "global"; fused maps' default is "valid") and, fused with a rig, ``stereo_lead_k`` and a
+    seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window, the resolution match and the fused map's ``slant_px`` when given (``_mb``, ``_spx<PX>``), the window floor the maps were made with (``_floor<KIND>`` unless "global"; fused maps' default is "valid") and, fused with a rig, ``stereo_lead_k`` and a
     non-zero ``skipped_free_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
@@ -275,6 +282,10 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
         lead["lr_check"] = tuple(lr_check)
     if slant and maps == "fused":
         lead["slant"] = True
+    if match_blur and maps == "fused":
+        lead["match_blur"] = True
+    if slant_px is not None and maps == "fused":
+        lead["slant_px"] = float(slant_px)
     if window_floor and maps in ("dense", "fused"):
         lead["window_floor"] = window_floor
     # the floor the maps were made with keys the cache (named unless "global"): the fused measurement's own default
@@ -295,6 +306,8 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
                               f"{'_arrival' if rig_order == 'arrival' and 'rig_order' in lead else ''}"
                               f"{'_lr-' + '-'.join(lr_check) if lr_check else ''}"
                               f"{'_slant' if lead.get('slant') else ''}"
+                              f"{'_mb' if lead.get('match_blur') else ''}"
+                              f"{f'_spx{slant_px:g}' if 'slant_px' in lead else ''}"
                               f"{'_floor' + floor if floor != 'global' and maps != 'truth' else ''}"
                               f"{f'_free{skipped_free_k:g}' if 'skipped_free_k' in lead else ''}.pkl")
     if path.exists():
@@ -561,6 +574,10 @@ def add_arguments(p) -> None:
                         "(FusionConfig.lr_check_kinds; default none); dense maps: any checks every pair")
     p.add_argument("--slant", action="store_true",
                    help="fused maps: the dense method's slanted window (slant=True)")
+    p.add_argument("--match-blur", action="store_true",
+                   help="fused maps: the dense method's resolution match (match_blur=True)")
+    p.add_argument("--slant-px", type=float, default=None, metavar="PX",
+                   help="fused maps: the fused map's slant term (MapConfig.slant_px; default its own)")
     p.add_argument("--supersample", type=int, default=SUPERSAMPLE, metavar="N",
                    help="render each pixel as the mean of N x N samples over its area (1: point sampling)")
     p.add_argument("--window-floor", default=None, choices=("global", "valid", "sensor", "mid"),
@@ -588,7 +605,7 @@ def main(argv=None) -> int:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
                    tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order,
                    tuple(k for k in args.lr_check.split(",") if k), args.slant, args.skipped_free_k, args.supersample,
-                   args.window_floor)
+                   args.window_floor, args.match_blur, args.slant_px)
     return 0
 
 
@@ -606,15 +623,18 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
            tcfg: TrackerConfig = TrackerConfig(), cache_dir: str | None = None,
            stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
            lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
-           supersample: int = SUPERSAMPLE, window_floor: str | None = None) -> dict:
+           supersample: int = SUPERSAMPLE, window_floor: str | None = None, match_blur: bool = False,
+           slant_px: float | None = None) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
     rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check, slant,
-                                     skipped_free_k, supersample, window_floor), sc, ocfg, tcfg)
+                                     skipped_free_k, supersample, window_floor, match_blur, slant_px), sc, ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = (f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
              f"{', left-right check ' + ','.join(lr_check) if lr_check else ''}"
              f"{', slanted window' if slant and maps == 'fused' else ''}"
+             f"{', resolution match' if match_blur and maps == 'fused' else ''}"
+             f"{f', slant_px {slant_px:g}' if slant_px is not None and maps == 'fused' else ''}"
              f"{f', window floor {window_floor}' if window_floor and maps in ('dense', 'fused') else ''}"
              f"{f', skipped_free_k {skipped_free_k:g}' if skipped_free_k and maps == 'fused' else ''}")
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]} "
