@@ -89,3 +89,29 @@ def test_recorded_hits_on_a_rendered_flight_leave_the_coast_unscored():
     assert v["frames"] >= 5 and v["coast_frames"] >= 20
     assert len(set(v["coast_rel_err"])) == 1                       # one coasting value, counted once a frame
     assert min(v["rel_err"]) < 0.05 < v["coast_rel_err"][0]       # while measured it is near the truth
+
+
+def _footprints_overlap(a: Box, b: Box) -> bool:
+    """Whether two boxes standing on the ground (yaw a multiple of 90 deg) overlap in north-east: their footprints'
+    half extents along N and E are |R| half."""
+    ha, hb = (np.abs(x.R_ned_local[:2, :2]) @ x.half_m[:2] for x in (a, b))
+    return bool(np.all(np.abs(np.asarray(a.center_ned_m[:2]) - np.asarray(b.center_ned_m[:2])) < ha + hb))
+
+
+@pytest.mark.parametrize("name", ["moving", "moving-stereo"])
+def test_the_moving_scenarios_vehicles_never_pass_through_each_other(name):
+    sc = B.scenario(name, 8.0)
+    crosser, oncoming = sc.movers
+
+    def overlaps(c, t):
+        at = [replace(m.box, center_ned_m=tuple(np.asarray(m.box.center_ned_m) + t * np.asarray(m.velocity_ned_mps)))
+              for m in (c, oncoming)]
+        return _footprints_overlap(*at)
+
+    times = np.arange(0.0, sc.seconds + 1e-9, 0.01)
+    assert not any(overlaps(crosser, t) for t in times)
+    # the check sees an intersection: the crosser on its former lane (north 110 m) met the oncoming vehicle from
+    # 3.31 to 4.19 s (crosser east -30 + 6 t +- 2.25 m, north 110 +- 1; oncoming north 140 - 8 t +- 2.5, east -7 +- 1)
+    old = replace(crosser, box=replace(crosser.box, center_ned_m=(110.0, *crosser.box.center_ned_m[1:])))
+    hit = [t for t in times if overlaps(old, t)]
+    assert hit and hit[0] == pytest.approx(3.32, abs=0.011) and hit[-1] == pytest.approx(4.18, abs=0.011)
