@@ -414,7 +414,7 @@ def add_arguments(p):
     p.add_argument("--slant", action="store_true",
                    help="the dense method's slanted window (locate_dense(slant=True)) in the fused measurements only "
                         "(the single pairs stay the default dense method)")
-    p.add_argument("--slant-px", type=float, default=None,
+    p.add_argument("--slant-px", type=float, default=None, metavar="PX",
                    help="the fused map's slant term (MapConfig.slant_px; default its own)")
     p.add_argument("--pair-checks", action="store_true",
                    help="simulated sequences: the measurement's pair checks (brightness match and pose term, "
