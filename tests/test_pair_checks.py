@@ -1,12 +1,14 @@
 """The pair checks of the fusion's measurement: sparse tracks, the pose error they show (eonav.ranging.tracks), the
 affine brightness fit (eonav.ranging.photometric) and the pose term of the sigma (eonav.fusion.measure), against
 synthetic pairs of known geometry and brightness, and the real HoloLens sequence's one inconsistent pose."""
+import math
 from dataclasses import replace
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
+from scipy.stats import norm
 
 from eonav import InputError
 from eonav.fusion.measure import add_pose_sigma, checked_dense
@@ -530,3 +532,79 @@ def test_median_1d_is_np_median():
             assert type(a32) is type(b32) and (np.isnan(a32) and np.isnan(b32) or a32.tobytes() == b32.tobytes())
     x = rng.standard_normal((6, 5))
     assert median_1d(x) == float(np.median(x))
+
+
+def _innovations(n, sigma_true, tau, s_state, seed=5, outliers=0.0):
+    """A confident state (mu 0.02 1/m, sigma s_state) and a measurement x = mu + N(0, sigma_true) reporting tau."""
+    rng = np.random.default_rng(seed)
+    mu = np.full(n, 0.02, np.float32)
+    x = (mu + sigma_true * rng.standard_normal(n)).astype(np.float32)
+    if outliers:
+        k = int(outliers * n)
+        x[:k] = rng.uniform(0.0, 0.1, k)                      # gross mismatches anywhere in range
+    return (x, np.full(n, tau, np.float32), np.ones(n, bool), mu, np.full(n, s_state ** 2, np.float32),
+            np.ones(n, bool))
+
+
+def test_innovation_scale_recovers_an_under_reported_sigma():
+    # true spread 0.002, reported 0.001, state 0.0005: c^2 tau^2 + s^2 = sigma^2 -> c = sqrt(4 - 0.25) = 1.936
+    from eonav.fusion.measure import innovation_scale
+    want = math.sqrt(0.002 ** 2 - 0.0005 ** 2) / 0.001
+    assert innovation_scale(*_innovations(20000, 0.002, 0.001, 0.0005)) == pytest.approx(want, rel=0.03)
+    # a tenth of the pixels gross mismatches: the MAD of the rest is read at their 0.5 / 0.9 quantile, 0.765 sigma
+    # instead of 0.674 (x 1.134): c = sqrt((1.134 sigma)^2 - s^2) / tau, 2.21, where the plain spread would be 6
+    wide = 1.4826 * 0.002 * float(norm.ppf((0.5 / 0.9 + 1) / 2))
+    assert innovation_scale(*_innovations(20000, 0.002, 0.001, 0.0005, outliers=0.1)) == pytest.approx(
+        math.sqrt(wide ** 2 - 0.0005 ** 2) / 0.001, rel=0.03)
+
+
+def test_innovation_scale_both_sides_of_an_honest_sigma():
+    from eonav.fusion.measure import innovation_scale
+    s = 0.0005
+    honest = math.sqrt(0.002 ** 2 - s ** 2)
+    # reported 10 % wide: never scaled down
+    assert innovation_scale(*_innovations(20000, 0.002, 1.1 * honest, s)) == 1.0
+    # reported 10 % narrow: scaled up by about as much (the state's part is fixed: a bit more than 1.1)
+    c = innovation_scale(*_innovations(20000, 0.002, honest / 1.1, s))
+    assert 1.07 < c < 1.14
+    # too few confident pixels: no scale; a hopeless sigma: at most max_scale
+    assert innovation_scale(*_innovations(400, 0.002, 0.0005, s)) == 1.0
+    assert innovation_scale(*_innovations(20000, 0.002, 1e-6, s)) == 10.0
+
+
+def test_runner_scales_a_measurement_sigma_its_innovations_contradict():
+    # a confident state on a 120 x 160 grid (rho 0.05 1/m, sigma 0.5 %, four measurements, evidence agreeing) and a
+    # measurement off by 2 % of rho that says 0.5 %: the runner's check scales its sigma by
+    # sqrt(2^2 - 0.5^2) / 0.5 = 3.87 in place and counts it; where the state's cells hold one measurement, or their
+    # evidence disagrees, it has nothing to judge by and leaves the sigma as it is
+    from eonav.fusion.sequence import FusionConfig, FusionRunner
+    from eonav.fusion.state import InverseRangeState
+    from eonav.ranging.rangemap import VALID
+    cam = Camera("c", 160, 120, 100.0, 100.0, 79.5, 59.5)
+    rng = np.random.default_rng(12)
+
+    def state(n, a):
+        st = InverseRangeState.empty(cam, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), 0.0)
+        st.rho[:] = 0.05
+        st.var[:] = (0.05 * 0.005) ** 2
+        st.n[:], st.a[:], st.b[:] = n, a, 1.0
+        return st
+
+    def measurement():
+        rho = (0.05 * (1.0 + 0.02 * rng.standard_normal((120, 160)))).astype(np.float32)
+        return SimpleNamespace(inv_range_per_m=rho, inv_range_std_per_m=np.full((120, 160), 0.05 * 0.005, np.float32),
+                               flags=np.full((120, 160), VALID, np.uint8), info={"pair_check": {}})
+
+    runner = FusionRunner(FusionConfig(pair_checks=True))
+    res = measurement()
+    runner._against_state(res, state(4, 7.0))
+    c = res.info["pair_check"]["innovation_scale"]
+    assert c == pytest.approx(math.sqrt(0.02 ** 2 - 0.005 ** 2) / 0.005, rel=0.03)
+    np.testing.assert_allclose(res.inv_range_std_per_m, np.float32(0.05 * 0.005) * np.float32(c), rtol=1e-6)
+    assert runner.counts.get("innovation_scaled") == 1
+    for st in (state(1, 7.0), state(4, 1.0)):            # one measurement; evidence 1 : 1 (below eta_inlier)
+        res = measurement()
+        runner._against_state(res, st)
+        assert res.info["pair_check"]["innovation_scale"] == 1.0
+        assert np.all(res.inv_range_std_per_m == np.float32(0.05 * 0.005))
+    assert runner.counts.get("innovation_scaled") == 1

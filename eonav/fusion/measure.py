@@ -17,6 +17,11 @@ that one pair alone does not need but a filter fusing many does.
    state knows the tracks' points well, each point has one place in b under the pair's pose, and the tracks'
    offsets from those places show the pose error's shift along the lines too; what exceeds the across-line shift
    enters the sigma the same way.
+4. The sigma against the state (``innovation_scale``, applied by the runner last): where the predicted state is
+   confident, a measurement's innovations x - mu must spread as sqrt(tau^2 + s^2) says. Where they spread wider,
+   the pair's sigma tau misses an error the checks above do not model (the rest of a pose error, a rolling
+   shutter, a lighting change) and is scaled by the c >= 1 that makes the innovations' robust spread 1; never
+   scaled down (the state shares the pair's older frame: its innovations understate the error).
 
 The tracks cost a few milliseconds per pair (``track_points``; the pair the scheduler's pose check tracked already is
 not tracked again, ``recent_tracks``, nor its shift fitted again, ``recent_pose_shift``; each frame's tracking level,
@@ -34,7 +39,7 @@ from eonav.fusion.state import F32, optional_kernels
 from eonav.ranging.methods._common import EpipolarMap
 from eonav.ranging.photometric import match_brightness, recent_means
 from eonav.ranging.rangemap import RangeResult
-from eonav.ranging.tracks import recent_pose_shift, recent_tracks, tukey_weights
+from eonav.ranging.tracks import median_1d, recent_pose_shift, recent_tracks, tukey_weights
 
 
 def add_pose_sigma(res: RangeResult, geo, shift_px: float) -> None:
@@ -115,6 +120,33 @@ def state_shift_px(rho_state: np.ndarray, var_state: np.ndarray, n_state: np.nda
     return float(np.hypot(*s))
 
 
+def innovation_scale(rho_m: np.ndarray, std_m: np.ndarray, measured: np.ndarray, rho_state: np.ndarray,
+                     var_state: np.ndarray, confident: np.ndarray, min_cells: int = 500, max_cells: int = 4096,
+                     max_scale: float = 10.0) -> float:
+    """The factor c >= 1 by which a measurement's sigma falls short of its innovations against the predicted state:
+    over the pixels both ``measured`` and ``confident`` in the state, z = (x - mu) / sqrt(c^2 tau^2 + s^2) has a
+    robust spread (1.4826 MAD) of 1 (Brent's root on c; at most ``max_cells`` pixels, an even stride over them). 1
+    when the spread at c = 1 is at most 1 or fewer than ``min_cells`` pixels qualify; at most ``max_scale``."""
+    from scipy.optimize import brentq
+    sel = np.flatnonzero(measured & confident)
+    if sel.size < min_cells:
+        return 1.0
+    sel = sel[:: max(1, sel.size // max_cells)]
+    d = rho_m.ravel()[sel].astype(np.float64) - rho_state.ravel()[sel]
+    t2 = np.square(std_m.ravel()[sel].astype(np.float64))
+    s2 = var_state.ravel()[sel].astype(np.float64)
+
+    def excess(c: float) -> float:                       # robust spread of z at c, minus 1: falls as c grows
+        z = d / np.sqrt(c * c * t2 + s2)
+        return 1.4826 * median_1d(np.abs(z - median_1d(z))) - 1.0
+
+    if not excess(1.0) > 0.0:
+        return 1.0
+    if excess(max_scale) > 0.0:
+        return float(max_scale)
+    return float(brentq(excess, 1.0, max_scale, xtol=1e-4))
+
+
 def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_sigma: bool = True,
                   **dense_params) -> RangeResult:
     """The dense method on (a, b) without its fill, after the brightness match, its sigma with the pose term
@@ -135,4 +167,4 @@ def checked_dense(view_a: View, view_b: View, *, brightness: bool = True, pose_s
     return res
 
 
-__all__ = ["checked_dense", "add_pose_sigma", "state_shift_px"]
+__all__ = ["checked_dense", "add_pose_sigma", "state_shift_px", "innovation_scale"]

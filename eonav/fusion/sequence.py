@@ -45,10 +45,10 @@ from eonav.geometry.camera import View, pair_geometry
 from eonav.ranging.consistency import LRCheckConfig, inconsistent, lr_checked
 from eonav.ranging.methods._common import far_inverse_range
 from eonav.ranging.pair_policy import PosedFrameInfo
-from eonav.ranging.rangemap import VALID, RangeResult
+from eonav.ranging.rangemap import FILLED, VALID, RangeResult
 from eonav.ranging.tracks import recent_tracks
 from eonav.fusion.fused_map import MapConfig, fused_map, update_and_map
-from eonav.fusion.measure import add_pose_sigma, state_shift_px
+from eonav.fusion.measure import add_pose_sigma, innovation_scale, state_shift_px
 from eonav.fusion.predict import ProcessNoise, predict, predict_job
 from eonav.fusion.schedule import NEAR, STEREO, WIDE, ScheduleConfig, Scheduler
 from eonav.fusion.state import F32, InverseRangeState, optional_kernels
@@ -62,6 +62,9 @@ def frame(camera_id: str, view: View, stamp_us: int, seq: int = 0) -> PosedFrame
 
 
 MEASUREMENT_WINDOW_FLOOR = "valid"
+# the state cells the pair checks judge a measurement's sigma against (``FusionRunner._against_state``)
+AGAINST_MIN_FUSED = 3
+AGAINST_MIN_INLIER = 0.8
 
 
 def dense_measurement(view_a: View, view_b: View, pair_checks: bool = False,
@@ -253,6 +256,7 @@ class FusionRunner:
             geo = pair_geometry(m.a.payload, m.b.payload)
             if "pair_check" in res.info:
                 self._pose_along(m, geo, res, self.states[ref])
+                self._against_state(res, self.states[ref])
             used = self._after_measure(ref, prior, res)
             rho_far = far_inverse_range(geo, self.config.far_parallax_px)
             # (only a rig measures one frame twice: one camera's runs skip the copies)
@@ -334,6 +338,22 @@ class FusionRunner:
         if math.isfinite(s) and s > across:
             add_pose_sigma(res, geo, math.sqrt(s * s - across * across))
             self.count("pose_along_added")
+
+    def _against_state(self, res, state: InverseRangeState) -> None:
+        """The pair checks' last one: the measurement's sigma scaled by ``measure.innovation_scale``, judged on its
+        VALID pixels (the weak ones' sigma is wide by construction) against the predicted state's confident cells
+        (at least ``AGAINST_MIN_FUSED`` measurements, E[inlier ratio] at least ``AGAINST_MIN_INLIER``);
+        ``res.info["pair_check"]["innovation_scale"]``."""
+        rho, std = res.inv_range_per_m, res.inv_range_std_per_m
+        with np.errstate(invalid="ignore"):
+            confident = ((state.n >= AGAINST_MIN_FUSED) & np.isfinite(state.rho)
+                         & (state.a >= np.float32(AGAINST_MIN_INLIER) * (state.a + state.b)))
+        valid = (res.flags & np.uint8(VALID | FILLED)) == np.uint8(VALID)
+        c = innovation_scale(rho, std, valid & np.isfinite(rho) & (std > 0), state.rho, state.var, confident)
+        res.info["pair_check"]["innovation_scale"] = c
+        if c > 1.0:
+            std *= np.float32(c)
+            self.count("innovation_scaled")
 
     def _overlap_predict(self, state: InverseRangeState) -> bool:
         """Whether predict of ``state`` runs beside the measurements (``FusionConfig.overlap_predict``): with numba,
