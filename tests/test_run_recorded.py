@@ -217,9 +217,11 @@ def test_eonav_run_poses_and_ranges_every_frame_of_a_recording(rec, tmp_path, so
                     s.declare_subscriber(K.range_maps_all(vehicle), on_range),
                     s.declare_subscriber(K.health_all(vehicle), on_health)]
             try:
-                # the locator's own count: range maps are a CongestionControl.DROP channel (latest wins), so a
-                # loaded machine may drop one on its way to this client; every frame ranged is the locator's claim
-                wait_until(lambda: health.get("locator", {}).get("out.range_map", 0) >= N_FRAMES - 1, timeout=30,
+                # the services' own counts: posed frames and range maps are CongestionControl.DROP channels (latest
+                # wins), so a loaded machine may drop one on its way to this client; every frame posed is the sync's
+                # claim, every frame ranged the locator's
+                wait_until(lambda: health.get("locator", {}).get("out.range_map", 0) >= N_FRAMES - 1
+                           and health.get("sync", {}).get("out.posed_frame", 0) >= N_FRAMES, timeout=30,
                            period=0.2, what="range maps")
             except AssertionError:
                 raise AssertionError(f"{len(posed)} posed, {len(ranged)} ranged of {N_FRAMES}; "
@@ -239,22 +241,29 @@ def test_eonav_run_poses_and_ranges_every_frame_of_a_recording(rec, tmp_path, so
     err = proc.stderr.read()
     assert rc == 0, err
     assert "camera_nose=done" in err and "mavlink=done" in err and "config_error" not in err, err
-    # every frame posed, every frame after the first (no earlier frame to pair with) ranged
-    assert len(posed) == N_FRAMES and health["locator"]["out.range_map"] == N_FRAMES - 1
-    assert len(ranged) >= (N_FRAMES - 1) // 2          # delivered over the bus (best effort by design)
-    stamps = np.array(_stamps_us(rec))
-    bus = np.array(sorted(posed))
-    shifts = set((bus - stamps).tolist())
-    assert len(shifts) == 1                                    # one shift: the recorded spacing, to the microsecond
-    assert ranged <= set(bus[1:].tolist())            # only posed frames after the first are ranged
+    # every frame posed, every frame after the first (no earlier frame to pair with) ranged: the services' own counts
+    # (posed frames, like range maps, go out with CongestionControl.DROP, latest wins: a loaded machine may drop one
+    # on its way to this client, as seen once in CI with 15 of 16 delivered here and every frame ranged)
+    assert health["sync"]["out.posed_frame"] == N_FRAMES and health["locator"]["out.range_map"] == N_FRAMES - 1
+    assert len(posed) >= N_FRAMES - 1 and len(ranged) >= (N_FRAMES - 1) // 2   # delivered here (best effort)
+    stamps = [int(t) for t in _stamps_us(rec)]
+    bus = sorted(posed)
+    # one shift puts every posed stamp on a recorded one: the recorded spacing, to the microsecond
+    shifts = [bus[0] - t for t in stamps if {b - (bus[0] - t) for b in bus} <= set(stamps)]
+    assert shifts
     # in step with the navigation: each frame posed where the simulated vehicle was when it was taken (the MAVLink
     # ingest's NED origin is the tlog's first GLOBAL_POSITION_INT fix; the truth's is the recording's origin)
     truth = np.load(rec / "truth.npz")
     origin = json.loads((rec / "manifest.json").read_text())["origin_lla"]
     fix = _first_fix(rec / "flight.tlog")
     first_fix_ned = ned_from_lla(fix.lat * 1e-7, fix.lon * 1e-7, fix.alt * 1e-3, origin)
-    err_m = [np.linalg.norm(posed[b] - (p - first_fix_ned)) for b, p in zip(bus, truth["position_ned_m"])]
-    assert max(err_m) < 0.05, err_m       # 20 m/s: 0.05 m = 2.5 ms out of step
+    at = dict(zip(stamps, truth["position_ned_m"]))
+    # in step with the navigation under exactly one of the shifts (with a frame missing here, the recorded spacing
+    # also fits one frame period off: 4 m off in position at 20 m/s)
+    errs = [max(np.linalg.norm(posed[b] - (at[b - sh] - first_fix_ned)) for b in bus) for sh in shifts]
+    assert sum(e < 0.05 for e in errs) == 1, errs       # 20 m/s: 0.05 m = 2.5 ms out of step
+    shift = shifts[int(np.argmin(errs))]
+    assert ranged <= {t + shift for t in stamps[1:]}     # only frames after the first are ranged
 
 
 # ---- the example pipeline in deploy/ -------------------------------------------------------------------------
