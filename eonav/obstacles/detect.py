@@ -785,7 +785,9 @@ def mixture_sigma(sigma_m: np.ndarray, weight=None, p: float = 0.95) -> float:
     """The sigma of the normal distribution whose 5..95 % span is that of the mixture of N(0, s_i^2) (weights
     ``weight``: the full-resolution pixels each point stands for; equal by default): points each off by its own range
     noise spread as the mixture does, wider than the median sigma says where a few pixels carry most of the noise
-    (a face near the focus of expansion, its centre ranged from little parallax). Bisection on the mixture's CDF."""
+    (a face near the focus of expansion, its centre ranged from little parallax). Brent's root of the mixture's CDF
+    at ``p``, bracketed by the smallest and the largest sigma's quantile."""
+    from scipy.optimize import brentq
     from scipy.special import ndtr
     s = np.asarray(sigma_m, float)
     w = np.ones(s.shape) if weight is None else np.asarray(weight, float)
@@ -795,13 +797,9 @@ def mixture_sigma(sigma_m: np.ndarray, weight=None, p: float = 0.95) -> float:
     s, w = s[keep], w[keep] / w[keep].sum()
     z = 1.6448536269514722                                # the standard normal's 95 % quantile
     lo, hi = float(s.min()) * z, float(s.max()) * z
-    for _ in range(40):                                   # 2^-40 of the bracket
-        q = 0.5 * (lo + hi)
-        if float(w @ ndtr(q / s)) < p:
-            lo = q
-        else:
-            hi = q
-    return 0.5 * (lo + hi) / z
+    if not hi > lo:
+        return float(s[0])                                # one sigma: the mixture is that normal
+    return brentq(lambda q: float(w @ ndtr(q / s)) - p, lo, hi, xtol=1e-12 * hi) / z
 
 
 def split_layers(labels, n: int, log_range, mask, gap: float, min_cells: int) -> tuple:

@@ -348,7 +348,7 @@ def measurements_from_obstacles(obstacles, camera: Camera, state: VehicleState, 
         if not x_c > 0:
             continue                                  # cannot happen for a point of this map; nothing to track
         s_pix = float(o.range_std_m) if math.isfinite(o.range_std_m) else 0.0
-        s_noise = getattr(o, "range_noise_std_m", math.nan)
+        s_noise = float(o.range_noise_std_m)
         noise = range_noise_extent(R @ (p_cam / x_c), s_noise if math.isfinite(s_noise) else s_pix)
         # 15 % of the raw depth spread, range noise included, as before the noise was taken out of the extent:
         # the measurement sigma (and so the association) is unchanged (docs/guidance.md, head-on)
