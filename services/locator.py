@@ -661,6 +661,8 @@ def report_change(node: Node, camera_id: str, change) -> None:
         return
     node.count("scale_changes")
     node.count(f"scale_changes.{change.direction}")
+    if change.probe:
+        node.count("scale_changes.probe")
     node.log.info("camera %s: locate scale %g -> %g: %s", camera_id, change.old, change.new, change.reason)
 
 

@@ -324,3 +324,99 @@ def test_bad_latency_target():
     for bad in (0.0, -0.01, float("nan"), float("inf")):
         with pytest.raises(InputError):
             ScaleController(latency_target_s=bad)
+
+
+def stream(c, seconds, cost_s, age_s, stamp0_us, fps=30):
+    """``seconds`` of frames at ``fps``, each ranged at the current scale: compute ``cost_s(scale)`` and time per frame
+    ``age_s(scale)``; returns (the changes as (old, new, probe, stamp in s), the next stamp)."""
+    out, dt = [], int(round(1e6 / fps))
+    stamp = stamp0_us
+    for i in range(int(round(seconds * fps))):
+        c.observe_frame(stamp // dt, stamp)
+        s = c.scale
+        for ch in (c.observe_compute(s, cost_s(s)), c.observe_latency(s, age_s(s))):
+            if ch is not None:
+                out.append((ch.old, ch.new, ch.probe, round(stamp * 1e-6, 2)))
+        stamp += dt
+    return out, stamp
+
+
+# The 30 fps 640 x 480 locator at half scale: compute ~13 ms of a 20 ms budget, time per frame p90 ~20 ms of a 25 ms
+# target (above the 0.7 margin of the ordinary step up), at 0.3 ~6 / ~12 ms; full scale far over both.
+def cost_half(s):
+    return {1.0: 0.050, 0.5: 0.013, 0.3: 0.006}[s]
+
+
+def age_half(s):
+    return {1.0: 0.060, 0.5: 0.020, 0.3: 0.012}[s]
+
+
+def half_controller():
+    c = ScaleController(min_scale=0.3, latency_target_s=0.025)
+    c.calibrate({1.0: 0.05, 0.5: 0.013, 0.3: 0.006})
+    feed_frames(c, 2, interval_us=FPS30_US, seq0=-2, stamp0=1_000_000 - 2 * FPS30_US)   # the first pair's frames
+    assert c.scale == 0.5                                      # the calibrated start at a 20 ms budget
+    return c
+
+
+def test_a_transient_load_does_not_keep_the_scale_down():
+    c = half_controller()
+    ch, t = stream(c, 10.0, cost_half, age_half, 1_000_000)
+    assert c.scale == 0.5 and not ch                           # held 10 s: no change
+    # a 2 s burst of load: the maps take 40 ms: one step down
+    ch, t = stream(c, 2.0, cost_half, lambda s: 0.040, t)
+    assert [x[:3] for x in ch] == [(0.5, 0.3, False)]
+    down_at = ch[0][3]
+    # the load is gone; the ordinary rule would never step up (20 ms predicted x area ratio over 0.7 x 25 ms):
+    # the probe does, probe_s (5 s) after the step down, and the half scale holds from then on
+    ch, t = stream(c, 30.0, cost_half, age_half, t)
+    assert [x[:3] for x in ch] == [(0.3, 0.5, True)]
+    assert ch[0][3] - down_at == pytest.approx(5.0, abs=0.1)
+    assert c.scale == 0.5 and c.probes == 1 and c.probes_failed == 0
+
+
+def test_a_load_that_stays_is_probed_ever_less_often():
+    c = half_controller()
+    _, t = stream(c, 10.0, cost_half, age_half, 1_000_000)
+    # from now on the half scale's maps take 40 ms: down, then each probe fails and the next waits twice as long,
+    # up to probe_max_s
+    ch, t = stream(c, 200.0, cost_half, lambda s: {1.0: 0.08, 0.5: 0.040, 0.3: 0.012}[s], t)
+    ups = [x[3] for x in ch if x[2]]
+    downs = [x[3] for x in ch if not x[2]]
+    assert len(downs) == len(ups) + 1                          # every probe pushed off again
+    waits = [u - d for d, u in zip(downs, ups)]
+    assert waits == pytest.approx([5.0, 10.0, 20.0, 40.0, 60.0, 60.0], abs=0.1)   # each probe's verdict: 10 maps
+    assert c.probes == 6 and c.probes_failed == 6 and c.scale == 0.3
+    # a probe that holds resets the wait: the load goes, the next probe is back at probe_s
+    ch, t = stream(c, 120.0, cost_half, age_half, t)
+    assert [x[:3] for x in ch] == [(0.3, 0.5, True)] and c.scale == 0.5
+    _, t = stream(c, 3.0, cost_half, age_half, t)
+    ch, t = stream(c, 2.0, cost_half, lambda s: 0.040, t)
+    assert [x[:3] for x in ch] == [(0.5, 0.3, False)]
+    ch2, t = stream(c, 10.0, cost_half, age_half, t)
+    assert [x[:3] for x in ch2] == [(0.3, 0.5, True)] and ch2[0][3] - ch[0][3] == pytest.approx(5.0, abs=0.1)
+
+
+def test_a_rung_never_held_is_never_probed():
+    # the half scale never fits (its maps take 30 ms from the start): down to 0.3 within the first second, and no
+    # probe in the two minutes after: 0.5 was never held for hold_s
+    c = half_controller()
+    ch, _ = stream(c, 120.0, cost_half, lambda s: {1.0: 0.08, 0.5: 0.030, 0.3: 0.012}[s], 1_000_000)
+    assert [x[:3] for x in ch] == [(0.5, 0.3, False)] and ch[0][3] < 1.0 + 1.0
+    assert c.probes == 0 and c.scale == 0.3
+    # the rung held until the step down, 10 maps (0.33 s) into the load: 1.5 + 0.33 s, under hold_s (2 s): never
+    # probed; 2.0 + 0.33 s: probed
+    for held_s, probes in ((1.5, 0), (2.0, 1)):
+        c = half_controller()
+        _, t = stream(c, held_s, cost_half, age_half, 1_000_000)
+        ch, t = stream(c, 1.0, cost_half, lambda s: 0.040, t)
+        assert [x[:2] for x in ch] == [(0.5, 0.3)]
+        stream(c, 20.0, cost_half, age_half, t)
+        assert c.probes == probes, held_s
+
+
+def test_probe_settings_are_checked():
+    for kw in ({"probe_s": 0.0}, {"probe_s": 10.0, "probe_max_s": 5.0}, {"probe_max_s": float("inf")},
+               {"hold_s": 0.0}, {"hold_s": float("nan")}):
+        with pytest.raises(InputError):
+            ScaleController(**kw)

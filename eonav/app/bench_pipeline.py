@@ -188,9 +188,14 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
             comp = [v[1] * 1e3 for v in maps.values()]
             over = [v[2] * 1e3 for v in maps.values() if math.isfinite(v[2])]
             loc = health.get("locator", {}).get("counters", {})
-            scales = {}
-            for v in maps.values():
-                scales[f"{v[3]:g}"] = scales.get(f"{v[3]:g}", 0) + 1
+            scales, runs = {}, []              # maps per scale; the scale's runs in capture order [scale, maps]
+            for k in sorted(maps):
+                sc = f"{maps[k][3]:g}"
+                scales[sc] = scales.get(sc, 0) + 1
+                if runs and runs[-1][0] == sc:
+                    runs[-1][1] += 1
+                else:
+                    runs.append([sc, 1])
             obs_h = health.get("obstacles", {})
             res.update(frames_sent=len(sent), range_maps=len(maps), obstacle_lists=len(obs),
                        frames_dropped=len(sent) - len(maps), drop_fraction=(len(sent) - len(maps)) / max(1, len(sent)),
@@ -202,7 +207,8 @@ def bench_case(ep: str, fps: float, width: int, height: int, seconds: float, fra
                        locator_overhead_ms={"p50": _pct(over, 50), "p99": _pct(over, 99)},
                        obstacles_compute_ms=obs_h.get("latency_ms", {}).get("compute", {}),
                        locator_skipped=loc.get("frames_skipped", 0),
-                       maps_per_scale=scales, locator_scale_changes=loc.get("scale_changes", 0),
+                       maps_per_scale=scales, scale_runs=runs, locator_scale_changes=loc.get("scale_changes", 0),
+                       locator_scale_probes=loc.get("scale_changes.probe", 0),
                        locator_superseded=loc.get("frames_superseded", 0),
                        obstacles_superseded=obs_h.get("counters", {}).get("maps_superseded", 0),
                        range_map_payloads_via_shm=f"{shm['maps_shm']}/{shm['maps']}",
@@ -246,8 +252,11 @@ def run_bench(cases=DEFAULT_CASES, *, seconds: float = 8.0, method: str = "dense
                            vehicle=f"bench{k}", scale=scale, publish_grid=publish_grid)
             out.append(r)
             scales = ", ".join(f"{k}: {n}" for k, n in sorted(r["maps_per_scale"].items(), reverse=True))
+            runs = " -> ".join(f"{sc} x{n}" for sc, n in r["scale_runs"])
             print(f"{fps:4.0f} fps {w}x{h} {method} scale {scale} grid {publish_grid} (maps at {scales or '-'}; "
-                  f"{r['locator_scale_changes']} changes): capture->range p50 {r['capture_to_range_ms']['p50']:.0f} ms "
+                  f"{r['locator_scale_changes']} changes, {r['locator_scale_probes']} of them probes"
+                  f"{': ' + runs if len(r['scale_runs']) > 1 else ''}): capture->range p50 "
+                  f"{r['capture_to_range_ms']['p50']:.0f} ms "
                   f"p99 {r['capture_to_range_ms']['p99']:.0f} ms | capture->obstacles p50 "
                   f"{r['capture_to_obstacles_ms']['p50']:.0f} ms p99 {r['capture_to_obstacles_ms']['p99']:.0f} ms | "
                   f"{r['throughput_maps_hz']:.1f} maps/s, dropped {r['frames_dropped']}/{r['frames_sent']} (latest "

@@ -16,6 +16,16 @@ time for each published map (``observe_latency``: frame taken off the ring -> ma
 the recent ``latency_q`` quantile (0.9) of ``latency_window`` maps (30) exceeds the target; it steps up only when both the compute and the
 latency predicted at the rung above (the current quantile, over a whole window, times the rungs' cost ratio) stay
 below ``up_margin`` of their limits.
+
+The margin that keeps a rung at the boundary from oscillating also keeps the controller from coming back to a rung
+it held until a transient (a burst of load from another process, a pause) pushed it off: at 30 fps 640 x 480 the
+half-scale locator runs at ~80 % of its latency target, above the margin, and one two-second burst left it at the
+lowest rung for the rest of the run. So the controller remembers the highest rung it has held for ``hold_s`` of
+frame time (the camera's stamps, ``observe_frame``) and, while below it, probes the rung above after ``probe_s`` at
+the lower one: it steps up and lets the usual rules judge it. A probed rung pushed off again within ``hold_s``
+doubles the wait before the next probe, up to ``probe_max_s``; one that holds resets it. A rung never held (too
+costly from the start) is never probed, and a load that stays costs at most one verdict's worth of late maps per
+``probe_max_s``. Without frame stamps nothing is probed.
 """
 from __future__ import annotations
 
@@ -59,6 +69,7 @@ class ScaleChange:
     old: float
     new: float
     reason: str
+    probe: bool = False            # a step up that probes a rung held before (module docstring)
 
     @property
     def direction(self) -> str:
@@ -72,7 +83,7 @@ class ScaleController:
                  budget_fraction: float = 0.6, budget_bounds_s: tuple = (0.02, 0.2), window: int = 5,
                  min_samples: int = 3, up_after: int = 5, up_margin: float = 0.7, interval_window: int = 15,
                  latency_target_s: float | None = None, latency_window: int = 30, latency_min_samples: int = 10,
-                 latency_q: float = 0.9):
+                 latency_q: float = 0.9, probe_s: float = 5.0, probe_max_s: float = 60.0, hold_s: float = 2.0):
         if fixed is not None:
             fixed = parse_scale(fixed)
         if budget_s is not None and not (math.isfinite(budget_s) and budget_s > 0):
@@ -83,6 +94,9 @@ class ScaleController:
         if not (0 < up_margin < 1 and 0 < budget_fraction and window >= 1 and 1 <= min_samples <= window
                 and up_after >= 1 and 1 <= latency_min_samples <= latency_window and 0 < latency_q <= 1):
             raise InputError("scale controller: bad tuning parameters")
+        if not (0 < probe_s <= probe_max_s and math.isfinite(probe_max_s) and 0 < hold_s < math.inf):
+            raise InputError("scale controller: probe_s, probe_max_s and hold_s must be 0 < probe_s <= probe_max_s "
+                             "(finite) and hold_s > 0 (finite)")
         if latency_target_s is not None and not (math.isfinite(latency_target_s) and latency_target_s > 0):
             raise InputError(f"--latency-target-ms must be > 0, got {latency_target_s * 1e3!r}")
         self.latency_target_s = latency_target_s
@@ -102,6 +116,14 @@ class ScaleController:
         self._pending = None                         # (rung left, its median) until the new rung has min_samples
         self._calibrated: dict = {}                  # rung -> seconds of one locate call timed before any pair
         self._computed = 0                           # pairs observed (at any rung)
+        # probing a rung the controller was pushed off (module docstring); times are frame stamps (us)
+        self.probe_s, self.probe_max_s, self.hold_s = float(probe_s), float(probe_max_s), float(hold_s)
+        self._backoff_s = self.probe_s
+        self._home = None                            # index of the highest rung held for hold_s, if any
+        self._entered_us = None                      # frame stamp when the current rung was entered
+        self._probing = False                        # the current rung was entered by a probe, not yet held
+        self.probes = 0                              # probes made (failed ones: ``probes_failed``)
+        self.probes_failed = 0
 
     # -- inputs -------------------------------------------------------------------------------
     @property
@@ -119,6 +141,14 @@ class ScaleController:
         self._last_frame = (seq, stamp_us)
         if self._calibrated and not self._computed:
             self._i = self._calibrated_start()
+        if self._entered_us is None or self._entered_us > stamp_us:   # the first frame, or a replay restarted
+            self._entered_us = stamp_us
+        elif stamp_us - self._entered_us >= self.hold_s * 1e6 and self._computed:
+            if self._home is None or self._i < self._home:
+                self._home = self._i
+            if self._probing:                        # the probed rung held: the next probe waits the least again
+                self._probing = False
+                self._backoff_s = self.probe_s
 
     def calibrate(self, costs: dict) -> float:
         """Seconds of one locate call per rung ({scale: seconds}, timed before any pair: see the module docstring).
@@ -239,6 +269,10 @@ class ScaleController:
                                 f"{budget * 1e3:.1f} ms")
         if self._i == 0:
             return None
+        if self._probe_due():
+            self.probes += 1
+            return self._change(self._i - 1, f"probe: scale {self.ladder[self._i - 1]:g} was held before; "
+                                f"{self._backoff_s:g} s at {self.scale:g}", probe=True)
         up = self.ladder[self._i - 1]
         pred = self.predicted_s(up)
         if pred is not None and pred < self.up_margin * budget and self._latency_headroom(up):
@@ -250,7 +284,19 @@ class ScaleController:
             self._up_streak = 0
         return None
 
-    def _change(self, i: int, reason: str) -> ScaleChange:
+    def _probe_due(self) -> bool:
+        """Below the highest rung held, and ``_backoff_s`` of frame time at the current one (module docstring)."""
+        if self._home is None or self._i <= self._home or self._entered_us is None or self._last_frame is None:
+            return False
+        return self._last_frame[1] - self._entered_us >= self._backoff_s * 1e6
+
+    def _change(self, i: int, reason: str, probe: bool = False) -> ScaleChange:
+        if i > self._i and self._probing:            # a probed rung pushed off before it held: wait longer
+            self.probes_failed += 1
+            self._backoff_s = min(2.0 * self._backoff_s, self.probe_max_s)
+        self._probing = probe
+        if self._last_frame is not None:
+            self._entered_us = self._last_frame[1]
         old = self.scale
         m = self.measured_s(old)
         self._pending = None if m is None else (old, m)
@@ -258,4 +304,4 @@ class ScaleController:
         self._up_streak = 0
         self._cost[self.scale].clear()               # the new rung is judged on fresh samples only
         self._times.clear()
-        return ScaleChange(old, self.scale, reason)
+        return ScaleChange(old, self.scale, reason, probe)
