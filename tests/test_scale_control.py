@@ -372,7 +372,7 @@ def test_a_transient_load_does_not_keep_the_scale_down():
     ch, t = stream(c, 30.0, cost_half, age_half, t)
     assert [x[:3] for x in ch] == [(0.3, 0.5, True)]
     assert ch[0][3] - down_at == pytest.approx(5.0, abs=0.1)
-    assert c.scale == 0.5 and c.probes == 1 and c.probes_failed == 0
+    assert c.scale == 0.5 and c.probes == 1 and c.ups_failed == 0
 
 
 def test_a_load_that_stays_is_probed_ever_less_often():
@@ -386,7 +386,7 @@ def test_a_load_that_stays_is_probed_ever_less_often():
     assert len(downs) == len(ups) + 1                          # every probe pushed off again
     waits = [u - d for d, u in zip(downs, ups)]
     assert waits == pytest.approx([5.0, 10.0, 20.0, 40.0, 60.0, 60.0], abs=0.1)   # each probe's verdict: 10 maps
-    assert c.probes == 6 and c.probes_failed == 6 and c.scale == 0.3
+    assert c.probes == 6 and c.ups_failed == 6 and c.scale == 0.3
     # a probe that holds resets the wait: the load goes, the next probe is back at probe_s
     ch, t = stream(c, 120.0, cost_half, age_half, t)
     assert [x[:3] for x in ch] == [(0.3, 0.5, True)] and c.scale == 0.5
@@ -420,3 +420,20 @@ def test_probe_settings_are_checked():
                {"hold_s": 0.0}, {"hold_s": float("nan")}):
         with pytest.raises(InputError):
             ScaleController(**kw)
+
+
+def test_a_step_up_by_the_rule_pushed_off_makes_the_next_one_wait_too():
+    # the ordinary rule predicts that full scale fits (0.5 costs 5 ms, its maps 8 ms: 20 / 32 ms predicted, under 0.7
+    # x 40 / 50 ms), but full scale's maps take 60 ms: each step up is pushed off after one verdict (10 maps). The
+    # first step down (from the start, not a step up) lets the rule step up after a window of maps (30) and 5 pairs;
+    # without the wait it did so after every step down; with it the next steps up wait 10, 20, 40 s
+    c = ScaleController(budget_s=0.04, latency_target_s=0.05)
+    cost = lambda s: {1.0: 0.020, 0.5: 0.005}[s]
+    age = lambda s: {1.0: 0.060, 0.5: 0.008}[s]
+    ch, _ = stream(c, 90.0, cost, age, 1_000_000)
+    downs = [x[3] for x in ch if x[1] < x[0]]
+    ups = [x[3] for x in ch if x[1] > x[0]]
+    assert not any(x[2] for x in ch)                           # full scale never held: no probe, the rule alone
+    waits = [u - d for d, u in zip(downs, ups)]
+    assert waits == pytest.approx([1.17, 10.0, 20.0, 40.0], abs=0.2)
+    assert c.ups_failed == 4 and len(downs) == 5 and c.scale == 0.5

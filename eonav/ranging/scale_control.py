@@ -22,10 +22,11 @@ it held until a transient (a burst of load from another process, a pause) pushed
 half-scale locator runs at ~80 % of its latency target, above the margin, and one two-second burst left it at the
 lowest rung for the rest of the run. So the controller remembers the highest rung it has held for ``hold_s`` of
 frame time (the camera's stamps, ``observe_frame``) and, while below it, probes the rung above after ``probe_s`` at
-the lower one: it steps up and lets the usual rules judge it. A probed rung pushed off again within ``hold_s``
-doubles the wait before the next probe, up to ``probe_max_s``; one that holds resets it. A rung never held (too
-costly from the start) is never probed, and a load that stays costs at most one verdict's worth of late maps per
-``probe_max_s``. Without frame stamps nothing is probed.
+the lower one: it steps up and lets the usual rules judge it. A step up (a probe or the rule above) pushed off again
+within ``hold_s`` doubles the wait before the next step up, up to ``probe_max_s``, and the rule above waits it too
+(under a load that stays, its cost ratios, learnt at the changes, can predict a fit that is not there); a rung that
+holds resets the wait. A rung never held (too costly from the start) is never probed, and a load that stays costs
+at most one verdict's worth of late maps per ``probe_max_s``. Without frame stamps nothing is probed.
 """
 from __future__ import annotations
 
@@ -121,9 +122,10 @@ class ScaleController:
         self._backoff_s = self.probe_s
         self._home = None                            # index of the highest rung held for hold_s, if any
         self._entered_us = None                      # frame stamp when the current rung was entered
-        self._probing = False                        # the current rung was entered by a probe, not yet held
-        self.probes = 0                              # probes made (failed ones: ``probes_failed``)
-        self.probes_failed = 0
+        self._trying = False                         # the current rung was entered by a step up, not yet held
+        self._blocked = False                        # the last step up was pushed off: the next waits _backoff_s
+        self.probes = 0                              # probes made
+        self.ups_failed = 0                          # steps up (probes or not) pushed off before they held
 
     # -- inputs -------------------------------------------------------------------------------
     @property
@@ -146,8 +148,8 @@ class ScaleController:
         elif stamp_us - self._entered_us >= self.hold_s * 1e6 and self._computed:
             if self._home is None or self._i < self._home:
                 self._home = self._i
-            if self._probing:                        # the probed rung held: the next probe waits the least again
-                self._probing = False
+            if self._trying:                         # the rung stepped up to held: the next wait is the least again
+                self._trying = False
                 self._backoff_s = self.probe_s
 
     def calibrate(self, costs: dict) -> float:
@@ -275,7 +277,8 @@ class ScaleController:
                                 f"{self._backoff_s:g} s at {self.scale:g}", probe=True)
         up = self.ladder[self._i - 1]
         pred = self.predicted_s(up)
-        if pred is not None and pred < self.up_margin * budget and self._latency_headroom(up):
+        if (pred is not None and pred < self.up_margin * budget and self._latency_headroom(up)
+                and (not self._blocked or self._waited())):
             self._up_streak += 1
             if self._up_streak >= self.up_after:
                 return self._change(self._i - 1, f"predicted compute at scale {up:g} {pred * 1e3:.1f} ms below "
@@ -284,17 +287,24 @@ class ScaleController:
             self._up_streak = 0
         return None
 
-    def _probe_due(self) -> bool:
-        """Below the highest rung held, and ``_backoff_s`` of frame time at the current one (module docstring)."""
-        if self._home is None or self._i <= self._home or self._entered_us is None or self._last_frame is None:
+    def _waited(self) -> bool:
+        """``_backoff_s`` of frame time at the current rung."""
+        if self._entered_us is None or self._last_frame is None:
             return False
         return self._last_frame[1] - self._entered_us >= self._backoff_s * 1e6
 
+    def _probe_due(self) -> bool:
+        """Below the highest rung held, and waited long enough at the current one (module docstring)."""
+        return self._home is not None and self._i > self._home and self._waited()
+
     def _change(self, i: int, reason: str, probe: bool = False) -> ScaleChange:
-        if i > self._i and self._probing:            # a probed rung pushed off before it held: wait longer
-            self.probes_failed += 1
+        if i > self._i and self._trying:             # a step up pushed off before it held: the next one waits longer
+            self.ups_failed += 1
             self._backoff_s = min(2.0 * self._backoff_s, self.probe_max_s)
-        self._probing = probe
+            self._blocked = True
+        elif i < self._i:
+            self._blocked = False
+        self._trying = i < self._i
         if self._last_frame is not None:
             self._entered_us = self._last_frame[1]
         old = self.scale
