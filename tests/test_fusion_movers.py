@@ -12,7 +12,7 @@ from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
 from eonav.fusion.state import InverseRangeState
 from eonav.fusion.update import UpdateConfig, gate_motion, stereo_restart, stereo_skipped_free
 from eonav.geometry.camera import Camera, VehicleState
-from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
+from eonav.ranging.rangemap import FILLED, ILL_CONDITIONED, LOW_TEXTURE, OCCLUDED, OUT_OF_VIEW, TRUNCATION, VALID
 from eonav.sim.scene import Box, Scene
 
 F32 = np.float32
@@ -40,6 +40,36 @@ def test_a_motion_pixel_beyond_k_sigma_of_the_same_frames_stereo_pixel_is_not_fu
         gate_motion(rho_m, std_m, flags_m, rho_s[:, :4], std_s[:, :4], flags_s[:, :4])
     with pytest.raises(InputError, match="stereo_lead_k"):
         UpdateConfig(stereo_lead_k=-1.0)
+
+
+def test_a_motion_pixel_whose_stereo_pixel_failed_to_match_is_not_fused():
+    # every motion pixel agrees with rho 0.05 +- 0.003; the stereo pixels: VALID (agrees), OCCLUDED (as the dense
+    # method flags it, with OUT_OF_VIEW), TRUNCATION, OUT_OF_VIEW alone (the partner does not see the point),
+    # LOW_TEXTURE, a weak ILL_CONDITIONED one (its sigma alone: measured), and OCCLUDED under a motion pixel without
+    # a value
+    flags_s = np.array([[VALID, OCCLUDED | OUT_OF_VIEW, TRUNCATION, OUT_OF_VIEW, LOW_TEXTURE, ILL_CONDITIONED,
+                         OCCLUDED | OUT_OF_VIEW]], np.uint8)
+    rho_s = np.full((1, 7), 0.05, F32)
+    std_s = np.array([[0.004, 0.004, 0.004, 0.004, 0.004, 0.03, 0.004]], F32)      # pixel 5: sigma 0.6 x rho
+    std_m = np.full((1, 7), 0.003, F32)
+    flags_m = np.full((1, 7), VALID, np.uint8)
+
+    def motion():
+        r = np.full((1, 7), 0.05, F32)
+        r[0, 6] = np.nan
+        return r
+    rho_m = motion()
+    gated = gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, UpdateConfig(stereo_lead_k=3.0))
+    assert gated.tolist() == [[False, True, True, False, False, False, False]]
+    assert np.isnan(rho_m[0, 1:3]).all() and (rho_m[0, [0, 3, 4, 5]] == F32(0.05)).all()
+    # off: only the disagreement test (none here)
+    rho_m = motion()
+    cfg = UpdateConfig(stereo_lead_k=3.0, gate_unmatched=False)
+    assert not gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, cfg).any()
+    assert (rho_m[0, :6] == F32(0.05)).all()
+    # stereo leading off (k = 0): nothing, unmatched pixels either
+    rho_m = motion()
+    assert not gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, UpdateConfig(stereo_lead_k=0.0)).any()
 
 
 def _state(mu, var, a=7.0, b=1.0, n=12):
@@ -126,10 +156,10 @@ def oncoming_frames():
     return list(frames(sc, 15.0, (160, 120), seed=0, supersample=1))     # (the renders the figures below were measured on)
 
 
-def van_pixels(fr, rig: bool, k: float = 3.0, partner_first: bool = True):
+def van_pixels(fr, rig: bool, k: float = 3.0, partner_first: bool = True, gate_unmatched: bool = True):
     """Per fused map from 1.2 s on (the motion pairs' wrong ranges converged): the shares of the van's pixels ranged VALID within 10 % of the truth and
     VALID off by more."""
-    cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=k))
+    cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=k, gate_unmatched=gate_unmatched))
     if rig:
         cfg = replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
     runner = FusionRunner(cfg)
@@ -156,16 +186,19 @@ def test_a_monocular_camera_ranges_an_oncoming_vehicle_wrong_and_a_stereo_rig_ra
     right_rig, wrong_rig = van_pixels(oncoming_frames, rig=True)
     right_avg, _ = van_pixels(oncoming_frames, rig=True, k=0.0)
     right_arrival, wrong_arrival = van_pixels(oncoming_frames, rig=True, partner_first=False)
-    # measured (160 x 120, seed 0): mono 0.24 right / 0.72 wrong, the rig with stereo leading 0.93 / 0.05, the rig's
-    # stereo fused as one more measurement (k = 0) 0.94 right, the partner's frame second (its push brings the
-    # stereo measurement, after the motion one was fused) 0.92 / 0.06. The mover's motion pairs misfit, and with
-    # each window's own residual in the dense sigma they weigh little: averaging loses nothing to stereo leading.
-    # With the image-wide sigma alone (window_noise=False) their sigma is over-confident and stereo leading is what
-    # keeps the van: rig 0.89 right, k = 0 0.75.
+    right_ungated, _ = van_pixels(oncoming_frames, rig=True, gate_unmatched=False)
+    # measured (160 x 120, seed 0): mono 0.28 right / 0.69 wrong, the rig with stereo leading 0.96 / 0.04 (0.93 /
+    # 0.05 with the motion pairs fused where the stereo pixel failed to match: gate_unmatched off), the rig's stereo
+    # fused as one more measurement (k = 0) 0.92 right, the partner's frame second (its push brings the stereo
+    # measurement, after the motion one was fused: only the restart acts, not the gates) 0.91 / 0.06. The mover's
+    # motion pairs misfit, and with each window's own residual in the dense sigma they weigh little: averaging loses
+    # little to stereo leading. With the image-wide sigma alone (window_noise=False) their sigma is over-confident
+    # and stereo leading is what keeps the van: rig 0.89 right, k = 0 0.75.
     assert right_mono < 0.3 and wrong_mono > 0.4
     assert right_rig > 0.75 and wrong_rig < 0.15
+    assert right_rig > right_ungated + 0.02
     assert abs(right_avg - right_rig) < 0.05
-    assert right_arrival > right_rig - 0.05 and wrong_arrival < 0.15
+    assert 0.85 < right_arrival <= right_rig and wrong_arrival < 0.15
     from eonav.ranging.methods.dense import locate_dense
     monkeypatch.setitem(locate_dense.__kwdefaults__, "window_noise", False)
     right_rig0, wrong_rig0 = van_pixels(oncoming_frames, rig=True)

@@ -53,7 +53,7 @@ Per box (ground truth: the renderer's object ids and the solid box):
     python -m eonav.app.bench_tracking [--maps truth,dense,fused] [--scenarios approach,approach-clear,...]
         [--duration-s S] [--rate-hz 15] [--size 320x240] [--seed 0] [--see-through-k K] [--duplicate-chi2 D2]
         [--follow-k K] [--follow-fraction F] [--layer-gap-rel G] [--rig-baseline-m M] [--rig-order partner-first|arrival]
-        [--stereo-lead-k K] [--skipped-free-k K] [--lr-check KINDS] [--slant] [--match-blur] [--slant-px PX] [--window-floor KIND]
+        [--stereo-lead-k K] [--skipped-free-k K] [--no-gate-unmatched] [--lr-check KINDS] [--slant] [--match-blur] [--slant-px PX] [--window-floor KIND]
         [--supersample N]
         [--cache-dir DIR]
 """
@@ -191,7 +191,7 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
                stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
                lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
                supersample: int = SUPERSAMPLE, window_floor: str | None = None, match_blur: bool = False,
-               slant_px: float | None = None):
+               slant_px: float | None = None, gate_unmatched: bool = UpdateConfig().gate_unmatched):
     """Yield one dict per range map of a scenario: stamp_us, camera, state (true NED), the map's arrays (range_m,
     confidence, flags, inv_range_std_per_m, n_fused or None), the render's visible box pixels, the scene.
     ``lr_check``: fused, the measurement kinds checked left-right (``FusionConfig.lr_check_kinds``); dense, any: every
@@ -210,7 +210,8 @@ def range_maps(sc: Scenario, rate_hz: float, size, maps: str = "dense", seed: in
     if maps == "fused":
         from eonav.fusion.schedule import ScheduleConfig
         from eonav.fusion.sequence import FusionConfig, FusionRunner
-        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k, skipped_free_k=skipped_free_k),
+        cfg = FusionConfig(update=UpdateConfig(stereo_lead_k=stereo_lead_k, skipped_free_k=skipped_free_k,
+                                               gate_unmatched=gate_unmatched),
                            lr_check_kinds=tuple(lr_check))
         if sc.rig_baseline_m > 0:
             cfg = replace(cfg, schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)))
@@ -271,10 +272,11 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
                 stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
                 lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
                 supersample: int = SUPERSAMPLE, window_floor: str | None = None, match_blur: bool = False,
-                slant_px: float | None = None):
+                slant_px: float | None = None, gate_unmatched: bool = UpdateConfig().gate_unmatched):
     """``range_maps`` of a scenario, stored in ``cache_dir`` (one pickle per scenario, length, rate, size, source,
     seed, the renders' supersampling (``_ss<N>`` when not 1: the point-sampled renders' files keep their names), rig baseline, the left-right check, the slanted window, the resolution match and the fused map's ``slant_px`` when given (``_mb``, ``_spx<PX>``), the window floor the maps were made with (``_floor<KIND>`` unless "global"; fused maps' default is "valid") and, fused with a rig, ``stereo_lead_k`` and a
-    non-zero ``skipped_free_k``) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
+    non-zero ``skipped_free_k``, and ``_gu`` with the stereo pair's unmatched pixels gating the motion pairs, the
+    default) the first time and read back afterwards: the maps are the slow part, the tracker alone is deterministic on
     them. No cache_dir: computed as they are used (a stream, nothing kept)."""
     lead = ({"stereo_lead_k": stereo_lead_k, "rig_order": rig_order} if maps == "fused" and sc.rig_baseline_m > 0
             else {})
@@ -293,6 +295,8 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
     floor = window_floor or (MEASUREMENT_WINDOW_FLOOR if maps == "fused" else "global")
     if skipped_free_k and "stereo_lead_k" in lead:
         lead["skipped_free_k"] = skipped_free_k
+    if "stereo_lead_k" in lead:
+        lead["gate_unmatched"] = bool(gate_unmatched)
     lead["supersample"] = supersample
     if not cache_dir:
         return range_maps(sc, rate_hz, size, maps, seed, **lead)
@@ -309,7 +313,8 @@ def cached_maps(sc: Scenario, rate_hz: float, size, maps: str, seed: int, cache_
                               f"{'_mb' if lead.get('match_blur') else ''}"
                               f"{f'_spx{slant_px:g}' if 'slant_px' in lead else ''}"
                               f"{'_floor' + floor if floor != 'global' and maps != 'truth' else ''}"
-                              f"{f'_free{skipped_free_k:g}' if 'skipped_free_k' in lead else ''}.pkl")
+                              f"{f'_free{skipped_free_k:g}' if 'skipped_free_k' in lead else ''}"
+                              f"{'_gu' if lead.get('gate_unmatched') and stereo_lead_k > 0 else ''}.pkl")
     if path.exists():
         with open(path, "rb") as f:
             return pickle.load(f)
@@ -569,6 +574,9 @@ def add_arguments(p) -> None:
     p.add_argument("--skipped-free-k", type=float, default=UpdateConfig().skipped_free_k, metavar="K",
                    help="UpdateConfig.skipped_free_k: with a rig, the stereo pixels the update skips empty the cells "
                         "they see farther by K sigma (0: off)")
+    p.add_argument("--no-gate-unmatched", dest="gate_unmatched", action="store_false",
+                   help="with a rig: fuse the motion pairs also where the same frame's stereo pixel failed to match "
+                        "(UpdateConfig.gate_unmatched off)")
     p.add_argument("--lr-check", default="", metavar="KINDS",
                    help="comma list of the measurement kinds (stereo, near, wide) the fused maps check left-right "
                         "(FusionConfig.lr_check_kinds; default none); dense maps: any checks every pair")
@@ -605,7 +613,7 @@ def main(argv=None) -> int:
             report(scenario(name, args.duration_s, args.slope_deg, args.rig_baseline_m), args.rate_hz, args.size, maps, args.seed, ocfg,
                    tcfg, args.cache_dir, args.stereo_lead_k, args.rig_order,
                    tuple(k for k in args.lr_check.split(",") if k), args.slant, args.skipped_free_k, args.supersample,
-                   args.window_floor, args.match_blur, args.slant_px)
+                   args.window_floor, args.match_blur, args.slant_px, args.gate_unmatched)
     return 0
 
 
@@ -624,11 +632,12 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
            stereo_lead_k: float = UpdateConfig().stereo_lead_k, rig_order: str = "partner-first",
            lr_check: tuple = (), slant: bool = False, skipped_free_k: float = UpdateConfig().skipped_free_k,
            supersample: int = SUPERSAMPLE, window_floor: str | None = None, match_blur: bool = False,
-           slant_px: float | None = None) -> dict:
+           slant_px: float | None = None, gate_unmatched: bool = UpdateConfig().gate_unmatched) -> dict:
     """Run one scenario and print its figures."""
     t0 = time.perf_counter()
     rec, tt = track_maps(cached_maps(sc, rate, size, maps, seed, cache_dir, stereo_lead_k, rig_order, lr_check, slant,
-                                     skipped_free_k, supersample, window_floor, match_blur, slant_px), sc, ocfg, tcfg)
+                                     skipped_free_k, supersample, window_floor, match_blur, slant_px,
+                                     gate_unmatched), sc, ocfg, tcfg)
     s = score(rec, rate, ocfg, sc=sc)
     label = (f"{sc.name}{f' ({sc.slope_deg:g} deg)' if sc.slope_deg else ''}, {maps} maps, seed {seed}"
              f"{', left-right check ' + ','.join(lr_check) if lr_check else ''}"
@@ -636,7 +645,8 @@ def report(sc: Scenario, rate, size, maps, seed=0, ocfg: ObstacleConfig = SERVIC
              f"{', resolution match' if match_blur and maps == 'fused' else ''}"
              f"{f', slant_px {slant_px:g}' if slant_px is not None and maps == 'fused' else ''}"
              f"{f', window floor {window_floor}' if window_floor and maps in ('dense', 'fused') else ''}"
-             f"{f', skipped_free_k {skipped_free_k:g}' if skipped_free_k and maps == 'fused' else ''}")
+             f"{f', skipped_free_k {skipped_free_k:g}' if skipped_free_k and maps == 'fused' else ''}"
+             f"{', motion pairs not gated by unmatched stereo pixels' if not gate_unmatched and sc.rig_baseline_m > 0 and maps == 'fused' else ''}")
     print(f"{label}: {s['maps']} maps over {s['minutes'] * 60:.1f} s at {rate:g} Hz, {size[0]}x{size[1]} "
           f"({supersample} x {supersample} samples a pixel), "
           f"{s['mean_obstacles']:.1f} obstacles / {s['mean_measurements']:.1f} measurements a map; tracker p50 "

@@ -39,7 +39,14 @@ the pixel OCCLUDED or ranges it wrong, and a filter that assumes a static scene 
 converged background (the mover then never enters the map). A stereo pair (two cameras at one instant) ranges a
 mover like anything else. So, when a reference frame has both:
 - ``gate_motion``: a motion pixel whose measurement disagrees with the same frame's stereo measurement by more than
-  ``stereo_lead_k`` sigma (both sigmas) is not fused (the stereo one is right whatever moved);
+  ``stereo_lead_k`` sigma (both sigmas) is not fused (the stereo one is right whatever moved); nor, with
+  ``gate_unmatched`` (default), one whose stereo pixel failed to match (OCCLUDED, TRUNCATION): nothing can check
+  it there, and that is where a mover's edges are. A motion pair ranges a vehicle closing on the camera at
+  v_c / (v_c + v_o) of its range (0.71 x for 20 m/s against 8 m/s) and its window carries that onto the background
+  cells along the vehicle's edges, which the stereo pair sees occluded or does not converge on: a skirt of cells
+  nearer than anything there, fused frame after frame (docs/guidance.md, "The stereo pair's unmatched pixels gate
+  the motion pairs"). A stereo pixel without information (OUT_OF_VIEW, LOW_TEXTURE, ILL_CONDITIONED) does not gate:
+  there the motion pairs are all there is;
 - ``stereo_restart``: a cell the stereo measurement disagrees with by more than ``stereo_lead_k`` sigma (the cell's
   and the measurement's) starts again from the stereo measurement, instead of counting one more outlier against an
   estimate the motion pairs built from a scene that has since moved; so does a cell whose motion measurement of the
@@ -88,6 +95,8 @@ class UpdateConfig:
     stereo_lead_k: float = 3.0        # stereo leads where it disagrees by more sigma than this (0: off; docstring)
     skipped_free_k: float = 0.0       # with stereo leading: skipped stereo pixels farther by this many sigma empty
     #                                   the cell (0: off; module docstring, "Free space seen past a mover")
+    gate_unmatched: bool = True       # with stereo leading: a motion pixel whose stereo pixel failed to match
+    #                                   (OCCLUDED, TRUNCATION) is not fused (module docstring, "Stereo leads")
 
     def __post_init__(self):
         for name in ("stereo_lead_k", "skipped_free_k"):
@@ -237,19 +246,24 @@ def _lead_k(cfg: UpdateConfig) -> F32:
 def gate_motion(rho_m, std_m, flags_m, rho_s, std_s, flags_s, cfg: UpdateConfig = UpdateConfig()) -> np.ndarray:
     """Pixels of a motion measurement that disagree with the stereo measurement of the same frame by more than
     ``cfg.stereo_lead_k`` sigma (module docstring): both measured (``measured``), |rho_m - rho_s| > k sqrt(tau_m^2 +
-    tau_s^2) with the sigmas scaled by ``sigma_scale``. Their inverse range is set to NaN in ``rho_m`` (in place, a
-    float32 array): they are not fused. Returns the mask (none with k = 0)."""
+    tau_s^2) with the sigmas scaled by ``sigma_scale``; with ``cfg.gate_unmatched`` also those with an inverse range
+    whose stereo pixel failed to match (OCCLUDED or TRUNCATION, not ``measured``). Their inverse range is set to NaN
+    in ``rho_m`` (in place, a float32 array): they are not fused. Returns the mask (none with k = 0)."""
     if np.shape(rho_m) != np.shape(rho_s):
         raise InputError(f"fusion gate: motion measurement shape {np.shape(rho_m)} differs from the stereo one "
                          f"{np.shape(rho_s)}")
     if cfg.stereo_lead_k == 0:
         return np.zeros(np.shape(rho_m), bool)
-    both = measured(rho_m, std_m, flags_m, cfg) & measured(rho_s, std_s, flags_s, cfg)
+    stereo = measured(rho_s, std_s, flags_s, cfg)
+    both = measured(rho_m, std_m, flags_m, cfg) & stereo
     s = F32(cfg.sigma_scale)
     with np.errstate(invalid="ignore"):
         tau2 = (np.asarray(std_m, F32) * s) ** 2 + (np.asarray(std_s, F32) * s) ** 2
         d = np.asarray(rho_m, F32) - np.asarray(rho_s, F32)
         off = both & (d * d > _lead_k(cfg) ** 2 * tau2)
+    if cfg.gate_unmatched:
+        failed = (np.asarray(flags_s, np.uint8) & np.uint8(OCCLUDED | TRUNCATION)) != 0
+        off |= failed & ~stereo & np.isfinite(rho_m)
     rho_m[off] = np.nan
     return off
 
