@@ -421,6 +421,18 @@ def drain_latest(first, sub) -> list:
     return [(s, i in newest) for i, s in enumerate(batch)]
 
 
+def rig_first(batch: list, rig) -> list:
+    """A drained batch (``drain_latest``) with the stereo rig's partner frames moved before its reference's, each
+    camera's own order kept. When both frames of an instant wait in the ring, the reference's push then finds the
+    partner's frame of its instant, and its stereo measurement leads its motion measurement: the gates of
+    ``eonav.fusion.update`` ("Stereo leads") act only in that order (the partner's frame second, the motion
+    measurement is fused before the stereo one exists). ``rig``: (reference, partner) camera ids, or None."""
+    if not rig or len(batch) < 2:
+        return batch
+    ref_key = f"/posed/{rig[0]}/frame"
+    return sorted(batch, key=lambda item: str(item[0].key_expr).endswith(ref_key))
+
+
 def synthetic_partner(f):
     """A partner for frame ``f`` made of ``f`` itself: the same image and camera, taken 0.1 s earlier from 2 m behind
     along the body x axis (forward flight: parallax everywhere but at the focus of expansion). Its ranges mean
@@ -568,8 +580,9 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             show_scale(node, ref, sc, shown)
 
 
+    rig = runner.config.schedule.stereo_rig if runner is not None else None
     for first in sub:
-        for sample, newest in drain_latest(first, sub):
+        for sample, newest in rig_first(drain_latest(first, sub), rig):
             node.guarded("posed_frame", one, sample, newest)
 
 def fusion_frame(f, scale: float, cameras: CameraCache):

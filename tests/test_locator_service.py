@@ -564,3 +564,24 @@ def test_a_backlog_is_skipped_to_the_newest_frame_and_counted():
         for name in ("locator", "obstacles"):
             code, err = stop_service(procs.pop(name), signal.SIGINT, timeout=15)
             assert code == 0, f"{name} exit {code}:\n{err[-3000:]}"
+
+
+def test_a_rigs_partner_frames_go_before_its_references_in_a_drained_batch():
+    """``rig_first``: the stereo rig's partner frames before its reference's (the stereo measurement then leads the
+    motion one: eonav.fusion.update, "Stereo leads"), each camera's own order and the newest flags kept; other
+    cameras keep their places; no rig or a single frame: unchanged."""
+    from types import SimpleNamespace
+
+    from services.locator import rig_first
+
+    def item(cam, seq, newest):
+        return (SimpleNamespace(key_expr=K.posed_frame("v1", cam), seq=seq), newest)
+    batch = [item("left", 7, False), item("right", 7, False), item("left", 8, True), item("nose", 3, True),
+             item("right", 8, True)]
+    out = rig_first(batch, ("left", "right"))
+    assert [(str(s.key_expr).split("/")[-2], s.seq, n) for s, n in out] == [
+        ("right", 7, False), ("nose", 3, True), ("right", 8, True), ("left", 7, False), ("left", 8, True)]
+    assert rig_first(batch, None) is batch and rig_first(batch[:1], ("left", "right")) == batch[:1]
+    # a camera id that ends like another's is not taken for it
+    b2 = [item("xleft", 1, True), item("right", 1, True)]
+    assert [str(s.key_expr).split("/")[-2] for s, _ in rig_first(b2, ("left", "right"))] == ["xleft", "right"]
