@@ -18,7 +18,9 @@ frame of camera c (``frame(camera_id, view, stamp_us, seq)``):
    last measurement and its map in one sweep (``update_and_map``), into the default measurement's arrays.
 
 ``push`` returns those maps (usually one: the frame's own camera; a stereo partner's frame returns the rig
-reference's map, which it updated). A frame not newer than its camera's state is dropped (``counts``
+reference's map, which it updated). In a rig whose reference's frame comes before its partner's, the reference's
+measurements wait for the stereo one of their instant and are fused in the partner's push (``_hold_or_join``: the
+gates of "Stereo leads" need the stereo measurement first). A frame not newer than its camera's state is dropped (``counts``
 ``out_of_order``). Timing per map (wall): ``locate_s`` (the measurements) and ``fusion_s`` (predict, update, map).
 
 Predict needs only the state and the new frame's pose, so (``FusionConfig.overlap_predict``, with numba) its kernels
@@ -177,6 +179,9 @@ class FusionRunner:
         self.counts: dict[str, int] = {}
         self._spare: dict[str, InverseRangeState] = {}       # the state before the last predict: arrays to reuse
         self._rig_motion: dict[str, tuple] = {}              # a rig reference's last motion measurement (stereo leads)
+        self._held: dict[str, tuple] = {}                    # a rig reference's measurements waiting for the stereo
+                                                             # one of their instant: (frame, [(m, result)], seconds)
+        self._seen_us: dict[str, int] = {}                   # the newest stamp pushed or remembered, per camera
         self._instants: dict[str, dict] = {}                 # per reference camera: its frame being measured, the n
                                                              # before its first measurement (n_per_instant)
         self.worker_cpu_s = 0.0      # CPU seconds the predicts on the worker thread took so far (overlap_predict)
@@ -193,9 +198,11 @@ class FusionRunner:
             self._since_full.pop(cid, None)
             self._full_measured.pop(cid, None)
             self._rig_motion.pop(cid, None)
+            self._held.pop(cid, None)
 
     def remember(self, f: PosedFrameInfo) -> None:
         """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
+        self._seen_us[f.camera_id] = max(self._seen_us.get(f.camera_id, f.stamp_us), f.stamp_us)
         self.scheduler.remember(f)
 
     def push(self, f: PosedFrameInfo) -> list:
@@ -209,6 +216,10 @@ class FusionRunner:
             self.count("out_of_order")
             return []
         t0 = time.perf_counter()
+        prev = self.frames.get(cid)
+        self._seen_us[cid] = max(self._seen_us.get(cid, f.stamp_us), f.stamp_us)
+        if cid in self._held:        # its stereo partner never came: fused as they are, on their own frame's grid
+            self._flush_held(cid)
         touched = {}
         pending = None               # the predict running on the worker thread beside this push's measurements
         if old is not None:
@@ -237,15 +248,35 @@ class FusionRunner:
                 self.count("stale_measurements", len(measurements) - len(live))
             results = self._measure_all(live)
             locate_s = sum(r[2] for r in results)
+            live, results, held_here, joined_s = self._hold_or_join(f, prev, live, results)
+            locate_s += joined_s
         finally:
             if pending is not None:                            # (also when a measurement raised: the state is whole)
                 t_wait = time.perf_counter()
                 self.states[cid], cpu_s = pending.result()
                 self.worker_cpu_s += cpu_s
                 fusion_s += time.perf_counter() - t_wait
-        # nothing measured yet: no map to give (a state this push measures gives one: its cells not read for that)
-        if old is not None and (any(m.a.camera_id == cid for m in live) or self.states[cid].occupied().any()):
+        # nothing measured yet: no map to give (a state this push measures gives one: its cells not read for that);
+        # none either while its measurements wait for their stereo partner (``_hold_or_join``)
+        if (old is not None and not held_here
+                and (any(m.a.camera_id == cid for m in live) or self.states[cid].occupied().any())):
             touched[cid] = []
+        maps, fused_s = self._fuse(live, results, touched)
+        fusion_s += fused_s
+        out = []
+        for ref, ms in touched.items():
+            t3 = time.perf_counter()
+            res = maps[ref] if ref in maps else fused_map(self.states[ref], self.config.output)
+            n_fused = res.info.pop("n_fused")
+            dt = time.perf_counter() - t3
+            out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
+        return out
+
+    def _fuse(self, live, results, touched: dict) -> tuple:
+        """Fuse the measurements ``live`` (with their ``results``) into their reference cameras' states, in order;
+        the record of each goes to ``touched[ref]``. Returns ({ref: the map made with its last measurement}, the
+        seconds it took)."""
+        fusion_s = 0.0
         last = {m.a.camera_id: i for i, m in enumerate(live)}
         maps = {}
         stereo = {m.a.camera_id: r[1] for m, r in zip(live, results) if m.kind == STEREO}
@@ -279,14 +310,48 @@ class FusionRunner:
             touched.setdefault(ref, []).append(dict(counts, **lead, kind=m.kind, other_camera_id=m.b.camera_id,
                                                     other_seq=m.b.seq, baseline_m=m.baseline_m,
                                                     disparity_px=m.disparity_px))
-        out = []
-        for ref, ms in touched.items():
-            t3 = time.perf_counter()
-            res = maps[ref] if ref in maps else fused_map(self.states[ref], self.config.output)
-            n_fused = res.info.pop("n_fused")
-            dt = time.perf_counter() - t3
-            out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
-        return out
+        return maps, fusion_s
+
+    def _hold_or_join(self, f: PosedFrameInfo, prev: PosedFrameInfo | None, live: list, results: list) -> tuple:
+        """A rig's stereo measurement must come before its motion measurements of the same instant for the gates of
+        ``eonav.fusion.update`` ("Stereo leads") to act. When the reference's frame comes first (no stereo
+        measurement of it in this push) and the partner camera delivered the reference's previous instant, its
+        measurements are measured now and held, not fused, and no map of it is given; the partner's push, which
+        makes the stereo measurement of that frame, fuses them just before it, as if the partner's frame had come
+        first, and gives the map. Held measurements whose partner never comes are fused, ungated, when the
+        reference's next frame arrives (``_flush_held``): a lost partner frame costs that instant's map.
+        Returns (live, results, whether this push's reference measurements were held, the held ones' seconds)."""
+        rig = self.config.schedule.stereo_rig
+        if rig is None or self.config.update.stereo_lead_k == 0:
+            return live, results, False, 0.0
+        ref = rig[0]
+        held = self._held.pop(ref, None)
+        if held is not None:                           # this push may bring the stereo measurement they wait for
+            frame_held, items, seconds = held
+            if self.frames.get(ref) is not frame_held:  # the reference moved on (cannot happen: flushed first)
+                self._held[ref] = held
+                return live, results, False, 0.0
+            at = next((i for i, m in enumerate(live) if m.kind == STEREO and _same(m.a, frame_held)), len(live))
+            self.count("held_joined" if at < len(live) else "held_fused_without_stereo")
+            live = live[:at] + [m for m, _ in items] + live[at:]
+            results = results[:at] + [r for _, r in items] + results[at:]
+            return live, results, False, seconds
+        if (f.camera_id != ref or prev is None or any(m.kind == STEREO and _same(m.a, f) for m in live)
+                or self._seen_us.get(rig[1], -1) < prev.stamp_us):
+            return live, results, False, 0.0
+        mine = [i for i, m in enumerate(live) if _same(m.a, f)]      # (none: its map still waits for the stereo)
+        self._held[ref] = (f, [(live[i], results[i]) for i in mine], sum(results[i][2] for i in mine))
+        self.count("held_for_stereo")
+        keep = [i for i in range(len(live)) if i not in set(mine)]
+        return [live[i] for i in keep], [results[i] for i in keep], True, 0.0
+
+    def _flush_held(self, cid: str) -> None:
+        """Fuse camera ``cid``'s held measurements (``_hold_or_join``) into its state as they are: their stereo
+        partner never came. Their map is not given (a newer frame of the camera is being pushed)."""
+        frame_held, items, _ = self._held.pop(cid)
+        if items and self.frames.get(cid) is frame_held:
+            self._fuse([m for m, _ in items], [r for _, r in items], {})
+            self.count("held_fused_without_stereo")
 
     def _instant(self, ref: str, a: PosedFrameInfo) -> dict:
         """Before a measurement of ``ref``'s frame ``a`` touches the state (stereo lead included): the instant's
@@ -474,6 +539,11 @@ class FusionRunner:
         self._since_full[camera_id] = self._since_full.get(camera_id, 0) + 1 if used else 0
         self.count("prior_seeded" if used else "full_search")
         return used
+
+
+def _same(a: PosedFrameInfo, b: PosedFrameInfo) -> bool:
+    """One frame: the same camera, seq and stamp."""
+    return a.camera_id == b.camera_id and a.seq == b.seq and a.stamp_us == b.stamp_us
 
 
 def _cpu_timed(fn, *args, **kw):
