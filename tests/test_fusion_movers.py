@@ -302,10 +302,11 @@ def test_a_rigs_frames_count_once_in_the_pushed_stream(oncoming_frames, partner_
             assert "n_instant_capped" not in runner.counts
 
 
-def _rig_pushes(fr, order, drop_partner=(), partner_seen=True):
+def _rig_pushes(fr, order, drop_partner=(), partner_seen=True, third=False):
     """Push a rig's frames (``order``: "partner-first" or "arrival"); the partner's frames of ``drop_partner`` never
-    come, and with ``partner_seen`` False none does. Returns (the runner, the reference's frame index of each map of
-    the reference camera given, in order)."""
+    come, and with ``partner_seen`` False none does; ``third``: a camera outside the rig pushes a frame between the
+    reference's and the partner's. Returns (the runner, the reference's frame index of each map of the reference
+    camera given, in order)."""
     runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID))))
     got = []
     for i, (stamp, view, _, _, partner) in enumerate(fr):
@@ -314,6 +315,8 @@ def _rig_pushes(fr, order, drop_partner=(), partner_seen=True):
         if send and order == "partner-first":
             runner.remember(pf)
         got += [m.frame.seq for m in runner.push(frame("nose", view, stamp, i)) if m.frame.camera_id == "nose"]
+        if third:
+            got += [m.frame.seq for m in runner.push(frame("tail", view, stamp + 1, i)) if m.frame.camera_id == "nose"]
         if send and order == "arrival":
             got += [m.frame.seq for m in runner.push(pf) if m.frame.camera_id == "nose"]
     return runner, got
@@ -327,6 +330,10 @@ def test_a_reference_frame_first_waits_for_its_stereo_partner_and_a_lost_partner
     runner, got = _rig_pushes(fr, "arrival")
     assert got == list(range(12)), got
     assert runner.counts.get("held_for_stereo") == runner.counts.get("held_joined") == 11
+    # a camera outside the rig pushing in between does not take them: they wait for the partner's push
+    runner, got = _rig_pushes(fr, "arrival", third=True)
+    assert got == list(range(12)), got
+    assert runner.counts.get("held_joined") == 11 and "held_fused_without_stereo" not in runner.counts
     # the partner's frame 6 is lost: frame 6's measurements are fused without it when frame 7 arrives, and frame 6
     # has no map; frame 7 does not wait (the partner's newest frame, 5, is older than the reference's previous one,
     # 6): its own push gives a map, and its partner's push another one with the stereo measurement, as before the

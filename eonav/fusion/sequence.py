@@ -325,12 +325,8 @@ class FusionRunner:
         if rig is None or self.config.update.stereo_lead_k == 0:
             return live, results, False, 0.0
         ref = rig[0]
-        held = self._held.pop(ref, None)
-        if held is not None:                           # this push may bring the stereo measurement they wait for
-            frame_held, items, seconds = held
-            if self.frames.get(ref) is not frame_held:  # the reference moved on (cannot happen: flushed first)
-                self._held[ref] = held
-                return live, results, False, 0.0
+        if f.camera_id == rig[1] and ref in self._held:  # the partner's push: the stereo measurement they wait for
+            frame_held, items, seconds = self._held.pop(ref)
             at = next((i for i, m in enumerate(live) if m.kind == STEREO and _same(m.a, frame_held)), len(live))
             self.count("held_joined" if at < len(live) else "held_fused_without_stereo")
             live = live[:at] + [m for m, _ in items] + live[at:]
