@@ -341,6 +341,12 @@ def test_a_reference_frame_first_waits_for_its_stereo_partner_and_a_lost_partner
     runner, got = _rig_pushes(fr, "arrival", drop_partner={6})
     assert got == [0, 1, 2, 3, 4, 5, 7, 7, 8, 9, 10, 11], got
     assert runner.counts.get("held_fused_without_stereo") == 1 and runner.counts.get("held_joined") == 9
+    # a stream that ends on a reference frame whose partner's frame never comes (a pair file's last instant):
+    # finish() fuses what waits and gives that frame's map; then nothing waits
+    runner, got = _rig_pushes(fr, "arrival", drop_partner={11})
+    assert got == list(range(11)), got
+    last = runner.finish()
+    assert [m.frame.seq for m in last] == [11] and last[0].measurements and runner.finish() == []
     # the partner's frames first: nothing waits
     runner, got = _rig_pushes(fr, "partner-first")
     assert got == list(range(12)) and "held_for_stereo" not in runner.counts

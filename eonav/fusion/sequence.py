@@ -341,13 +341,30 @@ class FusionRunner:
         keep = [i for i in range(len(live)) if i not in set(mine)]
         return [live[i] for i in keep], [results[i] for i in keep], True, 0.0
 
+    def finish(self) -> list:
+        """The end of a stream: the measurements still waiting for their stereo partner (``_hold_or_join``: the last
+        frame of a rig's reference with no partner's frame after it) fused as they are, and their maps."""
+        return [m for m in (self._fuse_held(cid, True) for cid in list(self._held)) if m is not None]
+
     def _flush_held(self, cid: str) -> None:
         """Fuse camera ``cid``'s held measurements (``_hold_or_join``) into its state as they are: their stereo
         partner never came. Their map is not given (a newer frame of the camera is being pushed)."""
-        frame_held, items, _ = self._held.pop(cid)
-        if items and self.frames.get(cid) is frame_held:
-            self._fuse([m for m, _ in items], [r for _, r in items], {})
+        self._fuse_held(cid, False)
+
+    def _fuse_held(self, cid: str, want_map: bool):
+        """Camera ``cid``'s held measurements fused as they are; with ``want_map`` their ``FusedMap``, else None."""
+        frame_held, items, seconds = self._held.pop(cid)
+        if self.frames.get(cid) is not frame_held:
+            return None
+        touched = {cid: []}
+        maps, fusion_s = self._fuse([m for m, _ in items], [r for _, r in items], touched)
+        if items:
             self.count("held_fused_without_stereo")
+        if not want_map:
+            return None
+        res = maps[cid] if cid in maps else fused_map(self.states[cid], self.config.output)
+        n_fused = res.info.pop("n_fused")
+        return FusedMap(frame_held, res, n_fused, touched[cid], seconds, fusion_s)
 
     def _instant(self, ref: str, a: PosedFrameInfo) -> dict:
         """Before a measurement of ``ref``'s frame ``a`` touches the state (stereo lead included): the instant's

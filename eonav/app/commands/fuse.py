@@ -63,6 +63,15 @@ def check_output_dir(path):
     return d
 
 
+def fused_maps(runner, pf, views):
+    """The fused maps of the sequence's frames pushed in file order, then those of the measurements still waiting at
+    the end (``FusionRunner.finish``: a rig reference's last frame with no partner's frame after it)."""
+    from eonav.fusion.sequence import frame
+    for k, (fr, view) in enumerate(zip(pf.frames, views)):
+        yield from runner.push(frame(fr["camera"], view, int(round(fr["t"] * 1e6)), seq=k))
+    yield from runner.finish()
+
+
 def run(args) -> int:
     from pathlib import Path
 
@@ -70,7 +79,7 @@ def run(args) -> int:
 
     from eonav import InputError
     from eonav.fusion.schedule import ScheduleConfig
-    from eonav.fusion.sequence import FusionConfig, FusionRunner, frame
+    from eonav.fusion.sequence import FusionConfig, FusionRunner
     from eonav.io.files import check_output, write_npz
     from eonav.io.pairfile import parse_pair, read_json
 
@@ -91,14 +100,13 @@ def run(args) -> int:
     ref = pf.frames[0]["camera"]
     last = None
     n_maps = 0
-    for k, (fr, view) in enumerate(zip(pf.frames, views)):
-        for m in runner.push(frame(fr["camera"], view, int(round(fr["t"] * 1e6)), seq=k)):
-            arrays = dict(m.result.arrays(), n_fused=m.n_fused.astype(np.uint16))
-            n_maps += 1
-            if out_dir:
-                write_npz(out_dir / f"range_{m.frame.seq:04d}.npz", arrays, "--out-dir")
-            if m.frame.camera_id == ref:
-                last = (m.frame.seq, arrays)
+    for m in fused_maps(runner, pf, views):
+        arrays = dict(m.result.arrays(), n_fused=m.n_fused.astype(np.uint16))
+        n_maps += 1
+        if out_dir:
+            write_npz(out_dir / f"range_{m.frame.seq:04d}.npz", arrays, "--out-dir")
+        if m.frame.camera_id == ref:
+            last = (m.frame.seq, arrays)
     if last is None:
         raise InputError(f"no fused map for camera {ref!r}: no frame pair of the sequence had enough parallax")
     out = write_npz(args.out, last[1], "--out")
