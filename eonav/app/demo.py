@@ -300,7 +300,12 @@ class Monitor:
             "drops": {"frames_not_seen": max(0, n_expected - n_frames),
                       "frames_without_range_map": max(0, n_expected - 1 - len(rs)),
                       "locator_frames_skipped": loc.get("frames_skipped", 0),
+                      "locator_frames_superseded": loc.get("frames_superseded", 0),
+                      "locator_dropped": {k.split(".", 1)[1]: v for k, v in loc.items() if k.startswith("dropped.")},
                       "locator_skipped": {k.split(".", 1)[1]: v for k, v in loc.items() if k.startswith("skipped.")},
+                      "locator_fusion_no_pair": {k.split(".", 2)[2]: v for k, v in loc.items()
+                                                 if k.startswith("fusion.policy.")
+                                                 and k.split(".", 2)[2] not in ("motion", "stereo", "ok")},
                       "sync_dropped": {k.split(".", 1)[1]: v for k, v in sync.items() if k.startswith("dropped.")}},
             "health": {k: v["state"] for k, v in h.items()},
             "health_states_seen": {k: sorted(v) for k, v in self.health_states.items()},
