@@ -215,8 +215,10 @@ class ArduPilot:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"arducopter exited with {self.proc.returncode}: {self.console()[-2000:]}")
             try:
+                # autoreconnect: arducopter can accept the first connection and reset it while it starts up (seen
+                # once in a full run: "Connection reset or closed by peer", then no HEARTBEAT on the dead socket)
                 conn = mu.mavlink_connection(f"tcp:127.0.0.1:{self.gcs_port}", source_system=GCS_SYSID,
-                                             source_component=GCS_COMPID, retries=0)
+                                             source_component=GCS_COMPID, retries=0, autoreconnect=True)
             except OSError:
                 if time.monotonic() > deadline:
                     raise
