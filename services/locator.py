@@ -421,16 +421,15 @@ def drain_latest(first, sub) -> list:
     return [(s, i in newest) for i, s in enumerate(batch)]
 
 
-def rig_first(batch: list, rig) -> list:
-    """A drained batch (``drain_latest``) with the stereo rig's partner frames moved before its reference's, each
-    camera's own order kept. When both frames of an instant wait in the ring, the reference's push then finds the
-    partner's frame of its instant, and its stereo measurement leads its motion measurement: the gates of
-    ``eonav.fusion.update`` ("Stereo leads") act only in that order (the partner's frame second, the motion
-    measurement is fused before the stereo one exists). ``rig``: (reference, partner) camera ids, or None."""
-    if not rig or len(batch) < 2:
+def rig_first(batch: list, ref_key: str | None) -> list:
+    """A drained batch (``drain_latest``) with the stereo rig's reference frames (key ``ref_key``, its posed-frame
+    key) moved after the others, each camera's own order kept. When both frames of an instant wait in the ring, the
+    reference's push then finds the partner's frame of its instant and fuses it in the same push (the fusion runner
+    otherwise holds the reference's measurements until the partner's frame comes: ``FusionRunner._hold_or_join``).
+    ``ref_key`` None (no rig): the batch as it is."""
+    if ref_key is None or len(batch) < 2:
         return batch
-    ref_key = f"/posed/{rig[0]}/frame"
-    return sorted(batch, key=lambda item: str(item[0].key_expr).endswith(ref_key))
+    return sorted(batch, key=lambda item: str(item[0].key_expr) == ref_key)
 
 
 def synthetic_partner(f):
@@ -581,8 +580,9 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
 
 
     rig = runner.config.schedule.stereo_rig if runner is not None else None
+    ref_key = K.posed_frame(node.vehicle, rig[0]) if rig else None
     for first in sub:
-        for sample, newest in rig_first(drain_latest(first, sub), rig):
+        for sample, newest in rig_first(drain_latest(first, sub), ref_key):
             node.guarded("posed_frame", one, sample, newest)
 
 def fusion_frame(f, scale: float, cameras: CameraCache):

@@ -578,10 +578,11 @@ def test_a_rigs_partner_frames_go_before_its_references_in_a_drained_batch():
         return (SimpleNamespace(key_expr=K.posed_frame("v1", cam), seq=seq), newest)
     batch = [item("left", 7, False), item("right", 7, False), item("left", 8, True), item("nose", 3, True),
              item("right", 8, True)]
-    out = rig_first(batch, ("left", "right"))
+    left = K.posed_frame("v1", "left")
+    out = rig_first(batch, left)
     assert [(str(s.key_expr).split("/")[-2], s.seq, n) for s, n in out] == [
         ("right", 7, False), ("nose", 3, True), ("right", 8, True), ("left", 7, False), ("left", 8, True)]
-    assert rig_first(batch, None) is batch and rig_first(batch[:1], ("left", "right")) == batch[:1]
+    assert rig_first(batch, None) is batch and rig_first(batch[:1], left) == batch[:1]
     # a camera id that ends like another's is not taken for it
     b2 = [item("xleft", 1, True), item("right", 1, True)]
-    assert [str(s.key_expr).split("/")[-2] for s, _ in rig_first(b2, ("left", "right"))] == ["xleft", "right"]
+    assert [str(s.key_expr).split("/")[-2] for s, _ in rig_first(b2, left)] == ["xleft", "right"]

@@ -194,8 +194,6 @@ def _clear_rows(o_rho, o_var, o_a, o_b, o_n, o_du, o_dv, o_flags, y0, y1):
     o_flags[y0:y1] = 0
 
 
-
-
 @njit(**_JIT)
 def close_cracks(rho, var, a, b, n, du, dv, flags, k2):
     """predict.close_cracks (horizontal neighbours first, then vertical) in one sweep over the rows: row y closed

@@ -202,8 +202,12 @@ class FusionRunner:
 
     def remember(self, f: PosedFrameInfo) -> None:
         """A frame that will not be pushed (the caller skipped it: a newer one was waiting): a partner only."""
-        self._seen_us[f.camera_id] = max(self._seen_us.get(f.camera_id, f.stamp_us), f.stamp_us)
+        self._saw(f)
         self.scheduler.remember(f)
+
+    def _saw(self, f: PosedFrameInfo) -> None:
+        """The newest stamp of ``f``'s camera pushed or remembered (``_hold_or_join``: is a rig's partner alive)."""
+        self._seen_us[f.camera_id] = max(self._seen_us.get(f.camera_id, f.stamp_us), f.stamp_us)
 
     def push(self, f: PosedFrameInfo) -> list:
         """Predict, measure, update; the fused maps of the states touched (see the module docstring)."""
@@ -217,9 +221,9 @@ class FusionRunner:
             return []
         t0 = time.perf_counter()
         prev = self.frames.get(cid)
-        self._seen_us[cid] = max(self._seen_us.get(cid, f.stamp_us), f.stamp_us)
+        self._saw(f)
         if cid in self._held:        # its stereo partner never came: fused as they are, on their own frame's grid
-            self._flush_held(cid)
+            self._fuse_held(cid, want_map=False)
         touched = {}
         pending = None               # the predict running on the worker thread beside this push's measurements
         if old is not None:
@@ -263,14 +267,15 @@ class FusionRunner:
             touched[cid] = []
         maps, fused_s = self._fuse(live, results, touched)
         fusion_s += fused_s
-        out = []
-        for ref, ms in touched.items():
-            t3 = time.perf_counter()
-            res = maps[ref] if ref in maps else fused_map(self.states[ref], self.config.output)
-            n_fused = res.info.pop("n_fused")
-            dt = time.perf_counter() - t3
-            out.append(FusedMap(self.frames[ref], res, n_fused, ms, locate_s, fusion_s + dt))
-        return out
+        return [self._fused_map(ref, maps, ms, locate_s, fusion_s) for ref, ms in touched.items()]
+
+    def _fused_map(self, ref: str, maps: dict, measurements: list, locate_s: float, fusion_s: float) -> FusedMap:
+        """The ``FusedMap`` of ``ref``'s state: the map its last measurement made (``maps``), else one made now."""
+        t0 = time.perf_counter()
+        res = maps[ref] if ref in maps else fused_map(self.states[ref], self.config.output)
+        n_fused = res.info.pop("n_fused")
+        return FusedMap(self.frames[ref], res, n_fused, measurements, locate_s,
+                        fusion_s + time.perf_counter() - t0)
 
     def _fuse(self, live, results, touched: dict) -> tuple:
         """Fuse the measurements ``live`` (with their ``results``) into their reference cameras' states, in order;
@@ -319,7 +324,7 @@ class FusionRunner:
         measurements are measured now and held, not fused, and no map of it is given; the partner's push, which
         makes the stereo measurement of that frame, fuses them just before it, as if the partner's frame had come
         first, and gives the map. Held measurements whose partner never comes are fused, ungated, when the
-        reference's next frame arrives (``_flush_held``): a lost partner frame costs that instant's map.
+        reference's next frame arrives (``_fuse_held``): a lost partner frame costs that instant's map.
         Returns (live, results, whether this push's reference measurements were held, the held ones' seconds)."""
         rig = self.config.schedule.stereo_rig
         if rig is None or self.config.update.stereo_lead_k == 0:
@@ -335,24 +340,21 @@ class FusionRunner:
         if (f.camera_id != ref or prev is None or any(m.kind == STEREO and _same(m.a, f) for m in live)
                 or self._seen_us.get(rig[1], -1) < prev.stamp_us):
             return live, results, False, 0.0
-        mine = [i for i, m in enumerate(live) if _same(m.a, f)]      # (none: its map still waits for the stereo)
-        self._held[ref] = (f, [(live[i], results[i]) for i in mine], sum(results[i][2] for i in mine))
+        mine = [_same(m.a, f) for m in live]       # (none: its map still waits for the stereo measurement)
+        held = [(m, r) for m, r, x in zip(live, results, mine) if x]
+        self._held[ref] = (f, held, sum(r[2] for _, r in held))
         self.count("held_for_stereo")
-        keep = [i for i in range(len(live)) if i not in set(mine)]
-        return [live[i] for i in keep], [results[i] for i in keep], True, 0.0
+        return ([m for m, x in zip(live, mine) if not x], [r for r, x in zip(results, mine) if not x], True, 0.0)
 
     def finish(self) -> list:
         """The end of a stream: the measurements still waiting for their stereo partner (``_hold_or_join``: the last
         frame of a rig's reference with no partner's frame after it) fused as they are, and their maps."""
-        return [m for m in (self._fuse_held(cid, True) for cid in list(self._held)) if m is not None]
-
-    def _flush_held(self, cid: str) -> None:
-        """Fuse camera ``cid``'s held measurements (``_hold_or_join``) into its state as they are: their stereo
-        partner never came. Their map is not given (a newer frame of the camera is being pushed)."""
-        self._fuse_held(cid, False)
+        return [m for m in (self._fuse_held(cid, want_map=True) for cid in list(self._held)) if m is not None]
 
     def _fuse_held(self, cid: str, want_map: bool):
-        """Camera ``cid``'s held measurements fused as they are; with ``want_map`` their ``FusedMap``, else None."""
+        """Camera ``cid``'s held measurements (``_hold_or_join``) fused into its state as they are: their stereo
+        partner never came. With ``want_map`` (the end of the stream) their ``FusedMap``, else None (a newer frame
+        of the camera is being pushed)."""
         frame_held, items, seconds = self._held.pop(cid)
         if self.frames.get(cid) is not frame_held:
             return None
@@ -360,11 +362,7 @@ class FusionRunner:
         maps, fusion_s = self._fuse([m for m, _ in items], [r for _, r in items], touched)
         if items:
             self.count("held_fused_without_stereo")
-        if not want_map:
-            return None
-        res = maps[cid] if cid in maps else fused_map(self.states[cid], self.config.output)
-        n_fused = res.info.pop("n_fused")
-        return FusedMap(frame_held, res, n_fused, touched[cid], seconds, fusion_s)
+        return self._fused_map(cid, maps, touched[cid], seconds, fusion_s) if want_map else None
 
     def _instant(self, ref: str, a: PosedFrameInfo) -> dict:
         """Before a measurement of ``ref``'s frame ``a`` touches the state (stereo lead included): the instant's
