@@ -345,8 +345,12 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
     from eonav.geometry.camera import scaled_camera
     frames, fl = flight_frames
     with locator_and_obstacles(("--scale", "0.5", "--fusion", "off")) as (s, procs, maps_sub, obs_sub, health_sub):
-        pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
-        map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"))
+        import zenoh
+        # BLOCK, as frame_publisher_when_up: with DROP (zenoh's default) a fragmented frame was lost on a loaded
+        # machine (frame 1 never reached the locator; a CI run of this test)
+        block = dict(congestion_control=zenoh.CongestionControl.BLOCK)
+        pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"), **block)
+        map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"), **block)
         health = []
         wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
                    timeout=30, what="both services' first health message")
