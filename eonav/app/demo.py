@@ -149,6 +149,11 @@ def _pct(v, q):
     return float(np.percentile(v, q)) if len(v) else math.nan
 
 
+def _under(counters: dict, prefix: str) -> dict:
+    """The health counters named ``prefix<rest>``, keyed by ``rest``."""
+    return {k[len(prefix):]: v for k, v in counters.items() if k.startswith(prefix)}
+
+
 class Monitor:
     """Watches frames, range maps, obstacle lists and health on the bus and scores them against ``truth``.
 
@@ -301,12 +306,11 @@ class Monitor:
                       "frames_without_range_map": max(0, n_expected - 1 - len(rs)),
                       "locator_frames_skipped": loc.get("frames_skipped", 0),
                       "locator_frames_superseded": loc.get("frames_superseded", 0),
-                      "locator_dropped": {k.split(".", 1)[1]: v for k, v in loc.items() if k.startswith("dropped.")},
-                      "locator_skipped": {k.split(".", 1)[1]: v for k, v in loc.items() if k.startswith("skipped.")},
-                      "locator_fusion_no_pair": {k.split(".", 2)[2]: v for k, v in loc.items()
-                                                 if k.startswith("fusion.policy.")
-                                                 and k.split(".", 2)[2] not in ("motion", "stereo", "ok")},
-                      "sync_dropped": {k.split(".", 1)[1]: v for k, v in sync.items() if k.startswith("dropped.")}},
+                      "locator_dropped": _under(loc, "dropped."),
+                      "locator_skipped": _under(loc, "skipped."),
+                      "locator_fusion_no_pair": {k: v for k, v in _under(loc, "fusion.policy.").items()
+                                                 if k not in ("motion", "stereo", "ok")},
+                      "sync_dropped": _under(sync, "dropped.")},
             "health": {k: v["state"] for k, v in h.items()},
             "health_states_seen": {k: sorted(v) for k, v in self.health_states.items()},
             "health_not_ok_while_fed": not_ok_fed,
