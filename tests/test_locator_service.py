@@ -346,16 +346,11 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
     frames, fl = flight_frames
     with locator_and_obstacles(("--scale", "0.5", "--fusion", "off")) as (s, procs, maps_sub, obs_sub, health_sub):
         import zenoh
-        # BLOCK, as frame_publisher_when_up: with DROP (zenoh's default) a fragmented frame was lost on a loaded
-        # machine (frame 1 never reached the locator; a CI run of this test)
-        block = dict(congestion_control=zenoh.CongestionControl.BLOCK)
-        pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"), **block)
-        map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"), **block)
         health = []
-        wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
-                   timeout=30, what="both services' first health message")
-        wait_until(lambda: pub.matching_status.matching and map_pub.matching_status.matching, timeout=10,
-                   what="both services subscribed")
+        pub = frame_publisher_when_up(s, health_sub, health)
+        # BLOCK as the frames: with DROP (zenoh's default) a fragmented message was lost on a loaded machine
+        map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"), congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_until(lambda: map_pub.matching_status.matching, timeout=10, what="the obstacle service subscribed")
         time.sleep(0.3)
         maps, obstacles = [], []
         for i in range(3):
