@@ -187,6 +187,24 @@ def test_label_names_the_nearest_track_inside_the_gate():
     assert T.Tracker().label([near_a]) == [0]                               # no tracks
 
 
+def test_a_precise_track_wins_a_detection_over_a_vague_one_by_d2_plus_ln_det_s():
+    """Two tracks gate one detection: a precise one (P = 0.04 I) 0.8 m from it and a vague one (P = 4 I, a re-born or
+    long-coasting track) 2 m from it. By d^2 alone the vague one is nearer; the assignment minimises d^2 + ln det S,
+    which gives the detection to the precise track (hand-derived below); the unpaired track misses and, tentative,
+    dies."""
+    tr = T.Tracker(T.TrackerConfig(gate_chi2=T.CHI2_3_999))
+    r = 0.04 * np.eye(3)
+    tr.update([T.Measurement([50.0, 0.0, -5.0], r), T.Measurement([50.0, 2.8, -5.0], 4.0 * np.eye(3))], us(0.0))
+    precise, vague = tr.tracks
+    # same stamp: no prediction, S = P + R = 0.08 I (precise) and 4.04 I (vague)
+    z = T.Measurement([50.0, 0.8, -5.0], r)
+    d2_p, d2_v = 0.8 ** 2 / 0.08, 2.0 ** 2 / 4.04                          # 8.0 and 0.99: both inside the gate
+    cost_p, cost_v = d2_p + 3 * math.log(0.08), d2_v + 3 * math.log(4.04)   # 0.42 and 5.18
+    assert d2_v < d2_p < T.CHI2_3_999 and cost_p < cost_v
+    tr.update([z], us(0.0))
+    assert [t.id for t in tr.tracks] == [precise.id] and tr.tracks[0].hits == 2
+
+
 def test_bad_measurements_and_config_are_named():
     with pytest.raises(InputError, match="positive definite"):
         T.Measurement([1, 2, 3], np.diag([1.0, 0.0, 1.0]))
