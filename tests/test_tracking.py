@@ -388,6 +388,23 @@ def test_obstacle_leaving_view_coasts_then_is_deleted_and_returns_with_its_id_in
     assert None in ids and ids[-1] is not None and ids[-1] != ids[5]
 
 
+def test_snapshot_of_a_stalled_tracker_drops_a_well_measured_track_after_max_coast_s():
+    """No map after the last hit (a stalled pipeline): ``snapshot`` reports the track up to ``max_coast_s`` after its
+    last hit and leaves it out after, also a track measured 3 s long, whose predicted position sigma stays far below
+    ``max_position_sigma_m`` (the other rule that drops a coasting track) over that time."""
+    rng = np.random.default_rng(21)
+    tr = T.Tracker()
+    p = [50.0, 0.0, -8.0]
+    for k in range(int(3 * RATE_HZ)):
+        tr.update([observe(p, HOVER, rng)], us(k / RATE_HZ), fov(HOVER))
+    trk, = tr.confirmed()
+    limit = trk.last_hit_us + us(tr.cfg.max_coast_s)
+    (t, x, P), = tr.snapshot(limit)
+    assert t is trk and math.sqrt(np.diag(P)[:3].max()) < 0.5 * tr.cfg.max_position_sigma_m
+    assert tr.snapshot(limit + 1) == []
+    assert len(tr.tracks) == 1                                  # snapshot changes nothing
+
+
 def test_field_of_view_classification():
     v = fov(HOVER)
     assert v.classify([50.0, 0.0, -10.0]) == T.VISIBLE
