@@ -360,6 +360,27 @@ def test_occluded_obstacle_coasts_and_keeps_its_id():
             assert ids[-1] is not None and ids[-1] != ids[10]
 
 
+def test_a_surface_within_the_tracks_range_sigma_along_the_axis_is_no_occluder_when_yawed():
+    """The occlusion margin takes 3 of the track's position sigma along the camera's optical axis: with the vehicle
+    yawed 45 deg, a track 80 m ahead with a range 1-sigma of 8 m (0.2 m across) and a map that sees a surface at
+    65 m there: 15 m nearer is within 3 sigma = 24 m (the surface may be the track itself), so the map missed the
+    track; a surface at 50 m (30 m nearer) hides it. The sigma across the ray (a row of the rotation taken for its
+    column) would make the 8 % margin (6.4 m) decide and call the first map an occlusion."""
+    st = VehicleState.from_ypr([0.0, 0.0, -10.0], [math.radians(45.0), 0.0, 0.0])
+    axis = np.array([math.cos(math.radians(45.0)), math.sin(math.radians(45.0)), 0.0])
+    p = st.position_ned_m + 80.0 * axis
+    assert x_c(p, st) == pytest.approx(80.0)
+    cov = T.camera_covariance(p, CAM, st, 8.0, 1.0, 1.0)
+    for seen_m, outcome in ((65.0, "miss"), (50.0, T.OCCLUDED)):
+        tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+        tr.update([T.Measurement(p, cov)], us(0.0))
+        trk, = tr.confirmed()
+        tr.update([], us(1 / RATE_HZ), fov(st, range_m=np.full((CAM.height, CAM.width), seen_m, np.float32)))
+        sigma_axis = math.sqrt(axis @ trk.P[:3, :3] @ axis)               # 8 m, and a little growth over 1/15 s
+        assert 8.0 < sigma_axis < 8.1
+        assert trk.last_outcome == outcome and trk.misses == (1 if outcome == "miss" else 0), seen_m
+
+
 def test_obstacle_leaving_view_coasts_then_is_deleted_and_returns_with_its_id_in_time():
     rng = np.random.default_rng(16)
     p = np.array([50.0, 0.0, -8.0])
