@@ -29,6 +29,17 @@ def test_match_no_match():
     assert match_stamps([1, 2], [], max_diff_us=10) == []
 
 
+def test_match_accepts_a_difference_of_exactly_max_diff_on_either_side():
+    """``|a - b| <= max_diff_us``: a b exactly max_diff after or before a pairs, one microsecond more does not (also
+    through the offset)."""
+    assert match_stamps([1_000], [1_500], max_diff_us=500) == [(0, 0)]        # b later by max_diff
+    assert match_stamps([1_000], [500], max_diff_us=500) == [(0, 0)]          # b earlier by max_diff
+    assert match_stamps([1_000], [1_501], max_diff_us=500) == []
+    assert match_stamps([1_000], [499], max_diff_us=500) == []
+    assert match_stamps([1_000], [1_400], max_diff_us=500, offset_us=100) == [(0, 0)]
+    assert match_stamps([1_000], [1_400], max_diff_us=500, offset_us=101) == []
+
+
 def test_match_clock_offset():
     # b is on a clock 0.5 s behind a: b + 500 ms lands on a
     a = np.array([1_000_000, 1_100_000, 1_200_000])
