@@ -161,3 +161,20 @@ def test_pairer_position_lead_releases_on_attitude(tmp_path):
             assert out[0]["quality_flags"] & QF_EXTRAPOLATED
             np.testing.assert_allclose(out[0]["position_ned_m"], tr["position_ned_m"][0], atol=0.01)
             assert _angle(out[0]["q_wxyz"], tr["q_wxyz"][0]) < 1e-4
+
+
+def test_pairer_overflow_drops_the_oldest_frames_and_the_newest_are_posed(tmp_path):
+    """More frames pending than ``max_pending`` (navigation late): the oldest stamps go, counted as
+    ``dropped.pending_overflow``, as the frame ring does (the newest frames win); a frame arriving late with a stamp
+    older than every pending one is the one dropped. Once navigation comes the newest frames are posed."""
+    p, cam = _cameras_file(tmp_path)
+    pr = S.Pairer(S.load_cameras(p), NavBuffer(), max_wait_s=0.3, max_pending=3)
+    for seq in range(1, 6):                                              # frames at 0.1 .. 0.5 s, no nav yet
+        pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, 0.1 * seq, seq))), now_s=0.0)
+    assert [s for s, _, _ in pr.pending] == [300_000, 400_000, 500_000]
+    assert pr.counts["dropped.pending_overflow"] == 2
+    pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, 0.05, 9))), now_s=0.0)    # late and oldest
+    assert [m["seq"] for _, _, m in pr.pending] == [3, 4, 5] and pr.counts["dropped.pending_overflow"] == 3
+    for m in _nav_msgs(0, 0.6):
+        pr.add_nav({"q_wxyz": [np.nan] * 4, "position_ned_m": [np.nan] * 3, "velocity_ned_mps": [np.nan] * 3, **m})
+    assert [o["seq"] for o in pr.poll(now_s=0.0)] == [3, 4, 5]
