@@ -117,6 +117,28 @@ def test_hermite_velocity_aided_constant_acceleration():
     assert r.velocity_ned_mps[0] == pytest.approx(a * 0.05, abs=1e-12)
 
 
+def test_hermite_exact_for_cubic_motion_with_both_end_velocities_nonzero():
+    """The velocity-aided interpolation is exact for motion up to cubic in time: position and velocity of
+    p(t) = p0 + v0 t + a t^2 / 2 + j t^3 / 6 between 25 Hz samples at 1.00 and 1.04 s (both end velocities non-zero,
+    each weighted by the bracket's 40 ms)."""
+    p0, v0, a, j = (np.array([100.0, -20.0, -50.0]), np.array([20.0, -5.0, 1.0]), np.array([3.0, 2.0, -1.0]),
+                    np.array([-6.0, 1.5, 0.5]))
+
+    def truth(t_s):
+        return p0 + v0 * t_s + a * t_s**2 / 2 + j * t_s**3 / 6, v0 + a * t_s + j * t_s**2 / 2
+
+    nb = _buf()
+    for t_us in (1_000_000, 1_040_000):
+        p, v = truth(t_us * 1e-6)
+        nb.add(t_us, [1, 0, 0, 0], p, v)
+    for t_us in (1_010_000, 1_025_000):
+        r = nb.pose_at(t_us)
+        p, v = truth(t_us * 1e-6)
+        assert r.ok and r.quality_flags & QF_VELOCITY_AIDED
+        np.testing.assert_allclose(r.position_ned_m, p, atol=1e-9)
+        np.testing.assert_allclose(r.velocity_ned_mps, v, atol=1e-7)
+
+
 def test_no_velocity_flag_when_single_sample_without_velocity():
     nb = _buf()
     nb.add(0, [1, 0, 0, 0], [1, 2, 3])
