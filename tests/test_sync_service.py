@@ -178,3 +178,19 @@ def test_pairer_overflow_drops_the_oldest_frames_and_the_newest_are_posed(tmp_pa
     for m in _nav_msgs(0, 0.6):
         pr.add_nav({"q_wxyz": [np.nan] * 4, "position_ned_m": [np.nan] * 3, "velocity_ned_mps": [np.nan] * 3, **m})
     assert [o["seq"] for o in pr.poll(now_s=0.0)] == [3, 4, 5]
+
+
+def test_pairer_position_lead_needs_a_velocity_on_the_newest_position(tmp_path):
+    """The position lead releases a frame early only when the newest position sample carries a velocity (a moving
+    vehicle's LOCAL_POSITION_NED); position samples without one: the frame waits for its bracket as without a lead,
+    and is extrapolated only when ``max_wait_s`` is spent."""
+    p, cam = _cameras_file(tmp_path)
+    msgs = _nav_msgs(0, 0.47)                 # as in the test above: attitude brackets 0.455 s, position 15 ms behind
+    pr = S.Pairer(S.load_cameras(p), NavBuffer(), max_wait_s=0.3, position_lead_s=0.02)
+    for m in msgs:
+        pr.add_nav({"q_wxyz": [np.nan] * 4, "position_ned_m": [np.nan] * 3, **m, "velocity_ned_mps": [np.nan] * 3})
+    assert pr.nav.pos.vel[-1] is None
+    pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, 0.455, 1))), now_s=0.0)
+    assert pr.poll(now_s=0.0) == [] and len(pr.pending) == 1
+    out = pr.poll(now_s=0.3)
+    assert [o["seq"] for o in out] == [1] and out[0]["quality_flags"] & QF_EXTRAPOLATED
