@@ -747,6 +747,48 @@ def test_sender_fresh_then_unknown_over_udp():
         rx.close()
 
 
+def test_sender_merges_every_fresh_camera_and_stamps_the_oldest_capture():
+    """Two cameras through one sender: each message is the per-bin merge of the fresh cameras (nearest obstacle,
+    else clear, else unknown; hand-written below), stamped with the OLDER of their captures (the picture is no
+    newer than its oldest part); a camera gone stale leaves the merge while the other keeps it fresh."""
+    from eonav.nav import mavlink_out as mo
+    mu = mo.mavutil()
+    U, C = ob.UINT16_MAX, 4001                                   # unknown; clear (max_distance + 1)
+    nose, left = np.full(72, U, np.uint16), np.full(72, U, np.uint16)
+    nose[[3, 4, 5]] = [C, 1234, C]                               # nose: an obstacle at 12.34 m in bin 4
+    left[[4, 5, 60]] = [2000, 800, C]                            # left: farther in bin 4, the only one in bin 5
+    lay = (5.0, -20.0, 50, 4000)
+    port = _free_udp_port()
+    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", rate_hz=10.0, clock=lambda: t[0], wall_us=lambda: 42)
+
+    def sent():
+        out = []
+        while (m := rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.2)) is not None:
+            out.append(m)
+        return out
+
+    try:
+        tx.update(ob.Sectors(nose, *lay), 1_700_000_000_000_000, "nose")       # captured 50 ms before left's
+        t[0] = 0.2
+        tx.update(ob.Sectors(left, *lay), 1_700_000_000_050_000, "left")
+        t[0] = 0.25
+        tx.tick()
+        want = np.full(72, U)
+        want[[3, 4, 5, 60]] = [C, 1234, 800, C]
+        m, = sent()
+        assert list(m.distances) == list(want) and m.time_usec == 1_700_000_000_000_000
+        t[0] = 0.45                                              # nose 0.45 s old (stale), left 0.25 s (fresh)
+        tx.tick()
+        m, = sent()
+        assert list(m.distances) == [int(x) for x in left] and m.time_usec == 1_700_000_000_050_000
+        assert tx.counters["od_sent_flush"] == 0
+    finally:
+        tx.close()
+        rx.close()
+
+
 def test_sender_real_time_rate():
     import threading
     import time
