@@ -206,6 +206,29 @@ def test_sender_cycle_end_message_and_stall(messages):
         rx.conn.close()
 
 
+def test_sender_carries_a_moving_track_by_the_age_of_the_tracks():
+    """The tracks were stamped 0.25 s before the send (wall clock in µs): a track moving 2 m/s west is sent 0.5 m
+    nearer on east, a static one where it was; both against hand-computed points of a vehicle heading north."""
+    port = _free_udp_port()
+    rx = Rx(port)
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], wall_us=lambda: 1_250_000,
+                                   messages="obstacle_distance_3d")
+    s = pose()
+    tracks = [track(5, (0, 10, 0), velocity=(0, -2, 0), moving=True), track(6, (12, 0, 0), velocity=(3, 0, 0))]
+    try:
+        tx.update_tracks(tracks, 1_000_000, s.position_ned_m, s.T_body_ned, 0.5, 40.0)
+        t[0] = 0.1
+        tx.tick()
+        by_id = {m.obstacle_id: m for m in rx.drain()}
+        assert sorted(by_id) == [5, 6, 65535]
+        np.testing.assert_allclose([by_id[5].x, by_id[5].y, by_id[5].z], [0.0, 9.5, 0.0], atol=1e-5)
+        np.testing.assert_allclose([by_id[6].x, by_id[6].y, by_id[6].z], [12.0, 0.0, 0.0], atol=1e-5)
+    finally:
+        tx.close()
+        rx.conn.close()
+
+
 def test_sender_obstacle_distance_only_sends_no_3d():
     port = _free_udp_port()
     rx = Rx(port)
