@@ -610,6 +610,22 @@ def test_message_round_trip_and_contents():
     np.testing.assert_allclose(back["q_wxyz"], [1.0, 0.0, 0.0, 0.0], atol=1e-12)
 
 
+def test_message_attitude_is_body_to_ned_for_a_turned_vehicle():
+    """q_wxyz is the body FRD -> NED rotation (as nav_state): heading east (yaw 90 deg) is a +90 deg turn about
+    down, [cos 45, 0, 0, sin 45], and takes the nose [1, 0, 0] to east; nose up 30 deg is +30 deg about the right
+    wing, [cos 15, 0, sin 15, 0], and takes the nose to north and up (down -0.5)."""
+    from eonav.geometry.frames import rotation_from_quat_wxyz
+    c45, c15, s15 = math.cos(math.pi / 4), math.cos(math.radians(15)), math.sin(math.radians(15))
+    for ypr, want, nose_ned in (((90.0, 0.0, 0.0), [c45, 0.0, 0.0, c45], [0.0, 1.0, 0.0]),
+                                ((0.0, 30.0, 0.0), [c15, 0.0, s15, 0.0], [math.sqrt(0.75), 0.0, -0.5])):
+        st = VehicleState.from_ypr([0.0, 0.0, -10.0], np.radians(ypr))
+        msg = GP.build(T.Tracker(), T.Ownship.from_state(st, [0.0, 0.0, 0.0], us(0.0)), us(0.0), seq=0,
+                       trigger="timer", stale_after_s=0.5)
+        q = G.decode(G.encode(msg))["q_wxyz"]
+        np.testing.assert_allclose(q, want, atol=1e-12)
+        np.testing.assert_allclose(rotation_from_quat_wxyz(q) @ [1.0, 0.0, 0.0], nose_ned, atol=1e-12)
+
+
 def test_message_registers_in_the_project_schema(monkeypatch):
     from eonav.bus import schema
     monkeypatch.setitem(schema.FIELDS, G.KIND, G.FIELDS)
