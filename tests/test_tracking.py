@@ -626,6 +626,27 @@ def test_message_attitude_is_body_to_ned_for_a_turned_vehicle():
         np.testing.assert_allclose(rotation_from_quat_wxyz(q) @ [1.0, 0.0, 0.0], nose_ned, atol=1e-12)
 
 
+def test_nearest_threat_is_a_confirmed_track_even_when_a_tentative_one_comes_first():
+    """A tentative track 30 m ahead (one detection, maybe clutter) and a confirmed one 60 m ahead, both on the path
+    of a vehicle flying north at 10 m/s: the message's nearest threat is the confirmed one (what the message's
+    tracks hold); the tentative one is in the cone and would have come first."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
+    cov = np.diag([0.25, 0.04, 0.04])
+    for k in range(2):
+        tr.update([T.Measurement([60.0, 0.0, -10.0], cov, [1.0, 2.0, 2.0])], us(k * 0.1))
+    tr.update([T.Measurement([60.0, 0.0, -10.0], cov, [1.0, 2.0, 2.0]),
+               T.Measurement([30.0, 0.0, -10.0], cov, [1.0, 2.0, 2.0])], us(0.2))
+    conf, = tr.confirmed()
+    tent = next(t for t in tr.tracks if not t.confirmed)
+    own = _own(0.2, (10.0, 0.0, 0.0))
+    views = {v.track.id: v for v in T.assess(tr.snapshot(us(0.2)), own, us(0.2))}
+    assert views[tent.id].in_cone and views[tent.id].time_to_contact_s < views[conf.id].time_to_contact_s
+    msg = GP.build(tr, own, us(0.2), seq=0, trigger="map", stale_after_s=0.5)
+    assert msg["nearest_threat"]["id"] == conf.id and msg["n_tentative"] == 1
+    assert msg["nearest_threat"]["time_to_contact_s"] == pytest.approx(views[conf.id].time_to_contact_s)
+    assert G.decode(G.encode(msg))["nearest_threat"]["id"] == conf.id
+
+
 def test_message_registers_in_the_project_schema(monkeypatch):
     from eonav.bus import schema
     monkeypatch.setitem(schema.FIELDS, G.KIND, G.FIELDS)
