@@ -571,6 +571,22 @@ def test_moving_obstacle_coming_at_a_hovering_vehicle_is_a_threat():
     assert th is not None and th.time_to_contact_s == pytest.approx(true_ttc, rel=0.1)
 
 
+def test_nearest_threat_is_the_soonest_contact_not_the_nearest_surface():
+    """Two tracks on the path of a vehicle flying north at 10 m/s: one 30 m ahead ranged to 0.2 m, one 40 m ahead
+    ranged to 6 m (its box grows by 2 sigma = 12 m along the path). Hand-derived contacts: (30 - 1 - 0.4) / 10 =
+    2.86 s and (40 - 1 - 12) / 10 = 2.7 s: the farther one is the nearest threat (it can be met first)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    near = T.Measurement([30.0, 0.0, -10.0], np.diag([0.04, 0.04, 0.04]))
+    vague = T.Measurement([40.0, 3.0, -10.0], np.diag([36.0, 0.04, 0.04]), [0.0, 8.0, 0.0])   # 3 m east, 8 m wide
+    tr.update([near, vague], us(0.0))
+    own = T.Ownship.from_state(HOVER, [10.0, 0.0, 0.0], us(0.0))
+    views = T.assess(tr.snapshot(us(0.0)), own, us(0.0), T.ConeConfig(vehicle_radius_m=1.0, k_sigma=2.0))
+    vn, vv = views
+    assert vn.time_to_contact_s == pytest.approx(2.86) and vv.time_to_contact_s == pytest.approx(2.7)
+    assert vn.surface_distance_m == pytest.approx(30.0) and vv.surface_distance_m == pytest.approx(40.0)
+    assert T.nearest_threat(views) is vv
+
+
 # -- message and publisher ----------------------------------------------------------------------------------------
 def _tracker_with_tracks():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
