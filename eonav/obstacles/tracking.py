@@ -935,8 +935,9 @@ def is_moving(x, P, cfg: TrackerConfig) -> bool:
 
 
 def ownship_at(own: Ownship, now_us: int, max_extrapolate_s: float = 1.0) -> np.ndarray:
-    """The vehicle origin at ``now_us``: the state's position moved on by its velocity over the state's age (0 to
-    ``max_extrapolate_s``; not moved when the velocity is unknown or the stamp is not set)."""
+    """The vehicle origin at ``now_us``: the state's position moved on by its velocity over the state's age when
+    that age is over 0 and at most ``max_extrapolate_s``; otherwise as it is (not capped at ``max_extrapolate_s``: a
+    velocity that old is not trusted to carry it), and so when the velocity is unknown or the stamp is not set."""
     dt = (int(now_us) - own.stamp_us) * 1e-6
     if own.stamp_us < 0 or not own.velocity_known or not 0 < dt <= max_extrapolate_s:
         return own.position_ned_m
