@@ -196,6 +196,7 @@ def _services():
 
 
 def test_locator_and_obstacles_survive_the_payloads_that_killed_them():
+    import zenoh
     from eonav.app.processes import drain, stop_service, wait_until
     from eonav.sim.flight import render_flight
     from tests.test_locator_service import VEHICLE, latest_health, posed_frame_payload
@@ -203,8 +204,9 @@ def test_locator_and_obstacles_survive_the_payloads_that_killed_them():
     frames = list(render_flight("approach", n_frames=2, rate_hz=4.0, size=128, t0_s=3.0, seed=1))
     with _services() as (s, procs, maps_sub, obs_sub, health_sub):
         health = []
-        frame_pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"))
-        map_pub = s.declare_publisher(K.range_map(VEHICLE, "nose"))
+        # BLOCK: every payload here is counted by the services, and a put with DROP was seen lost on a loaded machine
+        frame_pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"), congestion_control=zenoh.CongestionControl.BLOCK)
+        map_pub = s.declare_publisher(K.range_map(VEHICLE, "nose"), congestion_control=zenoh.CongestionControl.BLOCK)
         wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))), timeout=60,
                    what="both services up")
         wait_until(lambda: frame_pub.matching_status.matching and map_pub.matching_status.matching, timeout=10,
