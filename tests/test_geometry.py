@@ -137,3 +137,25 @@ def test_on_grid_samples_the_pixel_centres_the_locator_upsampled_from():
         full_u = (u + 0.5) * W / sc.width - 0.5
         np.testing.assert_allclose((u - sc.cx) / sc.fx, (full_u - cam.cx) / cam.fx, atol=1e-12)
         assert on_grid(small, sc.width, sc.height) is small
+
+
+def test_point_rays_project_sub_pixel_points_exactly_with_unequal_focal_lengths():
+    """PairGeometry.point_rays (the tracks' and the fusion scale check's rays): for sub-pixel points of a camera with
+    fx != fy, A + t rho projected with eqs. (8)-(9) is where the point lies in image b, by the independent route
+    (back-project to NED with eq. 33, into b with eqs. 12, 15). A y ray divided by fx instead of fy is off by
+    (y_p / fx - y_p / fy) x_c: up to 11 px of b here (measured)."""
+    ca = Camera("a", 64, 48, 50, 60, 31.5, 23.5, [1.0, 0.2, 0.3], np.deg2rad([2, -5, 1]))
+    cb = Camera("b", 64, 48, 70, 65, 30.0, 20.0, [1.0, -0.4, 0.3], np.deg2rad([-1, -4, 0]))
+    sa = VehicleState.from_ypr([0, 0, -10], np.deg2rad([10, 2, -3]))
+    sb = VehicleState.from_ypr([3, 0.5, -10.2], np.deg2rad([12, 1, -2]))
+    g = pair_geometry(View(ca, sa, np.zeros((48, 64))), View(cb, sb, np.zeros((48, 64))))
+    rng = np.random.default_rng(136)
+    pts = rng.uniform([0, 0], [63, 47], (40, 2))
+    rho = rng.uniform(0.01, 0.2, 40)
+    X = g.point_rays(pts) + g.t_ba_m[:, None] * rho
+    xc = 1.0 / rho
+    Xa = np.stack([xc, xc * (pts[:, 0] - ca.cx) / ca.fx, xc * (pts[:, 1] - ca.cy) / ca.fy], -1)
+    Xb = camera_from_ned(ned_from_camera(Xa, ca.T_cam_body, sa.T_body_ned, sa.position_ned_m, ca.l_body_m),
+                         cb.T_cam_body, sb.T_body_ned, sb.position_ned_m, cb.l_body_m)
+    np.testing.assert_allclose(cb.cx + cb.fx * X[1] / X[0], cb.cx + cb.fx * Xb[:, 1] / Xb[:, 0], atol=1e-9)
+    np.testing.assert_allclose(cb.cy + cb.fy * X[2] / X[0], cb.cy + cb.fy * Xb[:, 2] / Xb[:, 0], atol=1e-9)
