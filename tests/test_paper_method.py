@@ -260,6 +260,31 @@ def test_c1_sign_e1_minus_e2_is_right():
             assert np.mean(xc[sel] > 0) < 0.25
 
 
+def test_eq28_inverts_exact_disparities_with_unequal_focal_lengths():
+    """Eq. (28) is the exact solution of c1 = a1 dx + b1 dy (eq. 27 to first order) with dx, dy of eqs. (25)-(26):
+    given c1 built from the true disparities of 3-D points (projected with eqs. 8, 9, 12, 15 by a camera with
+    fx != fy and a translation down as well as forward) and any gradient, it returns the true x_c. Its y-rows take
+    fy (My = fy k5 - yp k3, Ny = fy k2 - yp k0): with fx in My the median error is 19 %, in Ny 9 % (measured)."""
+    from eonav.geometry.frames import T_body_ned_from_ypr, T_cam_body_from_eps, camera_from_ned, relative_pose
+    rng = np.random.default_rng(28)
+    fx, fy = 240.0, 300.0
+    T1, l_m = T_cam_body_from_eps(np.deg2rad([1.0, -2.0, 0.5])), np.array([2.0, 0.3, 0.5])
+    T2a, T2b = T_body_ned_from_ypr(0.1, 0.02, -0.01), T_body_ned_from_ypr(0.102, 0.023, -0.006)
+    xva, xvb = np.zeros(3), np.array([0.4, 0.1, 0.3])
+    x_true = np.exp(rng.uniform(np.log(5), np.log(300), 200))
+    Xa = np.stack([x_true, x_true * rng.uniform(-0.4, 0.4, 200), x_true * rng.uniform(-0.3, 0.3, 200)], 1)
+    world = Xa @ T1 @ T2a + l_m @ T2a + xva                     # eq. (33): x = x_v + T2^T (T1^T x_c + l)
+    Xb = camera_from_ned(world, T1, T2b, xvb, l_m)
+    xp, yp = fx * Xa[:, 1] / Xa[:, 0], fy * Xa[:, 2] / Xa[:, 0]
+    dx, dy = fx * Xb[:, 1] / Xb[:, 0] - xp, fy * Xb[:, 2] / Xb[:, 0] - yp
+    a1, b1 = rng.normal(0, 5, 200), rng.normal(0, 5, 200)
+    c1 = a1 * dx + b1 * dy
+    R, t = relative_pose(T1, T2a, xva, l_m, T1, T2b, xvb, l_m)
+    k = k_coefficients(R, t, xp, yp * fx / fy, fx)              # m2 = y_p / fy, as locate_paper passes it
+    xc = range_eq28(a1, b1, c1, k, xp, yp, fx, fy)[0]
+    np.testing.assert_allclose(xc, x_true, rtol=1e-8)
+
+
 def test_truncation_flag_fires_where_disparities_are_large():
     """Eq. (7) test with the default (paper) settings: share of computed pixels flagged, measured
     ~17 % at |d| ~ 0.6 px and ~89 % at |d| ~ 5 px."""
