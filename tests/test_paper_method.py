@@ -9,7 +9,7 @@ from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.derivatives import estimate_derivatives, noise_gains
 from eonav.geometry.frames import k_coefficients
 from eonav.ranging.methods.paper import (camera_points_eq32, disparity, locate_paper, ned_point_cloud, range_eq28)
-from eonav.ranging.rangemap import LOW_TEXTURE, TRUNCATION, VALID, RangeResult
+from eonav.ranging.rangemap import LOW_TEXTURE, OUT_OF_VIEW, TRUNCATION, VALID, RangeResult
 
 # ----------------------------------------------------------------------------------------------------------
 # analytic scenes
@@ -297,6 +297,30 @@ def test_truncation_flag_fires_where_disparities_are_large():
         assert not np.any((res.flags & TRUNCATION) & (res.flags & VALID))
         assert np.all(res.confidence[(res.flags & TRUNCATION) > 0] == 0)
     assert fr[0] < 0.3 and fr[1] > 0.75
+
+
+def test_out_of_view_flags_exactly_the_points_that_leave_image_b():
+    """OUT_OF_VIEW means the point leaves image b (eonav.ranging.rangemap): a pixel with a range is flagged exactly
+    when its own inverse range puts it outside image b by the exact mapping (PairGeometry.map_to_b, eqs. 25-26).
+    A non-square camera moving right and down (the wall moves ~5 px left and ~2 px up): the left columns and top rows
+    leave. Catches the test done on the estimators' delayed grid at the pixel index instead of the delayed position
+    (off by the delay, 4 px: points that left b by up to 4 px kept VALID on the left and top, in-view points flagged on
+    the right and bottom) and a width / height swap."""
+    cam = Camera("wide", 160, 96, 240.0, 240.0, 79.5, 47.5)
+    sb = VehicleState.from_ypr([0.0, 0.6, 0.25], [0, 0, 0])
+    planes = [wall(random_texture(1))]
+    ia, _ = render_planes(cam, S_A, planes, noise=1.0, seed=1)
+    ib, _ = render_planes(cam, sb, planes, noise=1.0, seed=2)
+    va, vb = View(cam, S_A, ia), View(cam, sb, ib)
+    res = locate_paper(va, vb)
+    assert res.info["delay_px"] == 4.0
+    has = np.isfinite(res.range_m)
+    ub, vb_, _ = pair_geometry(va, vb).map_to_b(np.where(has, res.inv_range_per_m, 0.0))
+    leaves = (ub < 0) | (ub > cam.width - 1) | (vb_ < 0) | (vb_ > cam.height - 1)
+    flagged = (res.flags & OUT_OF_VIEW) > 0
+    np.testing.assert_array_equal(flagged[has], leaves[has])
+    assert (leaves & has)[:, :4].sum() > 50 and (leaves & has)[:2].sum() > 50       # not a vacuous check
+    assert not np.any(flagged & ((res.flags & VALID) > 0))
 
 
 def test_no_motion_gives_no_confident_ranges():

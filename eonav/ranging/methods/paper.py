@@ -186,9 +186,10 @@ def locate_paper(view_a: View, view_b: View, *, bandwidth: float = 0.25, order: 
     flags[computed & ~good] |= ILL_CONDITIONED
     if truncation_tol is not None:
         flags[good & ~(trunc_ratio <= truncation_tol)] |= TRUNCATION
-    # does the point stay in image b? (exact mapping, eqs. 25-26; on the delayed grid)
-    ub = u + dx
-    vb = v + dy
+    # does the point stay in image b? (exact mapping, eqs. 25-26; index (v, u) of the delayed grid is the point
+    # (u - delay, v - delay) of image a)
+    ub = u - delay + dx
+    vb = v - delay + dy
     out = ~((ub >= 0) & (ub <= W - 1) & (vb >= 0) & (vb <= H - 1))
     if inside_b is not None:
         out |= ~inside_b
