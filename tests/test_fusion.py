@@ -75,6 +75,25 @@ def test_forward_motion_carries_a_plane_to_the_pixels_and_inverse_ranges_derived
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_process_noise_terms_derived_by_hand(kernels):
+    """Each term of the predicted variance (module docstring): var' = J^2 var + rho'^2 (q_s^2 dt + q_m^2 |t|) +
+    q_abs^2 dt. Plane at 20 m, camera 2 m forward: rho' = 1/18, J^2 var = 1e-6 / 0.9^4 = 1.5242e-6 (the first
+    test). Each noise alone: q_m = 0.01 with dt = 0 adds (1/18)^2 1e-4 2 m = 6.173e-7; q_s = 0.02 over 0.25 s adds
+    (1/18)^2 4e-4 0.25 = 3.086e-7; q_abs = 1e-3 over 0.25 s adds 2.5e-7. Catches a dropped term (the distance one
+    is otherwise only checked against the numba kernel) or one in other units."""
+    c = cam()
+    st = planar_state(c, 1 / 20.0)
+    inner = (slice(3, -3), slice(3, -3))
+    base = 1e-6 / 0.9 ** 4
+    for noise, t, add in ((ProcessNoise(0.0, 0.01, 0.0), 0.0, 6.1728395e-7),
+                          (ProcessNoise(0.02, 0.0, 0.0), 0.25, 3.0864198e-7),
+                          (ProcessNoise(0.0, 0.0, 1e-3), 0.25, 2.5e-7)):
+        p = predict(st, c, pose(north=2.0, t=t), t, noise, kernels=kernels)
+        assert np.allclose(p.rho[inner], 1 / 18.0, rtol=1e-6)
+        assert np.allclose(p.var[inner], base + add, rtol=1e-5), noise
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_sub_pixel_motion_is_not_rounded_away(kernels):
     # one point at 20 m, camera 0.55 m to starboard per frame: the image moves 40 * 0.55 / 20 = 1.1 px left per
     # frame; after 5 frames the point must be 5.5 px left (rounding each step without the remainder: 5 px)
@@ -200,6 +219,24 @@ def test_unmeasured_pixels_keep_their_prediction_and_the_reason(kernels):
     assert c["measured"] == 0
     assert np.array_equal(st.rho, before[0]) and np.array_equal(st.var, before[1]) and np.array_equal(st.n, before[2])
     assert (st.flags == LOW_TEXTURE).all()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_filled_pixels_of_a_measurement_are_not_fused(kernels):
+    """A FILLED pixel (VALID | FILLED: interpolated from its neighbours, not measured) carries no measurement: fusing
+    it would let the fill confirm itself frame after frame. It neither moves a cell nor starts an empty one; the same
+    value flagged VALID alone does."""
+    st = one_cell_state()
+    for _ in range(3):
+        measure(st, 0.05, 1e-3, kernels)
+    before = st.rho.copy(), st.var.copy(), st.n.copy()
+    c = measure(st, 0.0505, 1e-3, kernels, flags=VALID | FILLED)
+    assert c["measured"] == 0
+    assert np.array_equal(st.rho, before[0]) and np.array_equal(st.var, before[1]) and np.array_equal(st.n, before[2])
+    empty = one_cell_state()
+    assert measure(empty, 0.0505, 1e-3, kernels, flags=VALID | FILLED)["started"] == 0 and not empty.occupied().any()
+    c = measure(st, 0.0505, 1e-3, kernels, flags=VALID)
+    assert c["measured"] == 16 and (st.n == 4).all() and (st.rho > before[0]).all()
 
 
 def _random_state(c, rng, rho_lo: float, var_hi: float):
