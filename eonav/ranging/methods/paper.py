@@ -68,15 +68,23 @@ def _same_intrinsics(ca: Camera, cb: Camera) -> bool:
         [ca.fx, ca.fy, ca.cx, ca.cy], [cb.fx, cb.fy, cb.cx, cb.cy], rtol=0, atol=1e-9)
 
 
-def resample_to_intrinsics(image_b: np.ndarray, cam_b: Camera, cam_a: Camera):
+def resample_to_intrinsics(image_b: np.ndarray, cam_b: Camera, cam_a: Camera) -> np.ndarray:
     """Image of a virtual camera with cam_a's intrinsics at cam_b's pose (same rays, so exact for a
-    pinhole): returns (image on cam_a's grid, mask of pixels that fall inside image b)."""
+    pinhole), on cam_a's grid; outside image b it repeats b's border (``_in_camera_b`` tells a point's side)."""
     u, v = cam_a.pixel_grid()
-    ub = cam_b.cx + cam_b.fx * (u - cam_a.cx) / cam_a.fx
-    vb = cam_b.cy + cam_b.fy * (v - cam_a.cy) / cam_a.fy
-    inside = (ub >= 0) & (ub <= cam_b.width - 1) & (vb >= 0) & (vb <= cam_b.height - 1)
-    img = ndimage.map_coordinates(np.asarray(image_b, np.float64), [vb, ub], order=1, mode="nearest")
-    return img, inside
+    ub, vb = _to_camera_b(u, v, cam_a, cam_b)
+    return ndimage.map_coordinates(np.asarray(image_b, np.float64), [vb, ub], order=1, mode="nearest")
+
+
+def _to_camera_b(u, v, cam_a: Camera, cam_b: Camera):
+    """Pixel (u, v) of the virtual camera (cam_a's intrinsics at b's pose) in camera b's own pixels (the same ray)."""
+    return cam_b.cx + cam_b.fx * (u - cam_a.cx) / cam_a.fx, cam_b.cy + cam_b.fy * (v - cam_a.cy) / cam_a.fy
+
+
+def _in_camera_b(u, v, cam_a: Camera, cam_b: Camera):
+    """Whether the point at (u, v) of the virtual camera (cam_a's intrinsics at b's pose) lies inside image b."""
+    ub, vb = _to_camera_b(u, v, cam_a, cam_b)
+    return (ub >= 0) & (ub <= cam_b.width - 1) & (vb >= 0) & (vb <= cam_b.height - 1)
 
 
 def _shift_back(arr, s: int, fill):
@@ -125,11 +133,8 @@ def locate_paper(view_a: View, view_b: View, *, bandwidth: float = 0.25, order: 
     ca, cb = view_a.camera, view_b.camera
     H, W = ca.height, ca.width
     img_a = view_a.image
-    inside_b = None
-    if _same_intrinsics(ca, cb):
-        img_b = view_b.image
-    else:
-        img_b, inside_b = resample_to_intrinsics(view_b.image, cb, ca)
+    same = _same_intrinsics(ca, cb)
+    img_b = view_b.image if same else resample_to_intrinsics(view_b.image, cb, ca)
     pg = pair_geometry(view_a, view_b)
 
     # eqs. (34)-(42): the same estimator on both images (common delay)
@@ -191,8 +196,9 @@ def locate_paper(view_a: View, view_b: View, *, bandwidth: float = 0.25, order: 
     ub = u - delay + dx
     vb = v - delay + dy
     out = ~((ub >= 0) & (ub <= W - 1) & (vb >= 0) & (vb <= H - 1))
-    if inside_b is not None:
-        out |= ~inside_b
+    if not same:         # b resampled to a's intrinsics: the point must also lie inside b's own image
+        with np.errstate(invalid="ignore"):
+            out |= ~_in_camera_b(ub, vb, ca, cb)
     flags[good & out] |= OUT_OF_VIEW
     valid = good & ((flags & (TRUNCATION | OUT_OF_VIEW)) == 0)
     flags[valid] |= VALID
