@@ -783,6 +783,41 @@ def test_schedulers_batched_pair_policy_decides_as_the_pair_policy():
     assert {OK_MOTION, TOO_LITTLE_PARALLAX, TOO_MUCH_ROTATION, TOO_OLD} <= reasons, reasons
 
 
+def _sideways(n, yaw_deg=None):
+    """n frames of a 256 x 256 camera (f 256 px) looking north and flying east at 1 m/s, 0.25 s apart (frame k at
+    0.25 k s, k m east; ``yaw_deg``: {k: yaw}). A sideways baseline B moves every pixel by f B / Z: at the policy's
+    50 m reference 5.12 px per metre, the same at every probe pixel, so the pair's median disparity is 5.12 B px."""
+    from eonav.ranging.pair_policy import PosedFrameInfo
+    c = Camera("nose", 256, 256, 256.0, 256.0, 127.5, 127.5)
+    yaw_deg = yaw_deg or {}
+    return [PosedFrameInfo("nose", k, 1_700_000_000_000_000 + 250_000 * k, c,
+                           VehicleState.from_ypr([0.0, 0.25 * k, -10.0], np.deg2rad([yaw_deg.get(k, 0.0), 0, 0]),
+                                                 0.25 * k)) for k in range(n)]
+
+
+def test_the_wide_partner_keeps_the_pair_policys_age_and_rotation_limits():
+    """The wide partner is the earlier frame with the most parallax (up to wide_max_disparity_px) *within* the pair
+    policy's age (1 s) and rotation (10 deg) limits: an older frame, or one turned 15 deg, has more parallax but is
+    no partner (appearance and pose error grow with the gap). Hand values: 5.12 px per metre sideways (_sideways).
+    Catches a planted us -> s slip in the wide candidates' age (1e-9 for 1e-6: every frame of the 48 kept within
+    age) and a dropped rotation term in the wide test."""
+    from eonav.fusion.schedule import WIDE, Scheduler
+    fs = _sideways(7)                                  # the last at 1.5 s: frames 1.5, 1.25 (7.68, 6.4 px) too old
+    sch = Scheduler(ScheduleConfig(pattern=(WIDE,)))
+    for f in fs[:-1]:
+        sch.offer(f)
+    ms, _ = sch.offer(fs[-1])
+    assert [(m.kind, m.b.seq) for m in ms] == [("wide", 2)]          # exactly 1.0 s back: at the limit, taken
+    assert ms[0].disparity_px == pytest.approx(5.12, rel=1e-9) and ms[0].baseline_m == pytest.approx(1.0)
+    fs = _sideways(5, yaw_deg={0: 15.0})               # the last at 1.0 s: frame 0 within age, but turned 15 deg
+    sch = Scheduler(ScheduleConfig(pattern=(WIDE,)))
+    for f in fs[:-1]:
+        sch.offer(f)
+    ms, _ = sch.offer(fs[-1])
+    assert [(m.kind, m.b.seq) for m in ms] == [("wide", 1)]          # 0.75 m: 3.84 px (frame 0 would give 5.47)
+    assert ms[0].disparity_px == pytest.approx(3.84, rel=1e-9) and ms[0].baseline_m == pytest.approx(0.75)
+
+
 def _push_all(runner, views, camera_id="nose"):
     return [m for k, v in enumerate(views) for m in runner.push(frame(camera_id, v, int(round(v.state.t_s * 1e6)), k))]
 
