@@ -103,6 +103,19 @@ def test_too_much_rotation():
     assert d.ok and d.b.seq == 1
 
 
+def test_a_turned_newest_frame_is_passed_over_for_an_older_one_within_the_limit():
+    """A yaw wobble: the newest earlier frame is turned 15 deg (> max_rotation_deg), the one before it is level like
+    the new frame: the policy looks past the turned frame to the level one (rotation, unlike age, does not grow
+    further back), 2 m forward: 102 * 0.04 / 1.04 px. Catches a planted ``break`` for ``continue`` after a frame
+    rotated too much (no pair until the wobble leaves the history)."""
+    p = policy(max_rotation_deg=10.0)
+    p.offer(frame(0, 0.0, 0.0))
+    assert p.offer(frame(1, 0.1, 1.0, yaw_deg=15.0)).reason == pp.TOO_MUCH_ROTATION
+    d = p.offer(frame(2, 0.2, 2.0))
+    assert d.ok and d.reason == pp.OK_MOTION and d.b.seq == 0
+    assert d.rotation_deg == pytest.approx(0.0, abs=1e-6) and d.disparity_px == pytest.approx(102 * 0.04 / 1.04)
+
+
 def test_parallax_reason_wins_over_rotation_reason():
     p = policy(max_rotation_deg=10.0)
     p.offer(frame(0, 0.0, 0.0, yaw_deg=30.0))           # rotated too much
