@@ -381,6 +381,24 @@ def test_runner_drops_out_of_order_frames_and_resets_after_a_gap(fast_sequence):
     assert [m.frame.seq for m in maps] == [2]
 
 
+def test_runner_drops_a_frame_delivered_twice_and_leaves_the_state_alone(fast_sequence):
+    """A frame with the same stamp as its camera's state (the same instant delivered twice) is not newer: dropped and
+    counted out_of_order, no second map of that instant (it would be published again) and the state untouched (not
+    predicted, its frame kept). Catches a planted ``<`` for ``<=`` in push's out-of-order test."""
+    v = fast_sequence.views
+    us = [int(round(x.state.t_s * 1e6)) for x in v]
+    runner = FusionRunner(FusionConfig())
+    runner.push(frame("nose", v[0], us[0], 0))
+    first = frame("nose", v[1], us[1], 1)
+    assert len(runner.push(first)) == 1
+    st = runner.states["nose"]
+    before = {k: getattr(st, k).copy() for k in ("rho", "var", "a", "b", "n")}
+    assert runner.push(frame("nose", v[1], us[1], 1)) == [] and runner.counts["out_of_order"] == 1
+    assert runner.states["nose"] is st and runner.frames["nose"] is first
+    for k, x in before.items():
+        assert np.array_equal(getattr(st, k), x, equal_nan=True), k
+
+
 def test_stereo_partner_updates_the_rig_reference():
     from eonav.sim.presets import make_pair
     sp = make_pair("stereo", size=96, supersample=1)
