@@ -399,6 +399,28 @@ def test_runner_drops_a_frame_delivered_twice_and_leaves_the_state_alone(fast_se
         assert np.array_equal(getattr(st, k), x, equal_nan=True), k
 
 
+def test_reset_of_one_camera_leaves_the_other_cameras_state(fast_sequence):
+    """``reset(camera_id)`` (the locator's answer to a frame whose fusion failed) forgets that camera's state and no
+    other: the next frame of the reset camera starts fresh (one measurement per cell), the other camera's next frame
+    fuses on top of what it had (its cells' n grows). Catches a planted reset of every camera."""
+    v = fast_sequence.views
+    us = [int(round(x.state.t_s * 1e6)) for x in v]
+    runner = FusionRunner(FusionConfig())
+    for k in range(3):
+        for cid in ("nose", "tail"):
+            runner.push(frame(cid, v[k], us[k], k))
+    tail = runner.states["tail"]
+    n_tail = int(tail.n.max())
+    assert n_tail >= 2
+    runner.reset("nose")
+    assert "nose" not in runner.states and "nose" not in runner.frames
+    assert runner.states.get("tail") is tail and int(tail.n.max()) == n_tail
+    nose, = runner.push(frame("nose", v[3], us[3], 3))
+    assert nose.n_fused.max() == 1 and (nose.n_fused[runner.states["nose"].occupied()] == 1).all()
+    tail_map, = runner.push(frame("tail", v[3], us[3], 3))
+    assert tail_map.n_fused.max() == n_tail + 1
+
+
 def test_stereo_partner_updates_the_rig_reference():
     from eonav.sim.presets import make_pair
     sp = make_pair("stereo", size=96, supersample=1)
