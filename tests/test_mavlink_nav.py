@@ -75,6 +75,22 @@ def test_attitude_quaternion_validation():
     assert d.counts["ATTITUDE_QUATERNION"] == 1
 
 
+def test_attitude_range_limits_roll_and_yaw_pi_pitch_half_pi():
+    """ATTITUDE's range check: roll and yaw span [-pi, pi], pitch [-pi/2, pi/2]. A steep bank past 90 deg (roll
+    115 deg: aerobatics, a fixed wing in a hard turn, a copter upset) is a valid attitude and must be kept; roll
+    beyond pi is out of range. Hand values: a roll-only rotation r about body x is q = [cos r/2, sin r/2, 0, 0]."""
+    d = NavDecoder()
+    s = d.decode(att(100, roll=2.0))
+    assert s is not None, d.rejected
+    np.testing.assert_allclose(s.q_wxyz, [math.cos(1.0), math.sin(1.0), 0, 0], atol=1e-7)
+    s = d.decode(att(120, yaw=-3.1))                              # heading just short of south, the other way
+    np.testing.assert_allclose(s.q_wxyz, [math.cos(1.55), 0, 0, -math.sin(1.55)], atol=1e-7)
+    assert d.decode(att(140, roll=3.2)) is None                  # |roll| > pi
+    assert d.decode(att(160, yaw=-3.2)) is None                  # |yaw| > pi
+    assert d.decode(att(180, pitch=1.6)) is None                 # |pitch| > pi/2
+    assert d.rejected == Counter({"attitude_out_of_range": 3})
+
+
 def test_local_position_and_nonfinite():
     d = NavDecoder()
     s = d.decode(lpos(100, (1.5, -2.0, -30.0), (3.0, 0.5, -1.0)))
@@ -127,6 +143,21 @@ def test_given_origin_and_alt_datum_jump():
     assert d.decode(gpos(300, 45.0, 0.0, 641.2)).position_ned_m[2] == pytest.approx(-3.0, abs=1e-6)
     with pytest.raises(InputError, match="origin_lla"):
         NavDecoder(origin_lla=(95.0, 0.0, 0.0))
+
+
+def test_alt_step_within_vertical_speed_is_motion_not_a_datum_change():
+    """The datum-jump threshold grows with the time between fixes: alt_jump_m + max_vertical_speed_mps * dt
+    (defaults 20 m + 100 m/s * dt). A real 60 m climb over 3 s between two fixes (a gap in GLOBAL_POSITION_INT) is
+    below 20 + 300 m: it is motion and down must follow it (-(alt - alt0), hand value -60 m). A 75 m step in
+    0.5 s is above 20 + 50 m: a datum change, absorbed (down stays where it was)."""
+    d = NavDecoder(origin_lla=(45.0, 0.0, 100.0))
+    assert d.decode(gpos(1_000, 45.0, 0.0, 100.0)).position_ned_m[2] == pytest.approx(0.0, abs=1e-6)
+    s = d.decode(gpos(4_000, 45.0, 0.0, 160.0))                      # +60 m in 3 s
+    assert s.position_ned_m[2] == pytest.approx(-60.0, abs=1e-6)
+    assert d.rejected["global_alt_datum_jump"] == 0
+    s = d.decode(gpos(4_500, 45.0, 0.0, 235.0))                      # +75 m in 0.5 s: > 20 + 100 * 0.5
+    assert s.position_ned_m[2] == pytest.approx(-60.0, abs=1e-6)
+    assert d.rejected["global_alt_datum_jump"] == 1
 
 
 def test_position_source_auto_locks_first():
@@ -213,6 +244,21 @@ def test_timesync_estimator_hand_values():
     ts1 = ts.request(t_send + 10**9)
     assert not ts.on_reply(0, ts1, t_send + 10**9 + 50_000_000)    # 50 ms RTT: rejected
     assert ts.rejected == Counter({"timesync_not_ours": 1, "timesync_rtt_too_long": 1})
+
+
+def test_timesync_estimate_is_the_lowest_rtt_quarter():
+    """A reply delayed on its way back biases the offset by (down - up) / 2; the estimate is the median offset of
+    the lowest-RTT quarter of the exchanges (docs/mavlink.md), so two clean exchanges among eight outvote six
+    asymmetric ones. Autopilot clock = companion - 900 s. Clean: 0.5 ms each way -> offset exactly 900 s.
+    Asymmetric: 0.5 ms up, 8.5 ms down (RTT 9 ms, under the 10 ms limit) -> 900 s + 4 ms, by hand."""
+    ts = TimesyncEstimator(max_rtt_us=10_000)
+    t = 1_000_000_000_000
+    for k, down_ms in enumerate((8.5, 0.5, 8.5, 8.5, 0.5, 8.5, 8.5, 8.5)):
+        ts1 = ts.request(t + k * 100_000_000)
+        up, down = 500_000, int(down_ms * 1e6)
+        assert ts.on_reply(tc1_ns=ts1 + up - 900_000_000_000, ts1_ns=ts1, t_rx_ns=ts1 + up + down)
+    assert ts.samples == 8 and ts.rtt_us == 1000
+    assert ts.offset_us == 900_000_000                  # the median of all eight would be 900_004_000
 
 
 def test_clock_mapper_slews_down_and_steps_up():
