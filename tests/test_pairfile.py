@@ -80,6 +80,9 @@ def mutate(path, value):
 @pytest.mark.parametrize("path,value,match", [
     (("cameras",), {}, "cameras: expected a non-empty object"),
     (("cameras", "nose", "fx"), -3, r"cameras.nose.fx: expected a positive number"),
+    (("cameras", "nose", "fx"), 0, r"cameras.nose.fx: expected a positive number"),     # 0 is not positive
+    (("cameras", "nose", "fy"), 0.0, r"cameras.nose.fy: expected a positive number"),
+    (("cameras", "nose", "width"), 0, r"cameras.nose.width: expected a positive number"),
     (("cameras", "nose", "width"), 32.5, r"cameras.nose.width: expected a whole number"),
     (("cameras", "nose", "cy"), "centre", r"cameras.nose.cy: expected a number"),
     (("cameras", "nose", "height"), KeyError, r"cameras.nose.height: missing"),
