@@ -306,6 +306,21 @@ def test_cameras_file_kalibr_mount_time_offset_and_overrides(tmp_path):
     assert camera_to_dict(load_cameras(p)["nose"]) == camera_to_dict(nose.camera)
 
 
+def test_explicit_mount_wins_over_the_kalibr_extrinsics(tmp_path):
+    """docs/pair-file.md: the mount defaults to the one Kalibr's T_cam_imu gives; an explicit ``mount`` wins. cam0
+    has a T_cam_imu (lens at L_CAM0_BODY, 5 deg down): a camera entry that gives its own mount gets that mount,
+    as written, and still Kalibr's time shift."""
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "camchain-imucam.yaml").write_text(kalibr_text())
+    p = tmp_path / "cameras.json"
+    p.write_text(json.dumps({"nose": {"calibration": "cal/camchain-imucam.yaml",
+                                      "mount": {"l_m": [7.6, 0.0, 0.6], "eps_deg": [0.0, -2.0, 1.5]}}}))
+    nose = load_camera_models(p)["nose"]
+    np.testing.assert_allclose(nose.camera.l_body_m, [7.6, 0.0, 0.6], atol=1e-12)
+    np.testing.assert_allclose(np.rad2deg(nose.camera.eps_rad), [0.0, -2.0, 1.5], atol=1e-9)
+    assert nose.time_offset_s == pytest.approx(-0.0123) and nose.undistort is not None
+
+
 @pytest.mark.parametrize("path,value,match", [
     (("cameras", "nose", "focal"), 50, r"cameras.nose.focal: unknown key; expected one of \['width'"),
     (("cameras", "nose", "mount", "tilt"), 3, r"cameras.nose.mount.tilt: unknown key"),
