@@ -241,6 +241,76 @@ def test_v4l2_monotonic_stamps_converted_else_host():
     frames.close()
 
 
+def test_v4l2_monotonic_kernel_stamp_moves_to_the_realtime_clock():
+    """uvcvideo stamps buffers on CLOCK_MONOTONIC; the stamp is that plus the monotonic -> realtime offset (here a
+    host booted 10 000 s ago: monotonic = realtime - offset). A driver stamping on the realtime clock is taken
+    as it is; a stamp plausible on neither clock (> 2 s off) gives the host clock."""
+    now = FakeClock().us
+    mono_to_rt = now - 10_000_000_000
+
+    class BootedClock(FakeClock):
+        def mono_to_realtime_us(self):
+            return mono_to_rt
+    clock = BootedClock(now)
+    kernel_ms = (clock.us - mono_to_rt - 3000) / 1000.0          # exposed 3 ms ago, monotonic clock
+    realtime_ms = (clock.us - 4000) / 1000.0                     # 4 ms ago, realtime clock
+    frames = C.capture_frames(lambda: FakeCap([kernel_ms, realtime_ms, 12.0]), "v4l2", clock=clock)
+    got = [(f.stamp_source, f.stamp_us - clock.us) for f in (next(frames) for _ in range(3))]
+    frames.close()
+    assert got == [("v4l2", -3000), ("v4l2", -4000), ("host", 0)]
+
+
+class StreamCap(FakeCap):
+    """A network stream: each grab advances the host clock by its step (frames arrive in real time)."""
+
+    def __init__(self, clock, steps_us, pts_ms):
+        super().__init__(pts_ms, fps=0.0)
+        self.clock, self.steps_us = clock, list(steps_us)
+
+    def grab(self):
+        ok = super().grab()
+        if ok:
+            self.clock.us += self.steps_us[self.i]
+        return ok
+
+
+def test_stream_pts_reanchored_when_it_jumps_or_stalls():
+    """A stream is stamped from its PTS on a wall-clock origin taken at the first frame; when the PTS stamp lands
+    more than 2 s from the host clock (the PTS jumped 10 min ahead, an encoder restart; or 5 s of stall with the
+    PTS only 50 ms on) the origin is taken again at that frame, so stamps stay within 2 s of the host clock and
+    keep the PTS spacing after. Hand values, us from the first grab."""
+    clock = FakeClock()
+    start = clock.us
+    steps = [0, 50_000, 50_000, 50_000, 5_000_000, 50_000]
+    pts = [0.0, 50.0, 600_100.0, 600_150.0, 600_200.0, 600_250.0]
+    frames = C.capture_frames(lambda: StreamCap(clock, steps, pts), "stream", clock=clock)
+    got = [next(frames) for _ in range(6)]
+    frames.close()
+    assert [f.stamp_us - start for f in got] == [0, 50_000, 100_000, 150_000, 5_150_000, 5_200_000]
+    assert [f.stamp_source for f in got] == ["pts"] * 6
+    assert [f.source_pts_us for f in got] == [int(p * 1000) for p in pts]
+
+
+def test_recorded_video_keeps_the_recorded_spacing_not_the_decode_pace():
+    """A video with a timestamps file, replayed without a shift: the first frame is stamped now and every later one
+    now + (its recorded stamp - the first), whatever pace the decoder delivers at (here 40 ms a frame while the
+    recording is 100/150/50 ms apart). With --keep-stamps the recorded stamps go out as they are."""
+    rec = [50_000_000, 50_100_000, 50_250_000, 50_300_000]
+
+    def decoded(clock):
+        for i in range(len(rec)):
+            yield C.RawFrame(index=i, image=_img(i), stamp_us=clock.us, stamp_source="pts", grab_mono=0.0)
+            clock.us += 40_000
+    clock = FakeClock()
+    start = clock.us
+    out = list(C.recorded_video_frames(decoded(clock), rec, clock=clock))
+    assert [f.stamp_us - start for f in out] == [0, 100_000, 250_000, 300_000]
+    assert [f.stamp_source for f in out] == ["recorded"] * 4 and [f.source_pts_us for f in out] == rec
+    clock = FakeClock()
+    out = list(C.recorded_video_frames(decoded(clock), rec, keep_stamps=True, clock=clock))
+    assert [(f.stamp_us, f.stamp_source) for f in out] == [(r, "recorded_raw") for r in rec]
+
+
 def test_classify_source(tmp_path):
     assert C.classify_source("rtsp://10.0.0.5/stream") == "stream"
     assert C.classify_source("http://cam.local/mjpg") == "stream"
