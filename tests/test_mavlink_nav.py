@@ -303,6 +303,19 @@ def test_system_time_zero_ignored_and_used_after_fix():
     assert ing.clock().method == "system_time" and ing.clock().offset_us == 1_700_000_000_000_300
 
 
+def test_autopilot_timesync_request_is_a_receive_time_sample_in_us():
+    """The autopilot's own TIMESYNC requests (tc1 = 0) carry its boot clock in ts1, in nanoseconds: each is a
+    receive-time sample, offset = rx_us - ts1 / 1000. Hand values: boot 5 s received 700 us late, boot 6 s 300 us
+    late -> the minimum, 1_700_000_000_000_300 us. (Before this, only a real-tlog test caught a ns/us slip.)"""
+    ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=0))
+    ing.feed(wire(ML.MAVLink_timesync_message(0, 5_000_000_000)), 1_700_000_005_000_700)
+    assert ing.clock().offset_us == 1_700_000_000_000_700
+    ing.feed(wire(ML.MAVLink_timesync_message(0, 6_000_000_000)), 1_700_000_006_000_300)
+    assert ing.clock().method == "receive" and ing.clock().offset_us == 1_700_000_000_000_300
+    ing.feed(wire(ML.MAVLink_timesync_message(0, 7_000_000_000), sysid=255, compid=190), 1_700_000_006_500_000)
+    assert ing.mapper.receive.samples == 2                # a GCS's request is not the autopilot's clock
+
+
 def test_timesync_over_udp_loopback_against_simulated_autopilot():
     """pymavlink on both ends: an autopilot thread answers TIMESYNC with its boot clock (ns)."""
     mavutil = mavutil_v2()
