@@ -281,7 +281,7 @@ def capture_frames(cap_factory: Callable[[], object], kind: str, *, loop: bool =
     """Frames from a cv2.VideoCapture-like object (``grab``, ``retrieve``, ``get``, ``release``).
 
     ``kind``: ``file`` (EOF ends, or loops; PTS mapped to a wall-clock origin), ``v4l2`` (kernel
-    stamps) or ``stream`` (network; PTS mapped, re-anchored when implausible). The stamp is taken
+    stamps) or ``stream`` (network; PTS mapped, re-anchored where it goes back or is implausible). The stamp is taken
     right after ``grab()``; ``retrieve()`` (decode) comes afterwards."""
     import cv2
     clock = clock or Clock()
@@ -322,6 +322,9 @@ def capture_frames(cap_factory: Callable[[], object], kind: str, *, loop: bool =
             pos_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
             pts_us = int(round(pos_ms * 1000)) if pos_ms is not None and np.isfinite(pos_ms) and pos_ms >= 0 else -1
             stamp, src = host_us, "host"
+            if kind == "stream" and 0 <= pts_us < last_pts_us:
+                origin_us = None      # a live stream's PTS went back (an encoder or stream restart): anchor again here
+                last_pts_us = -1
             if kind in ("file", "stream") and pts_us >= 0 and (pts_us > last_pts_us or index == 0 or last_pts_us < 0):
                 if first_pts_us is None:
                     first_pts_us = pts_us

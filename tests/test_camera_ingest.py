@@ -291,6 +291,22 @@ def test_stream_pts_reanchored_when_it_jumps_or_stalls():
     assert [f.source_pts_us for f in got] == [int(p * 1000) for p in pts]
 
 
+def test_stream_pts_going_back_is_anchored_again():
+    """A stream whose PTS starts over (an encoder or stream restart) 1 s in: the frame where it goes back is stamped
+    from the host clock and becomes the new origin, so the next frames keep the PTS spacing on the host timeline. Not
+    caught by the 2 s plausibility rule alone: on the old origin they would be stamped 1.05 s early. Hand values, us
+    from the first grab."""
+    clock = FakeClock()
+    start = clock.us
+    steps = [0, 1_000_000, 50_000, 50_000]
+    pts = [0.0, 1000.0, 0.0, 50.0]
+    frames = C.capture_frames(lambda: StreamCap(clock, steps, pts), "stream", clock=clock)
+    got = [next(frames) for _ in range(4)]
+    frames.close()
+    assert [f.stamp_us - start for f in got] == [0, 1_000_000, 1_050_000, 1_100_000]
+    assert [f.stamp_source for f in got] == ["pts"] * 4
+
+
 def test_recorded_video_keeps_the_recorded_spacing_not_the_decode_pace():
     """A video with a timestamps file, replayed without a shift: the first frame is stamped now and every later one
     now + (its recorded stamp - the first), whatever pace the decoder delivers at (here 40 ms a frame while the
