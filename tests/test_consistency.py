@@ -147,6 +147,20 @@ def test_flagged_pixels_lose_valid_and_keep_their_inverse_range():
     assert out.info["lr_check"]["flagged"] == int(((out.flags & OCCLUDED) > 0).sum())
 
 
+def test_the_valid_fraction_counts_what_the_check_left_valid():
+    """A result that reports ``info["valid_fraction"]`` (the dense method's) reports it after the check: rho 0.2
+    against b's 0.3 on the rectified pair, a pixel at column x lands at x - F B 0.2 = x - 10 in b, so columns 10-39
+    are checked and contradicted and columns 0-9 (whose match leaves b) stay VALID: 10 / 40."""
+    ca, cb = cameras(24, 40)
+    st = VehicleState.from_ypr([0, 0, 0], [0, 0, 0])
+    geo = pair_geometry(View(ca, st, np.zeros((24, 40), F32)), View(cb, st, np.zeros((24, 40), F32)))
+    ab = flat(0.2, 0.001)
+    ab.info["valid_fraction"] = 1.0
+    out = lr_checked(ab, flat(0.3, 0.001), geo)
+    assert out.info["valid_fraction"] == pytest.approx(0.25)
+    assert ab.info["valid_fraction"] == 1.0                      # the input's info is not edited
+
+
 def test_bad_inputs_are_named():
     ca, cb = cameras(24, 40)
     st = VehicleState.from_ypr([0, 0, 0], [0, 0, 0])
