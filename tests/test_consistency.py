@@ -161,6 +161,35 @@ def test_the_valid_fraction_counts_what_the_check_left_valid():
     assert ab.info["valid_fraction"] == 1.0                      # the input's info is not edited
 
 
+@pytest.mark.parametrize("lr_k,lr_floor_px,flagged", [(3.0, 0.0, True), (0.0, 3.0, False),
+                                                       (0.5, 0.0, True), (0.0, 0.5, False)])
+def test_the_methods_lr_k_and_lr_floor_px_reach_the_check(lr_k, lr_floor_px, flagged, monkeypatch):
+    """Method "dense_lr" (``locate_dense_lr``) with the dense method replaced by hand-made results: a -> b at rho
+    0.2, b -> a at 0.208 (sigma 0.001 each). The tolerance is lr_k sqrt(2) 0.001 + lr_floor_px / (F B): at lr_k 3
+    (0.0042) or 0.5 (0.0007) without a floor the 0.008 disagreement is flagged, at a floor of 3 px (0.06) or 0.5 px
+    (0.01) without k it is not. The pair b -> a is located on (b, a) without the fill and without a's prior."""
+    from eonav.ranging.methods import dense as dense_module
+    h, w = 24, 40
+    ca, cb = cameras(h, w)
+    st = VehicleState.from_ypr([0, 0, 0], [0, 0, 0])
+    va, vb = View(ca, st, np.zeros((h, w), F32)), View(cb, st, np.zeros((h, w), F32))
+    calls = []
+
+    def fake_dense(view_a, view_b, **kw):
+        calls.append((view_a.camera.name, view_b.camera.name, kw))
+        return flat(0.2 if view_a is va else 0.208, 0.001, (h, w))
+
+    monkeypatch.setattr(dense_module, "locate_dense", fake_dense)
+    prior = (np.full((h, w), 0.2, F32), np.full((h, w), 0.01, F32))
+    res = locate(va, vb, method="dense_lr", lr_k=lr_k, lr_floor_px=lr_floor_px, prior=prior)
+    assert [c[:2] for c in calls] == [("L", "R"), ("R", "L")]
+    assert "prior" in calls[0][2] and "prior" not in calls[1][2] and calls[1][2]["fill"] is False
+    inner = (slice(None), slice(12, None))       # columns whose match (10 px to the left) lies in b
+    assert res.info["lr_check"]["checked"] == h * (w - 10)
+    assert (((res.flags[inner] & OCCLUDED) != 0).all() == flagged
+            and ((res.flags[inner] & OCCLUDED) != 0).any() == flagged), res.info["lr_check"]
+
+
 def test_bad_inputs_are_named():
     ca, cb = cameras(24, 40)
     st = VehicleState.from_ypr([0, 0, 0], [0, 0, 0])
