@@ -50,7 +50,7 @@ from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.methods._common import (F32, EpipolarMap, far_inverse_range, make_result, no_motion_result,
                                            numba_kernels, pyr_up_to, pyramid)
 from eonav.ranging.methods.fill import fill_unmeasured
-from eonav.ranging.rangemap import AT_INFINITY, ILL_CONDITIONED, OCCLUDED, TRUNCATION, VALID, RangeResult
+from eonav.ranging.rangemap import AT_INFINITY, ILL_CONDITIONED, OCCLUDED, VALID, RangeResult
 
 _K = numba_kernels("_dense_kernels")
 
@@ -681,7 +681,7 @@ _PRIOR_BAD = np.uint8(OCCLUDED)
 def _prior_finish(prior, ok_lev, lev: int, rho, fin) -> dict:
     """After a refinement started from the prior at level ``lev``: the pixels it did not seed made unmeasured (rho
     NaN, sigma inf, VALID / AT_INFINITY cleared), in place (``_dense_kernels.prior_unmeasure``); returns the seeded
-    fraction and the fraction of seeded pixels whose final fit is bad (OCCLUDED or TRUNCATION: the prior was
+    fraction and the fraction of seeded pixels whose final fit is bad (OCCLUDED, ``_PRIOR_BAD``: the prior was
     wrong there, or the scene moved)."""
     rho_p = np.ascontiguousarray(prior[0], F32)
     n_ok, bad, d_val, d_inf = _K.prior_unmeasure(ok_lev, 2 ** lev, rho_p, _PRIOR_BAD, rho, fin.std, fin.flags,
