@@ -95,6 +95,34 @@ def test_merge_sectors_keeps_nearest_then_clear_then_unknown():
         ob.merge_sectors([a, ob.Sectors(b.distances_cm, 5.0, 0.0, 50, 10000)])
 
 
+def hand_points(bearings_deg, hdist_m, weight):
+    """Points at given body-relative bearings and horizontal distances (only what the sectors read)."""
+    b = np.radians(np.asarray(bearings_deg, float))
+    d = np.broadcast_to(np.asarray(hdist_m, float), b.shape).copy()
+    n = b.size
+    return ob.Points(np.arange(n), d, np.zeros((n, 3)), np.zeros((n, 3)), d, d, b, None, np.ones(n),
+                     np.broadcast_to(np.asarray(weight, float), b.shape).copy())
+
+
+def test_sector_pixel_thresholds_are_inclusive():
+    # min_sector_pixels obstacle pixels (4 by default) report a distance, one fewer reports nothing; a pooled point
+    # counts as the pixels it stands for; min_clear_pixels evidence pixels (20) make a bin wholly in view clear, 19
+    # do not. Bin of bearing 0 (element 4): the 5th percentile of 12.34 m is 1234 cm.
+    cfg, j, e = ob.ObstacleConfig(), bin_of(0.0), bin_of(10.0)
+    assert (cfg.min_sector_pixels, cfg.min_clear_pixels) == (4, 20)
+    no_inf = np.zeros(CAM.width)
+
+    def sectors(n_obstacle, w_obstacle, n_evidence):
+        pts = hand_points([0.0] * n_obstacle + [10.0] * n_evidence, 12.34, [w_obstacle] * n_obstacle + [1] * n_evidence)
+        obstacle = np.arange(pts.idx.size) < n_obstacle
+        return ob._sectors(pts, obstacle, ~obstacle, CAM, no_inf, cfg).distances_cm
+    d = sectors(4, 1, 20)
+    assert d[j] == 1234 and d[e] == 15001
+    d = sectors(3, 1, 19)
+    assert d[j] == ob.UINT16_MAX and d[e] == ob.UINT16_MAX
+    assert sectors(1, 4.0, 0)[j] == 1234                  # one 2 x 2 pooling block
+
+
 def test_ground_only_is_clear_and_nothing_is_an_obstacle():
     res = ob.analyse(ground_and_sky(), CAM, LEVEL, cfg=CFG)
     assert res.obstacles == []
