@@ -144,6 +144,20 @@ def test_unmeasured_columns_are_unknown():
     assert np.all(d[outside] == ob.UINT16_MAX)            # outside the camera's view: unknown, never clear
 
 
+def test_sky_of_a_yawed_camera_clears_the_bins_it_looks_into():
+    # only sky measured (the ground unranged): the evidence of free space is the pixels at infinity, binned by their
+    # column's body-relative bearing, lens yaw included. A camera yawed 30 deg right sees -15 .. 75 deg: every bin
+    # wholly inside that (-10 .. 70, hand-checked in test_bins_in_view_hand_derived) is clear, the others unknown
+    yawed = Camera("side", 256, 256, 128.0, 128.0, 127.5, 127.5, eps_rad=np.deg2rad([30.0, 0.0, 0.0]))
+    r = ground_and_sky(yawed)
+    r[np.isfinite(r)] = np.nan
+    res = ob.analyse(r, yawed, LEVEL, cfg=CFG)
+    assert res.obstacles == [] and res.n_confident == 0
+    d = res.sectors.distances_cm
+    assert all(d[bin_of(c)] == 15001 for c in range(-10, 71, 5))
+    assert clear_in_view(res.sectors, yawed)
+
+
 def test_wall_distance_per_sector_hand_derived():
     # wall at x_c = 20 m over columns 128..191: bearings atan((u - 127.5)/128) = 0.22 .. 26.4 deg (edge 26.57)
     r = add_wall(ground_and_sky(), 20.0, 128, 192)
