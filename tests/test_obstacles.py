@@ -192,6 +192,22 @@ def test_wall_straddling_a_bin_edge_lands_in_both_bins():
     assert s.distances_cm[bin_of(0)] == clear and s.distances_cm[bin_of(15)] == clear
 
 
+def test_sectors_report_the_horizontal_distance_of_a_low_wall():
+    # a 3 m wall at x_c = 20 m over columns 128..191 seen from 10 m up: all its points are 7 .. 10 m below the
+    # vehicle. OBSTACLE_DISTANCE is horizontal: the bins hold 20 / cos b as for a tall wall, not the slant
+    # distance (>= hypot(20, 7) = 21.19 m), which the obstacle list's distance_m is
+    r = add_wall(ground_and_sky(), 20.0, 128, 192, top_down_m=-3.0)
+    res = ob.analyse(r, CAM, LEVEL, cfg=CFG)
+    s = res.sectors
+    for c in (0, 5, 10, 15, 20, 25):
+        lo_b, hi_b = max(c - 2.5, 0.22), min(c + 2.5, 26.57)
+        lo_d, hi_d = 20.0 / math.cos(math.radians(lo_b)), 20.0 / math.cos(math.radians(hi_b))
+        assert lo_d * 100 - 1 <= s.distances_cm[bin_of(c)] <= hi_d * 100 + 1, c
+    o, = res.obstacles
+    assert o.horizontal_distance_m == pytest.approx(20.0, rel=0.02)
+    assert o.distance_m >= math.hypot(20.0, 7.0)
+
+
 def test_wall_below_ground_clearance_is_ground():
     # a 0.4 m kerb is within the 0.6 m ground clearance: not an obstacle
     r = add_wall(ground_and_sky(), 20.0, 100, 160, top_down_m=-0.4)
