@@ -322,6 +322,35 @@ def test_single_measurement_rule_stops_at_the_horizon():
     assert not res.data_mask[64:128, 128:192].any() and res.data_mask[128:, 128:192].all()
 
 
+def test_obstacle_elevation_is_positive_up():
+    # a patch ranged 40 m over rows 40..79, columns 128..191 (above the horizon; full resolution): its median body
+    # point is (40, 40 x 32 / 128, 40 x (59.5 - 127.5) / 128) = (40, 10, -21.25) m (FRD: z down), so it stands
+    # atan2(21.25, hypot(40, 10)) = 27.26 deg up at bearing atan2(10, 40) = 14.04 deg right
+    r = ground_and_sky()
+    r[40:80, 128:192] = 40.0
+    o, = ob.analyse(r, CAM, LEVEL, cfg=replace(CFG, max_width_px=0)).obstacles
+    assert o.elevation_deg == pytest.approx(math.degrees(math.atan2(21.25, math.hypot(40.0, 10.0))), abs=1e-6)
+    assert o.bearing_deg == pytest.approx(math.degrees(math.atan2(10.0, 40.0)), abs=1e-6)
+    # a 3 m wall on the ground 20 m ahead, 7 .. 10 m below the vehicle and 20 .. 22.4 m away: it is seen down
+    o, = ob.analyse(add_wall(ground_and_sky(), 20.0, 128, 192, top_down_m=-3.0), CAM, LEVEL, cfg=CFG).obstacles
+    assert -math.degrees(math.atan2(10.0, 20.0)) <= o.elevation_deg <= -math.degrees(math.atan2(7.0, 22.4))
+
+
+def test_points_too_high_above_the_vehicle_are_ignored():
+    # the patch above, 40 m ahead: row v stands 40 (127.5 - v) / 128 m above the vehicle, 27.3 m (row 40) .. 15.2 m
+    # (row 79). With max_height_above_m 20 only rows 64..79 (19.8 m and lower) are in the band: the obstacle's top
+    # row is 64 (63 stands 20.2 m up); with 10 none is, and the bins stay clear (the points are evidence, not
+    # obstacles)
+    r = ground_and_sky()
+    r[40:80, 128:192] = 40.0
+    full = ob.analyse(r, CAM, LEVEL, cfg=CFG).obstacles
+    assert len(full) == 1 and full[0].bbox_px[1] == 40 and full[0].bbox_px[3] == 79
+    cut = ob.analyse(r, CAM, LEVEL, cfg=replace(CFG, max_height_above_m=20.0)).obstacles
+    assert len(cut) == 1 and cut[0].bbox_px[1] == 64 and cut[0].bbox_px[3] == 79
+    res = ob.analyse(r, CAM, LEVEL, cfg=replace(CFG, max_height_above_m=10.0))
+    assert res.obstacles == [] and clear_in_view(res.sectors)
+
+
 def test_range_jump_cut_in_units_of_the_pixels_sigma():
     # two walls side by side, 20 m (columns 96..127) and 27 m (128..159): a log-range jump of ln 1.35 = 0.300 at
     # their common edge; every pixel with a relative sigma of 0.1, so the cut needs 0.300 > k hypot(0.1, 0.1) =
