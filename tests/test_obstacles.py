@@ -927,6 +927,26 @@ def test_sectors_now_move_with_the_vehicle():
     assert res.obstacles[0].horizontal_distance_m == pytest.approx(20.0, rel=0.02)   # list stays at capture pose
 
 
+def test_sectors_are_body_relative_whatever_the_heading():
+    # the wall 20 m ahead of the camera seen from a vehicle heading 30 deg (north-east): the camera turns with the
+    # body, so the map is the same as at heading 0 and so are the body-relative sectors (hand-checked in
+    # test_wall_distance_per_sector_hand_derived) and the obstacle's bearing; the wall's points lie on the plane
+    # 20 m ahead along the heading. 2 m further along the heading the bin at 5 deg holds 18 / cos b
+    yaw = math.radians(30.0)
+    heading = VehicleState.from_ypr([0.0, 0.0, -ALT_M], [yaw, 0.0, 0.0])
+    later = VehicleState.from_ypr([2.0 * math.cos(yaw), 2.0 * math.sin(yaw), -ALT_M], [yaw, 0.0, 0.0])
+    r = add_wall(ground_and_sky(), 20.0, 128, 192)
+    north = ob.analyse(r, CAM, LEVEL, cfg=CFG)
+    res = ob.analyse(r, CAM, heading, cfg=CFG, now_state=later)
+    a, b = north.sectors.distances_cm.astype(int), res.sectors.distances_cm.astype(int)
+    assert np.array_equal(a >= 15001, b >= 15001) and np.abs(a - b).max() <= 1
+    assert 1802 <= int(res.sectors_now.distances_cm[bin_of(5.0)]) <= 1816
+    o, = res.obstacles
+    assert o.bearing_deg == pytest.approx(north.obstacles[0].bearing_deg, abs=1e-6)
+    n, e, _ = o.position_ned_m
+    assert n * math.cos(yaw) + e * math.sin(yaw) == pytest.approx(20.0, abs=1e-3)
+
+
 @pytest.mark.parametrize("max_width_px", [0, 128, 64])
 def test_pooled_analysis_keeps_nearest_distances(fast_scene, max_width_px):
     """Pooling to k x k blocks (robust minimum per block) keeps every box at its true distance and the sectors at
