@@ -72,6 +72,17 @@ def test_posed_frame_image_must_match_its_camera_and_known_encodings():
     assert schema.decode(posed(image=arr(np.zeros((3, 4), np.uint16)), encoding="mono16"))["image"].dtype == np.uint16
 
 
+@pytest.mark.parametrize("shape", [(0, 4), (3, 0), (0, 0)])
+def test_frame_image_must_have_pixels(shape):
+    """A frame message has no camera to check its image against: an image with no rows or no columns is refused
+    at decode, not handed to the locator; 1 x 1 is an image."""
+    doc = {"kind": "frame", "v": 1, "camera_id": "nose", "seq": 1, "stamp_us": 1, "encoding": "mono8",
+           "image": arr(np.zeros(shape, np.uint8))}
+    rejected(msgpack.packb(doc, use_bin_type=True), "frame.image")
+    doc["image"] = arr(np.zeros((1, 1), np.uint8))
+    assert schema.decode(msgpack.packb(doc, use_bin_type=True))["image"].shape == (1, 1)
+
+
 def test_range_map_arrays_are_checked():
     rejected(range_map(flags=arr(np.ones((3, 4), np.float32))), "range_map.flags")      # crashed bitwise_and
     rejected(range_map(range_m=arr(np.ones((3, 4), np.int32))), "range_map.range_m")
