@@ -120,10 +120,32 @@ def test_positions_speeds_and_quaternions_both_sides():
     rejected(posed(q_wxyz=[0.0, 0, 0, 0]), "posed_frame.q_wxyz")
 
 
+def test_vectors_both_sides_of_the_negative_limit():
+    """The limits hold on magnitude: -1e7 m is a position, a metre beyond it or -1e300 is not; speeds and rates as
+    their positive side (1e4 m/s, 100 rad/s)."""
+    assert schema.decode(nav(position_ned_m=[-1e7, 0.0, -1e7]))["position_ned_m"][2] == -1e7
+    for bad in ([-1e300, 0, 0], [0, -1.0000001e7, 0], [0, 0, -float("inf")]):
+        rejected(nav(position_ned_m=bad), "nav_state.position_ned_m")
+    rejected(posed(position_ned_m=[0, 0, -1.0000001e7]), "posed_frame.position_ned_m")
+    assert schema.decode(nav(velocity_ned_mps=[-1e4, 0, 0]))["velocity_ned_mps"][0] == -1e4
+    rejected(nav(velocity_ned_mps=[0, -1.0001e4, 0]), "nav_state.velocity_ned_mps")
+    assert schema.decode(nav(rates_frd_radps=[0, 0, -100.0]))["rates_frd_radps"][2] == -100.0
+    rejected(nav(rates_frd_radps=[0, 0, -100.01]), "nav_state.rates_frd_radps")
+
+
 def test_camera_fields_are_checked():
     for key, bad in (("width", 10 ** 9), ("width", 0), ("fx", -1.0), ("fx", float("nan")), ("cy", 1e300)):
         rejected(posed(camera=dict(CAM, **{key: bad})), f"posed_frame.camera.{key}")
     rejected(posed(camera=dict(CAM, l_m=[0, 0, 1e9])), "posed_frame.camera.l_m")
+
+
+def test_camera_focal_lengths_must_be_positive():
+    """fx and fy are divisors of every projection: 0 is refused at decode like a negative one; the smallest positive
+    value passes."""
+    for key in ("fx", "fy"):
+        rejected(posed(camera=dict(CAM, **{key: 0.0})), f"posed_frame.camera.{key}")
+        rejected(posed(camera=dict(CAM, **{key: 0})), f"posed_frame.camera.{key}")
+        assert schema.decode(posed(camera=dict(CAM, **{key: 1e-3})))["camera"][key] == 1e-3
 
 
 # -- the node: a message that still raises is that message's failure; counters bounded --------------------------
