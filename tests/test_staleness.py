@@ -100,6 +100,20 @@ def test_frame_age_field_on_range_maps_and_obstacle_lists():
         assert e.value.reason == "range"
 
 
+def test_frame_age_negative_side_of_the_limit():
+    """The age limit holds on magnitude: -MAX_AGE_MS (a publisher's clock behind) passes, -inf or beyond it is
+    refused, as +inf is (an age of -inf would pass every freshness gate)."""
+    def obstacle_list(age):
+        return schema.decode(schema.encode("obstacle_list", stamp_us=NOW_US, obstacles=[], frame_age_ms=age))
+    assert obstacle_list(-schema.MAX_AGE_MS)["frame_age_ms"] == -schema.MAX_AGE_MS
+    for bad in (-math.inf, -schema.MAX_AGE_MS * 1.001):
+        with pytest.raises(schema.SchemaError, match="frame_age_ms") as e:
+            obstacle_list(bad)
+        assert e.value.reason == "range"
+        with pytest.raises(schema.SchemaError, match="frame_age_ms"):
+            schema.decode(schema.encode("range_map", **_map_fields(frame_age_ms=bad)))
+
+
 # ---- the node's input watch ------------------------------------------------------------------------------------
 
 def _node(grace_s=10.0):
