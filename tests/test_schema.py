@@ -82,6 +82,19 @@ def test_wrong_kind_for_the_topic():
         schema.decode(frame_msg(), expect="nav_state")
 
 
+@pytest.mark.parametrize("v", [True, 1.0, 0, 2, -1, "1", None])
+def test_only_integer_schema_version_1_is_read(v):
+    """This build reads version 1 only: True and 1.0 equal 1 in Python but are not the integer 1 a writer sends;
+    they and unknown versions are refused with the reason "version"."""
+    doc = msgpack.unpackb(frame_msg(), raw=False)
+    doc["v"] = v
+    with pytest.raises(SchemaError, match="unsupported schema version") as e:
+        schema.decode(raw(doc))
+    assert e.value.reason == "version"
+    doc["v"] = 1
+    assert schema.decode(raw(doc))["v"] == 1
+
+
 def test_encode_refuses_unknown_fields_and_missing_required():
     with pytest.raises(SchemaError, match="unknown field"):
         schema.encode("health", service="x", stamp_us=1, state="ok", colour="red")
