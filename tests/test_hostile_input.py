@@ -120,6 +120,20 @@ def test_positions_speeds_and_quaternions_both_sides():
     rejected(posed(q_wxyz=[0.0, 0, 0, 0]), "posed_frame.q_wxyz")
 
 
+def test_range_map_scalars_within_their_ranges():
+    """A range map's scale is in (0, 1] (the locator's working scale), its baseline and times NaN (unknown) or within
+    0 .. their limit: the edges pass, a step beyond them, a negative value, inf and a NaN scale are refused."""
+    ok = schema.decode(range_map(scale=1.0, baseline_m=0.0, compute_s=schema.MAX_DURATION_S, overhead_s=float("nan")))
+    assert ok["scale"] == 1.0 and ok["compute_s"] == schema.MAX_DURATION_S
+    assert schema.decode(range_map(scale=1e-3, baseline_m=schema.MAX_POSITION_M))["baseline_m"] == schema.MAX_POSITION_M
+    for bad in (0.0, -0.5, 1.0000001, float("nan"), float("inf")):
+        rejected(range_map(scale=bad), "range_map.scale")
+    for name, limit in (("baseline_m", schema.MAX_POSITION_M), ("compute_s", schema.MAX_DURATION_S),
+                        ("overhead_s", schema.MAX_DURATION_S)):
+        for bad in (-1e-9, limit * 1.0001, float("inf"), -float("inf")):
+            rejected(range_map(**{name: bad}), f"range_map.{name}")
+
+
 def test_vectors_both_sides_of_the_negative_limit():
     """The limits hold on magnitude: -1e7 m is a position, a metre beyond it or -1e300 is not; speeds and rates as
     their positive side (1e4 m/s, 100 rad/s)."""

@@ -42,6 +42,7 @@ MAX_IMAGE_SIDE_PX = 16384
 # the age of any stamp the schema accepts: a replayed recording's frames are as old as the recording (the services'
 # freshness gates, not the schema, decide what is too old: docs/bus.md, "Staleness")
 MAX_AGE_MS = MAX_STAMP_US / 1e3
+MAX_DURATION_S = 3600.0           # a map's compute and overhead times
 IMAGE_ENCODINGS = {"mono8": (np.uint8, 1), "mono16": (np.uint16, 1), "bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3)}
 FLOAT_DTYPES = ("float16", "float32", "float64")
 
@@ -322,6 +323,11 @@ def _check_map_arrays(kind, msg):
     for name, side in (("frame_width", cam["width"]), ("frame_height", cam["height"])):
         v = msg[name]
         _range(kind, name, v == 0 or side <= v <= MAX_IMAGE_SIDE_PX, f"0 or {side} .. {MAX_IMAGE_SIDE_PX}", v)
+    v = msg["scale"]
+    _range(kind, "scale", math.isfinite(v) and 0 < v <= 1, "a finite number in (0, 1]", v)
+    for name, limit in (("baseline_m", MAX_POSITION_M), ("compute_s", MAX_DURATION_S), ("overhead_s", MAX_DURATION_S)):
+        v = msg[name]
+        _range(kind, name, math.isnan(v) or 0 <= v <= limit, f"NaN or 0 .. {limit:g}", v)
 
 
 def validate(msg: dict) -> None:
