@@ -179,10 +179,16 @@ FORGERIES = [
     pytest.param(K.frame(V, "nose"), "camera_nose", K.frames_all(V), "sync", "frame",
                  lambda tag: dict(camera_id="nose", seq=1, stamp_us=1_700_000_000_000_000, stamp_source=tag,
                                   image=np.zeros((3, 4), np.uint8)), id="frame"),
+    # each service puts its own health only: another service (or guidance) saying "the sync is in error", or "ok"
+    # while it is not, would mislead the operator and guidance (caught a grant of health/* to every service)
+    pytest.param(K.health(V, "sync"), "sync", K.health_all(V), "guidance", "health",
+                 lambda tag: dict(service="sync", stamp_us=1_700_000_000_000_000, state="ok", detail=tag),
+                 id="health"),
 ]
 
 
-TAG = {"nav_state": "source", "obstacle_list": "camera_id", "range_map": "method", "frame": "stamp_source"}
+TAG = {"nav_state": "source", "obstacle_list": "camera_id", "range_map": "method", "frame": "stamp_source",
+       "health": "detail"}
 
 
 @pytest.mark.parametrize("key,owner,sub_key,consumer,kind,fields", FORGERIES)
