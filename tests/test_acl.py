@@ -282,6 +282,51 @@ def test_a_fake_liveliness_token_is_not_accepted(bus):
             s.close()
 
 
+def test_two_hosts_routers_relay_each_others_sessions(tmp_path):
+    """Two hosts' routers on loopback, each with its own ``eonav acl init`` output (the same users and routers files,
+    its own --host): B dials A, so A knows B by the user ``router`` and B knows A by A's zid only (docs/zenoh.md,
+    "Access control"). Nav put by the MAVLink ingest on one host reaches the sync on the other, both ways; a forgery
+    by a wrong user on A is filtered by A's router and never reaches B. Catches a router policy that leaves out the
+    other routers' zids (the link up, and nothing relayed over it)."""
+    dirs = {h: tmp_path / h for h in "ab"}
+    ports = {h: free_port() for h in "ab"}
+    ep = {h: f"tcp/127.0.0.1:{ports[h]}" for h in "ab"}
+    acl.write_acl_dir(dirs["a"], acl.DEFAULT_SERVICES, listen=[ep["a"]], host="a", hosts=("b",))
+    dirs["b"].mkdir()
+    for f in (acl.USERS_FILE, acl.ROUTERS_FILE):
+        shutil.copy(dirs["a"] / f, dirs["b"] / f)
+    acl.write_acl_dir(dirs["b"], acl.DEFAULT_SERVICES, listen=[ep["b"]], connect=[ep["a"]], host="b")
+    procs, sessions = [], {}
+    try:
+        for h in "ab":
+            procs.append(start_router(ports[h], zenoh_config=str(dirs[h] / acl.ROUTER_FILE))[0])
+
+        def open_as(h, user):
+            cfg = zenoh.Config.from_file(str(acl.session_file(dirs[h], user)))
+            cfg.insert_json5("connect/endpoints", json.dumps([ep[h]]))
+            return zenoh.open(fail_fast(cfg))
+        for h in "ab":
+            for u in ("mavlink", "sync", "camera_nose"):
+                sessions[h, u] = open_as(h, u)
+        # a key of its own per direction (both under nav/**): a publisher never matches the other direction's subscriber
+        for src, dst, key in (("a", "b", K.nav_state(V)), ("b", "a", K.nav_clock(V))):
+            sub = sessions[dst, "sync"].declare_subscriber(key, zenoh.handlers.FifoChannel(100))
+            good = sessions[src, "mavlink"].declare_publisher(key)
+            bad = sessions[src, "camera_nose"].declare_publisher(key)
+            wait_until(lambda: good.matching_status.matching, 5.0, what=f"host {dst}'s sync matching from {src}")
+            for _ in range(5):
+                good.put(schema.encode("nav_state", stamp_us=1, source=f"mavlink@{src}"))
+                bad.put(schema.encode("nav_state", stamp_us=1, source=f"forged@{src}"))
+            got = collect(sub, 5, what=f"nav from host {src} at host {dst}")
+            time.sleep(0.2)
+            got += drain(sub)
+            assert [schema.decode(s.payload.to_bytes())["source"] for s in got] == [f"mavlink@{src}"] * 5
+    finally:
+        for s in sessions.values():
+            s.close()
+        stop_processes(procs, 5.0)
+
+
 # --------------------------------------------------------------------------------------------------
 # TLS with a throwaway CA
 
