@@ -100,6 +100,23 @@ def test_acl_dir_files_are_private_and_passwords_survive_a_rerun(tmp_path):
     assert acl.read_users(tmp_path) == pw2
 
 
+def test_acl_init_makes_files_private_that_were_not(tmp_path):
+    """The users and routers files (and the rest) brought to another host with a readable mode (a deploy tool or a
+    hand copy: 0644): ``eonav acl init`` there keeps the passwords and leaves every file 0600, owner only. Catches a
+    writer that sets the mode only when it creates a file (os.open's mode does not apply to an existing one)."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    pw = acl.write_acl_dir(a, {"locator": "locator"})
+    b.mkdir()
+    for f in a.iterdir():
+        shutil.copyfile(f, b / f.name)
+        (b / f.name).chmod(0o644)
+    assert acl.write_acl_dir(b, {"locator": "locator"}, host="b") == pw
+    files = sorted(f.name for f in b.iterdir())
+    assert acl.USERS_FILE in files and acl.ROUTER_FILE in files and len(files) == 6, files
+    for f in b.iterdir():
+        assert stat.S_IMODE(f.stat().st_mode) == 0o600, f
+
+
 def test_policy_refuses_unknown_modules_and_reserved_names():
     with pytest.raises(InputError, match="no role"):
         acl.access_control({"x": "recorder"})
