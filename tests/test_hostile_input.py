@@ -206,6 +206,20 @@ def test_counters_are_bounded_in_names_and_values():
     schema.decode(schema.encode("health", service="x", stamp_us=1, state="ok", counters=node.counters()))
 
 
+def test_counters_are_bounded_below_too():
+    """Counters also go down (the locator's scale_pct gauges are counted as deltas): a huge negative count is clamped
+    at -2^53 like a positive one, so the health message still encodes (msgpack has no integer below -2^63) and a
+    later count moves it by exactly its own amount."""
+    node = bare_node()
+    node.count("scale_pct.nose", -(2 ** 64))
+    node.count("scale_pct.nose", -5)
+    assert node.counters()["scale_pct.nose"] == -COUNTER_LIMIT == -(2 ** 53)
+    node.count("scale_pct.nose", 50)
+    assert node.counters()["scale_pct.nose"] == -(2 ** 53) + 50
+    h = schema.decode(schema.encode("health", service="x", stamp_us=1, state="ok", counters=node.counters()))
+    assert h["counters"]["scale_pct.nose"] == -(2 ** 53) + 50
+
+
 # -- the time sync: a far-future stamp is refused, not kept for good ---------------------------------------------
 def test_far_future_nav_stamp_is_refused_and_does_not_blind_the_sync():
     now = [1_700_000_000_000_000]
