@@ -240,6 +240,42 @@ def test_node_decode_never_raises():
         node.set_state("bad")
 
 
+class _RouterInfo:
+    """``session.info.routers_zid()`` as a zenoh client session gives it: the zids of the routers it is linked to."""
+    def __init__(self):
+        self.info, self.zids = self, []
+
+    def routers_zid(self):
+        return list(self.zids)
+
+
+def test_lost_router_degrades_the_node_until_it_is_back():
+    """A service whose session lost its router reports ``degraded`` naming the outage (guidance and the operator see
+    it in its health once the link is back, the launcher's status from the last message), is ``ok`` again when a
+    router is back, tells each change once (the health timer publishes at once on it), keeps its own detail after
+    the outage's and never masks an error."""
+    s = _RouterInfo()
+    node = Node("unit", argparse.Namespace(vehicle="v", health_period_s=1.0), session=s)
+    node._router = S.RouterWatch(s, clock=lambda: 0.0)
+    s.zids = ["a1"]
+    assert not node.check_router(10.0) and node.state == "ok"
+    s.zids = []                                                     # the router's link closed
+    assert node.check_router(11.0)
+    assert (node.state, node.health_fields()["detail"]) == ("degraded", "no zenoh router for 0.0 s")
+    node.set_state("degraded", "locate failing")
+    assert not node.check_router(12.5)                              # still lost: no change to tell
+    assert node.health_fields()["detail"] == "no zenoh router for 1.5 s; locate failing"
+    s.zids = ["b2"]                                                 # reconnected (a restarted router: a new zid)
+    assert node.check_router(13.0)
+    assert (node.state, node.health_fields()["detail"]) == ("degraded", "locate failing")
+    node.set_state("ok")
+    assert node.state == "ok"
+    s.zids = []
+    node.check_router(14.0)
+    node.fail("worker died")
+    assert (node.state, node.health_fields()["detail"]) == ("error", "worker died")
+
+
 def test_session_flags_build_config(tmp_path, monkeypatch):
     p = argparse.ArgumentParser()
     monkeypatch.setenv("EONAV_CONNECT", "tcp/127.0.0.1:7447, tcp/10.0.0.2:7447")
