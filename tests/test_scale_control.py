@@ -104,6 +104,27 @@ def test_up_count_restarts_on_a_pair_without_headroom():
     assert c.observe_compute(0.5, 0.005) is not None and c.scale == 1.0
 
 
+def test_each_step_up_waits_its_own_up_after_pairs():
+    """Coming back up a three-rung ladder, the rung above is judged afresh: the N pairs in a row with headroom that
+    took 0.25 up to 0.5 do not also take 0.5 up to 1.0 after a single pair there."""
+    c = ScaleController(min_scale=0.25, up_after=5, window=1, min_samples=1)
+    feed_frames(c, 10)                                         # budget 40 ms, up below 28 ms predicted
+    load = {1.0: 0.080, 0.5: 0.050, 0.25: 0.0125}              # learnt ratios 80/50 = 1.6 and 50/12.5 = 4
+    assert [(x.old, x.new) for x in run(c, load, 3)] == [(1.0, 0.5), (0.5, 0.25)] and c.scale == 0.25
+    assert c.ratio(1.0, 0.5) == pytest.approx(1.6) and c.ratio(0.5, 0.25) == pytest.approx(4.0)
+    light = {1.0: 0.0128, 0.5: 0.008, 0.25: 0.004}             # predicted 0.5: 4 x 4 = 16 ms; then 1.0: 8 x 1.6 = 12.8 ms
+    pairs_at = {0.25: 0, 0.5: 0}
+    changes = []
+    while c.scale != 1.0 and len(changes) < 3:
+        s = c.scale
+        pairs_at[s] += 1
+        ch = c.observe_compute(s, light[s])
+        if ch is not None:
+            changes.append((ch.old, ch.new))
+    assert changes == [(0.25, 0.5), (0.5, 1.0)]
+    assert pairs_at == {0.25: 5, 0.5: 5}
+
+
 def test_no_oscillation_at_the_boundary():
     # full costs just under the budget, half just over a quarter of it: neither step qualifies
     c = ScaleController()
