@@ -273,7 +273,7 @@ def test_locator_and_obstacles_survive_the_payloads_that_killed_them():
         map_pub = s.declare_publisher(K.range_map(VEHICLE, "nose"), congestion_control=zenoh.CongestionControl.BLOCK)
         wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))), timeout=60,
                    what="both services up")
-        wait_until(lambda: frame_pub.matching_status.matching and map_pub.matching_status.matching, timeout=10,
+        wait_until(lambda: frame_pub.matching_status.matching and map_pub.matching_status.matching, timeout=30,
                    what="subscribers")
         time.sleep(0.3)
 

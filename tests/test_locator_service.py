@@ -63,7 +63,7 @@ def frame_publisher_when_up(s, health_sub, health: list, **options):
     pub = s.declare_publisher(K.posed_frame(VEHICLE, "nose"), **options)
     wait_until(lambda: {"locator", "obstacles"} <= set(latest_health(drain(health_sub, health))),
                timeout=30, what="both services' first health message")
-    wait_until(lambda: pub.matching_status.matching, timeout=10, what="locator subscribed")
+    wait_until(lambda: pub.matching_status.matching, timeout=30, what="locator subscribed")
     time.sleep(0.3)
     return pub
 
@@ -350,7 +350,7 @@ def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_fra
         pub = frame_publisher_when_up(s, health_sub, health)
         # BLOCK as the frames: with DROP (zenoh's default) a fragmented message was lost on a loaded machine
         map_pub = s.declare_publisher(K.range_map(VEHICLE, "test"), congestion_control=zenoh.CongestionControl.BLOCK)
-        wait_until(lambda: map_pub.matching_status.matching, timeout=10, what="the obstacle service subscribed")
+        wait_until(lambda: map_pub.matching_status.matching, timeout=30, what="the obstacle service subscribed")
         time.sleep(0.3)
         maps, obstacles = [], []
         for i in range(3):
