@@ -126,6 +126,31 @@ def test_measurement_from_obstacle_hand_derived_and_grid_independent():
     np.testing.assert_allclose(m3.cov_ned_m2, want + 0.25 * np.eye(3), rtol=1e-9)
 
 
+def test_camera_covariance_takes_each_pixel_axis_at_its_own_focal_length():
+    """Non-square pixels (fx = 2 fy): on the axis the across-ray sigmas are x_c s_u / fx east and x_c s_v / fy down,
+    each at its own focal length (J = diag(1, x_c/fx, x_c/fy)); a camera with fx = fy cannot tell them apart."""
+    cam = Camera("anamorphic", 320, 240, 400.0, 200.0, 159.5, 119.5)
+    C = T.camera_covariance([50.0, 0.0, -10.0], cam, HOVER, 0.5, 2.0, 3.0)
+    want = np.diag([0.5 ** 2, (50.0 * 2.0 / 400.0) ** 2, (50.0 * 3.0 / 200.0) ** 2])     # 0.25, 0.0625, 0.5625
+    np.testing.assert_allclose(C, want, rtol=1e-9, atol=1e-12)
+
+
+def test_attitude_sigma_adds_its_angle_times_the_focal_length_to_each_pixel_sigma():
+    """The attitude error (default 0.2 deg, in radians) moves the pixel of the median point by that angle times the
+    focal length, on each image axis at its own: s_u^2 = 1 + (0.15 w)^2 + (0.2 deg fx)^2 and likewise with h and fy.
+    Non-square pixels (fx = 440, fy = 220) on the axis at 40 m, navigation sigma off: hand-derived east and down
+    variances (40 s_u / fx)^2 and (40 s_v / fy)^2 (the attitude terms are 1.536 and 0.768 px)."""
+    cam = Camera("anamorphic", 320, 240, 440.0, 220.0, 159.5, 119.5)
+    cfg = T.TrackerConfig(nav_sigma_m=0.0)
+    assert cfg.attitude_sigma_rad == pytest.approx(math.pi * 0.2 / 180.0)
+    m, = T.measurements_from_obstacles([_obstacle([40.0, 0.0, -10.0], bbox=[155, 90, 164, 149])], cam, HOVER, cfg)
+    att = math.pi * 0.2 / 180.0
+    s_u = math.sqrt(1.0 + (0.15 * 10) ** 2 + (att * 440.0) ** 2)
+    s_v = math.sqrt(1.0 + (0.15 * 60) ** 2 + (att * 220.0) ** 2)
+    np.testing.assert_allclose(m.cov_ned_m2[1:, 1:], np.diag([(40.0 * s_u / 440.0) ** 2, (40.0 * s_v / 220.0) ** 2]),
+                               rtol=1e-9, atol=1e-12)
+
+
 def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
     cov = np.diag([0.25, 0.01, 0.01])
     # a pole (0.3 m wide) listed as three stacked pieces 0.2 m apart, and a second pole 2 m to the east
