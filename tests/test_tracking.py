@@ -135,6 +135,33 @@ def test_camera_covariance_takes_each_pixel_axis_at_its_own_focal_length():
     np.testing.assert_allclose(C, want, rtol=1e-9, atol=1e-12)
 
 
+def test_measurement_seen_by_a_yawed_pitched_camera_uses_the_optical_axis_in_ned():
+    """Vehicle yawed 30 deg and nose up 20 deg, camera along the nose: the optical axis in NED is
+    d = (cos 20 cos 30, cos 20 sin 30, -sin 20), the image's right r = (-sin 30, cos 30, 0) and its down
+    g = (sin 20 cos 30, sin 20 sin 30, cos 20). An obstacle 40 m along d with a 5..95 % spread of (2, 1, 4) m in
+    N, E, D: its depth along the axis is |d * ext| (2.178 m), so the range sigma is hypot(0.4, 0.15 |d * ext|), and
+    the 0.4 m range noise spreads its points along d, 3.29 x 0.4 |d| per axis. A level camera looking north (the
+    other tests) has d = N, where the camera and NED frames, and a row and a column of the rotation, all agree."""
+    yaw, pitch = math.radians(30.0), math.radians(20.0)
+    st = VehicleState.from_ypr([5.0, -3.0, -20.0], [yaw, pitch, 0.0])
+    d = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), -math.sin(pitch)])
+    r = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+    g = np.array([math.sin(pitch) * math.cos(yaw), math.sin(pitch) * math.sin(yaw), math.cos(pitch)])
+    p = st.position_ned_m + 40.0 * d
+    ext = np.array([2.0, 1.0, 4.0])
+    cfg = T.TrackerConfig(nav_sigma_m=0.0, attitude_sigma_rad=0.0)
+    m, = T.measurements_from_obstacles([_obstacle(p, bbox=[155, 90, 164, 149], ext=ext)], CAM, st, cfg)
+    depth = float(np.linalg.norm(d * ext))
+    assert depth == pytest.approx(2.1775, abs=1e-4)
+    s_x = math.hypot(0.4, 0.15 * depth)
+    s_e = 40.0 * math.sqrt(1.0 + (0.15 * 10) ** 2) / F_PX
+    s_d = 40.0 * math.sqrt(1.0 + (0.15 * 60) ** 2) / F_PX
+    want = s_x ** 2 * np.outer(d, d) + s_e ** 2 * np.outer(r, r) + s_d ** 2 * np.outer(g, g)
+    np.testing.assert_allclose(m.cov_ned_m2, want, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(m.extent_noise_ned_m, 3.29 * 0.4 * np.abs(d), rtol=1e-9)
+    np.testing.assert_allclose(m.object_extent_ned_m, np.sqrt(ext ** 2 - (3.29 * 0.4 * d) ** 2), rtol=1e-9)
+
+
 def test_attitude_sigma_adds_its_angle_times_the_focal_length_to_each_pixel_sigma():
     """The attitude error (default 0.2 deg, in radians) moves the pixel of the median point by that angle times the
     focal length, on each image axis at its own: s_u^2 = 1 + (0.15 w)^2 + (0.2 deg fx)^2 and likewise with h and fy.
