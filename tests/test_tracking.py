@@ -162,6 +162,23 @@ def test_measurement_seen_by_a_yawed_pitched_camera_uses_the_optical_axis_in_ned
     np.testing.assert_allclose(m.object_extent_ned_m, np.sqrt(ext ** 2 - (3.29 * 0.4 * d) ** 2), rtol=1e-9)
 
 
+def test_range_sigma_has_a_floor_relative_to_range():
+    """A far obstacle that the map ranges to 5 cm (a flat face, no depth spread) at 100 m: the measurement's range
+    sigma is floored at ``min_range_rel_sigma`` (0.2 %) of the range, 0.2 m, so one overconfident map cannot pin a
+    track; across the ray the pixel sigmas are unchanged."""
+    cfg = T.TrackerConfig(nav_sigma_m=0.0, attitude_sigma_rad=0.0)
+    o = _obstacle([100.0, 0.0, -10.0], bbox=[155, 90, 164, 149], range_std=0.05, ext=(0.0, 0.5, 4.0))
+    m, = T.measurements_from_obstacles([o], CAM, HOVER, cfg)
+    s_u = math.sqrt(1.0 + (0.15 * 10) ** 2)
+    s_v = math.sqrt(1.0 + (0.15 * 60) ** 2)
+    want = np.diag([0.2 ** 2, (100.0 * s_u / F_PX) ** 2, (100.0 * s_v / F_PX) ** 2])
+    np.testing.assert_allclose(m.cov_ned_m2, want, rtol=1e-9, atol=1e-12)
+    # at 10 m the floor (2 cm) is below the 5 cm: the map's sigma stands
+    o10 = _obstacle([10.0, 0.0, -10.0], bbox=[155, 90, 164, 149], range_std=0.05, ext=(0.0, 0.5, 4.0))
+    m10, = T.measurements_from_obstacles([o10], CAM, HOVER, cfg)
+    assert m10.cov_ned_m2[0, 0] == pytest.approx(0.05 ** 2, rel=1e-9)
+
+
 def test_attitude_sigma_adds_its_angle_times_the_focal_length_to_each_pixel_sigma():
     """The attitude error (default 0.2 deg, in radians) moves the pixel of the median point by that angle times the
     focal length, on each image axis at its own: s_u^2 = 1 + (0.15 w)^2 + (0.2 deg fx)^2 and likewise with h and fy.
