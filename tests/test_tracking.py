@@ -552,6 +552,25 @@ def test_static_obstacle_is_mostly_not_moving():
     assert len(flags) > 50 and np.mean(flags) < 0.05
 
 
+def test_constant_velocity_prediction_is_hand_derived():
+    """``predict_state`` over dt = 0.5 s with an acceleration sigma of 2 m/s^2 (q = 4 m^2/s^3), from P = diag(a I,
+    b I): per axis the position moves by v dt, and the covariance is F P F^T + Q, hand-derived as
+    [[a + b dt^2 + q dt^3/3, b dt + q dt^2/2], [b dt + q dt^2/2, b + q dt]]; the axes stay uncorrelated. The default
+    sigma (1 m/s^2) is its own square, so only another value tells q = sigma^2 from sigma."""
+    cfg = T.TrackerConfig(accel_sigma_mps2=2.0)
+    x = np.array([10.0, -20.0, -5.0, 4.0, -6.0, 0.5])
+    a, b, dt, q = 0.3, 2.0, 0.5, 4.0
+    P = np.diag([a] * 3 + [b] * 3)
+    x1, P1 = T.predict_state(x, P, dt, cfg)
+    np.testing.assert_allclose(x1, [12.0, -23.0, -4.75, 4.0, -6.0, 0.5], rtol=1e-12)
+    pp, pv, vv = a + b * dt ** 2 + q * dt ** 3 / 3, b * dt + q * dt ** 2 / 2, b + q * dt      # 0.9667, 1.5, 4.0
+    want = np.block([[pp * np.eye(3), pv * np.eye(3)], [pv * np.eye(3), vv * np.eye(3)]])
+    np.testing.assert_allclose(P1, want, rtol=1e-12, atol=1e-15)
+    x0, P0 = T.predict_state(x, P, 0.0, cfg)                       # no time, no change
+    np.testing.assert_allclose(x0, x, rtol=0, atol=0)
+    np.testing.assert_allclose(P0, P, rtol=0, atol=0)
+
+
 def _head_on(rng, speed=20.0, wall_n=100.0):
     """Vehicle flying north at ``speed`` towards a wall face at north ``wall_n`` (10 m wide, 10 m tall).
     Yields (true time to contact of the 1 m vehicle sphere with the face, nearest threat or None)."""
