@@ -514,6 +514,17 @@ def test_field_of_view_classification():
         fov(HOVER, range_m=np.zeros((10, 10)))
 
 
+def test_field_of_view_vertical_edges():
+    """The image's top and bottom edges: 240 rows at fy = 439.6 px see 15.2 deg above and below the axis
+    (atan(119.5 / fy); 15.15 deg inside the 1 px edge margin); a point 14 deg below or above the level nose is
+    visible, one 17 deg below or above is out of view. The rows end at the height (240), not at the width (320)."""
+    v = fov(HOVER)
+    for deg, want in ((14.0, T.VISIBLE), (17.0, T.OUT_OF_VIEW)):
+        dz = 50.0 * math.tan(math.radians(deg))
+        assert v.classify([50.0, 0.0, -10.0 + dz]) == want, ("below", deg)          # down is +D
+        assert v.classify([50.0, 0.0, -10.0 - dz]) == want, ("above", deg)
+
+
 # -- velocity and time to contact ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("name, p0, v", [("crossing", [50.0, -12.0, -6.0], [0.0, 8.0, 0.0]),
                                          ("receding", [40.0, 3.0, -6.0], [8.0, 0.0, 0.0]),
