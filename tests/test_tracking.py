@@ -741,6 +741,45 @@ def test_message_attitude_is_body_to_ned_for_a_turned_vehicle():
         np.testing.assert_allclose(rotation_from_quat_wxyz(q) @ [1.0, 0.0, 0.0], nose_ned, atol=1e-12)
 
 
+def test_message_carries_a_coasting_track():
+    """A confirmed track 40 m north of a hovering vehicle that then turns to face east (yaw 90 deg): the obstacle is
+    abeam, out of view, and the track coasts (docs/guidance.md: the message holds confirmed and coasting tracks,
+    ``state`` "coasting", no miss counted). The message encodes and decodes with it; a validator that knew only
+    "confirmed" would refuse every message while an obstacle is occluded or out of view."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
+    cov = np.diag([0.25, 0.04, 0.04])
+    for k in range(2):
+        tr.update([T.Measurement([40.0, 0.0, -10.0], cov, [1.0, 1.0, 1.0])], us(k * 0.1), fov(HOVER))
+    east = VehicleState.from_ypr(HOVER.position_ned_m, [math.radians(90.0), 0.0, 0.0])
+    assert fov(east).classify([40.0, 0.0, -10.0]) == T.OUT_OF_VIEW
+    tr.update([], us(0.2), fov(east))
+    trk, = tr.confirmed()
+    assert trk.state == "coasting" and trk.misses == 0
+    back = G.decode(G.encode(GP.build(tr, T.Ownship.from_state(east, [0.0, 0.0, 0.0], us(0.2)), us(0.2), seq=0,
+                                      trigger="map", stale_after_s=0.5)))
+    t, = back["tracks"]
+    assert t["id"] == trk.id and t["state"] == "coasting" and t["misses"] == 0
+    assert t["azimuth_frd_rad"] == pytest.approx(-math.pi / 2)          # north is 90 deg to port of an east heading
+
+
+def test_message_track_age_and_time_since_update_in_seconds():
+    """A track born at 0 s and detected again at 0.1 s, missed at 0.2 s, published at 0.4 s: ``age_s`` 0.4 s since it
+    was started and ``time_since_update_s`` 0.3 s since its last detection (a miss is no update), both in seconds
+    (docs/guidance.md)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
+    cov = np.diag([0.25, 0.04, 0.04])
+    for k in range(2):
+        tr.update([T.Measurement([40.0, 0.0, -10.0], cov, [1.0, 1.0, 1.0])], us(k * 0.1))
+    tr.update([], us(0.2))
+    trk, = tr.confirmed()
+    assert trk.misses == 1
+    back = G.decode(G.encode(GP.build(tr, _own(0.4, (0.0, 0.0, 0.0)), us(0.4), seq=0, trigger="timer",
+                                      stale_after_s=0.5)))
+    t, = back["tracks"]
+    assert t["age_s"] == pytest.approx(0.4, abs=1e-9) and t["time_since_update_s"] == pytest.approx(0.3, abs=1e-9)
+    assert t["hits"] == 2 and t["misses"] == 1
+
+
 def test_nearest_threat_is_a_confirmed_track_even_when_a_tentative_one_comes_first():
     """A tentative track 30 m ahead (one detection, maybe clutter) and a confirmed one 60 m ahead, both on the path
     of a vehicle flying north at 10 m/s: the message's nearest threat is the confirmed one (what the message's
