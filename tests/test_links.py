@@ -161,6 +161,19 @@ def test_malformed_connection_strings_are_configuration_errors(s):
         MavLink(s, what="--source")
 
 
+@pytest.mark.parametrize("port,ok", [(0, False), (1, True), (65535, True), (65536, False)])
+def test_port_must_be_1_to_65535(port, ok):
+    """Port 0 is no port a peer can be reached on (a bind to it takes any free port, so the autopilot would never
+    find the companion): like 65536, a configuration error; 1 and 65535 are the edges that are accepted."""
+    for kind in ("tcp", "udpin", "udpout"):
+        s = f"{kind}:127.0.0.1:{port}"
+        if ok:
+            assert parse_connection(s) == (kind, f"127.0.0.1:{port}", None)
+        else:
+            with pytest.raises(InputError, match=f"port {port} is not 1..65535"):
+                parse_connection(s, "--source")
+
+
 # ---- back-off -----------------------------------------------------------------------------------------------------
 
 def test_back_off_doubles_up_to_its_limit_and_says_down():
