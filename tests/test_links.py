@@ -195,6 +195,33 @@ def test_back_off_doubles_up_to_its_limit_and_says_down():
     assert state == "down" and "ConnectionRefusedError" in detail and "next attempt in" in detail
 
 
+def test_a_lost_link_is_reopened_after_the_first_back_off_step():
+    """A link that was up and drops (autopilot reboot, cable) is re-opened after the first back-off step (0.5 s),
+    not the longest (8 s): the obstacle messages must resume as soon as the autopilot is back. A real TCP server
+    (its backlog accepts the connection); the clock is the test's, so the instants are exact."""
+    t = {"now": 50.0}
+    counts = {}
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(4)
+    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(0.5, 8.0),
+                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
+    try:
+        conn = link.poll()
+        assert conn is not None and counts == {"link.attempts": 1, "link.opened": 1}
+        t["now"] = 60.0
+        link.mark_lost(conn, ConnectionResetError("connection reset by peer"))
+        state, detail = link.status()
+        assert state == "down" and "lost: ConnectionResetError" in detail and "next attempt in 0.5 s" in detail
+        t["now"] = 60.49
+        assert link.poll() is None and counts["link.attempts"] == 1            # not yet due
+        t["now"] = 60.5
+        assert link.poll() is not None and counts == {"link.attempts": 2, "link.opened": 2, "link.lost": 1}
+    finally:
+        link.close()
+        srv.close()
+
+
 # ---- real links ---------------------------------------------------------------------------------------------------
 
 def test_tcp_autopilot_that_starts_late_and_drops_once():
