@@ -95,7 +95,8 @@ def test_dataflash_reader_gives_what_dfreader_reads():
         elif m.get_type() == "XKF1":
             assert (g.x, g.y, g.z, g.vx, g.vy, g.vz) == (m.PN, m.PE, m.PD, m.VN, m.VE, m.VD)
         elif m.get_type() == "POS":
-            assert abs(g.lat - m.Lat * 1e7) <= 0.5 and abs(g.alt - m.Alt * 1000) <= 0.5
+            assert abs(g.lat - m.Lat * 1e7) <= 0.5 and abs(g.lon - m.Lng * 1e7) <= 0.5
+            assert abs(g.alt - m.Alt * 1000) <= 0.5 and abs(g.relative_alt - m.RelHomeAlt * 1000) <= 0.5
 
 
 def test_service_replays_a_dataflash_log():
