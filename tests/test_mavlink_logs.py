@@ -99,6 +99,44 @@ def test_dataflash_reader_gives_what_dfreader_reads():
             assert abs(g.alt - m.Alt * 1000) <= 0.5 and abs(g.relative_alt - m.RelHomeAlt * 1000) <= 0.5
 
 
+def with_other_core(data: bytes):
+    """``data`` (a dataflash log) with, after every XKF1 and XKQ of EKF core 0, the same message of core 1 (field C,
+    the byte after TimeUS) whose quaternion is a half turn about the vertical (q = (0, 0, 0, 1)): what a log of a
+    two-core EKF holds. Returns (the new log, the number of messages added)."""
+    lengths, names = {128: 89}, {128: "FMT"}
+    out, i, added = bytearray(), 0, 0
+    while i + 3 <= len(data):
+        assert data[i:i + 2] == b"\xa3\x95" and data[i + 2] in lengths, i      # the log is whole: no resync here
+        t, n = data[i + 2], lengths[data[i + 2]]
+        msg = bytearray(data[i:i + n])
+        if t == 128:
+            lengths[msg[3]], names[msg[3]] = msg[4], msg[5:9].rstrip(b"\0").decode()
+        out += msg
+        if names[t] in ("XKF1", "XKQ"):
+            assert msg[11] == 0
+            msg[11] = 1
+            if names[t] == "XKQ":                                  # QBffff: TimeUS, C, Q1..Q4
+                msg[12:28] = struct.pack("<4f", 0.0, 0.0, 0.0, 1.0)
+            out += msg
+            added += 1
+        i += n
+    return bytes(out), added
+
+
+def test_dataflash_reader_keeps_ekf_core_0_only(tmp_path):
+    """A log of a two-core EKF: XKF1 and XKQ of core 1 are interleaved with core 0's; the reader must give exactly
+    what it gives for the core-0-only log (core 1 counted, never mixed in: a second attitude half a turn off
+    would make the attitude jump at every message)."""
+    data, added = with_other_core(BIN.read_bytes())
+    p = tmp_path / "two_cores.bin"
+    p.write_bytes(data)
+    one, two = DataflashReader(BIN), DataflashReader(p)
+    want, got = list(one), list(two)
+    assert added > 100 and two.stats.other_core == added and one.stats.other_core == 0
+    assert two.stats.records == one.stats.records + added and two.stats.nav == one.stats.nav
+    assert [(t, repr(m)) for t, m in got] == [(t, repr(m)) for t, m in want]
+
+
 def test_service_replays_a_dataflash_log():
     msgs = dfreader_messages(BIN)
     first_orgn = next(i for i, m in enumerate(msgs) if m.get_type() == "ORGN")
