@@ -131,6 +131,21 @@ def test_rewrite_vehicle():
     assert rewrite_vehicle("other/a/x", "b") == "other/a/x"
 
 
+def test_publish_time_is_the_log_time_when_the_sample_has_none(tmp_path):
+    """MCAP publish_time: the sample's zenoh timestamp when it has one, else its log time (docs: never 0, which a
+    reader would show as 1970 and sort before everything)."""
+    path = tmp_path / "pt.mcap"
+    rec = Recorder(RecordingWriter(path))
+    rec.record("eonav/pt/a", "text/plain", b"stamped", 5_000_000_000, publish_time_ns=4_990_000_000)
+    rec.record("eonav/pt/a", "text/plain", b"unstamped", 6_000_000_000)
+    rec.liveliness("eonav/pt/alive/x", True, 7_000_000_000)
+    rec.close()
+    with open(path, "rb") as f:
+        got = [(m.data, m.log_time, m.publish_time) for _, _, m in make_reader(f).iter_messages(log_time_order=False)]
+    assert got == [(b"stamped", 5_000_000_000, 4_990_000_000), (b"unstamped", 6_000_000_000, 6_000_000_000),
+                   (b'{"alive": true}', 7_000_000_000, 7_000_000_000)]
+
+
 # --------------------------------------------------------------------------------------------------
 # Foxglove channels
 
