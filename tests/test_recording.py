@@ -301,6 +301,19 @@ def test_point_cloud_subsampling_and_compressed_images(tmp_path):
     assert cv2.imdecode(np.frombuffer(img.data, np.uint8), cv2.IMREAD_COLOR).shape == (24, 32, 3)
 
 
+def test_point_cloud_scales_columns_by_fx_and_rows_by_fy():
+    """A camera with non-square pixels (fx = 40, fy = 20): a pixel (u, v) at range r is r [1, (u - cx)/fx,
+    (v - cy)/fy]; hand-derived for the four corners of a 3 x 4 map at 10 m (cx = 1.5, cy = 1)."""
+    from eonav.recording.foxglove import range_points
+    cam = {"fx": 40.0, "fy": 20.0, "cx": 1.5, "cy": 1.0}
+    pts = range_points(np.full((3, 4), 10.0, np.float32), None, cam)
+    assert pts.shape == (12, 4)
+    corners = pts.reshape(3, 4, 4)[[0, 0, 2, 2], [0, 3, 0, 3]]
+    # y = 10 (u - 1.5) / 40 = -0.375 / +0.375; z = 10 (v - 1) / 20 = -0.5 / +0.5
+    np.testing.assert_allclose(corners, [[10, -0.375, -0.5, 10], [10, 0.375, -0.5, 10],
+                                         [10, -0.375, 0.5, 10], [10, 0.375, 0.5, 10]], rtol=1e-6)
+
+
 # --------------------------------------------------------------------------------------------------
 # rotation
 
