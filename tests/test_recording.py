@@ -314,6 +314,20 @@ def test_point_cloud_scales_columns_by_fx_and_rows_by_fy():
                                          [10, -0.375, 0.5, 10], [10, 0.375, 0.5, 10]], rtol=1e-6)
 
 
+def test_foxglove_stamps_keep_the_microseconds(tmp_path):
+    """Foxglove timestamps are (seconds, nanoseconds) of the message's stamp_us: the pose of the fixture (stamp
+    1_020_000 us) is at 1 s + 20 ms, the obstacles (1_200_000 us) at 1 s + 200 ms."""
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    d = decoded(path)
+    ts = d["/pose"][0][3].timestamp
+    assert (ts.seconds, ts.nanos) == (1, 20_000_000)
+    upd = d["/obstacles"][0][3]
+    assert {(e.timestamp.seconds, e.timestamp.nanos) for e in upd.entities} == {(1, 200_000_000)}
+    cloud = d["/range/nose/points"][0][3]
+    assert (cloud.timestamp.seconds, cloud.timestamp.nanos) == (1, 200_000_000)
+
+
 # --------------------------------------------------------------------------------------------------
 # rotation
 
