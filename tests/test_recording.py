@@ -328,6 +328,30 @@ def test_foxglove_stamps_keep_the_microseconds(tmp_path):
     assert (cloud.timestamp.seconds, cloud.timestamp.nanos) == (1, 200_000_000)
 
 
+@pytest.mark.parametrize("eps_deg,axis_in_body", [
+    ([90.0, 0.0, 0.0], [0.0, 1.0, 0.0]),                                  # turned right: looks along body +Y
+    ([0.0, 30.0, 0.0], [math.cos(math.radians(30)), 0.0, -0.5]),          # tilted 30 deg up (FRD: up is -Z)
+])
+def test_camera_mount_transform_points_the_optical_axis_where_the_camera_looks(tmp_path, eps_deg, axis_in_body):
+    """The /tf body -> cam_<id> transform is the camera's pose in the body (p_body = R p_cam + l): the paper's
+    camera axis Xc of a camera mounted 90 deg to the right (eps1 about Zc, like a yaw) is the body's +Y, of a
+    camera tilted up 30 deg (eps2 about Yc, like a pitch) it is (cos 30, 0, -sin 30). Hand-derived from the
+    mounting; the translation is the lever arm."""
+    cam = dict(CAM, eps_deg=eps_deg, l_m=[0.5, 0.2, -0.1])
+    path = tmp_path / "mount.mcap"
+    rec = Recorder(RecordingWriter(path), FoxgloveConverter("raw"))
+    rec.record(K.posed_frame("mt", "nose"), MSGPACK,
+               schema.encode("posed_frame", camera_id="nose", seq=0, stamp_us=1_000_000, encoding="mono8",
+                             image=np.zeros((30, 40), np.uint8), camera=cam, position_ned_m=[0.0, 0.0, 0.0],
+                             q_wxyz=[1.0, 0.0, 0.0, 0.0]), 1_000_000_000)
+    rec.close()
+    tf = {(t.parent_frame_id, t.child_frame_id): t for *_, t in decoded(path)["/tf"]}
+    mount = tf[("body", "cam_nose")]
+    R = rotation_from_quat_wxyz([mount.rotation.w, mount.rotation.x, mount.rotation.y, mount.rotation.z])
+    assert R @ [1.0, 0.0, 0.0] == pytest.approx(axis_in_body, abs=1e-9)
+    assert [mount.translation.x, mount.translation.y, mount.translation.z] == pytest.approx([0.5, 0.2, -0.1])
+
+
 # --------------------------------------------------------------------------------------------------
 # rotation
 
