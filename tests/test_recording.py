@@ -386,6 +386,24 @@ def test_rotation_by_size(tmp_path):
     assert [p.name for p in w2.files] == ["small_000.mcap"]
 
 
+def test_an_attachment_stays_in_the_file_of_its_payload(tmp_path):
+    """Rotation by size never separates a sample's attachment from its payload: the replay pairs them within one
+    file. Attachments of 20 kB are larger than a chunk (16 kB for a 64 KiB split), so the file grows past the split
+    size right after an attachment is written: the payload must still go into that file."""
+    rng = np.random.default_rng(2)
+    w = RecordingWriter(tmp_path / "att.mcap", split_bytes=64 * 1024)
+    assert w.chunk_bytes == 16 * 1024
+    rec = Recorder(w)
+    sent = []
+    for i in range(20):
+        payload, att = rng.bytes(100), rng.bytes(20_000)
+        rec.record("eonav/att/k", "application/octet-stream", payload, i * 1_000_000, attachment=att)
+        sent.append(("eonav/att/k", "application/octet-stream", payload, att))
+    rec.close()
+    assert len(w.files) >= 4
+    assert [m for p in w.files for m in raw_from(p)] == sent
+
+
 def raw_from(path):
     return [(r.key, r.encoding, r.payload, r.attachment) for r in read_records([path])]
 
