@@ -585,3 +585,101 @@ def test_a_rigs_partner_frames_go_before_its_references_in_a_drained_batch():
     # a camera id that ends like another's is not taken for it
     b2 = [item("xleft", 1, True), item("right", 1, True)]
     assert [str(s.key_expr).split("/")[-2] for s, _ in rig_first(b2, left)] == ["xleft", "right"]
+
+
+# ---- range_pair in process: a Node whose session records its puts, a stand-in locate -----------------------------
+
+class _RecordingSession:
+    """Stands in for the zenoh session of an in-process Node: every put, in order, as (key, payload bytes)."""
+
+    def __init__(self):
+        self.puts = []
+
+    def declare_publisher(self, key, **kw):
+        from types import SimpleNamespace
+        return SimpleNamespace(put=lambda payload: self.puts.append((str(key), bytes(payload))))
+
+
+def _pair_harness(gate=None):
+    """A locator Node (recording session), its range-map publisher for camera "nose", and ``pair(stamp_a_us)``: a
+    pair decision of two 16 x 12 posed frames of "nose" (a stamped ``stamp_a_us``, b 100 ms before, 2 m behind)."""
+    import argparse
+    import logging
+    from types import SimpleNamespace
+
+    from eonav.bus.node import Node
+    from eonav.geometry.camera import Camera
+    from eonav.services.locator import CameraCache, frame_info
+    session = _RecordingSession()
+    node = Node("locator", argparse.Namespace(vehicle="v", input_grace_s=10.0, health_period_s=1.0), session,
+                log=logging.getLogger("test.locator"))
+    pubs = {"nose": node.publisher(K.range_map("v", "nose"), image=True)}
+    cam = Camera("nose", 16, 12, 16.0, 16.0, 7.5, 5.5)
+    cams = CameraCache(1.0)
+    img = (np.arange(12 * 16).reshape(12, 16) % 251).astype(np.uint8)
+
+    def frame(seq, stamp_us, north_m):
+        return frame_info(schema.decode(schema.encode(
+            "posed_frame", camera_id="nose", seq=seq, stamp_us=stamp_us, encoding="mono8", image=img,
+            camera=schema.camera_to_msg(cam), position_ned_m=[north_m, 0.0, -5.0], q_wxyz=[1.0, 0.0, 0.0, 0.0]),
+            expect="posed_frame"), cams)
+
+    def pair(stamp_a_us, seq=2):
+        return SimpleNamespace(a=frame(seq, stamp_a_us, 2.0), b=frame(seq - 1, stamp_a_us - 100_000, 0.0),
+                               baseline_m=2.0, reason="motion")
+    return node, session, pubs, cams, pair
+
+
+def _range_result(shape=(12, 16), range_m=25.0):
+    from types import SimpleNamespace
+    return SimpleNamespace(range_m=np.full(shape, range_m, np.float32), confidence=np.full(shape, 3.0, np.float32),
+                           inv_range_std_per_m=None, flags=None, method="stand-in")
+
+
+def test_locate_failing_three_times_in_a_row_degrades_the_locator_and_a_good_pair_restores_it():
+    """One failing locate is a bad pair (counted, no map, state ok); the third failure in a row is a persistent one
+    (state degraded); the next pair that locates puts its map, resets the run and brings the state back to ok."""
+    from eonav.services.locator import range_pair
+    node, session, pubs, cams, pair = _pair_harness()
+    calls = []
+
+    def failing(va, vb, **kw):
+        calls.append(kw)
+        raise ValueError("no texture")
+
+    def working(va, vb, **kw):
+        return _range_result()
+    d = pair(time.time_ns() // 1000)
+    errors = 0
+    for k in (1, 2, 3):
+        errors, compute_s = range_pair(node, d, pubs, "dense", {}, 1.0, "f16", errors, time.perf_counter(), cams,
+                                       failing)
+        assert (errors, compute_s) == (k, None)
+        assert node.state == ("degraded" if k == 3 else "ok"), k
+    assert node.counters()["locate_errors"] == 3 and session.puts == [] and calls[0] == {"method": "dense"}
+    errors, compute_s = range_pair(node, d, pubs, "dense", {}, 1.0, "f16", errors, time.perf_counter(), cams, working)
+    assert errors == 0 and compute_s >= 0 and node.state == "ok"
+    (key, payload), = session.puts
+    m = schema.decode(payload, expect="range_map")
+    assert key == K.range_map("v", "nose") and (m["seq"], m["other_seq"]) == (2, 1)
+    assert np.all(m["range_m"] == 25.0) and node.counters()["pairs_computed"] == 1
+
+
+def test_range_pair_never_puts_a_map_older_than_the_last_one_put():
+    """The publish-side gate: once a map of frame t is put, a later pair whose reference frame is older (a frame that
+    waited behind the newer one) computes but is not put (``dropped.out_of_order``); a newer one is."""
+    from eonav.bus.freshness import FreshnessGate
+    from eonav.services.locator import range_pair
+    t = time.time_ns() // 1000
+    gate = FreshnessGate(1.0, clock_us=lambda: t)
+    node, session, pubs, cams, pair = _pair_harness()
+
+    def working(va, vb, **kw):
+        return _range_result()
+    for stamp, seq in ((t - 100_000, 5), (t - 200_000, 4), (t - 100_000, 6), (t - 50_000, 7)):
+        errors, compute_s = range_pair(node, pair(stamp, seq), pubs, "dense", {}, 1.0, "f16", 0, time.perf_counter(),
+                                       cams, working, "locate", gate)
+        assert errors == 0 and compute_s is not None
+    put = [schema.decode(p, expect="range_map") for _, p in session.puts]
+    assert [(m["seq"], m["stamp_us"]) for m in put] == [(5, t - 100_000), (6, t - 100_000), (7, t - 50_000)]
+    assert node.counters()["dropped.out_of_order"] == 1 and gate.last_published_us("nose") == t - 50_000
