@@ -1101,6 +1101,22 @@ def test_latest_nav_joins_attitude_and_position_messages():
     assert nav.get()[1] == 1_400_000 and nav._q[0] == 1_400_000
 
 
+def test_latest_nav_joins_parts_up_to_200_ms_apart_and_not_beyond():
+    """The join limit of attitude and position holds at 200 ms exactly (MAX_PART_SKEW_US, inclusive) and not a
+    microsecond beyond, either part being the newer one."""
+    from eonav.services.obstacles import LatestNav
+    nan3, nan4 = [math.nan] * 3, [math.nan] * 4
+    for first_is_attitude in (True, False):
+        for skew_us, joined in ((200_000, True), (200_001, False)):
+            nav = LatestNav()
+            parts = [(nan3, [1.0, 0.0, 0.0, 0.0]), ([5.0, 6.0, -7.0], nan4)]
+            if not first_is_attitude:
+                parts.reverse()
+            (p0, q0), (p1, q1) = parts
+            assert not nav.add(1_000_000, q0, p0, nan3)
+            assert nav.add(1_000_000 + skew_us, q1, p1, nan3) is joined, (first_is_attitude, skew_us)
+            assert nav.get()[1] == (1_000_000 + skew_us if joined else None)
+
 def test_mixture_sigma_against_a_sampled_mixture():
     # equal sigmas: that sigma
     assert ob.mixture_sigma(np.full(50, 2.0)) == pytest.approx(2.0, rel=1e-6)
