@@ -85,6 +85,71 @@ def test_clock_flag_and_origin_parsing():
         MI.parse_origin("47.1,8.2")
 
 
+
+class _StandInIngest:
+    """What ``Publisher`` reads of a NavIngest: ``clock()`` (set ``est``), ``rejected`` and ``decoder.reboots``."""
+
+    def __init__(self):
+        from collections import Counter
+        from types import SimpleNamespace
+        self.est = None
+        self.rejected = Counter()
+        self.decoder = SimpleNamespace(reboots=0)
+
+    def clock(self):
+        return self.est
+
+
+def _publisher():
+    """A Publisher on an in-process Node whose session records every put as (key, decoded message)."""
+    import argparse
+    import logging
+    from types import SimpleNamespace
+
+    from eonav.bus.node import Node
+    puts = []
+    session = SimpleNamespace(declare_publisher=lambda key, **kw: SimpleNamespace(
+        put=lambda payload: puts.append((str(key), schema.decode(bytes(payload))))))
+    node = Node("mavlink", argparse.Namespace(vehicle="v", input_grace_s=10.0, health_period_s=1.0), session,
+                log=logging.getLogger("test.mavlink_ingest"))
+    ingest = _StandInIngest()
+    return MI.Publisher(node, ingest), ingest, node, puts
+
+
+def test_clock_offset_put_on_a_change_at_most_once_a_second_and_at_once_on_a_new_method():
+    """clock_offset messages: the first estimate at once; a changed offset no sooner than 1 s after the last put
+    (CLOCK_PUBLISH_PERIOD_US, inclusive); an unchanged estimate never again; a change of method at once."""
+    from eonav.nav.mavlink_in import ClockEstimate
+    pub, ingest, node, puts = _publisher()
+    t0 = 1_700_000_000_000_000
+    steps = [(0, "receive", 5_000, True), (500_000, "receive", 5_100, False), (999_999, "receive", 5_200, False),
+             (1_000_000, "receive", 5_300, True), (2_500_000, "receive", 5_300, False),
+             (2_600_000, "timesync", 5_250, True), (2_700_000, "timesync", 5_260, False)]
+    for dt, method, offset, put in steps:
+        ingest.est = ClockEstimate(offset_us=offset, method=method, samples=3, rtt_us=400)
+        n = len(puts)
+        pub.publish([], t0 + dt)
+        assert len(puts) == n + put, (dt, method, offset)
+    clock = [m for k, m in puts if k == K.nav_clock("v")]
+    assert [(m["stamp_us"] - t0, m["offset_us"], m["method"]) for m in clock] == [
+        (0, 5_000, "receive"), (1_000_000, 5_300, "receive"), (2_600_000, 5_250, "timesync")]
+    assert node.counters()["out.clock_offset"] == 3
+
+
+def test_rejection_counters_mirror_the_ingests_running_totals():
+    """The ingest keeps running totals of its rejections and of autopilot reboots; the health counters show the
+    same totals (each publish adds only what is new), not a sum of the totals seen at every publish."""
+    pub, ingest, node, puts = _publisher()
+    ingest.rejected.update({"attitude_nonfinite": 2})
+    pub.publish([], 1)
+    ingest.rejected.update({"attitude_nonfinite": 3, "time_backwards": 1})
+    ingest.decoder.reboots = 1
+    pub.publish([], 2)
+    pub.publish([], 3)
+    c = node.counters()
+    assert (c["rejected.attitude_nonfinite"], c["rejected.time_backwards"], c["reboots"]) == (5, 1, 1)
+    assert puts == []                                    # no states, no clock estimate: nothing put
+
 def _run(args, subs, timeout=30):
     from eonav.bus.session import endpoint, listener_session
     from eonav.app.processes import free_port, start_service, stop_service
