@@ -159,6 +159,28 @@ def test_kalibr_camchain_radtan_and_equi_with_extrinsics(tmp_path):
         load_calibration(p, camera="cam1")
 
 
+def test_kalibr_equi_is_the_equidistant_model(tmp_path):
+    """Kalibr's short name ``equi`` (its ``pinhole-equi`` camera model) is the fisheye model: cam1 written as ``equi``
+    loads as ``equidistant`` and undistorts with cv2.fisheye's own tables for its known values."""
+    p = tmp_path / "camchain.yaml"
+    p.write_text(kalibr_text("equi"))
+    cam1 = load_calibration(p, camera="cam1")
+    assert_same_as_cv2(cam1, "equidistant", EQUI, K=np.array([[40.0, 0, 31.5], [0, 40, 23.5], [0, 0, 1]]))
+
+
+def test_kalibr_camchain_of_one_camera_defaults_to_that_camera(tmp_path):
+    """A camchain holding a single entry that is not ``cam0`` (the belly camera calibrated alone as ``cam1``) gives
+    that camera when none is named; ``cam0`` is only the default among several."""
+    text = kalibr_text()
+    p = tmp_path / "camchain-belly.yaml"
+    p.write_text(text[text.index("cam1:"):])
+    cam = load_calibration(p)
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.model) == (40.0, 40.0, 31.5, 23.5, "equidistant")
+    assert cam.coeffs == EQUI and cam.T_cam_imu is None
+    with pytest.raises(InputError, match=r"camera 'cam0' is not one of \['cam1'\]"):
+        load_calibration(p, camera="cam0")
+
+
 @pytest.mark.parametrize("text,match", [
     ("camera_matrix: {rows: 3, cols: 3, data: [1, 0]}\ndistortion_model: plumb_bob\n", r"camera_matrix.data: expected 9"),
     ("a: [1, 2\n", "not valid YAML"),
