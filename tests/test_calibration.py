@@ -253,6 +253,17 @@ def test_mount_from_T_cam_imu_rejects_non_rigid():
         mount_from_T_cam_imu(np.eye(4), "enu")
 
 
+def test_mount_from_T_cam_imu_rejects_a_mirrored_rotation():
+    """An orthonormal block with determinant -1 (a left-handed frame, e.g. an exporter's flipped y axis) is no
+    rigid motion: no attitude reproduces it, so it is refused rather than turned into some eps."""
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, 1.0]) @ R_CAM0_IMU            # orthonormal, det = -1
+    T[:3, 3] = -T[:3, :3] @ L_CAM0_BODY
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3)) and np.linalg.det(T[:3, :3]) == pytest.approx(-1.0)
+    with pytest.raises(InputError, match="not a proper rotation"):
+        mount_from_T_cam_imu(T)
+
+
 # ---- pair file and cameras file --------------------------------------------------------------------------------
 
 PAIR = {
