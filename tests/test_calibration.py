@@ -401,6 +401,16 @@ def test_frame_correction_undistorts_and_stamps_mid_exposure():
         frame_correction(None, exposure_s=-0.001)
 
 
+def test_frame_correction_rounds_the_shift_to_the_nearest_microsecond():
+    """Offset -4.8 ms and exposure 6 ms move the stamp by -4800 + 3000 = -1800 us exactly; in floating point the
+    shift is -1799.9999999999998 us, which truncation would make -1799 (a microsecond late, every frame)."""
+    img = np.zeros((H, W), np.uint8)
+    _, stamp = frame_correction(None, time_offset_s=-0.0048, exposure_s=0.006)(img, 1_000_000)
+    assert stamp == 1_000_000 - 1800
+    _, stamp = frame_correction(None, time_offset_s=-0.0047, exposure_s=0.010)(img, 1_000_000)
+    assert stamp == 1_000_000 + 300
+
+
 # ---- ranging with a distorted camera ----------------------------------------------------------------------------
 
 def median_error(view_a, view_b, truth_m):
