@@ -111,6 +111,43 @@ def test_brightness_gain_beyond_max_gain_ratio_is_not_trusted():
     assert not fit.used and "outside" in fit.reason
 
 
+def _block_pair(values_b, gain, offset, block=16):
+    """Image b of constant block x block squares (row-major ``values_b``, 15 x 20 of them), image a = gain b + offset,
+    and tracks at the block centres: every window mean at a point is its block's value, so the fit's data are known
+    exactly."""
+    vb = np.asarray(values_b, np.float32).reshape(15, 20)
+    b = np.kron(vb, np.ones((block, block), np.float32))
+    a = (np.float32(gain) * b + np.float32(offset)).astype(np.float32)
+    y, x = np.mgrid[0:15, 0:20] * block + block // 2
+    pts = np.stack([x.ravel(), y.ravel()], 1).astype(np.float32)
+    return a, b, Tracks(pts, pts.copy())
+
+
+def test_brightness_gain_below_one_over_max_gain_ratio_is_not_trusted():
+    """A darkening gain is bounded as a brightening one is: with max_gain_ratio 1.5 the gains 0.70 and 1.45 are
+    fitted exactly and applied, 0.60 (< 1 / 1.5) and 1.60 are not."""
+    vals = np.random.default_rng(6).uniform(60.0, 200.0, 300)
+    for gain, used in ((0.70, True), (1.45, True), (0.60, False), (1.60, False)):
+        fit = fit_brightness(*_block_pair(vals, gain, 10.0), max_gain_ratio=1.5)
+        assert fit.gain == pytest.approx(gain, abs=1e-4) and fit.offset == pytest.approx(10.0, abs=0.02)
+        assert fit.used == used, (gain, fit)
+        assert used or "outside [1/1.5, 1.5]" in fit.reason
+
+
+def test_brightness_spread_threshold_is_the_robust_sigma():
+    """min_spread compares the points' robust spread in b, 1.4826 MAD: b's blocks half at 100 - s, half at 100 + s
+    have median 100 and MAD s. s = 6 spreads 8.9 grey levels (>= 8: fitted, gain 1.25 found); s = 5 spreads 7.4
+    (< 8: not fitted)."""
+    for s, used in ((6.0, True), (5.0, False)):
+        vals = np.where(np.arange(300) % 2 == 0, 100.0 - s, 100.0 + s)
+        fit = fit_brightness(*_block_pair(vals, 1.25, -20.0), min_spread=8.0)
+        assert fit.used == used, (s, fit)
+        if used:
+            assert fit.gain == pytest.approx(1.25, abs=1e-3) and fit.offset == pytest.approx(-20.0, abs=0.1)
+        else:
+            assert "brightness spread of the points below 8" in fit.reason
+
+
 def test_brightness_fit_through_the_memo_of_box_means_is_the_direct_fit():
     """Along a stream of gain-changed frames (each fitted against the one before) the memo blurs each image once
     and the fits are the direct ones exactly; the match's image b is gain * b + offset in float32."""
