@@ -510,6 +510,23 @@ def test_state_shift_uses_only_cells_known_well_enough():
     assert np.isnan(state_shift_px(empty, var, n, geo, tr))
 
 
+def test_state_shift_counts_points_the_state_holds_at_infinity():
+    """rho = 0 (a point at infinity: far terrain, a horizon) is a known inverse range: with b 0.3 m to the right of a
+    and the same attitude such a point has the same pixel in b as in a, so tracks offset by (1.5, -0.8) px show a
+    shift of hypot(1.5, 0.8) = 1.7 px (the 1.5 along the rows, the epipolar lines, which pose_shift_px cannot see)."""
+    from eonav.fusion.measure import state_shift_px
+    cam = Camera("c", 192, 192, 153.6, 153.6, 95.5, 95.5)
+    a = View(cam, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), np.zeros((192, 192), np.float32))
+    b = View(cam, VehicleState.from_ypr([0.0, 0.3, 0.0], [0.0, 0.0, 0.0]), np.zeros((192, 192), np.float32))
+    y, x = np.mgrid[20:180:20, 16:180:24]
+    pa = np.stack([x.ravel(), y.ravel()], 1).astype(np.float32)            # 8 x 7 = 56 points
+    tr = Tracks(pa, pa + np.float32([1.5, -0.8]))
+    rho = np.zeros((192, 192), np.float32)
+    var = np.full((192, 192), 1e-4 ** 2, np.float32)                       # place moves f b 1e-4 = 0.005 px
+    n = np.full((192, 192), 3, np.uint16)
+    assert state_shift_px(rho, var, n, pair_geometry(a, b), tr) == pytest.approx(1.7, abs=1e-3)
+
+
 def test_fusion_adds_the_along_line_pose_error_to_the_sigma():
     # four frames of the sideways wall (b, a, b, then a with a yaw error): the fourth push's pair, with the state
     # fused from two measurements on the wall, gets the along-line term, and its sigma grows by the yaw's shift in
