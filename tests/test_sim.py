@@ -78,6 +78,51 @@ def test_box_seen_where_geometry_projects_it():
     assert abs(rows.min() - cv_[1]) <= 1 and abs(rows.max() - cv_[0]) <= 1
 
 
+
+def test_nearer_box_hides_a_farther_one_whatever_their_order():
+    """Two boxes on the line of sight: the pixel at the near face's centre shows the near box at its range (20 m),
+    in either order of the scene's boxes; beside it the far box (40 m) is seen. Hand-derived: a level camera at
+    the origin, 3 m up, sees NED (n, e, d) at u = cx + fx e/n, v = cy + fy (d + 3)/n. Catches a later box drawn
+    over a nearer earlier one (the nearest-hit test dropped)."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
+    state = VehicleState.from_ypr([0.0, 0.0, -3.0], [0.0, 0.0, 0.0])
+    near = Box.on_ground("near", 21.0, 0.0, 2.0, 2.0, 4.0)          # face towards the camera at north 20
+    far = Box.on_ground("far", 41.0, 0.0, 2.0, 12.0, 8.0)           # face at north 40, 12 m wide
+    for boxes in ((near, far), (far, near)):
+        r = render(Scene(boxes), cam, state, supersample=1, noise_sigma=0.0)
+        ids = {b.name: 2 + i for i, b in enumerate(boxes)}
+        u, v = round(cam.cx + cam.fx * 0.0 / 20.0), round(cam.cy + cam.fy * (-2.0 + 3.0) / 20.0)   # (47, 46)
+        assert r.object_id[v, u] == ids["near"] and r.range_m[v, u] == pytest.approx(20.0, rel=1e-5)
+        u, v = round(cam.cx + cam.fx * 4.0 / 40.0), round(cam.cy + cam.fy * (-2.0 + 3.0) / 40.0)   # (56, 44)
+        assert r.object_id[v, u] == ids["far"] and r.range_m[v, u] == pytest.approx(40.0, rel=1e-5)
+
+
+def test_yawed_box_turns_from_north_towards_east():
+    """Yaw is about NED down, in degrees for Box.on_ground: a 10 x 1 m box yawed +30 deg runs from south-west to
+    north-east, so its east (+y) long side faces a camera south of it, and the range along that side grows to the
+    right of the image. The range at pixels on that side equals the hand-derived intersection of the pixel's ray
+    with the side's plane: normal (-sin 30, cos 30, 0), 0.5 m from the axis. Catches the yaw's sign flipped and
+    yaw_deg taken as radians."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
+    state = VehicleState.from_ypr([0.0, 0.0, -3.0], [0.0, 0.0, 0.0])
+    box = Box.on_ground("wall", 40.0, 0.0, 10.0, 1.0, 4.0, yaw_deg=30.0)
+    r = render(Scene((box,)), cam, state, supersample=1, noise_sigma=0.0)
+    c30, s30 = np.cos(np.deg2rad(30.0)), np.sin(np.deg2rad(30.0))
+    n = np.array([-s30, c30])                                       # outward normal of the +y side (north, east)
+    offset = n @ (np.array([40.0, 0.0]) + 0.5 * n)                 # the side's plane: n . (north, east) = offset
+    v = round(cam.cy + cam.fy * (-2.0 + 3.0) / 40.0)                 # a row at mid-height near the box
+    got = []
+    for s_along in (-3.0, -1.0, 1.0, 3.0):                          # points on the side, metres along the box
+        ne = np.array([40.0 + s_along * c30, s_along * s30]) + 0.5 * n
+        u = round(cam.cx + cam.fx * ne[1] / ne[0])
+        xn = (u - cam.cx) / cam.fx                                   # the pixel-centre ray: (1, xn, .) x_c
+        x_c = offset / (n[0] + n[1] * xn)
+        assert r.object_id[v, u] == 2
+        assert r.range_m[v, u] == pytest.approx(x_c, rel=1e-5)
+        got.append(x_c)
+    assert np.all(np.diff(got) > 0) and got[-1] - got[0] > 4.0     # farther to the right (east)
+
+
 def test_ground_range_is_the_analytic_plane_intersection():
     cam = _camera()
     state = VehicleState.from_ypr([0.0, 0.0, -12.0], np.deg2rad([20.0, -5.0, 6.0]))
