@@ -320,6 +320,46 @@ def test_approach_flight_consecutive_frames_agree_with_mapping():
     assert np.median(rel) < 1e-3
 
 
+
+def test_turning_flight_is_a_coordinated_right_turn():
+    """The turning flight, hand-derived: 15 m/s with 15 deg of bank gives a yaw rate w = g tan 15 / 15 =
+    0.17524 rad/s and a radius of 85.597 m; a quarter turn (8.9637 s) later the aircraft is at (R, R) heading east
+    with its right wing (body y, FRD) pointing south -- towards the turn's centre (0, R) -- and down:
+    (-cos 15, 0, sin 15) in NED. Coordinated: the specific force a - g has no body-y component anywhere on the
+    arc. Catches the bank's sign flipped (a right turn banked left) and the turn's direction flipped."""
+    w, radius, t_quarter = 0.17523877184995426, 85.59749558644214, 8.963748776668378
+    (s,) = flight_states("turning", [t_quarter])
+    np.testing.assert_allclose(s.position_ned_m, [radius, radius, -8.0], atol=1e-9)
+    np.testing.assert_allclose(s.T_body_ned[0], [0.0, 1.0, 0.0], atol=1e-9)                  # nose east
+    c15, s15 = np.cos(np.deg2rad(15.0)), np.sin(np.deg2rad(15.0))
+    np.testing.assert_allclose(s.T_body_ned[1], [-c15, 0.0, s15], atol=1e-9)                 # right wing
+    h = 1e-2
+    for t in (0.5, 3.0, 6.0):
+        sm, s0, sp = flight_states("turning", [t - h, t, t + h])
+        acc = (sp.position_ned_m - 2 * s0.position_ned_m + sm.position_ned_m) / h ** 2
+        assert np.linalg.norm(acc) == pytest.approx(15.0 * w, rel=1e-4)                     # V w, centripetal
+        f_body = s0.T_body_ned @ (acc - np.array([0.0, 0.0, 9.81]))
+        assert abs(f_body[1]) < 1e-3                                                         # no side force
+        assert f_body[2] == pytest.approx(-9.81 / c15, rel=1e-4)                             # load factor 1/cos
+
+
+def test_climbing_flight_climbs_nose_up():
+    """The climbing flight, hand-derived from its closed form: height 5 + 4 (t - 1 + e^-t) m (climb rate
+    4 (1 - e^-t) m/s) and pitch 2 + 8 (1 - e^(-t/0.7)) deg, nose UP (body x's NED down component -sin(pitch)):
+    at t = 3 s the height is 13.1991 m, the climb rate 3.8009 m/s and the pitch 9.8899 deg. Catches NED down
+    taken as up (a "climb" descending into the ground) and the pitch sign."""
+    s0, s3 = flight_states("climbing", [0.0, 3.0])
+    np.testing.assert_allclose(s0.position_ned_m, [-40.0, -2.0, -5.0], atol=1e-12)
+    np.testing.assert_allclose(s3.position_ned_m, [20.0, -2.0, -13.199148273471456], atol=1e-9)
+    h = 1e-4
+    down_rate = (flight_states("climbing", [3.0 + h])[0].position_ned_m[2]
+                 - flight_states("climbing", [3.0 - h])[0].position_ned_m[2]) / (2 * h)
+    assert down_rate == pytest.approx(-3.800851726528544, rel=1e-6)
+    for s, pitch_deg in ((s0, 2.0), (s3, 9.889889706135596)):
+        th = np.deg2rad(pitch_deg)
+        np.testing.assert_allclose(s.T_body_ned[0], [np.cos(th), 0.0, -np.sin(th)], atol=1e-12)   # nose up
+
+
 def test_bad_inputs_raise_clear_errors():
     with pytest.raises(InputError, match="unknown sim preset"):
         make_pair("nope")
