@@ -400,3 +400,24 @@ def test_measurable_in_b_agrees_with_the_renderers_projection(pairs, name):
     assert 0.3 < expected.mean() < 0.95                   # a real share leaves b's view or is hidden
     assert np.mean(got != expected) < 1e-3               # float32 mapping vs float64: rare boundary pixels
     assert np.all(measurable_in_b(va, vb, ta.range_m) >= got)   # occlusion only removes pixels
+
+
+def test_sequence_extends_a_turning_preset_at_its_constant_body_rate():
+    """preset_states flies the preset's motion from its first to its second state: 0.1 s after the reference it is
+    the preset's second state, and -- a coordinated turn has a constant body rate -- 1 s after it the attitude is
+    the turn's own: yaw w = g tan 15 / 15 = 0.17524 rad (10.04 deg), pitch 0, roll 15 deg (hand-derived, via
+    eq. 14). Catches the rate taken in NED instead of the body frame (equal for a wings-level preset)."""
+    from eonav.geometry.frames import T_body_ned_from_ypr
+    from eonav.sim.presets import preset_scene
+    from eonav.sim.sequence import preset_states
+    _, _, (s0, s1), _ = preset_scene("turning")
+    _, states = preset_states("turning", [0.0, 0.1, 1.0], end_at_reference=False)
+    np.testing.assert_allclose(states[0].T_body_ned, s0.T_body_ned, atol=1e-12)
+    np.testing.assert_allclose(states[1].T_body_ned, s1.T_body_ned, atol=1e-9)
+    np.testing.assert_allclose(states[1].position_ned_m, s1.position_ned_m, atol=1e-9)
+    want = T_body_ned_from_ypr(0.17523877184995426, 0.0, np.deg2rad(15.0))
+    np.testing.assert_allclose(states[2].T_body_ned, want, atol=1e-9)
+    _, back = preset_states("turning", [0.0, 0.1], end_at_reference=True)          # the last frame is the reference
+    np.testing.assert_allclose(back[1].T_body_ned, s0.T_body_ned, atol=1e-12)
+    np.testing.assert_allclose(back[0].T_body_ned, T_body_ned_from_ypr(-0.017523877184995426, 0.0, np.deg2rad(15.0)),
+                               atol=1e-9)
