@@ -92,3 +92,48 @@ def test_tlog_decodes_back_to_flight_states(rec, position_source):
     assert len(pos_err) == 26 and len(att_err) == 51 + 26
     assert max(att_err) < 1e-6                                     # float32 on the wire
     assert max(pos_err) < (1e-5 if position_source == "LOCAL_POSITION_NED" else 0.012)   # degE7 ~ 1 cm
+
+
+def test_global_position_int_fields_follow_the_mavlink_units_and_signs(rec):
+    """GLOBAL_POSITION_INT of the approach flight against its closed form (6 + 0.3 sin 0.7t m up, 20 m/s north,
+    east 1.5 sin 0.4t, yaw 0.6 deg sin 0.5t), in MAVLink's units: relative_alt mm ABOVE home (positive up), alt
+    mm above the origin's 488 m, vx vy vz cm/s NED, hdg centidegrees in 0..35999. Another tool reads the tlog
+    (pymavlink here): catches relative_alt written as NED down."""
+    man = json.loads((rec / "manifest.json").read_text())
+    conn = mavutil_v2().mavlink_connection(str(rec / "flight.tlog"), dialect="ardupilotmega")
+    msgs = []
+    while (m := conn.recv_match(type="GLOBAL_POSITION_INT", blocking=False)) is not None:
+        msgs.append(m)
+    conn.close()
+    assert len(msgs) == 26
+    for m in msgs:
+        t = (m.time_boot_ms * 1000 + man["boot_offset_us"] - man["start_unix_us"]) / 1e6
+        height_m = 6.0 + 0.3 * np.sin(0.7 * t)
+        assert abs(m.relative_alt - 1000 * height_m) <= 1.0
+        assert abs(m.alt - 1000 * (488.0 + height_m)) <= 1.0
+        assert (m.vx, m.vz) == (2000, round(-21.0 * np.cos(0.7 * t)))          # d(down)/dt = -0.21 cos 0.7t m/s
+        assert abs(m.vy - 60.0 * np.cos(0.4 * t)) <= 1.0
+        assert m.hdg == round(60.0 * np.sin(0.5 * t)) % 36000
+
+
+def test_body_rates_are_in_the_body_frame(rec):
+    """nav_truth's body rates (FRD, the ATTITUDE rollspeed/pitchspeed/yawspeed of the tlog), hand-derived: the
+    turning flight yaws at w = g tan 15 / 15 = 0.17524 rad/s about NED down while banked 15 deg right, so in the
+    body frame p = 0, q = w sin 15, r = w cos 15; the climbing flight pitches up at 8/0.7 e^(-t/0.7) deg/s
+    (2.7389 deg/s at 1 s) with no roll or yaw. The tlog's ATTITUDE carries them as written (float32). Catches the
+    rates taken in NED (q = 0, r = w while banked) and a rate's sign flipped on the wire."""
+    man = json.loads((rec / "manifest.json").read_text())
+    conn = mavutil_v2().mavlink_connection(str(rec / "flight.tlog"), dialect="ardupilotmega")
+    att = []
+    while (m := conn.recv_match(type="ATTITUDE", blocking=False)) is not None:
+        att.append(m)
+    conn.close()
+    t = np.array([(m.time_boot_ms * 1000 + man["boot_offset_us"] - man["start_unix_us"]) / 1e6 for m in att])
+    np.testing.assert_allclose([[m.rollspeed, m.pitchspeed, m.yawspeed] for m in att],
+                               nav_truth("approach", t)["rates_frd_radps"], atol=1e-7)
+    w = 0.17523877184995426
+    s15, c15 = np.sin(np.deg2rad(15.0)), np.cos(np.deg2rad(15.0))
+    tr = nav_truth("turning", np.array([0.5, 1.0, 3.0]))
+    np.testing.assert_allclose(tr["rates_frd_radps"], np.tile([0.0, w * s15, w * c15], (3, 1)), atol=1e-6)
+    tr = nav_truth("climbing", np.array([1.0]))
+    np.testing.assert_allclose(tr["rates_frd_radps"][0], [0.0, np.deg2rad(2.738868987906009), 0.0], atol=1e-6)
