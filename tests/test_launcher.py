@@ -6,6 +6,8 @@ import json
 import logging
 import os
 import signal
+import subprocess
+import sys
 import textwrap
 import time
 
@@ -159,6 +161,64 @@ def test_restarts_crashing_service_then_gives_up_and_stops_cleanly(svc_pkg, tmp_
     pids = {s[n]["pid"] for s in seen for n in ("crashy", "steady") if s[n]["pid"]}
     assert all(_gone(p) for p in pids)
     assert (tmp_path / "logs" / "steady.log").read_text().count("stopped (SIGINT), exit 0") == 1
+
+
+
+def test_back_off_doubles_from_half_a_second_and_is_capped_at_ten():
+    """A service's restart delays: 0.5, 1, 2, 4, 8 s, then 10 s however many more (docs/bus.md, "Running"); each
+    due that long after the crash. Catches the cap dropped (the default 5 restarts never reach it: 8 s)."""
+    p = L.Proc(L.ServiceSpec(name="s", module="m", max_restarts=20))
+    delays = [p.schedule_restart(100.0) for _ in range(8)]
+    assert delays == [0.5, 1.0, 2.0, 4.0, 8.0, 10.0, 10.0, 10.0]
+    assert p.restarts == 8 and p.state == "restarting" and p.next_start_mono == 110.0
+
+
+def test_restart_count_resets_after_thirty_seconds_of_stable_running():
+    """A service that crashed 3 times and then ran stably for more than 30 s (STABLE_RESET_S) starts afresh: its
+    count is back to 0, so its next crash restarts after the initial 0.5 s, not 4 s, and is restart 1 of its
+    max_restarts. 29.9 s is not enough. A real child process (exits 3 when its stdin closes); the clock is given to
+    poll(). Catches the reset dropped."""
+    sup = L.Supervisor([L.ServiceSpec(name="s", module="m", max_restarts=3)], vehicle="lt", router="tcp/x:1", ctx={})
+    (p,) = sup.procs
+    p.popen = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read(); sys.exit(3)"],
+                               stdin=subprocess.PIPE)
+    try:
+        p.state, p.restarts, p.started_mono = "running", 3, 1000.0
+        assert sup.poll(now=1000.0 + 29.9) == [] and p.restarts == 3
+        assert sup.poll(now=1000.0 + 30.1) == [] and p.restarts == 0
+        p.popen.stdin.close()
+        assert p.popen.wait(10) == 3
+        assert sup.poll(now=1040.0) == [p]
+        assert p.state == "restarting" and p.restarts == 1 and p.next_start_mono == 1040.5 and p.exit_code == 3
+    finally:
+        if p.popen.poll() is None:
+            p.popen.kill()
+            p.popen.wait()
+
+
+def test_stop_processes_grace_is_in_total_not_per_process():
+    """stop_processes: SIGINT to each, ``grace_s`` in total, then SIGKILL the rest. Three children that ignore
+    SIGINT are killed about 0.6 s after the call (not 3 x 0.6 s); one that exits on SIGINT exits by itself (code
+    0). Catches the grace waited per process (a stuck pipeline then takes N x grace to stop)."""
+    from eonav.app.processes import stop_processes
+    stuck = "import signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); print('ready', flush=True); " \
+            "sys.stdin.read()"
+    polite = "import sys\ntry:\n    print('ready', flush=True); sys.stdin.read()\nexcept KeyboardInterrupt:\n" \
+             "    sys.exit(0)"
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+             for code in (stuck, stuck, stuck, polite)]
+    try:
+        assert all(pp.stdout.readline() == "ready\n" for pp in procs)     # handlers in place
+        t0 = time.monotonic()
+        stop_processes(procs, 0.6)
+        elapsed = time.monotonic() - t0
+        assert 0.6 <= elapsed < 1.2, elapsed
+        assert [pp.returncode for pp in procs] == [-signal.SIGKILL] * 3 + [0]
+    finally:
+        for pp in procs:
+            if pp.poll() is None:
+                pp.kill()
+                pp.wait()
 
 
 def test_exit_when_done(svc_pkg):
