@@ -198,8 +198,9 @@ def test_restart_count_resets_after_thirty_seconds_of_stable_running():
 
 def test_stop_processes_grace_is_in_total_not_per_process():
     """stop_processes: SIGINT to each, ``grace_s`` in total, then SIGKILL the rest. Three children that ignore
-    SIGINT are killed about 0.6 s after the call (not 3 x 0.6 s); one that exits on SIGINT exits by itself (code
-    0). Catches the grace waited per process (a stuck pipeline then takes N x grace to stop)."""
+    SIGINT are killed about 1 s after the call (not 3 x 1 s: the bound leaves a loaded machine 1.5 s); one that exits
+    on SIGINT exits by itself (code 0). Catches the grace waited per process (a stuck pipeline then takes N x grace
+    to stop)."""
     from eonav.app.processes import stop_processes
     stuck = "import signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); print('ready', flush=True); " \
             "sys.stdin.read()"
@@ -210,9 +211,9 @@ def test_stop_processes_grace_is_in_total_not_per_process():
     try:
         assert all(pp.stdout.readline() == "ready\n" for pp in procs)     # handlers in place
         t0 = time.monotonic()
-        stop_processes(procs, 0.6)
+        stop_processes(procs, 1.0)
         elapsed = time.monotonic() - t0
-        assert 0.6 <= elapsed < 1.2, elapsed
+        assert 1.0 <= elapsed < 2.5, elapsed
         assert [pp.returncode for pp in procs] == [-signal.SIGKILL] * 3 + [0]
     finally:
         for pp in procs:
