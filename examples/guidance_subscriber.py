@@ -47,7 +47,9 @@ def main(argv=None) -> int:
         signal.signal(sig, lambda *_: done.set())
     with open_session(args) as session:
         key = keys.obstacle_tracks(args.vehicle)
-        sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(64))
+        # a ring: a reader that falls behind gets the newest messages and never blocks the session's receiving
+        # (a full FifoChannel stalls the router's forwarding to every subscriber: docs/zenoh.md)
+        sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(16))
 
         def consume():                                    # a blocked recv() does not see signals: read here
             n = 0
