@@ -75,3 +75,78 @@ def test_fuse_without_parallax_says_so(seq_dir, tmp_path):
             fr["ypr_deg"] = d["frames"][0]["ypr_deg"]
     r = eonav("fuse", write_doc(seq_dir, tmp_path, hover), "--out", tmp_path / "o.npz", check=False)
     assert r.returncode == 2 and "no fused map for camera 'nose'" in r.stderr, r.stderr
+
+
+def test_out_is_the_first_frames_camera_even_when_another_camera_ends_the_file(seq_dir, tmp_path):
+    """--out is the last map of the FIRST frame's camera (docs/pair-file.md), not the last map written: a second
+    camera "tail" (same lens, not a stereo rig: 0.1 s after the nose's last frame) re-flies frames 0-3 after the
+    nose's 6 frames, so the file's last map is tail's frame 9, on frame 3's grid. Catches --out taking any camera's
+    map."""
+    def add_tail(d):
+        d["cameras"]["tail"] = dict(d["cameras"]["nose"])
+        t_end = d["frames"][-1]["t"]
+        d["frames"] += [dict(d["frames"][k], camera="tail", t=t_end + 0.1 * (k + 1)) for k in range(4)]
+    out, maps = tmp_path / "range.npz", tmp_path / "maps"
+    r = eonav("fuse", write_doc(seq_dir, tmp_path, add_tail), "--out", out, "--out-dir", maps)
+    assert "frame 5 of camera 'nose'" in r.stdout, r.stdout
+    assert {"range_0005.npz", "range_0009.npz"} <= {p.name for p in maps.iterdir()}
+    truth = np.load(seq_dir / "truth.npz")["range_m"]
+    with np.load(out) as z, np.load(maps / "range_0005.npz") as z5, np.load(maps / "range_0009.npz") as z9:
+        assert np.array_equal(z["range_m"], z5["range_m"], equal_nan=True)
+        assert not np.array_equal(z["range_m"], z9["range_m"], equal_nan=True)
+        for rng, tr in ((z["range_m"], truth[5]), (z9["range_m"], truth[3])):    # each on its own frame's grid
+            ok = np.isfinite(tr) & np.isfinite(rng) & (rng > 0)
+            assert ok.sum() > 0.5 * np.isfinite(tr).sum() and np.median(np.abs(rng[ok] / tr[ok] - 1)) < 0.05
+
+
+def test_two_cameras_at_one_instant_are_in_time_order():
+    """Only a decrease of t is out of order (docs/pair-file.md: t "may not decrease"): the frames of a rig triggered
+    together share a t and must pass check_sequence (two frames of ONE camera at one t are refused later, by run).
+    Catches `t <= last_t` refusing a simultaneous stereo pair."""
+    from eonav import InputError
+    from eonav.app.commands.fuse import check_sequence
+    check_sequence({"frames": [{"camera": "left", "t": 0.0}, {"camera": "right", "t": 0.0},
+                               {"camera": "left", "t": 0.1}, {"camera": "right", "t": 0.1}]})
+    with pytest.raises(InputError, match=r"frames\[1\]\.t: -0.001 is earlier than frames\[0\]\.t 0.0"):
+        check_sequence({"frames": [{"camera": "left", "t": 0.0}, {"camera": "right", "t": -0.001}]})
+
+
+def test_stereo_rig_is_frames_at_most_max_dt_apart():
+    """--max-stereo-dt-s S: frames of two cameras AT MOST S apart are a rig (the scheduler pairs |dt| <= S too), the
+    first frame's camera the reference, whichever of the two comes first in the file. S = 0.25 s and stamps exactly
+    representable in binary, so the boundary is exact. Catches `<` for `<=` at the threshold."""
+    from types import SimpleNamespace
+
+    from eonav.app.commands.fuse import stereo_rig
+
+    def seq(*frames):
+        return SimpleNamespace(frames=[{"camera": c, "t": t} for c, t in frames])
+    assert stereo_rig(seq(("nose", 0.5), ("right", 0.75)), 0.25) == ("nose", "right")
+    assert stereo_rig(seq(("right", 0.25), ("nose", 0.5)), 0.25) == ("right", "nose")
+    assert stereo_rig(seq(("nose", 0.5), ("right", 0.75 + 2 ** -20)), 0.25) is None
+    assert stereo_rig(seq(("nose", 0.0), ("nose", 0.0625)), 0.25) is None              # one camera: no rig
+
+
+def test_frames_reach_the_fusion_with_microsecond_stamps_in_file_order():
+    """fused_maps pushes frame k with stamp round(t * 1e6) us and seq k (the locator's stamps are microseconds: the
+    pair policy's max_age_s and the rig's max_stereo_dt_s are judged on them), then drains finish(). Catches a unit
+    slip (ms for us) and a lost finish()."""
+    from types import SimpleNamespace
+
+    from eonav.app.commands.fuse import fused_maps
+
+    class Runner:
+        def __init__(self):
+            self.pushed = []
+
+        def push(self, f):
+            self.pushed.append((f.camera_id, f.stamp_us, f.seq))
+            return [f.seq]
+
+        def finish(self):
+            return ["end"]
+    frames = [{"camera": "nose", "t": 0.0}, {"camera": "right", "t": 0.0015}, {"camera": "nose", "t": 2.1234566}]
+    views = [SimpleNamespace(camera=None, state=None, image=None)] * 3
+    runner = Runner()
+    assert list(fused_maps(runner, SimpleNamespace(frames=frames), views)) == [0, 1, 2, "end"]
+    assert runner.pushed == [("nose", 0, 0), ("right", 1500, 1), ("nose", 2123457, 2)]
