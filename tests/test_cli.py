@@ -95,3 +95,40 @@ def test_bad_pair_file_exits_2_naming_the_field(fast_pair, tmp_path):
     assert not (tmp_path / "x.npz").exists()
     r = eonav("locate", fast_pair / "pair.json", "--out", tmp_path / "x.npz", "--method", "magic", check=False)
     assert r.returncode == 2 and "invalid choice" in r.stderr
+
+
+def test_other_picks_any_later_frame_and_refuses_one_past_the_end(fast_pair, tmp_path):
+    """--other K (docs/pair-file.md): frames 1..N-1 are allowed. A 3-frame pair whose frame 1 is frame 0 again (no
+    parallax) and frame 2 the real second frame: --other 2 ranges the real pair (checked against the truth),
+    --other 3 is an error naming --other, exit 2, no output. Catches `<=` for `<` at the upper bound (an
+    IndexError traceback, exit 1)."""
+    doc = json.loads((fast_pair / "pair.json").read_text())
+    for fr in doc["frames"]:
+        fr["image"] = str(fast_pair / fr["image"])
+    doc["frames"] = [doc["frames"][0], doc["frames"][0], doc["frames"][1]]
+    p = tmp_path / "three.json"
+    p.write_text(json.dumps(doc))
+    eonav("locate", p, "--out", tmp_path / "r2.npz", "--other", 2)
+    rng = np.load(tmp_path / "r2.npz")["range_m"]
+    truth = np.load(fast_pair / "truth.npz")["range_m"]
+    est = np.isfinite(rng) & np.isfinite(truth) & (rng > 0)
+    assert est.mean() > 0.3 and np.median(np.abs(rng[est] / truth[est] - 1)) < 0.03
+    r = eonav("locate", p, "--out", tmp_path / "r3.npz", "--other", 3, check=False)
+    assert r.returncode == 2 and "--other 3: the pair file has frames 0..2" in r.stderr, r.stderr
+    assert not (tmp_path / "r3.npz").exists()
+
+
+def test_accuracy_summary_against_hand_computed_figures():
+    """--truth's summary: relative error |r - t| / t over the non-sky truth pixels with an estimate (r finite, > 0);
+    coverage over all non-sky truth pixels; sky (+inf truth) is no scene pixel. Values by hand: errors 0.1, 0.25,
+    0.04 -> median 0.1, p90 0.1 + 0.8 * 0.15 = 0.22, 1 of 3 within 5 %, 3 of 5 covered. Catches dividing by the
+    estimate instead of the truth (median 1/11)."""
+    from eonav.app.commands.locate import accuracy_summary
+    t = np.array([10, 20, 40, 50, 100, np.inf], np.float32)
+    r = np.array([11, 15, np.nan, 0, 104, 7], np.float32)
+    s = accuracy_summary(r, t)
+    assert s["scene_pixels"] == 5 and s["coverage"] == pytest.approx(0.6)
+    assert s["median_rel_error"] == pytest.approx(0.1, rel=1e-6)
+    assert s["p90_rel_error"] == pytest.approx(0.22, rel=1e-6)
+    assert s["within_5pct"] == pytest.approx(1 / 3)
+    assert s["sky_reported_finite"] == 1.0
