@@ -137,3 +137,33 @@ def test_pair_file_encodings(tmp_path):
     p.write_bytes(json.dumps(doc, ensure_ascii=False).encode("latin-1"))
     with pytest.raises(InputError, match=r"not UTF-8 text \(byte 0xe9 at offset 17\)"):
         pairfile.load_pair_file(p)
+
+
+def test_colour_is_read_in_opencv_channel_order_with_the_bt601_weights(tmp_path):
+    """A colour file is B, G, R(, A) as OpenCV decodes it; grey = 0.114 B + 0.587 G + 0.299 R (ITU-R BT.601), alpha
+    ignored. Pure blue, green, red on 255 -> 29.07, 149.685, 76.245 by hand. Catches reading the channels as RGB
+    (blue would come out 76.245)."""
+    want = np.array([[0.114 * 255, 0.587 * 255, 0.299 * 255]], np.float32)
+    bgr = np.zeros((1, 3, 3), np.uint8)
+    for k in range(3):
+        bgr[0, k, k] = 255                                      # column k: channel k only (B, G, R)
+    bgra = np.concatenate([bgr, np.full((1, 3, 1), 77, np.uint8)], axis=2)
+    for name, img in (("bgr.png", bgr), ("bgra.png", bgra)):
+        assert cv2.imwrite(str(tmp_path / name), img)
+        np.testing.assert_allclose(images.load_grey(tmp_path / name, expect_wh=(3, 1)), want, atol=1e-3, err_msg=name)
+
+
+def test_16_bit_files_come_out_on_the_8_bit_scale(tmp_path):
+    """16-bit grey and colour (docs/pair-file.md: 8 or 16 bit) land on the 0..255 scale the ranging's thresholds
+    assume: v / 257, so 65535 -> 255 and 257 k -> k exactly. Colour (B, G, R) = 257 (10, 20, 30) -> 0.114*10 +
+    0.587*20 + 0.299*30 = 21.85 by hand, with or without alpha. Catches a dropped or wrong 16-bit scale."""
+    grey = (257 * np.array([[0, 1, 100, 255]])).astype(np.uint16)
+    assert cv2.imwrite(str(tmp_path / "g16.png"), grey)
+    np.testing.assert_allclose(images.load_grey(tmp_path / "g16.png"), [[0, 1, 100, 255]], atol=1e-4)
+    bgr = np.tile((257 * np.array([10, 20, 30])).astype(np.uint16), (2, 2, 1))
+    bgra = np.concatenate([bgr, np.full((2, 2, 1), 65535, np.uint16)], axis=2)
+    for name, img in (("c16.png", bgr), ("ca16.png", bgra)):
+        assert cv2.imwrite(str(tmp_path / name), img)
+        got = images.load_grey(tmp_path / name)
+        assert got.dtype == np.float32
+        np.testing.assert_allclose(got, np.full((2, 2), 21.85), atol=1e-3, err_msg=name)
