@@ -54,3 +54,29 @@ def test_default_data_dir_is_shared_data_beside_the_checkout():
     # the benches' default --data: the folder beside the repository (its parent holds both), as the tests find it
     from eonav.io.datasets import default_data_dir
     assert default_data_dir() == Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def test_hololens_reader_against_its_files():
+    """The HoloLens sequence as the files give it: truth = depth PNG in mm / 1000 (0 unknown -> NaN), stamps k / 30 s,
+    and the pair geometry from poses.txt (camera-to-world, optical x right, y down, z forward) worked by hand:
+    X_b = R_ba X_a + t_ba with R_x = P R_wx^T, P the optical -> paper-camera axes (x forward = z_opt, y = x_opt,
+    z = y_opt), so R_ba = P R_wb^T R_wa P^T and t_ba = P R_wb^T (c_a - c_b). Catches a unit slip of the depth and
+    the pose read as world-to-camera (rotation not transposed)."""
+    need("hololens_dvmvs_20f")
+    from eonav.io.datasets import hololens_sequence
+    d = DATA / "hololens_dvmvs_20f"
+    views, truth = hololens_sequence(DATA)
+    names = sorted(p.name for p in (d / "images").glob("*.png"))
+    assert len(views) == len(truth) == len(names) == 20
+    for k in (0, 13):
+        depth = cv2.imread(str(d / "depth" / names[k]), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        assert np.array_equal(np.isnan(truth[k]), depth == 0)
+        np.testing.assert_allclose(truth[k][depth > 0], depth[depth > 0] / 1000.0, rtol=1e-6)
+    assert [v.state.t_s for v in views[:3]] == pytest.approx([0.0, 1 / 30, 2 / 30])
+    poses = np.loadtxt(d / "poses.txt").reshape(-1, 4, 4)
+    P = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]], float)
+    for a, b in ((0, 1), (3, 19)):
+        Ra, ca, Rb, cb = poses[a][:3, :3], poses[a][:3, 3], poses[b][:3, :3], poses[b][:3, 3]
+        g = pair_geometry(views[a], views[b])
+        np.testing.assert_allclose(g.R_ba, P @ Rb.T @ Ra @ P.T, atol=1e-4)
+        np.testing.assert_allclose(g.t_ba_m, P @ Rb.T @ (ca - cb), atol=1e-4)
