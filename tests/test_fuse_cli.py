@@ -125,6 +125,9 @@ def test_stereo_rig_is_frames_at_most_max_dt_apart():
     assert stereo_rig(seq(("right", 0.25), ("nose", 0.5)), 0.25) == ("right", "nose")
     assert stereo_rig(seq(("nose", 0.5), ("right", 0.75 + 2 ** -20)), 0.25) is None
     assert stereo_rig(seq(("nose", 0.0), ("nose", 0.0625)), 0.25) is None              # one camera: no rig
+    # judged on the microsecond stamps the frames are pushed with, as the scheduler does: 1.002 - 1.0 is
+    # 0.0020000000000000018 s in floats, but 2000 us apart, which the scheduler pairs at 0.002 s
+    assert 1.002 - 1.0 > 0.002 and stereo_rig(seq(("nose", 1.0), ("right", 1.002)), 0.002) == ("nose", "right")
 
 
 def test_frames_reach_the_fusion_with_microsecond_stamps_in_file_order():

@@ -41,13 +41,19 @@ def check_sequence(doc) -> None:
 
 def stereo_rig(pf, max_dt_s: float):
     """(first frame's camera, another camera) when some frame of the other camera is within max_dt_s of a frame of
-    the first camera (a stereo rig), else None."""
+    the first camera (a stereo rig), else None. Judged on the whole-microsecond stamps the frames are pushed with, as
+    the scheduler pairs them (``fused_maps``; ``schedule.Scheduler``): float seconds can differ at the limit."""
     ref = pf.frames[0]["camera"]
-    ts = [fr["t"] for fr in pf.frames if fr["camera"] == ref]
+    ts = [_stamp_us(fr) for fr in pf.frames if fr["camera"] == ref]
     for fr in pf.frames:
-        if fr["camera"] != ref and any(abs(fr["t"] - t) <= max_dt_s for t in ts):
+        if fr["camera"] != ref and any(abs(_stamp_us(fr) - t) <= max_dt_s * 1e6 for t in ts):
             return ref, fr["camera"]
     return None
+
+
+def _stamp_us(fr) -> int:
+    """A frame's time as the stamp it is pushed with (us)."""
+    return int(round(fr["t"] * 1e6))
 
 
 def check_output_dir(path):
@@ -68,7 +74,7 @@ def fused_maps(runner, pf, views):
     the end (``FusionRunner.finish``: a rig reference's last frame with no partner's frame after it)."""
     from eonav.fusion.sequence import frame
     for k, (fr, view) in enumerate(zip(pf.frames, views)):
-        yield from runner.push(frame(fr["camera"], view, int(round(fr["t"] * 1e6)), seq=k))
+        yield from runner.push(frame(fr["camera"], view, _stamp_us(fr), seq=k))
     yield from runner.finish()
 
 
