@@ -132,3 +132,6 @@ def test_accuracy_summary_against_hand_computed_figures():
     assert s["p90_rel_error"] == pytest.approx(0.22, rel=1e-6)
     assert s["within_5pct"] == pytest.approx(1 / 3)
     assert s["sky_reported_finite"] == 1.0
+    # NaN truth is unknown, not sky: it leaves every figure as it was
+    s2 = accuracy_summary(np.append(r, [5, 5]), np.append(t, [np.nan, np.nan]).astype(np.float32))
+    assert s2 == s

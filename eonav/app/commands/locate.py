@@ -32,14 +32,15 @@ class _OldThreads(argparse.Action):
 
 
 def accuracy_summary(range_m, truth_m, confidence=None) -> dict:
-    """Median relative error and coverage against a ground-truth range map (finite, non-sky truth only)."""
+    """Median relative error and coverage against a ground-truth range map (finite, non-sky truth only); sky is
+    +inf truth, NaN truth is unknown (neither scene nor sky)."""
     import numpy as np
     t = np.asarray(truth_m, np.float64)
     r = np.asarray(range_m, np.float64)
     scene = np.isfinite(t) & (t > 0)
     est = scene & np.isfinite(r) & (r > 0)
     rel = np.abs(r[est] - t[est]) / t[est]
-    sky = ~np.isfinite(t)
+    sky = np.isposinf(t)
     out = {"scene_pixels": int(scene.sum()), "coverage": float(est.sum() / max(scene.sum(), 1)),
            "median_rel_error": float(np.median(rel)) if rel.size else float("nan"),
            "within_5pct": float((rel < 0.05).mean()) if rel.size else float("nan"),
