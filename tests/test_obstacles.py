@@ -228,6 +228,24 @@ def test_near_wall_is_clamped_to_min_distance():
     assert all(res.sectors.distances_cm[bin_of(c)] == 100 for c in (-10, -5, 0, 5, 10))
 
 
+def test_min_obstacle_pixels_is_inclusive():
+    # a 3 x 4 px patch 40 m ahead above the horizon (rows 40..42, columns 128..131, full resolution): 12 px =
+    # min_obstacle_pixels is an obstacle and fills its bin (bearing 0.2..1.6 deg; horizontal distance 40.00..40.02
+    # m); with one pixel of its middle row gone (11 px, the same 0.625 m height) it is speckle, dropped from the list
+    # and from the sectors, its bin clear on the ground's evidence
+    cfg = replace(CFG, max_width_px=0)
+    assert cfg.min_obstacle_pixels == 12
+    r = ground_and_sky()
+    r[40:43, 128:132] = 40.0
+    res = ob.analyse(r, CAM, LEVEL, cfg=cfg)
+    o, = res.obstacles
+    assert o.pixel_count == 12 and o.bbox_px == [128, 40, 131, 42]
+    assert 4000 <= res.sectors.distances_cm[bin_of(0.0)] <= 4002
+    r[41, 131] = np.inf
+    res = ob.analyse(r, CAM, LEVEL, cfg=cfg)
+    assert res.obstacles == [] and clear_in_view(res.sectors)
+
+
 def test_depth_discontinuity_splits_adjacent_objects():
     r = add_wall(ground_and_sky(), 40.0, 60, 200)
     r = add_wall(r, 20.0, 100, 140)                        # a near post in front of the far wall
