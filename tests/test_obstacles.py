@@ -340,6 +340,23 @@ def test_single_measurement_rule_stops_at_the_horizon():
     assert not res.data_mask[64:128, 128:192].any() and res.data_mask[128:, 128:192].all()
 
 
+def test_horizontal_ray_counts_as_at_the_horizon():
+    # a camera whose principal row is a whole row (cy = 127): row 127 looks exactly level, its ray never comes down
+    # onto the level ground ("at or above its horizon"), so its single-measurement pixels (rows 100..127 ranged 40 m
+    # by one measurement, horizon_min_fused 2) are not confident: 28 rows x 64 columns leave the map's data, row
+    # 127 with them (its inverse range on the plane is exactly 0)
+    cam = Camera("nose", 256, 256, 128.0, 128.0, 127.5, 127.0)
+    r = ground_and_sky(cam)
+    assert np.isinf(r[127]).all() and np.isfinite(r[128]).all()       # the ground's horizon is row 127
+    r[100:128, 128:192] = 40.0
+    n = np.full(r.shape, 9, np.uint16)
+    n[100:128, 128:192] = 1
+    full = ob.analyse(r, cam, LEVEL, cfg=replace(CFG, horizon_min_fused=1), n_fused=n)
+    res = ob.analyse(r, cam, LEVEL, cfg=replace(CFG, horizon_min_fused=2), n_fused=n)
+    assert full.n_confident - res.n_confident == 28 * 64
+    assert full.data_mask[127, 128:192].all() and not res.data_mask[127, 128:192].any()
+
+
 def test_obstacle_elevation_is_positive_up():
     # a patch ranged 40 m over rows 40..79, columns 128..191 (above the horizon; full resolution): its median body
     # point is (40, 40 x 32 / 128, 40 x (59.5 - 127.5) / 128) = (40, 10, -21.25) m (FRD: z down), so it stands
