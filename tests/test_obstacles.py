@@ -371,6 +371,17 @@ def test_obstacle_elevation_is_positive_up():
     assert -math.degrees(math.atan2(10.0, 20.0)) <= o.elevation_deg <= -math.degrees(math.atan2(7.0, 22.4))
 
 
+def test_obstacle_width_is_across_the_line_of_sight():
+    # a wall facing the camera 20 m ahead over columns 96..159 (symmetric about cx = 127.5, full resolution): its
+    # median point is on the nose axis, so "across the line of sight" is east. Each column holds the same number of
+    # wall pixels, so the 5th and 95th percentiles of east fall in the 4th column from either edge (u = 99 and 156):
+    # width 20 x (156 - 99) / 128 = 8.906 m, the east extent the same and the north extent 0 (a face, no depth)
+    o, = ob.analyse(add_wall(ground_and_sky(), 20.0, 96, 160), CAM, LEVEL, cfg=replace(CFG, max_width_px=0)).obstacles
+    assert o.bearing_deg == pytest.approx(0.0, abs=1e-9)
+    assert o.width_m == pytest.approx(20.0 * (156 - 99) / 128.0, abs=1e-6)
+    assert o.extent_ned_m[1] == pytest.approx(o.width_m, abs=1e-6) and o.extent_ned_m[0] == pytest.approx(0.0, abs=1e-9)
+
+
 def test_points_too_high_above_the_vehicle_are_ignored():
     # the patch above, 40 m ahead: row v stands 40 (127.5 - v) / 128 m above the vehicle, 27.3 m (row 40) .. 15.2 m
     # (row 79). With max_height_above_m 20 only rows 64..79 (19.8 m and lower) are in the band: the obstacle's top
