@@ -576,6 +576,31 @@ def test_sloped_ground_needs_the_fitted_plane():
     assert ob.analyse(r, CAM, LEVEL, cfg=ob.ObstacleConfig(ground_down_m=0.0, plane_law_beta=1e9)).obstacles
 
 
+def platform(h_m=1.0, x0_m=15.0, x1_m=40.0, u0=0, u1=128, cam=CAM, alt_m=ALT_M):
+    """``ground_and_sky`` with a flat platform h_m high over columns u0..u1-1 from x0_m to x1_m ahead: a ray of
+    descent d = (v - cy) / fy meets its top at x_c = (alt - h) / d when that lies in [x0, x1], else its front face at
+    x0 when it passes x0 below the top and above the ground (the ground at alt / d >= x0), else the ground."""
+    r = ground_and_sky(cam, alt_m).astype(np.float64)
+    v = np.arange(cam.height, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        x_ground = np.where(v > cam.cy, alt_m * cam.fy / (v - cam.cy), np.inf)
+        x_top = np.where(v > cam.cy, (alt_m - h_m) * cam.fy / (v - cam.cy), np.inf)
+    col = np.where((x_top >= x0_m) & (x_top <= x1_m), x_top,
+                   np.where((x_top < x0_m) & (x_ground >= x0_m), x0_m, x_ground))
+    r[:, u0:u1] = col[:, None]
+    return r.astype(np.float32)
+
+
+def test_ground_fit_keeps_out_a_wide_platform_above_the_ground():
+    # level ground at down 0 and, over the left half of the view from 15 to 40 m, a platform 1 m high (a roof, a
+    # hedge): the fit keeps the points at most 0.5 m above / 1.5 m below its plane in its last rounds (obstacles stand
+    # above the ground), so it settles on the ground, not between it and the platform (a band taken the other
+    # way round, 1.5 m above / 0.5 m below, puts it 0.23 m up)
+    res = ob.analyse(platform(), CAM, LEVEL, cfg=ob.ObstacleConfig())
+    assert res.ground_down_m == pytest.approx(0.0, abs=0.02)
+    assert abs(res.ground.b) < 1e-3 and abs(res.ground.c) < 1e-3
+
+
 @pytest.mark.parametrize("slope_deg", [0.0, 5.0])
 @pytest.mark.parametrize("x_c_m, cols, top_m", [(20.0, (120, 160), 5.0), (30.0, (126, 130), 8.0)])  # box, pole
 def test_box_and_pole_on_biased_ground_are_found(slope_deg, x_c_m, cols, top_m):
