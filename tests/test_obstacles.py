@@ -601,6 +601,30 @@ def test_ground_fit_keeps_out_a_wide_platform_above_the_ground():
     assert abs(res.ground.b) < 1e-3 and abs(res.ground.c) < 1e-3
 
 
+def test_ground_plane_is_evaluated_at_the_points_own_north_and_east():
+    # down = a + b north + c east: the plane 1 + 0.1 N - 0.2 E is at down 1 + 1 - 4 = -2 at (N, E) = (10, 20) and at
+    # 1 + 2 - 2 = 1 at (20, 10). A lens at (10, 20, -12) stands 10 m above it; the ray (0, 1, 0.1) (east, descending
+    # 0.1 per metre) comes down onto the plane rising 0.2 per metre east at 0.3 per metre: it meets it at x_c =
+    # 10 / 0.3 = 33.3 m, at (10, 53.33, -8.667) where the plane's down is 1 + 1 - 10.667 = -8.667
+    plane = ob.GroundPlane(1.0, 0.1, -0.2)
+    assert plane.down_m([10.0, 20.0, -5.0]) == pytest.approx(-2.0)
+    assert plane.down_m([20.0, 10.0, 0.0]) == pytest.approx(1.0)
+    lens, ray = np.array([10.0, 20.0, -12.0]), np.array([0.0, 1.0, 0.1])
+    h, descent = plane.height_and_descent(lens, ray)
+    assert h == pytest.approx(10.0) and descent == pytest.approx(0.3)
+    x_c = 1.0 / plane.inverse_range_per_m(lens, ray)
+    assert x_c == pytest.approx(10.0 / 0.3)
+    assert (lens + x_c * ray)[2] == pytest.approx(plane.down_m(lens + x_c * ray))
+    # the ground rising 5 degrees north seen from 40 m north and 10 m east of the origin, 10 m above it: the ground
+    # under the vehicle is at down -40 tan 5 deg = -3.50 m, given or fitted
+    s = math.tan(math.radians(5.0))
+    st = VehicleState.from_ypr([40.0, 10.0, -40.0 * s - ALT_M], [0.0, 0.0, 0.0])
+    given = ob.analyse(sloped_ground(5.0), CAM, st, cfg=ob.ObstacleConfig(), ground=ob.GroundPlane(0.0, -s, 0.0))
+    fitted = ob.analyse(sloped_ground(5.0), CAM, st, cfg=ob.ObstacleConfig())
+    for res in (given, fitted):
+        assert res.ground_down_m == pytest.approx(-40.0 * s, abs=0.02) and res.obstacles == []
+
+
 @pytest.mark.parametrize("slope_deg", [0.0, 5.0])
 @pytest.mark.parametrize("x_c_m, cols, top_m", [(20.0, (120, 160), 5.0), (30.0, (126, 130), 8.0)])  # box, pole
 def test_box_and_pole_on_biased_ground_are_found(slope_deg, x_c_m, cols, top_m):
