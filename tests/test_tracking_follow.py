@@ -111,6 +111,23 @@ def test_drift_test_needs_its_hits_a_moving_vehicle_and_can_be_off():
     assert T.drift_test(st, pos, dist, np.array([0.0, SPEED, 0.0]), HAND)[0] == T.STATIC
 
 
+def test_drift_test_counts_the_vehicles_vertical_speed():
+    """A vehicle descending straight down at 5 m/s (no horizontal speed: a landing): ground ranged at a constant
+    range below-ahead drifts down with it at 5 m/s, a phantom; a static obstacle does not drift. 8 points at 15 Hz,
+    20 m away: the scatter floor 0.2 m, sigma_b = 0.2 / sqrt(8 x 63 / 12 / 15^2) = 0.463 m/s, k = 2.52 (Student-t, 6
+    degrees of freedom): FOLLOWS above 0.5 x 5 + 1.17 = 3.67 m/s, STATIC below 2.5 - 1.17 = 1.33 m/s. Climbing: the
+    same upwards."""
+    t = np.arange(8) / RATE_HZ
+    stamps = np.round(t * 1e6).astype(np.int64)
+
+    def verdict(drift_down_mps, velocity):
+        pos = np.stack([np.full(8, 20.0), np.zeros(8), -3.0 + drift_down_mps * t], axis=1)
+        return T.drift_test(stamps, pos, np.full(8, 20.0), np.array(velocity, float), HAND)[0]
+    assert verdict(5.0, [0.0, 0.0, 5.0]) == T.FOLLOWS
+    assert verdict(0.0, [0.0, 0.0, 5.0]) == T.STATIC
+    assert verdict(-5.0, [0.0, 0.0, -5.0]) == T.FOLLOWS
+
+
 def fly_dropping(drop, seed, seconds=2.0, p=(100.0, 3.0, -2.0), rel_sigma=0.04):
     """The static obstacle ``p`` observed every map except the map indices in ``drop`` (in view: a miss); the noise is
     drawn for every map, so flights that drop different maps see the same detections. Returns (first confirmation
