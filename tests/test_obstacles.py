@@ -718,6 +718,18 @@ def test_plane_law_slope_hand_derived():
     assert np.isnan(beta[2]) and np.isnan(beta[3])
 
 
+def test_plane_law_is_not_decided_with_a_fifth_of_the_points_at_the_horizon():
+    # ground ranged too near (rho = rho_g / 0.6: beta 1) with k of its n points looking above the plane's horizon
+    # (rho_g <= 0): decided (beta 1) with fewer than a fifth of them there, not decided (NaN: the component is kept)
+    # with a fifth or more (docs/methods.md, "Plane law"): exactly n / 5 of them is the boundary, for every n
+    for n in (5, 10, 15, 20, 25, 40, 45, 50):
+        for above, decided in ((n // 5 - 1, True), (n // 5, False)):
+            g = np.linspace(0.01, 0.05, n)
+            g[:above] = -0.01
+            beta, = ob.plane_law_slope(g / 0.6, g, np.array([0]), np.array([n]), 0.1)
+            assert (beta == pytest.approx(1.0)) if decided else np.isnan(beta), (n, above, beta)
+
+
 def test_bad_inputs_name_the_problem():
     with pytest.raises(InputError, match="2-D"):
         ob.analyse(np.zeros((4, 4, 3)), CAM, LEVEL)

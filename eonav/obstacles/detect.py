@@ -651,7 +651,8 @@ def plane_law_slope(rho_m, rho_ground, starts, n_in, min_span: float) -> np.ndar
     for j, (s0, n) in enumerate(zip(starts, n_in)):
         g, r = rho_ground[s0:s0 + n], rho_m[s0:s0 + n]
         ok = g > 0
-        if np.count_nonzero(ok) < max(3, 0.8 * n):
+        n_ok = int(np.count_nonzero(ok))
+        if n_ok < 3 or 5 * (n - n_ok) >= n:           # a fifth or more at or above the horizon (integers: exact)
             continue
         x, y = np.log(g[ok]), np.log(r[ok])
         lo, hi = np.percentile(x, [5.0, 95.0])
