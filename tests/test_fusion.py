@@ -239,6 +239,34 @@ def test_filled_pixels_of_a_measurement_are_not_fused(kernels):
     assert c["measured"] == 16 and (st.n == 4).all() and (st.rho > before[0]).all()
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_one_update_of_a_doubtful_measurement_matches_the_published_moment_match_derived_by_hand(kernels):
+    """One Gaussian x uniform update (Vogiatzis & Hernandez) where the measurement may be either (C1 ~ 0.6), so that
+    every term counts: the Gaussian's normalisation, the uniform density 1 / rho_max, the mixture's spread in the
+    variance, the Beta moments. Cell mu 0.05, s 0.002, Beta(3, 1); x 0.06, tau 0.002; rho_max 2 /m.
+    S = s^2 + tau^2 = 8e-6, d^2 / S = 12.5: N(x) = e^-6.25 / sqrt(2 pi 8e-6) = 0.0019305 / 0.0070898 = 0.27229 /m;
+    C1 ~ 3/4 x 0.27229 = 0.20422, C2 ~ 1/4 x 1/2 = 0.125: C1 = 0.62031, C2 = 0.37969. s'^2 = 2e-6, m = 0.055:
+    mu = 0.05 + 0.005 C1 = 0.053102; s^2 = C1 2e-6 + C2 4e-6 + C1 C2 0.005^2 = 8.6475e-6.
+    f = (4 C1 + 3 C2) / 5 = 0.72406, e = (20 C1 + 12 C2) / 30 = 0.56541: a = (e - f) / (f - e / f) = 2.7915,
+    b = a (1 - f) / f = 1.0638 (a + b below the evidence cap: not scaled)."""
+    st = one_cell_state()
+    st.rho[...], st.var[...], st.a[...], st.b[...], st.n[...] = 0.05, 0.002 ** 2, 3.0, 1.0, 2
+    c = measure(st, 0.06, 0.002, kernels)
+    assert c["inliers"] == 16 and c["restarted"] == 0                    # C1 > 0.5
+    assert st.rho[0, 0] == pytest.approx(0.053102, rel=2e-5)
+    assert st.var[0, 0] == pytest.approx(8.6475e-6, rel=1e-4)
+    assert st.a[0, 0] == pytest.approx(2.7915, rel=1e-4) and st.b[0, 0] == pytest.approx(1.0638, rel=1e-4)
+    assert (st.n == 3).all()
+    # at the evidence cap (8): a converged Beta(7, 1) and a measurement on its estimate (C1 = 1 - 2.5e-4) give the
+    # conjugate Beta(a + 1, b) = Beta(8, 1), a + b = 9 scaled to 8 keeping the ratio: a = 64/9, b = 8/9 (C2 moves
+    # them by less than 3e-4 relative)
+    st = one_cell_state()
+    st.rho[...], st.var[...], st.a[...], st.b[...], st.n[...] = 0.05, 1e-6, 7.0, 1.0, 9
+    measure(st, 0.05, 1e-3, kernels)
+    assert st.a[0, 0] == pytest.approx(64 / 9, rel=3e-4) and st.b[0, 0] == pytest.approx(8 / 9, rel=3e-4)
+    assert st.a[0, 0] + st.b[0, 0] == pytest.approx(8.0, rel=1e-6)
+
+
 def _random_state(c, rng, rho_lo: float, var_hi: float):
     """A state with 80 % of its cells occupied by random estimates (inverse range rho_lo..0.3, variance up to
     var_hi, Beta evidence); returns it and the occupied mask."""
