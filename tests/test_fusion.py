@@ -267,6 +267,26 @@ def test_one_update_of_a_doubtful_measurement_matches_the_published_moment_match
     assert st.a[0, 0] + st.b[0, 0] == pytest.approx(8.0, rel=1e-6)
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_cell_whose_inlier_ratio_falls_below_eta_restarts_from_the_measurement_and_one_just_above_does_not(kernels):
+    """A far outlier (C1 = 0 exactly: 125 sigma off) takes Beta(a, b) to the conjugate Beta(a, b + 1). Beta(4, 4)
+    -> 4/9 = 0.444 < eta_outlier 0.45: diverged, restarted from the measurement (mu = x, s^2 = tau^2, Beta(a_init,
+    b_init), n 1, no sub-pixel remainder); Beta(5, 5) -> 5/11 = 0.4545: kept (mu, s^2 unchanged, n + 1), its
+    Beta(5, 6) scaled to the evidence cap 8: (40/11, 48/11)."""
+    st = InverseRangeState.empty(cam(2, 1), pose(), 0.0)
+    st.rho[...], st.var[...], st.n[...], st.du[...], st.dv[...] = 0.05, 1e-6, 5, 0.3, -0.2
+    st.a[0], st.b[0] = [4.0, 5.0], [4.0, 5.0]
+    cfg = UpdateConfig()
+    c = measure(st, 0.3, 2e-3, kernels, cfg)
+    assert (c["outliers"], c["inliers"], c["restarted"]) == (2, 0, 1)
+    assert st.rho[0, 0] == np.float32(0.3) and st.var[0, 0] == pytest.approx(2e-3 ** 2, rel=1e-6)
+    assert (st.a[0, 0], st.b[0, 0], st.n[0, 0]) == (cfg.a_init, cfg.b_init, 1)
+    assert st.du[0, 0] == 0.0 and st.dv[0, 0] == 0.0
+    assert st.rho[0, 1] == np.float32(0.05) and st.var[0, 1] == np.float32(1e-6) and st.n[0, 1] == 6
+    assert st.a[0, 1] == pytest.approx(40 / 11, rel=1e-5) and st.b[0, 1] == pytest.approx(48 / 11, rel=1e-5)
+    assert st.du[0, 1] == np.float32(0.3) and st.dv[0, 1] == np.float32(-0.2)
+
+
 def _random_state(c, rng, rho_lo: float, var_hi: float):
     """A state with 80 % of its cells occupied by random estimates (inverse range rho_lo..0.3, variance up to
     var_hi, Beta evidence); returns it and the occupied mask."""
