@@ -747,6 +747,23 @@ def test_weak_measurements_are_fused_only_when_their_sigma_explains_the_flag(ker
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_a_weak_measurement_with_any_other_fault_bit_is_not_fused(kernels):
+    """"Weak" is ILL_CONDITIONED whose only fault is its own sigma: at a relative sigma of 0.5 an ILL_CONDITIONED
+    pixel alone is fused, but with any other fault (a failed truncation test, hidden or out of view in b, no
+    texture, filled by the plane fit) it carries no measurement, neither moving a converged cell nor starting an
+    empty one."""
+    for bit in (TRUNCATION, OUT_OF_VIEW, OUT_OF_VIEW | OCCLUDED, OCCLUDED, LOW_TEXTURE, FILLED):
+        st = one_cell_state()
+        assert measure(st, 0.05, 0.025, kernels, UpdateConfig(), ILL_CONDITIONED | bit)["measured"] == 0, bit
+        assert not st.occupied().any()
+        st = planar_state(cam(4, 4), 0.04)
+        assert measure(st, 0.05, 0.025, kernels, UpdateConfig(), ILL_CONDITIONED | bit)["measured"] == 0, bit
+        assert (st.rho == np.float32(0.04)).all() and (st.n == 3).all()
+    st = one_cell_state()
+    assert measure(st, 0.05, 0.025, kernels, UpdateConfig(), ILL_CONDITIONED)["started"] == 16
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_many_weak_measurements_add_up_to_a_confident_range(kernels):
     # 20 measurements of rho = 0.01 (100 m) with a relative sigma of 0.5 each (no single pair could range it):
     # the fused sigma is 0.5 / sqrt(20) = 0.11 relative (a little more: at this sigma the Gaussian's density, ~50 /m,
