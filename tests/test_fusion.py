@@ -287,6 +287,32 @@ def test_a_cell_whose_inlier_ratio_falls_below_eta_restarts_from_the_measurement
     assert st.du[0, 1] == np.float32(0.3) and st.dv[0, 1] == np.float32(-0.2)
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_cells_emptied_by_a_mask_keep_the_last_measurements_reason_and_a_full_clear_forgets_it(kernels):
+    """A converged cell the last measurement saw hidden in b (OUT_OF_VIEW | OCCLUDED: it kept its prediction),
+    then emptied (``clear_cells``, as the stereo free-space rules do): the map reports it empty for that reason
+    (contested: not filled from a loose plane), not as a bare ILL_CONDITIONED; its neighbours are untouched. A
+    state cleared whole (a camera restarting) forgets every reason."""
+    from eonav.fusion.update import clear_cells
+    st = one_cell_state()
+    for _ in range(3):
+        measure(st, 0.05, 1e-3, kernels)
+    hidden = np.uint8(OUT_OF_VIEW | OCCLUDED)
+    flags = np.full(st.shape, VALID, np.uint8)
+    flags[1, 2] = hidden
+    update(st, np.full(st.shape, 0.05, np.float32), np.full(st.shape, 1e-3, np.float32), flags, kernels=kernels)
+    mask = np.zeros(st.shape, bool)
+    mask[1, 2] = mask[0, 0] = True
+    assert clear_cells(st, mask) == 2
+    assert np.isnan(st.rho[mask]).all() and (st.var[mask] == np.inf).all() and (st.n[mask] == 0).all()
+    assert st.flags[1, 2] == hidden and st.flags[0, 0] == VALID
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert m.flags[1, 2] & hidden == hidden and not m.flags[1, 2] & VALID and np.isnan(m.range_m[1, 2])
+    assert (m.flags[~mask] == VALID).all() and np.allclose(m.range_m[~mask], 20.0, rtol=1e-4)
+    st.clear()
+    assert not st.occupied().any() and (st.flags == 0).all() and (st.n == 0).all()
+
+
 def _random_state(c, rng, rho_lo: float, var_hi: float):
     """A state with 80 % of its cells occupied by random estimates (inverse range rho_lo..0.3, variance up to
     var_hi, Beta evidence); returns it and the occupied mask."""
