@@ -108,6 +108,34 @@ def test_a_cell_the_stereo_measurement_disagrees_with_beyond_k_sigma_restarts_fr
 
 
 
+def test_a_motion_measurement_fused_earlier_restarts_cells_only_against_the_stereo_one_of_its_own_frame():
+    """The partner's frame second: the reference's motion measurement was fused in its own push, kept, and the
+    stereo measurement of the same frame restarts the cells where that motion measurement disagrees with it (rho
+    0.05 +- 0.003 against 0.02 +- 0.004: 6 sigma). A kept motion measurement of an older frame (its stereo partner
+    never came) says nothing of this frame's scene: the stereo measurement, agreeing with every cell, restarts none.
+    Either way the kept one is used once."""
+    from types import SimpleNamespace
+    from eonav.fusion.schedule import NEAR, STEREO
+    cfg = FusionConfig(schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID)), update=UpdateConfig(stereo_lead_k=3.0))
+
+    def meas(kind, seq, rho, std):
+        m = SimpleNamespace(kind=kind, a=SimpleNamespace(camera_id="nose", seq=seq, stamp_us=1_000_000 + seq * 66_667))
+        res = SimpleNamespace(inv_range_per_m=np.array([rho], F32), inv_range_std_per_m=np.full((1, 3), std, F32),
+                              flags=np.full((1, 3), VALID, np.uint8))
+        return m, res
+
+    for stereo_seq, want in ((1, [True, False, False]), (2, [False, False, False])):
+        runner = FusionRunner(cfg)
+        runner.states["nose"] = st = _state([0.02, 0.02, 0.02], [0.0003 ** 2] * 3)
+        assert runner._stereo_lead(*meas(NEAR, 1, [0.05, 0.021, 0.02], 0.003), None) == {}    # kept, not gated
+        m, res = meas(STEREO, stereo_seq, [0.02, 0.02, 0.02], 0.004)
+        out = runner._stereo_lead(m, res, None)
+        assert out == {"stereo_restarted": sum(want)}, stereo_seq
+        assert (st.n[0] == 1).tolist() == want and (np.isnan(res.inv_range_per_m[0])).tolist() == want
+        assert (st.rho[0] == F32(0.02)).all()
+        assert runner._stereo_lead(m, res, None) == {"stereo_restarted": 0}                    # used once
+
+
 def test_a_skipped_stereo_pixel_seeing_beyond_k_sigma_past_a_cell_empties_it():
     # cells at 50 m, sigma 0.0003 (converged); skipped stereo pixels of sigma 0.002: sqrt(s^2 + tau^2) = 0.0020224,
     # k = 3 -> 0.0060673. ILL_CONDITIONED with a tight sigma (0.002 <= 0.34 x 0.0139, 0.0139 >= 2 x 0.002) is not
