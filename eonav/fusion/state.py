@@ -67,11 +67,6 @@ class InverseRangeState:
         """Cells holding an estimate."""
         return np.isfinite(self.rho)
 
-    def inlier_ratio(self) -> np.ndarray:
-        """E[inlier ratio] = a / (a + b) per cell (NaN where empty)."""
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.occupied(), self.a / (self.a + self.b), np.nan).astype(F32)
-
 
 @lru_cache(maxsize=None)
 def optional_kernels():

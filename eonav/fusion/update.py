@@ -162,7 +162,7 @@ def gaussian_uniform_step(mu, s2, a, b, x, tau2, rho_max: float):
     c1 = c1 / norm
     c2 = F32(1.0) - c1
     sp2 = s2 * tau2 / S
-    m = mu + sp2 / tau2 * d                         # = s'^2 (mu / s^2 + x / tau^2), finite for s^2 = inf too
+    m = mu + sp2 / tau2 * d                         # = s'^2 (mu / s^2 + x / tau^2) (s^2 finite: cells start finite)
     mu_new = c1 * m + c2 * mu
     dm = m - mu
     s2_new = c1 * sp2 + c2 * s2 + c1 * c2 * dm * dm
