@@ -93,3 +93,64 @@ def test_table_one_rows_give_the_error_relative_to_the_actual_range():
     assert [(n, a, e, c) for n, a, e, _, c in rows] == [("vehicle1", 100.0, 80.0, 3), ("vehicle2", 40.0, 42.0, 2)]
     assert np.isclose(rows[0][3], 0.20) and np.isclose(rows[1][3], 0.05)
 
+
+# --- bench fuse: its error / coverage, the widest partner and the target lines ----------------------------------
+
+def test_fuse_errors_leave_zero_and_negative_ranges_uncovered():
+    # four pixels with truth 10 m: 11 m (+10 %), 0 m, -5 m, none: only the first has a range (coverage 1/4, error
+    # 10 %); counting 0 and -5 m as ranges would report 3/4 at a median error of 100 %
+    from eonav.app.bench_fuse import errors
+    e, c = errors(np.array([[11.0, 0.0, -5.0, np.nan]]), np.full((1, 4), 10.0), np.ones((1, 4), bool))
+    assert np.isclose(e, 0.10) and c == 0.25
+    e, c = errors(np.array([[11.0, 0.0]]), np.full((1, 2), 10.0), np.zeros((1, 2), bool))   # nothing scored
+    assert np.isnan(e) and c == 0.0
+
+
+def test_widest_partner_takes_the_longest_baseline_within_age_and_rotation():
+    # frame 4 at t 1.0 s, north 5 m, level; candidates (policy: max_age_s 1, max_rotation_deg 10):
+    #   0: t -0.05 s (1.05 s old), north -20 m: too old
+    #   1: t  0.0 s (exactly 1 s old: accepted), north 1.5 m: 3.5 m baseline, 0 deg
+    #   2: t  0.5 s, north 0 m, yawed 15 deg: 5 m but rotated beyond 10 deg (0.26 rad: not a limit in radians)
+    #   3: t  0.9 s, north 3 m, yawed 9 deg: 2 m
+    from eonav.app.bench_fuse import widest_partner
+    from eonav.fusion.sequence import FusionConfig
+    from eonav.geometry.camera import Camera, VehicleState, View
+    cfg = FusionConfig()
+    assert (cfg.schedule.policy.max_age_s, cfg.schedule.policy.max_rotation_deg) == (1.0, 10.0)
+    cam = Camera("c", 8, 8, 10.0, 10.0, 3.5, 3.5)
+    img = np.zeros((8, 8), np.float32)
+    poses = [(-0.05, -20.0, 0.0), (0.0, 1.5, 0.0), (0.5, 0.0, 15.0), (0.9, 3.0, 9.0), (1.0, 5.0, 0.0)]
+    views = [View(cam, VehicleState.from_ypr([n, 0.0, -10.0], [np.radians(yaw), 0.0, 0.0], t), img)
+             for t, n, yaw in poses]
+    assert widest_partner(views, 4, cfg) == 1
+    assert widest_partner(views[1:], 3, cfg) == 0          # the same frames without the old one
+    assert widest_partner(views[2:], 2, cfg) == 1          # without frame 1: frame 3, the one within 10 deg
+    assert widest_partner(views[2:3] + views[4:], 1, cfg) is None      # only the turned frame: none
+
+
+def _fuse_summary(fused_err, dense_err, coverage=0.96, z=1.0):
+    return {10: {"fused": (fused_err, coverage), "dense newest": (dense_err, 0.9), "z": z, "z_filled": 1.1}}
+
+
+def test_fuse_targets_ratio_coverage_z_and_time_verdicts(capsys):
+    # after 10 frames: fused 2 % against dense 5 % is 0.40 x (<= 0.5: met); 3 % against 5 % 0.60 x (NOT met);
+    # exactly 0.5 x, 95 % coverage, z 1.2, 3 % Table I error and +30 % time are on their limits: met
+    from eonav.app.bench_fuse import print_targets
+    print_targets({"good": _fuse_summary(0.02, 0.05), "worse": _fuse_summary(0.03, 0.05, coverage=0.94, z=1.25),
+                   "edge": {**_fuse_summary(0.025, 0.05, coverage=0.95, z=1.2), "table1_max_error": 0.03,
+                            "time_added": 0.30},
+                   "late": {"table1_max_error": 0.031, "time_added": 0.31}})
+    lines = [ln.strip() for ln in capsys.readouterr().out.splitlines()]
+    good, worse, edge = (next(ln for ln in lines if ln.startswith(f"{n}: after 10 frames")) for n in
+                         ("good", "worse", "edge"))
+    assert "= 0.40 x single-pair dense 5.00 % (<= 0.5) -> met;" in good
+    assert "coverage 96.0 % (>= 95 %) -> met" in good and "z spread 1.00 (0.8-1.2) -> met" in good
+    assert "= 0.60 x single-pair dense 5.00 % (<= 0.5) -> NOT met;" in worse
+    assert "(>= 95 %) -> NOT met" in worse and "(0.8-1.2) -> NOT met" in worse
+    assert "= 0.50 x" in edge and "(<= 0.5) -> met;" in edge and "(>= 95 %) -> met" in edge
+    assert "(0.8-1.2) -> met" in edge
+    tab = [ln for ln in lines if "every Table I vehicle" in ln]
+    tim = [ln for ln in lines if "to the locator's time" in ln]
+    assert [ln.split("-> ")[-1] for ln in tab] == ["met", "NOT met"]
+    assert [ln.split("-> ")[-1] for ln in tim] == ["met", "NOT met"]
+
