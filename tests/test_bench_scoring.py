@@ -154,3 +154,15 @@ def test_fuse_targets_ratio_coverage_z_and_time_verdicts(capsys):
     assert [ln.split("-> ")[-1] for ln in tab] == ["met", "NOT met"]
     assert [ln.split("-> ")[-1] for ln in tim] == ["met", "NOT met"]
 
+
+# --- bench pipeline: one measured frame's timeline --------------------------------------------------------------
+
+def test_pipeline_frame_row_is_in_milliseconds_from_capture():
+    # captured at 1 000 000 us; the map (compute 30.1 ms, put at age 40.2 ms) received at 1 045 000 us, the obstacle
+    # list (put at age 75.5 ms) at 1 080 000 us: [40.2, 45.0, 75.5, 80.0, 30.1] ms; what did not arrive is None
+    from eonav.app.bench_pipeline import _frame_row
+    m = (1_045_000, 0.0301, 0.002, 1.0, 40.2)
+    o = (1_080_000, 75.5)
+    assert _frame_row(1_000_000, m, o) == [40.2, 45.0, 75.5, 80.0, 30.1]
+    assert _frame_row(1_000_000, m, None) == [40.2, 45.0, None, None, 30.1]
+    assert _frame_row(1_000_000, None, None) == [None] * 5
