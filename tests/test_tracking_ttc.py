@@ -198,6 +198,31 @@ def test_bench_scores_both_contact_times_against_the_true_entry():
     assert math.isinf(t["expected_rel_err"][2]) and math.isinf(t["threat_rel_err"][2])
 
 
+
+def test_bench_scores_the_surface_time_less_the_vehicle_radius_within_the_horizon():
+    """The plain figure: (surface distance - vehicle radius) / closing speed against the true entry. Radius 1 m,
+    20 m/s at the wall's face (north 148.5): entry (147.5 - n) / 20 s. North 80 m: 3.375 s, beyond the 3 s horizon,
+    not scored; 87.5 m: exactly 3 s, scored, the face 61 m off -> 60 / 20 = 3 s: error 0; 110 m: 1.875 s, the face
+    reported 42.25 m off -> 41.25 / 20 = 2.0625 s: +10 %; 120 m: the main track closes at 0 m/s, and 125 m: it is
+    not assessed at all: both inf."""
+    from types import SimpleNamespace
+    from eonav.app import bench_tracking as B
+    from eonav.sim.scene import Box
+    wall = Box.on_ground("wall", 150.0, 0.0, 3.0, 12.0, 8.0)
+    rec = []
+    for n, surf in ((80.0, (68.5, SPEED)), (87.5, (61.0, SPEED)), (110.0, (42.25, SPEED)), (120.0, (28.5, 0.0)),
+                    (125.0, None)):
+        rec.append({"state": VehicleState.from_ypr([n, 0.0, -5.0], [0.0, 0.0, 0.0]),
+                    "scene": SimpleNamespace(boxes=(wall,)), "velocity_ned_mps": np.array([SPEED, 0.0, 0.0]),
+                    "threat": (7, 1.0, 1.0),
+                    "surface": {} if surf is None else {7: surf}})
+    t = B.score_ttc(rec, "wall", 7, T.ConeConfig(vehicle_radius_m=1.0))
+    assert t["frames"] == 4 and t["missing"] == 0
+    np.testing.assert_allclose(t["plain_rel_err"][:2], [0.0, 0.10], atol=1e-12)
+    assert math.isinf(t["plain_rel_err"][2]) and math.isinf(t["plain_rel_err"][3])
+    np.testing.assert_allclose(t["expected_rel_err"], [1.0 / 3.0 - 1, 1.0 / 1.875 - 1, 1.0 / 1.375 - 1,
+                                                       1.0 / 1.125 - 1])
+
 def test_bench_map_cache_computes_once(tmp_path, monkeypatch):
     from eonav.app import bench_tracking as B
     calls = []
