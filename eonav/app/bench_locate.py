@@ -106,8 +106,9 @@ def robust_spread(z) -> float:
 
 
 def calibration(res, truth_m, mask) -> dict:
-    """Honesty of the reported sigma on the VALID finite pixels: z = (rho - 1/truth) / sigma_rho; its robust
-    spread (1.4826 MAD, 1 when sigma is right) and the share with |z| < 2 (0.95 for a Gaussian)."""
+    """Honesty of the reported sigma on the pixels of ``mask`` with a finite range and sigma (VALID and FILLED alike;
+    ``filled_line`` passes the FILLED ones): z = (rho - 1/truth) / sigma_rho; its robust spread (1.4826 MAD, 1 when
+    sigma is right) and the share with |z| < 2 (0.95 for a Gaussian)."""
     ok = mask & np.isfinite(res.range_m) & (res.range_m > 0) & np.isfinite(truth_m) & (truth_m > 0)
     std = res.inv_range_std_per_m[ok]
     good = np.isfinite(std) & (std > 0)
