@@ -122,6 +122,21 @@ def test_z_buffer_keeps_the_nearest_point(kernels):
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_z_buffer_keeps_the_nearest_point_also_when_it_is_scattered_first(kernels):
+    """The mirror of the test above: camera 1 m to port, the point at 10 m (column 26) moves 4 px right, the one at
+    20 m (column 28) 2 px: both land on column 30, the nearer one now the first in scan order. It must win there
+    too, not by being written last. Catches a z-buffer keeping the farthest (np.minimum.at: every point then
+    'wins' and the last one scattered overwrites)."""
+    c = cam()
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    for x, rho, a in ((26, 0.1, 7.0), (28, 0.05, 2.0)):
+        st.rho[10, x], st.var[10, x], st.a[10, x], st.b[10, x] = rho, 1e-6, a, 1.0
+    p = predict(st, c, pose(east=-1.0, t=0.1), 0.1, NO_NOISE, crack_k=0, kernels=kernels)
+    assert np.isfinite(p.rho).sum() == 1
+    assert p.rho[10, 30] == pytest.approx(0.1) and p.a[10, 30] == 7.0
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_disoccluded_region_starts_fresh(kernels):
     # background at 20 m, a foreground block at 5 m in columns 20..35; camera 2 m to starboard: the background
     # moves 4 px left (f b / 20), the block 16 px (f b / 5): the block goes to columns 4..19 and the background
