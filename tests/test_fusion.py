@@ -137,6 +137,22 @@ def test_z_buffer_keeps_the_nearest_point_also_when_it_is_scattered_first(kernel
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_forward_motion_fills_the_new_view_to_its_last_row_and_column(kernels):
+    """Plane at 20 m, camera 2 m forward (the first test): x_p' = x_p 20/18, the new view is the old one's inner
+    90 %, so every new pixel, the border ones included, gets a point: source column 60 (x_p = 28.5) lands at
+    u' = 31.5 + 31.67 = 63.17 (column 63, remainder 0.167), column 3 at -0.17 (column 0); source row 45
+    (y_p = 21.5) at v' = 23.5 + 23.89 = 47.39 (row 47), row 2 at -0.39 (row 0). Catches an off-by-one in the
+    in-view test (``ui < w - 1``: the last column, or row, dropped as if out of view)."""
+    c = cam()
+    st = planar_state(c, 1 / 20.0)
+    p = predict(st, c, pose(north=2.0, t=0.1), 0.1, NO_NOISE, kernels=kernels)
+    assert np.isfinite(p.rho).all() and np.allclose(p.rho, 1 / 18.0, rtol=1e-6)
+    assert p.du[24, 63] == pytest.approx(31.5 + 28.5 * 20 / 18 - 63, abs=1e-4)
+    assert p.dv[47, 10] == pytest.approx(23.5 + 21.5 * 20 / 18 - 47, abs=1e-4)
+    assert p.du[24, 0] == pytest.approx(31.5 - 28.5 * 20 / 18, abs=1e-4)
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_disoccluded_region_starts_fresh(kernels):
     # background at 20 m, a foreground block at 5 m in columns 20..35; camera 2 m to starboard: the background
     # moves 4 px left (f b / 20), the block 16 px (f b / 5): the block goes to columns 4..19 and the background
