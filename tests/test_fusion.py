@@ -153,6 +153,27 @@ def test_forward_motion_fills_the_new_view_to_its_last_row_and_column(kernels):
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_a_yaw_carries_the_variance_by_the_transfers_jacobian_derived_by_hand(kernels):
+    """A point straight ahead at 20 m (pixel 32, 24 of a 65 x 49 camera, f 40), camera yawed 30 deg to starboard in
+    place: the point is now 30 deg to port, at x_c = 20 cos 30, so rho' = 0.05 / cos 30 = 0.057735 at
+    u' = 32 - 40 tan 30 = 8.906 (pixel 9, remainder -0.094), row unchanged. The Jacobian d rho'/d rho = A0 / den^2
+    = 1 / cos 30 (A0 = den = cos 30, no translation): var' = 1e-6 / cos^2 30 = 1.3333e-6. Catches the Jacobian's
+    A0 factor dropped (1 / den^2: var / cos^4 30 = 1.78e-6; a pure translation has A0 = 1 and cannot tell)."""
+    c = cam(65, 49)
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    st.rho[24, 32], st.var[24, 32], st.a[24, 32], st.b[24, 32], st.n[24, 32] = 0.05, 1e-6, 3.0, 1.0, 2
+    yawed = VehicleState.from_ypr([0.0, 0.0, 0.0], np.deg2rad([30.0, 0.0, 0.0]), 0.1)
+    p = predict(st, c, yawed, 0.1, NO_NOISE, crack_k=0, kernels=kernels)
+    ys, xs = np.nonzero(np.isfinite(p.rho))
+    assert list(ys) == [24] and list(xs) == [9]
+    cos30 = np.cos(np.deg2rad(30.0))
+    assert p.rho[24, 9] == pytest.approx(0.05 / cos30, rel=1e-6)
+    assert p.var[24, 9] == pytest.approx(1e-6 / cos30 ** 2, rel=1e-5)
+    assert p.du[24, 9] == pytest.approx(32 - 40 * np.tan(np.deg2rad(30.0)) - 9, abs=1e-4) and p.dv[24, 9] == 0.0
+    assert p.a[24, 9] == 3.0 and p.n[24, 9] == 2
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_disoccluded_region_starts_fresh(kernels):
     # background at 20 m, a foreground block at 5 m in columns 20..35; camera 2 m to starboard: the background
     # moves 4 px left (f b / 20), the block 16 px (f b / 5): the block goes to columns 4..19 and the background
