@@ -174,6 +174,31 @@ def test_a_yaw_carries_the_variance_by_the_transfers_jacobian_derived_by_hand(ke
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_a_one_pixel_crack_takes_its_neighbours_mean_and_their_weaker_evidence_derived_by_hand(kernels):
+    """Crack closing (``close_cracks``, run by predict; here with the camera standing still, so the points stay on
+    their pixels). A row crack between rho 0.05 (var 1e-6, Beta(6, 1), n 4, VALID | OCCLUDED) and 0.054 (var 2e-6,
+    Beta(3, 2), n 2, VALID): they agree (0.004^2 = 1.6e-5 <= 3^2 (3e-6)), so it takes rho 0.052, var = the larger
+    2e-6 + (0.004 / 2)^2 = 6e-6, the weaker evidence Beta(3, 2), n 2, the flags both have (VALID), offset 0. A
+    column crack closes the same way; one between 0.05 and 0.07 (0.02^2 = 4e-4 > 9 (2e-6)) stays empty. Catches
+    the half-difference term of the variance dropped, or the stronger evidence taken (max of a)."""
+    c = cam(12, 7)
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    cells = {(1, 1): (0.05, 1e-6, 6.0, 1.0, 4, VALID | OCCLUDED), (1, 3): (0.054, 2e-6, 3.0, 2.0, 2, VALID),
+             (1, 6): (0.05, 1e-6, 6.0, 1.0, 4, VALID | OCCLUDED), (3, 6): (0.054, 2e-6, 3.0, 2.0, 2, VALID),
+             (5, 8): (0.05, 1e-6, 6.0, 1.0, 4, VALID), (5, 10): (0.07, 1e-6, 6.0, 1.0, 4, VALID)}
+    for (y, x), (rho, var, a, b, n, fl) in cells.items():
+        st.rho[y, x], st.var[y, x], st.a[y, x], st.b[y, x], st.n[y, x], st.flags[y, x] = rho, var, a, b, n, fl
+        st.du[y, x], st.dv[y, x] = 0.2, -0.1
+    p = predict(st, c, pose(t=0.1), 0.1, NO_NOISE, kernels=kernels)
+    assert np.isfinite(p.rho).sum() == len(cells) + 2 and not np.isfinite(p.rho[5, 9])
+    for y, x in ((1, 2), (2, 6)):
+        assert p.rho[y, x] == pytest.approx(0.052, rel=1e-6)
+        assert p.var[y, x] == pytest.approx(2e-6 + 0.002 ** 2, rel=1e-5)
+        assert (p.a[y, x], p.b[y, x], p.n[y, x], p.flags[y, x]) == (3.0, 2.0, 2, VALID)
+        assert p.du[y, x] == 0.0 and p.dv[y, x] == 0.0
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_disoccluded_region_starts_fresh(kernels):
     # background at 20 m, a foreground block at 5 m in columns 20..35; camera 2 m to starboard: the background
     # moves 4 px left (f b / 20), the block 16 px (f b / 5): the block goes to columns 4..19 and the background
