@@ -736,6 +736,25 @@ def test_empty_cells_at_the_image_border_are_extrapolated_unless_textureless(ker
         assert (m.inv_range_std_per_m[:, cols] < 0.34 * plane[:, cols]).all()
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_contested_empty_cell_at_the_image_border_is_not_extrapolated_even_from_an_exact_plane(kernels):
+    """The border strip of the test above, its last pair's verdict TRUNCATION: not contested by default, so the 4
+    columns within border_px take the (exact) plane; with TRUNCATION among the contested bits (no_fill) the strip
+    is a contested cell's, never extrapolated to -- the plane's tightness (relative sigma ~0 <= contested_rel_std)
+    lets it stand in only inside its support, which the strip is beyond -- so none of it is filled. Catches the
+    contested bits dropped from the border ring's exclusions (with the default no_fill, OCCLUDED alone, the fill
+    itself refuses to extrapolate to an OCCLUDED pixel: only a configured no_fill shows it)."""
+    strip = (slice(None), slice(58, 64))
+    c, plane, st = converged_plane(strip)
+    st.flags[strip] = TRUNCATION
+    m = fused_map(st, MapConfig(), kernels=kernels)
+    assert ((m.flags[:, 60:64] & FILLED) != 0).all()
+    np.testing.assert_allclose(m.inv_range_per_m[:, 60:64], plane[:, 60:64], rtol=1e-3)
+    contested = fused_map(st, MapConfig(no_fill=OCCLUDED | TRUNCATION), kernels=kernels)
+    assert not ((contested.flags[strip] & FILLED) != 0).any() and not np.isfinite(contested.range_m[strip]).any()
+    assert ((contested.flags[strip] & TRUNCATION) != 0).all()
+
+
 def test_map_config_rejects_bad_no_fill_bits():
     with pytest.raises(InputError, match="no_fill"):
         MapConfig(no_fill=256)
