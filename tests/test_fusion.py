@@ -1010,16 +1010,17 @@ def test_schedulers_batched_pair_policy_decides_as_the_pair_policy():
     assert {OK_MOTION, TOO_LITTLE_PARALLAX, TOO_MUCH_ROTATION, TOO_OLD} <= reasons, reasons
 
 
-def _sideways(n, yaw_deg=None):
-    """n frames of a 256 x 256 camera (f 256 px) looking north and flying east at 1 m/s, 0.25 s apart (frame k at
-    0.25 k s, k m east; ``yaw_deg``: {k: yaw}). A sideways baseline B moves every pixel by f B / Z: at the policy's
-    50 m reference 5.12 px per metre, the same at every probe pixel, so the pair's median disparity is 5.12 B px."""
+def _sideways(n, yaw_deg=None, speed_mps=1.0):
+    """n frames of a 256 x 256 camera (f 256 px) looking north and flying east at ``speed_mps`` (1 m/s), 0.25 s
+    apart (frame k at 0.25 k s, 0.25 k speed_mps m east; ``yaw_deg``: {k: yaw}). A sideways baseline B moves every
+    pixel by f B / Z: at the policy's 50 m reference 5.12 px per metre, the same at every probe pixel, so the pair's
+    median disparity is 5.12 B px."""
     from eonav.ranging.pair_policy import PosedFrameInfo
     c = Camera("nose", 256, 256, 256.0, 256.0, 127.5, 127.5)
     yaw_deg = yaw_deg or {}
     return [PosedFrameInfo("nose", k, 1_700_000_000_000_000 + 250_000 * k, c,
-                           VehicleState.from_ypr([0.0, 0.25 * k, -10.0], np.deg2rad([yaw_deg.get(k, 0.0), 0, 0]),
-                                                 0.25 * k)) for k in range(n)]
+                           VehicleState.from_ypr([0.0, 0.25 * k * speed_mps, -10.0],
+                                                 np.deg2rad([yaw_deg.get(k, 0.0), 0, 0]), 0.25 * k)) for k in range(n)]
 
 
 def test_the_wide_partner_keeps_the_pair_policys_age_and_rotation_limits():
@@ -1043,6 +1044,23 @@ def test_the_wide_partner_keeps_the_pair_policys_age_and_rotation_limits():
     ms, _ = sch.offer(fs[-1])
     assert [(m.kind, m.b.seq) for m in ms] == [("wide", 1)]          # 0.75 m: 3.84 px (frame 0 would give 5.47)
     assert ms[0].disparity_px == pytest.approx(3.84, rel=1e-9) and ms[0].baseline_m == pytest.approx(0.75)
+
+
+def test_the_wide_partner_is_the_one_with_the_most_parallax_up_to_the_disparity_cap():
+    """Flying at 6 m/s (1.5 m, 7.68 px a frame): frame 4's candidates within the 1 s age are frames 3, 2, 1, 0 with
+    7.68, 15.36, 23.04 and 30.72 px. The wide partner is the one with the most parallax up to wide_max_disparity_px
+    (15): frame 3; with the cap at 16 px, frame 2 (15.36 px, 3 m). Catches the cap dropped from the wide test
+    (frame 0 at 30.72 px: a pair the dense search's range and the pose error cannot serve)."""
+    from eonav.fusion.schedule import WIDE, Scheduler
+    fs = _sideways(5, speed_mps=6.0)
+    for cap, seq, disp, base in ((15.0, 3, 7.68, 1.5), (16.0, 2, 15.36, 3.0)):
+        sch = Scheduler(ScheduleConfig(pattern=(WIDE,), wide_max_disparity_px=cap))
+        for f in fs[:-1]:
+            sch.offer(f)
+        ms, _ = sch.offer(fs[-1])
+        assert [(m.kind, m.b.seq) for m in ms] == [("wide", seq)], cap
+        assert ms[0].disparity_px == pytest.approx(disp, rel=1e-9) and ms[0].baseline_m == pytest.approx(base)
+
 
 
 def _push_all(runner, views, camera_id="nose"):
