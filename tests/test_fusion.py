@@ -1062,6 +1062,20 @@ def test_the_wide_partner_is_the_one_with_the_most_parallax_up_to_the_disparity_
         assert ms[0].disparity_px == pytest.approx(disp, rel=1e-9) and ms[0].baseline_m == pytest.approx(base)
 
 
+def test_near_and_wide_partners_alternate_frame_by_frame_derived_by_hand():
+    """The default pattern (near, wide) at 1 m/s (1.28 px a frame, _sideways): frame 1 has no partner (1.28 px
+    < the policy's 2 px, near and wide alike) and uses no turn; then near = the newest frame with >= 2 px (two
+    back, 2.56 px), wide = the most parallax within 1 s (up to four back, 5.12 px), in turn: frame 2 near 0, 3 wide
+    0 (3.84 px), 4 near 2, 5 wide 1 (5.12 px), 6 near 4. Catches the alternation lost (every frame near: a
+    far point never gets the wide baseline it needs)."""
+    from eonav.fusion.schedule import Scheduler
+    fs = _sideways(7)
+    sch = Scheduler(ScheduleConfig())
+    got = [[(m.kind, m.b.seq, round(m.disparity_px, 6)) for m in sch.offer(f)[0]] for f in fs]
+    assert got == [[], [], [("near", 0, 2.56)], [("wide", 0, 3.84)], [("near", 2, 2.56)], [("wide", 1, 5.12)],
+                   [("near", 4, 2.56)]]
+
+
 
 def _push_all(runner, views, camera_id="nose"):
     return [m for k, v in enumerate(views) for m in runner.push(frame(camera_id, v, int(round(v.state.t_s * 1e6)), k))]
