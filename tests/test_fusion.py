@@ -1076,6 +1076,27 @@ def test_near_and_wide_partners_alternate_frame_by_frame_derived_by_hand():
                    [("near", 4, 2.56)]]
 
 
+def test_a_stereo_pair_below_the_parallax_limit_qualifies_by_its_baseline():
+    """A rig of two 256 px cameras 0.5 m apart (lever arms -0.25 / +0.25 m to the right): f B / Z at the 50 m
+    reference is 2.56 px, below a 5 px parallax limit, so with min_baseline_m 0 there is no stereo measurement; a
+    min_baseline_m of 0.4 m lets the 0.5 m baseline qualify (as it does a motion pair: PairPolicy), 0.6 m does not.
+    Hand values: the reference frame (left) against the partner's frame 0.5 ms later, 2.56 px, 0.5 m. Catches the
+    scheduler's stereo test dropping the baseline alternative."""
+    from eonav.fusion.schedule import Scheduler
+    from eonav.ranging.pair_policy import PairPolicyConfig, PosedFrameInfo
+    left = Camera("left", 256, 256, 256.0, 256.0, 127.5, 127.5, l_body_m=[1.0, -0.25, 0.0])
+    right = Camera("right", 256, 256, 256.0, 256.0, 127.5, 127.5, l_body_m=[1.0, 0.25, 0.0])
+    t0 = 1_700_000_000_000_000
+    st = VehicleState.from_ypr([0.0, 0.0, -10.0], [0.0, 0.0, 0.0], 0.0)
+    for min_base, want in ((0.0, []), (0.4, [("stereo", "left", "right")]), (0.6, [])):
+        sch = Scheduler(ScheduleConfig(policy=PairPolicyConfig(min_disparity_px=5.0, min_baseline_m=min_base),
+                                       stereo_rig=("left", "right")))
+        assert sch.offer(PosedFrameInfo("left", 0, t0, left, st))[0] == []
+        ms, _ = sch.offer(PosedFrameInfo("right", 0, t0 + 500, right, st))
+        assert [(m.kind, m.a.camera_id, m.b.camera_id) for m in ms] == want, min_base
+        if ms:
+            assert ms[0].disparity_px == pytest.approx(2.56, rel=1e-9) and ms[0].baseline_m == pytest.approx(0.5)
+
 
 def _push_all(runner, views, camera_id="nose"):
     return [m for k, v in enumerate(views) for m in runner.push(frame(camera_id, v, int(round(v.state.t_s * 1e6)), k))]
