@@ -134,6 +134,23 @@ def test_folder_keep_stamps_loop_and_fixed_rate(tmp_path):
     assert clock.slept == pytest.approx([0.02] * 6, abs=1e-5)          # --rate-hz 50: fixed pacing
 
 
+def test_folder_loop_continues_by_the_median_spacing_not_the_longest(tmp_path):
+    """A looped folder with stamps 10.0, 10.1, 10.2, 10.6 s (spacings 0.1, 0.1, 0.4: one dropout): the second lap
+    starts one median spacing (0.1 s) after the last stamp, at 10.7 s, not 0.4 s (the longest) or 0.2 s (the
+    mean) after it, so the lap joint looks like an ordinary frame interval."""
+    d = _folder(tmp_path, [10.0, 10.1, 10.2, 10.6], n=4)
+    stop = threading.Event()
+    out = []
+
+    def sink(f):
+        out.append(f)
+        if len(out) == 6:
+            stop.set()
+    C.capture_loop(C.folder_frames(d, clock=FakeClock(), keep_stamps=True, loop=True, stop=stop), sink,
+                   camera_id="nose", stop=stop)
+    assert [f["stamp_us"] for f in out] == [10_000_000, 10_100_000, 10_200_000, 10_600_000, 10_700_000, 10_800_000]
+
+
 def test_folder_without_timestamps_uses_host_clock(tmp_path):
     d = _folder(tmp_path, None, n=3)
     clock = FakeClock()
@@ -163,6 +180,45 @@ def test_corrupt_and_wrong_size_frames_are_counted_and_skipped(tmp_path):
     assert m.c["corrupt_frames"] == 1 and m.c["wrong_size"] == 1 and m.c["frames_in"] == 5
     assert [f["seq"] for f in out] == [0, 1, 2]                # seq counts published frames
     assert out[-1]["image"].max() == 255
+
+
+def test_undecodable_pixels_count_as_corrupt_not_wrong_size():
+    """A frame that decodes to pixels ``convert`` cannot publish (float32, 5 channels) is counted as corrupt
+    (``corrupt_frames``), not as a wrong size, even when its size is the expected one; the good frame still goes out
+    as seq 0."""
+    class M(C.NullMetrics):
+        def __init__(self):
+            self.c = {}
+
+        def count(self, name, n=1):
+            self.c[name] = self.c.get(name, 0) + n
+    frames = [C.RawFrame(index=0, image=np.zeros((48, 64), np.float32), stamp_us=1, stamp_source="host"),
+              C.RawFrame(index=1, image=np.zeros((48, 64, 5), np.uint8), stamp_us=2, stamp_source="host"),
+              C.RawFrame(index=2, image=_img(7), stamp_us=3, stamp_source="host")]
+    m = M()
+    out = []
+    st = C.capture_loop(frames, out.append, camera_id="c", width=64, height=48, metrics=m)
+    assert (st.published, st.corrupt, st.wrong_size) == (1, 2, 0)
+    assert m.c["corrupt_frames"] == 2 and "wrong_size" not in m.c
+    assert [f["seq"] for f in out] == [0] and out[0]["stamp_us"] == 3
+
+
+def test_repeated_and_backward_stamps_are_counted_as_nonincreasing():
+    """Stamps 100, 200, 200, 150, 300 us: the repeated 200 and the 150 after it do not increase (two counts of
+    ``nonincreasing_stamps``); all five frames are still published in order."""
+    class M(C.NullMetrics):
+        def __init__(self):
+            self.c = {}
+
+        def count(self, name, n=1):
+            self.c[name] = self.c.get(name, 0) + n
+    stamps = [100, 200, 200, 150, 300]
+    frames = [C.RawFrame(index=i, image=_img(i), stamp_us=t, stamp_source="pts") for i, t in enumerate(stamps)]
+    m = M()
+    out = []
+    C.capture_loop(frames, out.append, camera_id="c", metrics=m)
+    assert [f["stamp_us"] for f in out] == stamps
+    assert m.c["nonincreasing_stamps"] == 2
 
 
 def test_bad_encoding_rejected():
@@ -325,6 +381,25 @@ def test_recorded_video_keeps_the_recorded_spacing_not_the_decode_pace():
     clock = FakeClock()
     out = list(C.recorded_video_frames(decoded(clock), rec, keep_stamps=True, clock=clock))
     assert [(f.stamp_us, f.stamp_source) for f in out] == [(r, "recorded_raw") for r in rec]
+
+
+def test_recorded_video_resumed_replay_reports_the_frames_it_passed_over():
+    """A video joint replay (re)started when its frame 2 was due exactly ``RESUME_LATE_US`` ago: frames 0 and 1 are
+    passed over and reported on frame 2 (``skipped`` 2, then 0), so the published seq goes on from the recording's
+    frame number (2, 3, 4: a gap downstream, not a restart); stamps are recorded + shift."""
+    rec = [0, 100_000, 200_000, 300_000, 400_000]
+    clock = FakeClock()
+    shift = clock.us - C.RESUME_LATE_US - rec[2]
+    frames = [C.RawFrame(index=i, image=_img(i), stamp_us=0, stamp_source="pts", grab_mono=0.0)
+              for i in range(len(rec))]
+    got = list(C.recorded_video_frames(iter(frames), rec, replay_shift_us=shift, clock=clock))
+    assert [(f.index, f.skipped) for f in got] == [(2, 2), (3, 0), (4, 0)]
+    assert [f.stamp_us for f in got] == [r + shift for r in rec[2:]]
+    clock = FakeClock()
+    out = []
+    st = C.capture_loop(C.recorded_video_frames(iter(frames), rec, replay_shift_us=shift, clock=clock), out.append,
+                        camera_id="nose")
+    assert [f["seq"] for f in out] == [2, 3, 4] and st.skipped == 2
 
 
 def test_classify_source(tmp_path):
