@@ -2,6 +2,7 @@
 poses matching the simulator's truth at each frame's capture time."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -194,3 +195,40 @@ def test_pairer_position_lead_needs_a_velocity_on_the_newest_position(tmp_path):
     assert pr.poll(now_s=0.0) == [] and len(pr.pending) == 1
     out = pr.poll(now_s=0.3)
     assert [o["seq"] for o in out] == [1] and out[0]["quality_flags"] & QF_EXTRAPOLATED
+
+
+def test_pairer_posed_frame_carries_the_bracket_gap_and_its_own_camera(tmp_path):
+    """A frame at 0.25 s between attitude samples 0.24/0.26 s (gap 20 ms) and position samples 0.24/0.28 s (gap
+    40 ms): ``nav_gap_us`` is the wider bracket, 40_000 us (not ms). With two cameras in the file each posed frame
+    carries the intrinsics of the camera it came from."""
+    cam = scale_camera(flight("turning").camera, (W, H))
+    tail = dataclasses.replace(cam, name="tail", fx=2 * cam.fx, fy=2 * cam.fy)
+    p = tmp_path / "cameras.json"
+    p.write_text(json.dumps({"nose": camera_to_dict(cam), "tail": camera_to_dict(tail)}))
+    pr = S.Pairer(S.load_cameras(p), NavBuffer(gap_warn_us=60_000), max_wait_s=0.3)
+    for m in _nav_msgs(0, 0.5):
+        pr.add_nav({"q_wxyz": [np.nan] * 4, "position_ned_m": [np.nan] * 3, "velocity_ned_mps": [np.nan] * 3, **m})
+    pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, 0.25, 1))), now_s=0.0)
+    pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, 0.25, 2, cam="tail"))), now_s=0.0)
+    out = {o["camera_id"]: o for o in pr.poll(now_s=0.0)}
+    assert sorted(out) == ["nose", "tail"]
+    for o in out.values():
+        assert o["nav_gap_us"] == 40_000 and o["stamp_us"] == 250_000
+        assert o["quality_flags"] & QF_VELOCITY_AIDED and not o["quality_flags"] & QF_EXTRAPOLATED
+    assert out["nose"]["camera"]["fx"] == pytest.approx(cam.fx)
+    assert out["tail"]["camera"]["fx"] == pytest.approx(2 * cam.fx)
+
+
+def test_pairer_counts_a_frame_that_never_got_a_position_under_its_own_reason(tmp_path):
+    """Attitude only, no position stream yet: the frame waits, and when ``max_wait_s`` is spent it cannot be
+    extrapolated either; it is dropped and counted as ``dropped.no_position_yet``, the reason the pose failed, not
+    under another drop reason."""
+    p, cam = _cameras_file(tmp_path)
+    pr = S.Pairer(S.load_cameras(p), NavBuffer(), max_wait_s=0.1)
+    for m in _nav_msgs(0, 0.5):
+        if m["source"] == "ATTITUDE":
+            pr.add_nav({"position_ned_m": [np.nan] * 3, "velocity_ned_mps": [np.nan] * 3, **m})
+    pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, 0.25, 1))), now_s=0.0)
+    assert pr.poll(now_s=0.0) == [] and len(pr.pending) == 1
+    assert pr.poll(now_s=0.2) == [] and pr.pending == []
+    assert dict(pr.counts) == {"dropped.no_position_yet": 1}
