@@ -141,6 +141,7 @@ def test_service_poses_frames_against_truth(tmp_path):
     assert c["dropped.before_first_nav"] == 1
     assert c["dropped.extrapolation_limit"] == 1
     assert c["out.posed_frame"] == len(frame_t)
+    assert c["posed"] == len(frame_t)        # the health counter is the total, not a sum of running totals
 
 
 def test_pairer_position_lead_releases_on_attitude(tmp_path):
