@@ -159,3 +159,18 @@ def test_point_rays_project_sub_pixel_points_exactly_with_unequal_focal_lengths(
                          cb.T_cam_body, sb.T_body_ned, sb.position_ned_m, cb.l_body_m)
     np.testing.assert_allclose(cb.cx + cb.fx * X[1] / X[0], cb.cx + cb.fx * Xb[:, 1] / Xb[:, 0], atol=1e-9)
     np.testing.assert_allclose(cb.cy + cb.fy * X[2] / X[0], cb.cy + cb.fy * Xb[:, 2] / Xb[:, 0], atol=1e-9)
+
+
+def test_scaled_camera_scales_each_axis_by_its_own_rounded_size():
+    """scaled_camera on a 40 x 11 camera at 0.4: 16 x 8 pixels (round(4.4) = 4 is raised to the 8-pixel floor), so
+    sx = 16/40 and sy = 8/11 differ (hand values): fy' = 310 * 8/11, cy' = (cy + 0.5) * 8/11 - 0.5, and a small
+    pixel's centre row is the same ray as its full-grid row. Scaling y by the width ratio puts fy' at 124 px, not 225.5."""
+    from eonav.geometry.camera import scaled_camera
+    cam = Camera("c", 40, 11, 300.0, 310.0, 19.2, 5.7)
+    sc = scaled_camera(cam, 0.4)
+    assert (sc.width, sc.height) == (16, 8)
+    assert sc.fx == pytest.approx(300.0 * 0.4) and sc.cx == pytest.approx(19.7 * 0.4 - 0.5)
+    assert sc.fy == pytest.approx(310.0 * 8 / 11) and sc.cy == pytest.approx(6.2 * 8 / 11 - 0.5)
+    v = np.arange(sc.height)
+    full_v = (v + 0.5) * 11 / 8 - 0.5
+    np.testing.assert_allclose((v - sc.cy) / sc.fy, (full_v - cam.cy) / cam.fy, atol=1e-12)
