@@ -78,3 +78,24 @@ def test_sgbm_rejects_unrectified():
     cb = Camera("R", bv.camera.width, bv.camera.height, 500.0, 500.0, 80.0, 60.0, [0, 0.1, 0], [0.01, 0, 0])
     with pytest.raises(ValueError):
         locate_sgbm(a, View(cb, bv.state, right))
+
+
+def test_triangulation_sensitivity_is_the_derivative_of_the_forward_map():
+    """sens is |d(u_b, v_b)/d rho| in pixels of b (what sigma_rho = flow noise / sens rests on). Independent truth: the
+    central difference of the exact forward map (map_to_b) for a pose with 1.5 m of forward motion, where the depth
+    ratio den = A0 + B0 rho is 0.7 - 1.0; a sensitivity not divided by den is up to 1 / 0.7 too large."""
+    ca = Camera("a", 64, 48, 300.0, 310.0, 31.0, 24.5, [1.0, 0.2, 0.1], np.deg2rad([1.0, -3.0, 0.5]))
+    cb = Camera("b", 64, 48, 330.0, 320.0, 33.0, 22.0, [1.0, 0.6, 0.1], np.deg2rad([-0.5, -2.0, 0.0]))
+    sa = VehicleState.from_ypr([0, 0, -5], np.deg2rad([2.0, 1.0, -1.0]))
+    sb = VehicleState.from_ypr([1.5, -0.2, -5.1], np.deg2rad([2.5, 1.3, -0.7]))
+    geo = pair_geometry(View(ca, sa, np.zeros((48, 64))), View(cb, sb, np.zeros((48, 64))))
+    rho = np.random.default_rng(7).uniform(0.01, 0.2, (48, 64)).astype(np.float32)
+    ub, vb, _ = geo.map_to_b(rho)
+    _, sens, _, den = triangulate_matches(geo, ub, vb)
+    h = np.float32(1e-3)
+    up, vp, _ = geo.map_to_b(rho + h)
+    um, vm, _ = geo.map_to_b(rho - h)
+    fd = np.hypot((up.astype(float) - um) / (2 * h), (vp.astype(float) - vm) / (2 * h))
+    assert den.min() < 0.8                      # the forward motion makes den matter here
+    np.testing.assert_allclose(sens, fd, rtol=1e-3)
+
