@@ -99,3 +99,17 @@ def test_triangulation_sensitivity_is_the_derivative_of_the_forward_map():
     assert den.min() < 0.8                      # the forward motion makes den matter here
     np.testing.assert_allclose(sens, fd, rtol=1e-3)
 
+
+def test_matches_beyond_infinity_triangulate_to_zero_inverse_range():
+    """Rectified pair, b 0.1 m to the right, f = 500 px: a match d px to the left is rho = d / (f b) (hand value), and
+    a match 2 px to the RIGHT (flow noise on a far point, "beyond infinity") is clamped to rho = 0, the far end,
+    never a negative inverse range (= a negative range, or a near one once squared by a caller)."""
+    a, bv = rectified(np.zeros((20, 30)), np.zeros((20, 30)))
+    geo = pair_geometry(a, bv)
+    u, v = a.camera.pixel_grid()
+    rho, _, resid, _ = triangulate_matches(geo, u - 5.0, v)
+    np.testing.assert_allclose(rho, 5.0 / 50.0, rtol=1e-5)
+    rho, _, resid, _ = triangulate_matches(geo, u + 2.0, v)
+    assert np.all(rho == 0.0)
+    assert np.nanmax(resid) < 1e-4
+
