@@ -113,3 +113,12 @@ def test_matches_beyond_infinity_triangulate_to_zero_inverse_range():
     assert np.all(rho == 0.0)
     assert np.nanmax(resid) < 1e-4
 
+
+def test_sgbm_zero_disparity_is_a_valid_far_match():
+    """Identical rectified images (a scene at infinity): StereoSGBM's disparity 0 is a real match, the far end, and
+    must stay finite; only OpenCV's invalid value (minDisparity - 1 = -1 px) becomes NaN."""
+    left, _ = shifted_pair(0.0, w=200)
+    disp = sgbm_disparity(left, left, max_disp=32)
+    core = disp[15:-15, 50:-15]
+    assert np.isfinite(core).mean() > 0.9
+    assert np.nanmax(np.abs(core)) < 0.25
