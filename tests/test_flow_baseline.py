@@ -145,3 +145,31 @@ def test_dis_with_a_finer_camera_b_maps_matches_back_through_pixel_centres():
     valid = (res.flags[core] & VALID) > 0
     assert valid.mean() > 0.9
     assert abs(np.median(res.range_m[core][valid]) / (f * b / d) - 1) < 0.01
+
+
+def test_matches_of_points_behind_camera_b_are_out_of_view(monkeypatch):
+    """Camera b 10 m ahead of a (forward motion), flow replaced by the exact matches of the forward map: a plane at
+    20 m (depth ratio den = 1 - 10/20 = 0.5) is ranged at 20 m, but a plane at 5 m is behind camera b (den = -1, hand
+    value); its mirrored matches still land inside image b and triangulate exactly to 5 m, so only the den > 0 test
+    keeps these pixels from being published as VALID 5 m obstacles: all must be OUT_OF_VIEW, none VALID."""
+    import eonav.ranging.methods.flow_baseline as fbm
+    from eonav.ranging.rangemap import OUT_OF_VIEW
+    h, w = 40, 60
+    cam = Camera("c", w, h, 100.0, 100.0, (w - 1) / 2, (h - 1) / 2)
+    va = View(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((h, w)))
+    vb = View(cam, VehicleState.from_ypr([10, 0, 0], [0, 0, 0]), np.zeros((h, w)))
+    geo = pair_geometry(va, vb)
+    u, v = cam.pixel_grid()
+    for rng_m in (20.0, 5.0):
+        ub, vb_, den = geo.map_to_b(np.full((h, w), 1 / rng_m, np.float32))
+        np.testing.assert_allclose(den, 1 - 10 / rng_m, atol=1e-6)
+        flow = np.stack([ub - u, vb_ - v], -1).astype(np.float32)
+        monkeypatch.setattr(fbm, "dis_flow", lambda a, b, preset="medium": flow)
+        res = fbm.locate_dis(va, vb)
+        valid = (res.flags & VALID) > 0
+        if rng_m == 20.0:
+            assert valid.mean() > 0.2       # the image doubles in size: about its central quarter stays in view
+            np.testing.assert_allclose(res.range_m[valid], 20.0, rtol=1e-3)
+        else:
+            assert not valid.any()
+            assert np.all(res.flags & OUT_OF_VIEW)
