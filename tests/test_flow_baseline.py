@@ -173,3 +173,23 @@ def test_matches_of_points_behind_camera_b_are_out_of_view(monkeypatch):
         else:
             assert not valid.any()
             assert np.all(res.flags & OUT_OF_VIEW)
+
+
+def test_noise_free_flow_keeps_the_flow_noise_floor(monkeypatch):
+    """Rectified pair (f = 100 px, b = 0.1 m) with the flow replaced by the exact matches of a 10 m plane: the epipolar
+    residual is 0, yet the flow noise is floored at 0.05 px, so sigma_rho = 0.05 / (f b) = 0.005 1/m and confidence
+    rho / sigma = 20 (hand values), never a zero sigma and an infinite confidence handed to the fusion."""
+    import eonav.ranging.methods.flow_baseline as fbm
+    h, w = 40, 60
+    a, bv = rectified(np.zeros((h, w)), np.zeros((h, w)), f=100.0, b=0.1)
+    geo = pair_geometry(a, bv)
+    u, v = a.camera.pixel_grid()
+    ub, vb_, _ = geo.map_to_b(np.full((h, w), 0.1, np.float32))
+    flow = np.stack([ub - u, vb_ - v], -1).astype(np.float32)
+    monkeypatch.setattr(fbm, "dis_flow", lambda a, b, preset="medium": flow)
+    res = fbm.locate_dis(a, bv)
+    valid = (res.flags & VALID) > 0
+    assert valid.mean() > 0.8
+    np.testing.assert_allclose(res.range_m[valid], 10.0, rtol=1e-4)
+    np.testing.assert_allclose(res.inv_range_std_per_m[valid], 0.005, rtol=1e-3)
+    np.testing.assert_allclose(res.confidence[valid], 20.0, rtol=1e-3)
