@@ -1,4 +1,7 @@
 """The bus schema: round trips, and hostile or malformed payloads rejected with a reason."""
+import re
+from pathlib import Path
+
 import msgpack
 import numpy as np
 import pytest
@@ -115,6 +118,68 @@ def test_keys_carry_the_vehicle_prefix_and_reject_wildcards():
         keys.nav_state("v1/*")
     with pytest.raises(ValueError, match="camera id"):
         keys.frame("v1", "**")
+
+
+def _documented_keys():
+    """The rows of the key table in docs/bus.md: (key pattern after ``eonav/<vehicle>/``, schema kind or '-')."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "bus.md").read_text()
+    rows = re.findall(r"^\| `([^`]+)` \| [^|]+ \| (`(\w+)`|-) \|$", doc, flags=re.M)
+    return {pattern: kind.strip("`") for pattern, kind, _ in rows}
+
+
+def test_keys_are_the_ones_docs_bus_md_documents():
+    """Every key eonav builds is the one docs/bus.md gives its producers and consumers (an external guidance
+    subscriber reads the table, not the code): a renamed key still matches its own producer but silently
+    disconnects every reader that follows the document. Truth: the table, with vehicle ``v1``, camera ``nose``,
+    service ``sync``."""
+    table = _documented_keys()
+    built = {
+        "camera/<camera_id>/frame": keys.frame("v1", "nose"),
+        "nav/state": keys.nav_state("v1"),
+        "nav/clock": keys.nav_clock("v1"),
+        "posed/<camera_id>/frame": keys.posed_frame("v1", "nose"),
+        "range/<camera_id>": keys.range_map("v1", "nose"),
+        "obstacles": keys.obstacles("v1"),
+        "health/<service>": keys.health("v1", "sync"),
+        "alive/<service>": keys.alive("v1", "sync"),
+        "config/<service>": keys.config("v1", "sync"),
+    }
+    assert set(table) == set(built)
+    for pattern, key in built.items():
+        want = "eonav/v1/" + pattern.replace("<camera_id>", "nose").replace("<service>", "sync")
+        assert key == want, pattern
+
+
+def test_each_wildcard_matches_its_own_topic_and_no_other():
+    """Subscribers use the wildcard forms (the sync takes every camera's frames, the obstacles service every range
+    map, the launcher every health): by zenoh's own matching, each must include its concrete keys for any camera
+    or service, and no concrete key may reach another topic's subscriber, e.g. obstacle tracks on the
+    ``obstacles`` key would reach the MAVLink output as if they were the obstacle list."""
+    zenoh = pytest.importorskip("zenoh")
+    v = "v1"
+    concrete = {
+        "frame": [keys.frame(v, c) for c in ("nose", "left_wing")],
+        "nav_state": [keys.nav_state(v)],
+        "nav_clock": [keys.nav_clock(v)],
+        "posed": [keys.posed_frame(v, c) for c in ("nose", "left_wing")],
+        "range": [keys.range_map(v, c) for c in ("nose", "left_wing")],
+        "obstacles": [keys.obstacles(v)],
+        "tracks": [keys.obstacle_tracks(v)],
+        "health": [keys.health(v, s) for s in ("sync", "locator")],
+        "alive": [keys.alive(v, s) for s in ("sync", "locator")],
+        "config": [keys.config(v, s) for s in ("sync", "locator")],
+    }
+    flat = [(topic, k) for topic, ks in concrete.items() for k in ks]
+    assert len({k for _, k in flat}) == len(flat)                  # no two topics share a key
+    subscribers = {"frame": keys.frames_all(v), "posed": keys.posed_frames_all(v), "range": keys.range_maps_all(v),
+                   "health": keys.health_all(v), "alive": keys.alive_all(v),
+                   "nav_state": keys.nav_state(v), "obstacles": keys.obstacles(v), "tracks": keys.obstacle_tracks(v)}
+    for topic, sub in subscribers.items():
+        got = {t for t, k in flat if zenoh.KeyExpr(sub).intersects(zenoh.KeyExpr(k))}
+        assert got == {topic}, (sub, got)
+    everything = zenoh.KeyExpr(keys.vehicle_all(v))
+    assert all(everything.includes(zenoh.KeyExpr(k)) for _, k in flat)
+    assert not any(everything.intersects(zenoh.KeyExpr(k.replace("eonav/v1/", "eonav/v2/"))) for _, k in flat)
 
 
 def test_camera_message_round_trip():
