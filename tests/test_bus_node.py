@@ -307,6 +307,23 @@ def test_session_flags_build_config(tmp_path, monkeypatch):
         S.split_endpoints("localhost:7447")
 
 
+def test_a_peer_with_a_config_file_keeps_the_files_listen_endpoints(tmp_path):
+    """The loopback listener ``tcp/127.0.0.1:0`` is added only to a peer given ``--connect`` with neither
+    ``--listen`` nor a config file: a deployment's file that names where the peer listens (here 0.0.0.0:7448, for
+    the other host) must keep it, or the other host can no longer reach this peer."""
+    f = tmp_path / "peer.json5"
+    f.write_text('{ mode: "peer", listen: { endpoints: ["tcp/0.0.0.0:7448"] } }')
+    p = argparse.ArgumentParser()
+    S.add_session_arguments(p)
+    a = p.parse_args(["--zenoh-config", str(f), "--mode", "peer", "--connect", "tcp/192.0.2.1:7447"])
+    assert "listen/endpoints" not in S.config_dict(a)
+    cfg = S.build_config(a)
+    assert json.loads(cfg.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7448"]
+    assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/192.0.2.1:7447"]
+    a = p.parse_args(["--mode", "peer", "--connect", "tcp/192.0.2.1:7447"])          # no file: loopback listener
+    assert json.loads(S.build_config(a).get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+
+
 def test_gc_pauses_are_timed_into_latencies_and_unwatched():
     """Collections of generations 1 and 2 show up as latencies gc.gen1 / gc.gen2; unwatch_gc removes the hook."""
     import gc
