@@ -324,6 +324,16 @@ def test_a_peer_with_a_config_file_keeps_the_files_listen_endpoints(tmp_path):
     assert json.loads(S.build_config(a).get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
 
 
+def test_lost_links_are_retried_after_a_quarter_second_then_every_half_second():
+    """Without a file setting ``connect/retry`` every session retries a lost link after 0.25 s, then every 0.5 s
+    (docs/zenoh.md, "Router restarts": zenoh's own 1 s doubling to 4 s found a restarted router up to 3.5 s late).
+    Hand values from that schedule, not the module's constant."""
+    p = argparse.ArgumentParser()
+    S.add_session_arguments(p)
+    retry = json.loads(S.build_config(p.parse_args(["--connect", "tcp/127.0.0.1:7447"])).get_json("connect/retry"))
+    assert retry == {"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}
+
+
 def test_gc_pauses_are_timed_into_latencies_and_unwatched():
     """Collections of generations 1 and 2 show up as latencies gc.gen1 / gc.gen2; unwatch_gc removes the hook."""
     import gc
