@@ -334,6 +334,20 @@ def test_lost_links_are_retried_after_a_quarter_second_then_every_half_second():
     assert retry == {"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}
 
 
+@pytest.mark.parametrize("value,on", [("1", True), ("TRUE", True), (" yes ", True), ("on", True),
+                                      ("0", False), ("off", False), ("no", False)])
+def test_multicast_and_shm_environment_switches(monkeypatch, value, on):
+    """``EONAV_ZENOH_MULTICAST`` / ``EONAV_ZENOH_SHM`` read as booleans (1/true/yes/on, any case and spacing, else
+    off) in deployed env files: ``=1`` must turn them on, ``=0`` must not."""
+    monkeypatch.setenv("EONAV_ZENOH_MULTICAST", value)
+    monkeypatch.setenv("EONAV_ZENOH_SHM", value)
+    p = argparse.ArgumentParser()
+    S.add_session_arguments(p)
+    d = S.config_dict(p.parse_args([]))
+    assert d["scouting/multicast/enabled"] is on
+    assert d["transport/shared_memory/enabled"] is on
+
+
 def test_gc_pauses_are_timed_into_latencies_and_unwatched():
     """Collections of generations 1 and 2 show up as latencies gc.gen1 / gc.gen2; unwatch_gc removes the hook."""
     import gc
