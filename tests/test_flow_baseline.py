@@ -27,14 +27,19 @@ def shifted_pair(d, h=120, w=160, noise=0.5, seed=0):
     return left, right
 
 
-def test_triangulation_exact_for_general_pose():
-    """Exact matches from the forward map (eqs. 25-26, general two-camera pose, different intrinsics):
-    the least-squares triangulation returns the inverse range it was built from, and a zero epipolar residual."""
+def _general_pose():
+    """A two-camera pair of general pose (different intrinsics, mounts and attitudes; 1.5 m of forward motion)."""
     ca = Camera("a", 64, 48, 300.0, 310.0, 31.0, 24.5, [1.0, 0.2, 0.1], np.deg2rad([1.0, -3.0, 0.5]))
     cb = Camera("b", 64, 48, 330.0, 320.0, 33.0, 22.0, [1.0, 0.6, 0.1], np.deg2rad([-0.5, -2.0, 0.0]))
     sa = VehicleState.from_ypr([0, 0, -5], np.deg2rad([2.0, 1.0, -1.0]))
     sb = VehicleState.from_ypr([1.5, -0.2, -5.1], np.deg2rad([2.5, 1.3, -0.7]))
-    geo = pair_geometry(View(ca, sa, np.zeros((48, 64))), View(cb, sb, np.zeros((48, 64))))
+    return pair_geometry(View(ca, sa, np.zeros((48, 64))), View(cb, sb, np.zeros((48, 64))))
+
+
+def test_triangulation_exact_for_general_pose():
+    """Exact matches from the forward map (eqs. 25-26, general two-camera pose, different intrinsics):
+    the least-squares triangulation returns the inverse range it was built from, and a zero epipolar residual."""
+    geo = _general_pose()
     rho = np.random.default_rng(0).uniform(0.01, 0.2, (48, 64)).astype(np.float32)
     ub, vb, _ = geo.map_to_b(rho)
     est, sens, resid, _ = triangulate_matches(geo, ub, vb)
@@ -84,11 +89,7 @@ def test_triangulation_sensitivity_is_the_derivative_of_the_forward_map():
     """sens is |d(u_b, v_b)/d rho| in pixels of b (what sigma_rho = flow noise / sens rests on). Independent truth: the
     central difference of the exact forward map (map_to_b) for a pose with 1.5 m of forward motion, where the depth
     ratio den = A0 + B0 rho is 0.7 - 1.0; a sensitivity not divided by den is up to 1 / 0.7 too large."""
-    ca = Camera("a", 64, 48, 300.0, 310.0, 31.0, 24.5, [1.0, 0.2, 0.1], np.deg2rad([1.0, -3.0, 0.5]))
-    cb = Camera("b", 64, 48, 330.0, 320.0, 33.0, 22.0, [1.0, 0.6, 0.1], np.deg2rad([-0.5, -2.0, 0.0]))
-    sa = VehicleState.from_ypr([0, 0, -5], np.deg2rad([2.0, 1.0, -1.0]))
-    sb = VehicleState.from_ypr([1.5, -0.2, -5.1], np.deg2rad([2.5, 1.3, -0.7]))
-    geo = pair_geometry(View(ca, sa, np.zeros((48, 64))), View(cb, sb, np.zeros((48, 64))))
+    geo = _general_pose()
     rho = np.random.default_rng(7).uniform(0.01, 0.2, (48, 64)).astype(np.float32)
     ub, vb, _ = geo.map_to_b(rho)
     _, sens, _, den = triangulate_matches(geo, ub, vb)
