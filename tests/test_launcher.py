@@ -388,3 +388,25 @@ def test_children_stop_when_launcher_is_killed(svc_pkg):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_children_import_the_installed_eonav_not_a_folder_of_that_name_in_the_working_directory(tmp_path, monkeypatch):
+    """``eonav run`` from a folder that holds a checkout called ``eonav`` (a namespace package to ``python -m``):
+    the router and the services start with ``python -P`` and import the installed eonav, and the pipeline runs; a
+    plain ``python -m`` there picks the folder and fails to import (the control)."""
+    from eonav.app.processes import start_router, stop_processes
+    (tmp_path / "eonav").mkdir()                                   # a checkout's root: no __init__.py
+    monkeypatch.chdir(tmp_path)
+    plain = subprocess.run([sys.executable, "-m", "eonav.bus.router", "--help"], capture_output=True, text=True,
+                           timeout=60)
+    assert plain.returncode != 0 and "ImportError" in plain.stderr
+    proc, ep = start_router(free_port())
+    try:
+        assert proc.poll() is None and ep.startswith("tcp/")
+    finally:
+        stop_processes([proc], 5.0)
+    spec = L.ServiceSpec("sync", "eonav.services.sync")
+    argv = L.Supervisor([spec], vehicle="v", router="tcp/127.0.0.1:1", ctx={}).argv(spec)
+    assert argv[:4] == [sys.executable, "-P", "-m", "eonav.services.sync"]
+    started = subprocess.run([*argv[:4], "--help"], capture_output=True, text=True, timeout=60)
+    assert started.returncode == 0 and "usage" in started.stdout

@@ -1,7 +1,7 @@
 """``eonav run``: the whole pipeline on one machine, with an embedded zenoh router.
 
 :func:`run_pipeline` (the function under the command) starts ``python -m eonav.bus.router`` on a loopback port, then
-every service of a pipeline spec as its own OS process (``sys.executable -m eonav.services.<module>``: spawned, never
+every service of a pipeline spec as its own OS process (``sys.executable -P -m eonav.services.<module>``: spawned, never
 forked from a process holding a zenoh session), all connected to the router with the same ``--vehicle``. It
 supervises them (exit 0 = finished, exit 2 = configuration error: neither restarted; anything else restarted with
 back-off), the router too (:class:`EmbeddedRouter`: restarted on the same port with the same back-off; the services
@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Callable
 
 from eonav import EonavError, InputError
-from eonav.app.processes import free_port, start_router, stop_processes
+from eonav.app.processes import SAFE_PATH, free_port, start_router, stop_processes
 
 log = logging.getLogger("eonav.app.launcher")
 
@@ -226,7 +226,7 @@ class Supervisor:
 
     def argv(self, sp: ServiceSpec) -> list[str]:
         zc = self.zenoh_configs.get(sp.name)
-        return [sys.executable, "-m", sp.module, "--name", sp.name, "--vehicle", self.vehicle,
+        return [sys.executable, *SAFE_PATH, "-m", sp.module, "--name", sp.name, "--vehicle", self.vehicle,
                 "--connect", self.router, *(["--zenoh-config", str(zc)] if zc else []),
                 *[_subst(a, self.ctx) for a in sp.args]]
 

@@ -48,11 +48,17 @@ def stop_processes(popens: list, grace_s: float) -> None:
             pp.wait()
 
 
+# ``python -P``: the working directory is not put first on a child's import path, so a folder there named like a
+# package (a checkout called ``eonav`` beside which one runs ``eonav run``) cannot shadow the installed one; the
+# children import what the parent does (PYTHONPATH still applies)
+SAFE_PATH = ("-P",)
+
+
 def start_router(port: int, *, host: str = "127.0.0.1", timeout_s: float = 15.0, log_level: str = "warning",
                  zenoh_config: str | None = None) -> tuple[subprocess.Popen, str]:
     """Start ``python -m eonav.bus.router`` and wait for its READY line. Returns (process, endpoint)."""
     endpoint = f"tcp/{host}:{port}"
-    argv = [sys.executable, "-m", "eonav.bus.router", "--listen", endpoint, "--log-level", log_level]
+    argv = [sys.executable, *SAFE_PATH, "-m", "eonav.bus.router", "--listen", endpoint, "--log-level", log_level]
     if zenoh_config:
         argv += ["--zenoh-config", zenoh_config]
     env = dict(os.environ, EONAV_SUPERVISOR_PID=str(os.getpid()))
