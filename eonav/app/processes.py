@@ -95,11 +95,11 @@ def router_process(port: int | None = None):
 
 
 def start_service(argv: list[str], env: dict | None = None, **kw) -> subprocess.Popen:
-    """``sys.executable *argv`` in its own process group, stderr captured (text)."""
+    """``sys.executable -P *argv`` (``SAFE_PATH``) in its own process group, stderr captured (text)."""
     e = dict(os.environ)
     e.update(env or {})
     e.setdefault("PYTHONUNBUFFERED", "1")
-    return subprocess.Popen([sys.executable, *argv], env=e, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, *SAFE_PATH, *argv], env=e, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             stdin=subprocess.DEVNULL, text=True, start_new_session=True, **kw)
 
 
