@@ -94,20 +94,27 @@ def test_tlog_decodes_back_to_flight_states(rec, position_source):
     assert max(pos_err) < (1e-5 if position_source == "LOCAL_POSITION_NED" else 0.012)   # degE7 ~ 1 cm
 
 
+def _tlog_messages(rec, typ: str):
+    """The recording's tlog messages of type ``typ`` (pymavlink) and their times from the flight's start (s, from
+    time_boot_ms and the manifest's clocks)."""
+    man = json.loads((rec / "manifest.json").read_text())
+    conn = mavutil_v2().mavlink_connection(str(rec / "flight.tlog"), dialect="ardupilotmega")
+    msgs = []
+    while (m := conn.recv_match(type=typ, blocking=False)) is not None:
+        msgs.append(m)
+    conn.close()
+    return msgs, np.array([(m.time_boot_ms * 1000 + man["boot_offset_us"] - man["start_unix_us"]) / 1e6
+                           for m in msgs])
+
+
 def test_global_position_int_fields_follow_the_mavlink_units_and_signs(rec):
     """GLOBAL_POSITION_INT of the approach flight against its closed form (6 + 0.3 sin 0.7t m up, 20 m/s north,
     east 1.5 sin 0.4t, yaw 0.6 deg sin 0.5t), in MAVLink's units: relative_alt mm ABOVE home (positive up), alt
     mm above the origin's 488 m, vx vy vz cm/s NED, hdg centidegrees in 0..35999. Another tool reads the tlog
     (pymavlink here): catches relative_alt written as NED down."""
-    man = json.loads((rec / "manifest.json").read_text())
-    conn = mavutil_v2().mavlink_connection(str(rec / "flight.tlog"), dialect="ardupilotmega")
-    msgs = []
-    while (m := conn.recv_match(type="GLOBAL_POSITION_INT", blocking=False)) is not None:
-        msgs.append(m)
-    conn.close()
+    msgs, times = _tlog_messages(rec, "GLOBAL_POSITION_INT")
     assert len(msgs) == 26
-    for m in msgs:
-        t = (m.time_boot_ms * 1000 + man["boot_offset_us"] - man["start_unix_us"]) / 1e6
+    for m, t in zip(msgs, times):
         height_m = 6.0 + 0.3 * np.sin(0.7 * t)
         assert abs(m.relative_alt - 1000 * height_m) <= 1.0
         assert abs(m.alt - 1000 * (488.0 + height_m)) <= 1.0
@@ -122,13 +129,7 @@ def test_body_rates_are_in_the_body_frame(rec):
     body frame p = 0, q = w sin 15, r = w cos 15; the climbing flight pitches up at 8/0.7 e^(-t/0.7) deg/s
     (2.7389 deg/s at 1 s) with no roll or yaw. The tlog's ATTITUDE carries them as written (float32). Catches the
     rates taken in NED (q = 0, r = w while banked) and a rate's sign flipped on the wire."""
-    man = json.loads((rec / "manifest.json").read_text())
-    conn = mavutil_v2().mavlink_connection(str(rec / "flight.tlog"), dialect="ardupilotmega")
-    att = []
-    while (m := conn.recv_match(type="ATTITUDE", blocking=False)) is not None:
-        att.append(m)
-    conn.close()
-    t = np.array([(m.time_boot_ms * 1000 + man["boot_offset_us"] - man["start_unix_us"]) / 1e6 for m in att])
+    att, t = _tlog_messages(rec, "ATTITUDE")
     np.testing.assert_allclose([[m.rollspeed, m.pitchspeed, m.yawspeed] for m in att],
                                nav_truth("approach", t)["rates_frd_radps"], atol=1e-7)
     w = 0.17523877184995426
