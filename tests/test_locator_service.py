@@ -589,7 +589,7 @@ def test_a_rigs_partner_frames_go_before_its_references_in_a_drained_batch():
 
 # ---- range_pair in process: a Node whose session records its puts, a stand-in locate -----------------------------
 
-class _RecordingSession:
+class RecordingSession:
     """Stands in for the zenoh session of an in-process Node: every put, in order, as (key, payload bytes)."""
 
     def __init__(self):
@@ -610,7 +610,7 @@ def _pair_harness(gate=None):
     from eonav.bus.node import Node
     from eonav.geometry.camera import Camera
     from eonav.services.locator import CameraCache, frame_info
-    session = _RecordingSession()
+    session = RecordingSession()
     node = Node("locator", argparse.Namespace(vehicle="v", input_grace_s=10.0, health_period_s=1.0), session,
                 log=logging.getLogger("test.locator"))
     pubs = {"nose": node.publisher(K.range_map("v", "nose"), image=True)}

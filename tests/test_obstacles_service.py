@@ -23,19 +23,10 @@ from eonav.obstacles import detect as ob
 from eonav.ranging.rangemap import AT_INFINITY, VALID
 from eonav.services import obstacles as O
 from eonav.services.locator import CameraCache
+from test_locator_service import RecordingSession
 from test_obstacles import ALT_M, CAM, CFG, add_wall, ground_and_sky
 
 AHEAD = 4            # the sector whose centre is straight ahead: angle_offset -20 deg, increment 5 deg
-
-
-class RecordingSession:
-    """Stands in for the zenoh session: every put, in order, as (key, payload bytes)."""
-
-    def __init__(self):
-        self.puts = []
-
-    def declare_publisher(self, key, **kw):
-        return SimpleNamespace(put=lambda payload: self.puts.append((str(key), bytes(payload))))
 
 
 class RecordingSender:
