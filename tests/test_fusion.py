@@ -317,6 +317,23 @@ def test_filled_pixels_of_a_measurement_are_not_fused(kernels):
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_a_pixel_without_a_usable_sigma_or_range_carries_no_measurement(kernels):
+    """A VALID pixel whose sigma is 0 (a degenerate fit), infinite or NaN, or whose rho is NaN, is no measurement
+    (``update.measured``: finite rho, finite sigma > 0): it neither starts an empty cell nor moves a converged one.
+    Fused, a sigma of 0 would start a cell with variance 0 (an infinitely confident range) or collapse a converged
+    cell's variance onto the measurement, which then rejects every later one as an outlier. Catches the sigma > 0
+    test dropped."""
+    for x, tau in ((0.05, 0.0), (0.05, np.inf), (0.05, np.nan), (np.nan, 1e-3)):
+        empty = one_cell_state()
+        c = measure(empty, x, tau, kernels)
+        assert c["measured"] == 0 and c["started"] == 0 and not empty.occupied().any(), (x, tau)
+        st = planar_state(cam(4, 4), 0.04)
+        c = measure(st, x, tau, kernels)
+        assert c["measured"] == 0, (x, tau)
+        assert (st.rho == np.float32(0.04)).all() and (st.var == np.float32(1e-6)).all() and (st.n == 3).all()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_one_update_of_a_doubtful_measurement_matches_the_published_moment_match_derived_by_hand(kernels):
     """One Gaussian x uniform update (Vogiatzis & Hernandez) where the measurement may be either (C1 ~ 0.6), so that
     every term counts: the Gaussian's normalisation, the uniform density 1 / rho_max, the mixture's spread in the
