@@ -652,6 +652,19 @@ def test_slant_term_of_a_tilted_plane_and_at_a_depth_edge_derived_by_hand(kernel
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_slant_term_of_a_plane_tilted_along_the_rows_reaches_the_first_and_last_column(kernels):
+    """The test above turned a quarter: rho = 0.05 + 0.002 u, one surface tilted along u (0.002 /m per pixel), so
+    every cell, the first and last columns included (one horizontal neighbour each, the same difference), reports
+    sigma^2 = var + (1.5 x 0.002)^2. Catches a border column's missing neighbour taken as the cell itself (a zero
+    difference: the first or last column reported with the filter's sigma alone, 30 x too tight)."""
+    st = planar_state(cam(64, 48), 0.05 + 0.002 * np.arange(64, dtype=np.float32)[None, :], var=1e-8)
+    m = fused_map(st, MapConfig(fill=False, slant_px=1.5), kernels=kernels)
+    want = np.sqrt(1e-8 + (1.5 * 0.002) ** 2)
+    assert np.allclose(m.inv_range_std_per_m[:, [0, 1, 62, 63]], want, rtol=1e-4)
+    assert np.allclose(m.inv_range_std_per_m, want, rtol=1e-4)
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_an_empty_cell_is_filled_from_converged_neighbours_and_an_occluded_one_only_from_a_tight_plane(kernels):
     # a converged plane rho = 0.05 + 0.0004 u - 0.0003 v with a 6 x 6 hole of empty cells: the fill's plane through
     # the neighbours gives the hole the plane's own rho (FILLED, a finite sigma); the hole's last measurement
