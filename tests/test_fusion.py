@@ -1228,6 +1228,23 @@ def test_a_long_run_of_agreeing_measurements_keeps_the_cells_evidence_finite(ker
     assert np.abs(st.rho - 0.02).max() < 0.0002
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_cells_measurement_count_stays_at_its_largest_value_and_the_cell_stays_reported(kernels):
+    """n (uint16) stops at 65535 (36 min of 30 Hz frames on one cell: a hover): further measurements keep it there.
+    Wrapped round to 0, then 1, a converged cell would count as one fresh measurement, and the held-single rule
+    would withdraw its range the first time a pair did not range it (here: LOW_TEXTURE). Catches the saturation
+    dropped (n + 1)."""
+    st = one_cell_state()
+    st.rho[...], st.var[...], st.a[...], st.b[...], st.n[...] = 0.04, 1e-6, 7.0, 1.0, 65534
+    for _ in range(3):
+        c = measure(st, 0.04, 2e-3, kernels)
+        assert c["measured"] == 16 and (st.n == 65535).all()
+    measure(st, 0.04, 2e-3, kernels, flags=LOW_TEXTURE)
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert (st.n == 65535).all() and m.info["held_fraction"] == 0
+    assert (m.flags == VALID).all() and np.allclose(m.range_m, 25.0, rtol=1e-4)
+
+
 def _held_cell(kernels, n_valid, last_flags, mcfg=MapConfig(fill=False)):
     """One cell ranged 25 m by ``n_valid`` VALID measurements, then one with ``last_flags``, mapped with ``mcfg``
     by update_and_map (the locator's sweep) and by update then fused_map; both maps returned."""
