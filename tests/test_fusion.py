@@ -1305,7 +1305,9 @@ def test_a_single_measurement_no_later_pair_repeated_is_not_reported(kernels):
     measure(st, 0.04, 0.02, kernels, flags=LOW_TEXTURE)
     m = fused_map(st, MapConfig(fill=False), kernels=kernels)
     assert (st.n == 1).all() and (m.flags == ILL_CONDITIONED).all() and m.info["held_fraction"] == 0
-    for last in (ILL_CONDITIONED, TRUNCATION):          # the pair looked and could not range it: held as well
+    # the pair looked and could not range it: held as well; a FILLED pixel (its neighbours' plane, not its own
+    # match) is no range either (catches the held rule testing the VALID bit alone, which takes it for one)
+    for last in (ILL_CONDITIONED, TRUNCATION, VALID | FILLED):
         for m in _held_cell(kernels, 1, last)[:2]:
             assert (m.flags == ILL_CONDITIONED).all() and m.info["held_fraction"] == 1.0
     for m in _held_cell(kernels, 1, ILL_CONDITIONED | TRUNCATION, MapConfig(fill=False, held_single=False))[:2]:
