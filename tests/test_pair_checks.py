@@ -197,6 +197,33 @@ def test_match_brightness_and_dense_on_a_gain_changed_pair():
     assert e_fixed - e_ref < e_dark - e_fixed                    # nearer the unchanged pair's 0.7 % than the dark one's
 
 
+def test_checked_dense_adds_the_pose_term_of_the_pair_from_a_to_b():
+    """checked_dense's pose term on the pair's own geometry, a to b. The plane pair: b 1 m nearer the wall and 0.3 m
+    right, R = I, so t_ba = (-1, -0.3, 0), den = 1 - rho and C = f (m1 - 0.3, m2) by hand: every VALID pixel's
+    sigma^2 gains (s den^2 / |C|)^2 over the plain dense method's, s the pair's pose shift (its tracks' noise with
+    exact poses). With b's attitude 0.4 deg off in yaw the shift is about f delta = 1.07 px and the same form holds
+    within 2 % (the yaw turns the rays by 0.007 rad, which the R = I values leave out). Catches the geometry taken
+    from b to a (den = 1 + rho: the term 22 % too large at 20 m)."""
+    va, vb = _plane_pair(192)
+    c = va.camera
+    v, u = np.mgrid[0:192, 0:192]
+    m1, m2 = (u - c.cx) / c.fx, (v - c.cy) / c.fy
+    for yaw_deg, rtol in ((0.0, 1e-3), (0.4, 0.02)):
+        b = _rotated(vb, yaw_deg) if yaw_deg else vb
+        res = checked_dense(va, b, brightness=False)
+        plain = locate_dense(va, b, fill=False)
+        s = res.info["pair_check"]["pose_shift_px"]
+        if yaw_deg:
+            assert 0.85 * c.fx * np.radians(yaw_deg) < s < 1.15 * c.fx * np.radians(yaw_deg)
+        rho = res.inv_range_per_m.astype(np.float64)
+        after, before = (r.inv_range_std_per_m.astype(np.float64) for r in (res, plain))
+        ok = ((res.flags & VALID) != 0) & np.isfinite(after)
+        assert ok.mean() > 0.7
+        extra = np.sqrt(after[ok] ** 2 - before[ok] ** 2)
+        expect = s * (1.0 - rho[ok]) ** 2 / (c.fx * np.hypot(m1[ok] - 0.3, m2[ok]))
+        np.testing.assert_allclose(extra, expect, rtol=rtol)
+
+
 def test_pose_sigma_term_by_hand():
     # sideways pair (b 0.5 m right, R = I): den = 1, sensitivity = fx b, so sigma^2 gains (shift / (fx b))^2
     cam = Camera("c", 64, 48, 80.0, 80.0, 31.5, 23.5)
