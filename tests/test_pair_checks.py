@@ -247,6 +247,27 @@ def test_pose_sigma_term_by_hand():
         assert np.array_equal(r2.inv_range_std_per_m, std)
 
 
+def test_pose_sigma_term_of_a_vertical_baseline_by_hand_with_non_square_pixels():
+    """fx 80, fy 60 (non-square pixels), R = I: b 0.5 m below a (the lines are columns) moves a pixel fy b rho, the
+    sensitivity is fy b = 30 px per 1/m, and sigma^2 gains (shift / 30)^2; b 0.5 m to the right: fx b = 40. The
+    numba pass (``add_pose_sigma``) and the numpy reference alike. Catches the vertical component scaled by fx
+    (the square-pixel tests cannot tell it; the bit-for-bit test only that the two paths differ)."""
+    from eonav.fusion.measure import _pose_sigma_numpy
+    cam = Camera("c", 64, 48, 80.0, 60.0, 31.5, 23.5)
+    a = View(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((48, 64), np.float32))
+    rho = np.full((48, 64), 0.1, np.float32)
+    std = np.full((48, 64), 0.004, np.float32)
+    for offset_ned, sens in (([0, 0, 0.5], 60.0 * 0.5), ([0, 0.5, 0], 80.0 * 0.5)):
+        geo = pair_geometry(a, View(cam, VehicleState.from_ypr(offset_ned, [0, 0, 0]), np.zeros((48, 64), np.float32)))
+        r = SimpleNamespace(inv_range_per_m=rho, inv_range_std_per_m=std.copy())
+        add_pose_sigma(r, geo, 0.6)
+        ref = std.copy()
+        _pose_sigma_numpy(rho, ref, geo, 0.6)
+        expect = np.sqrt(0.004 ** 2 + (0.6 / sens) ** 2)
+        assert np.allclose(r.inv_range_std_per_m, expect, rtol=1e-4), offset_ned
+        assert np.allclose(ref, expect, rtol=1e-4), offset_ned
+
+
 @pytest.mark.realdata
 def test_real_indoor_sequence_frame0_pose_is_the_inconsistent_one():
     # HoloLens sequence: the headset's pose of frame 0 disagrees with its images (its pairs' tracks lie off the
