@@ -575,6 +575,27 @@ def test_state_shift_counts_points_the_state_holds_at_infinity():
     assert state_shift_px(rho, var, n, pair_geometry(a, b), tr) == pytest.approx(1.7, abs=1e-3)
 
 
+def test_state_shift_reads_each_tracks_own_cell_of_the_state():
+    """The state's inverse range is read at each track's own pixel (row v, column u). b 0.3 m to the right of a, the
+    same attitude: a point at rho has its place in b f b rho = 46.08 rho px left of its pixel in a. On a state that
+    varies along u (rho = 0.02 + 0.0005 u: 50 m on the left to 8.7 m on the right) tracks at those places offset by
+    (1.5, -0.8) px show 1.7 px. Read at (u, v), transposed, each place would be off by f b 0.0005 (v - u), up to
+    3.8 px. Catches the track's row and column swapped (a uniform state, as in the tests above, cannot tell)."""
+    from eonav.fusion.measure import state_shift_px
+    cam = Camera("c", 192, 192, 153.6, 153.6, 95.5, 95.5)
+    a = View(cam, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), np.zeros((192, 192), np.float32))
+    b = View(cam, VehicleState.from_ypr([0.0, 0.3, 0.0], [0.0, 0.0, 0.0]), np.zeros((192, 192), np.float32))
+    rho = np.repeat((0.02 + 0.0005 * np.arange(192, dtype=np.float32))[None, :], 192, axis=0)
+    y, x = np.mgrid[20:180:20, 16:180:24]
+    pa = np.stack([x.ravel(), y.ravel()], 1).astype(np.float32)            # 8 x 7 = 56 points
+    at = rho[y.ravel(), x.ravel()].astype(np.float64)
+    pb = pa + np.stack([1.5 - 153.6 * 0.3 * at, np.full(len(at), -0.8)], 1)
+    var = np.full((192, 192), 1e-4 ** 2, np.float32)
+    n = np.full((192, 192), 3, np.uint16)
+    assert state_shift_px(rho, var, n, pair_geometry(a, b), Tracks(pa, pb.astype(np.float32))) == pytest.approx(
+        1.7, abs=1e-3)
+
+
 def test_fusion_adds_the_along_line_pose_error_to_the_sigma():
     # four frames of the sideways wall (b, a, b, then a with a yaw error): the fourth push's pair, with the state
     # fused from two measurements on the wall, gets the along-line term, and its sigma grows by the yaw's shift in
