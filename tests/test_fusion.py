@@ -317,6 +317,23 @@ def test_filled_pixels_of_a_measurement_are_not_fused(kernels):
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_a_pixel_without_a_usable_sigma_or_range_carries_no_measurement(kernels):
+    """A VALID pixel whose sigma is 0 (a degenerate fit), infinite or NaN, or whose rho is NaN, is no measurement
+    (``update.measured``: finite rho, finite sigma > 0): it neither starts an empty cell nor moves a converged one.
+    Fused, a sigma of 0 would start a cell with variance 0 (an infinitely confident range) or collapse a converged
+    cell's variance onto the measurement, which then rejects every later one as an outlier. Catches the sigma > 0
+    test dropped."""
+    for x, tau in ((0.05, 0.0), (0.05, np.inf), (0.05, np.nan), (np.nan, 1e-3)):
+        empty = one_cell_state()
+        c = measure(empty, x, tau, kernels)
+        assert c["measured"] == 0 and c["started"] == 0 and not empty.occupied().any(), (x, tau)
+        st = planar_state(cam(4, 4), 0.04)
+        c = measure(st, x, tau, kernels)
+        assert c["measured"] == 0, (x, tau)
+        assert (st.rho == np.float32(0.04)).all() and (st.var == np.float32(1e-6)).all() and (st.n == 3).all()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_one_update_of_a_doubtful_measurement_matches_the_published_moment_match_derived_by_hand(kernels):
     """One Gaussian x uniform update (Vogiatzis & Hernandez) where the measurement may be either (C1 ~ 0.6), so that
     every term counts: the Gaussian's normalisation, the uniform density 1 / rho_max, the mixture's spread in the
@@ -632,6 +649,19 @@ def test_slant_term_of_a_tilted_plane_and_at_a_depth_edge_derived_by_hand(kernel
     m2 = fused_map(st, MapConfig(fill=False, slant_px=1.5), kernels=kernels)
     assert np.allclose(m2.inv_range_std_per_m[19], want, rtol=1e-4)
     assert np.isinf(m2.inv_range_std_per_m[20]).all()
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_slant_term_of_a_plane_tilted_along_the_rows_reaches_the_first_and_last_column(kernels):
+    """The test above turned a quarter: rho = 0.05 + 0.002 u, one surface tilted along u (0.002 /m per pixel), so
+    every cell, the first and last columns included (one horizontal neighbour each, the same difference), reports
+    sigma^2 = var + (1.5 x 0.002)^2. Catches a border column's missing neighbour taken as the cell itself (a zero
+    difference: the first or last column reported with the filter's sigma alone, 30 x too tight)."""
+    st = planar_state(cam(64, 48), 0.05 + 0.002 * np.arange(64, dtype=np.float32)[None, :], var=1e-8)
+    m = fused_map(st, MapConfig(fill=False, slant_px=1.5), kernels=kernels)
+    want = np.sqrt(1e-8 + (1.5 * 0.002) ** 2)
+    assert np.allclose(m.inv_range_std_per_m[:, [0, 1, 62, 63]], want, rtol=1e-4)
+    assert np.allclose(m.inv_range_std_per_m, want, rtol=1e-4)
 
 
 @pytest.mark.parametrize("kernels", PATHS)
@@ -1198,6 +1228,23 @@ def test_a_long_run_of_agreeing_measurements_keeps_the_cells_evidence_finite(ker
     assert np.abs(st.rho - 0.02).max() < 0.0002
 
 
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_cells_measurement_count_stays_at_its_largest_value_and_the_cell_stays_reported(kernels):
+    """n (uint16) stops at 65535 (36 min of 30 Hz frames on one cell: a hover): further measurements keep it there.
+    Wrapped round to 0, then 1, a converged cell would count as one fresh measurement, and the held-single rule
+    would withdraw its range the first time a pair did not range it (here: LOW_TEXTURE). Catches the saturation
+    dropped (n + 1)."""
+    st = one_cell_state()
+    st.rho[...], st.var[...], st.a[...], st.b[...], st.n[...] = 0.04, 1e-6, 7.0, 1.0, 65534
+    for _ in range(3):
+        c = measure(st, 0.04, 2e-3, kernels)
+        assert c["measured"] == 16 and (st.n == 65535).all()
+    measure(st, 0.04, 2e-3, kernels, flags=LOW_TEXTURE)
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert (st.n == 65535).all() and m.info["held_fraction"] == 0
+    assert (m.flags == VALID).all() and np.allclose(m.range_m, 25.0, rtol=1e-4)
+
+
 def _held_cell(kernels, n_valid, last_flags, mcfg=MapConfig(fill=False)):
     """One cell ranged 25 m by ``n_valid`` VALID measurements, then one with ``last_flags``, mapped with ``mcfg``
     by update_and_map (the locator's sweep) and by update then fused_map; both maps returned."""
@@ -1258,7 +1305,9 @@ def test_a_single_measurement_no_later_pair_repeated_is_not_reported(kernels):
     measure(st, 0.04, 0.02, kernels, flags=LOW_TEXTURE)
     m = fused_map(st, MapConfig(fill=False), kernels=kernels)
     assert (st.n == 1).all() and (m.flags == ILL_CONDITIONED).all() and m.info["held_fraction"] == 0
-    for last in (ILL_CONDITIONED, TRUNCATION):          # the pair looked and could not range it: held as well
+    # the pair looked and could not range it: held as well; a FILLED pixel (its neighbours' plane, not its own
+    # match) is no range either (catches the held rule testing the VALID bit alone, which takes it for one)
+    for last in (ILL_CONDITIONED, TRUNCATION, VALID | FILLED):
         for m in _held_cell(kernels, 1, last)[:2]:
             assert (m.flags == ILL_CONDITIONED).all() and m.info["held_fraction"] == 1.0
     for m in _held_cell(kernels, 1, ILL_CONDITIONED | TRUNCATION, MapConfig(fill=False, held_single=False))[:2]:

@@ -197,6 +197,33 @@ def test_match_brightness_and_dense_on_a_gain_changed_pair():
     assert e_fixed - e_ref < e_dark - e_fixed                    # nearer the unchanged pair's 0.7 % than the dark one's
 
 
+def test_checked_dense_adds_the_pose_term_of_the_pair_from_a_to_b():
+    """checked_dense's pose term on the pair's own geometry, a to b. The plane pair: b 1 m nearer the wall and 0.3 m
+    right, R = I, so t_ba = (-1, -0.3, 0), den = 1 - rho and C = f (m1 - 0.3, m2) by hand: every VALID pixel's
+    sigma^2 gains (s den^2 / |C|)^2 over the plain dense method's, s the pair's pose shift (its tracks' noise with
+    exact poses). With b's attitude 0.4 deg off in yaw the shift is about f delta = 1.07 px and the same form holds
+    within 2 % (the yaw turns the rays by 0.007 rad, which the R = I values leave out). Catches the geometry taken
+    from b to a (den = 1 + rho: the term 22 % too large at 20 m)."""
+    va, vb = _plane_pair(192)
+    c = va.camera
+    v, u = np.mgrid[0:192, 0:192]
+    m1, m2 = (u - c.cx) / c.fx, (v - c.cy) / c.fy
+    for yaw_deg, rtol in ((0.0, 1e-3), (0.4, 0.02)):
+        b = _rotated(vb, yaw_deg) if yaw_deg else vb
+        res = checked_dense(va, b, brightness=False)
+        plain = locate_dense(va, b, fill=False)
+        s = res.info["pair_check"]["pose_shift_px"]
+        if yaw_deg:
+            assert 0.85 * c.fx * np.radians(yaw_deg) < s < 1.15 * c.fx * np.radians(yaw_deg)
+        rho = res.inv_range_per_m.astype(np.float64)
+        after, before = (r.inv_range_std_per_m.astype(np.float64) for r in (res, plain))
+        ok = ((res.flags & VALID) != 0) & np.isfinite(after)
+        assert ok.mean() > 0.7
+        extra = np.sqrt(after[ok] ** 2 - before[ok] ** 2)
+        expect = s * (1.0 - rho[ok]) ** 2 / (c.fx * np.hypot(m1[ok] - 0.3, m2[ok]))
+        np.testing.assert_allclose(extra, expect, rtol=rtol)
+
+
 def test_pose_sigma_term_by_hand():
     # sideways pair (b 0.5 m right, R = I): den = 1, sensitivity = fx b, so sigma^2 gains (shift / (fx b))^2
     cam = Camera("c", 64, 48, 80.0, 80.0, 31.5, 23.5)
@@ -218,6 +245,27 @@ def test_pose_sigma_term_by_hand():
         r2 = Res()
         add_pose_sigma(r2, geo, s)
         assert np.array_equal(r2.inv_range_std_per_m, std)
+
+
+def test_pose_sigma_term_of_a_vertical_baseline_by_hand_with_non_square_pixels():
+    """fx 80, fy 60 (non-square pixels), R = I: b 0.5 m below a (the lines are columns) moves a pixel fy b rho, the
+    sensitivity is fy b = 30 px per 1/m, and sigma^2 gains (shift / 30)^2; b 0.5 m to the right: fx b = 40. The
+    numba pass (``add_pose_sigma``) and the numpy reference alike. Catches the vertical component scaled by fx
+    (the square-pixel tests cannot tell it; the bit-for-bit test only that the two paths differ)."""
+    from eonav.fusion.measure import _pose_sigma_numpy
+    cam = Camera("c", 64, 48, 80.0, 60.0, 31.5, 23.5)
+    a = View(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((48, 64), np.float32))
+    rho = np.full((48, 64), 0.1, np.float32)
+    std = np.full((48, 64), 0.004, np.float32)
+    for offset_ned, sens in (([0, 0, 0.5], 60.0 * 0.5), ([0, 0.5, 0], 80.0 * 0.5)):
+        geo = pair_geometry(a, View(cam, VehicleState.from_ypr(offset_ned, [0, 0, 0]), np.zeros((48, 64), np.float32)))
+        r = SimpleNamespace(inv_range_per_m=rho, inv_range_std_per_m=std.copy())
+        add_pose_sigma(r, geo, 0.6)
+        ref = std.copy()
+        _pose_sigma_numpy(rho, ref, geo, 0.6)
+        expect = np.sqrt(0.004 ** 2 + (0.6 / sens) ** 2)
+        assert np.allclose(r.inv_range_std_per_m, expect, rtol=1e-4), offset_ned
+        assert np.allclose(ref, expect, rtol=1e-4), offset_ned
 
 
 @pytest.mark.realdata
@@ -525,6 +573,27 @@ def test_state_shift_counts_points_the_state_holds_at_infinity():
     var = np.full((192, 192), 1e-4 ** 2, np.float32)                       # place moves f b 1e-4 = 0.005 px
     n = np.full((192, 192), 3, np.uint16)
     assert state_shift_px(rho, var, n, pair_geometry(a, b), tr) == pytest.approx(1.7, abs=1e-3)
+
+
+def test_state_shift_reads_each_tracks_own_cell_of_the_state():
+    """The state's inverse range is read at each track's own pixel (row v, column u). b 0.3 m to the right of a, the
+    same attitude: a point at rho has its place in b f b rho = 46.08 rho px left of its pixel in a. On a state that
+    varies along u (rho = 0.02 + 0.0005 u: 50 m on the left to 8.7 m on the right) tracks at those places offset by
+    (1.5, -0.8) px show 1.7 px. Read at (u, v), transposed, each place would be off by f b 0.0005 (v - u), up to
+    3.8 px. Catches the track's row and column swapped (a uniform state, as in the tests above, cannot tell)."""
+    from eonav.fusion.measure import state_shift_px
+    cam = Camera("c", 192, 192, 153.6, 153.6, 95.5, 95.5)
+    a = View(cam, VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), np.zeros((192, 192), np.float32))
+    b = View(cam, VehicleState.from_ypr([0.0, 0.3, 0.0], [0.0, 0.0, 0.0]), np.zeros((192, 192), np.float32))
+    rho = np.repeat((0.02 + 0.0005 * np.arange(192, dtype=np.float32))[None, :], 192, axis=0)
+    y, x = np.mgrid[20:180:20, 16:180:24]
+    pa = np.stack([x.ravel(), y.ravel()], 1).astype(np.float32)            # 8 x 7 = 56 points
+    at = rho[y.ravel(), x.ravel()].astype(np.float64)
+    pb = pa + np.stack([1.5 - 153.6 * 0.3 * at, np.full(len(at), -0.8)], 1)
+    var = np.full((192, 192), 1e-4 ** 2, np.float32)
+    n = np.full((192, 192), 3, np.uint16)
+    assert state_shift_px(rho, var, n, pair_geometry(a, b), Tracks(pa, pb.astype(np.float32))) == pytest.approx(
+        1.7, abs=1e-3)
 
 
 def test_fusion_adds_the_along_line_pose_error_to_the_sigma():
