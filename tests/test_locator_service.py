@@ -683,3 +683,49 @@ def test_range_pair_never_puts_a_map_older_than_the_last_one_put():
     put = [schema.decode(p, expect="range_map") for _, p in session.puts]
     assert [(m["seq"], m["stamp_us"]) for m in put] == [(5, t - 100_000), (6, t - 100_000), (7, t - 50_000)]
     assert node.counters()["dropped.out_of_order"] == 1 and gate.last_published_us("nose") == t - 50_000
+
+
+# ---- fuse_frame in process: the fused path's publish gate, its count, and the reset after a failed push ----------
+
+class OneMapPerFrame:
+    """Stands in for the fusion runner: each push gives one fused map of the pushed frame (25 m everywhere),
+    ``n_fused`` measurements per pixel (default 1). A runner whose state was just reset gives such a map for a frame
+    of any age."""
+
+    def __init__(self, n_fused=None):
+        self.n_fused, self.counts, self.measure = n_fused, {}, None
+
+    def push(self, fr):
+        from eonav.fusion.sequence import FusedMap
+        shape = (fr.camera.height, fr.camera.width)
+        n = np.ones(shape, np.uint16) if self.n_fused is None else self.n_fused
+        ms = [{"kind": "motion", "other_camera_id": fr.camera_id, "other_seq": fr.seq - 1, "baseline_m": 2.0}]
+        return [FusedMap(fr, _range_result(shape), n, ms, 0.01, 0.001)]
+
+
+def _fuse_frames(node, runner, pubs, cams, frames, gate=None):
+    """``fuse_frame`` for each posed frame in order, as the locate loop calls it (one scale controller, fixed
+    scale 1; the runner's counts and the frames behind the maps kept across calls)."""
+    from eonav.services.locator import fuse_frame, scale_controllers
+    sc, reported, sources = scale_controllers(1.0)(), {}, {}
+    for f in frames:
+        fuse_frame(node, runner, f, sc, pubs, "f16", time.perf_counter(), cams, "locate", reported, sources, gate)
+
+
+def test_fused_path_never_puts_a_map_older_than_the_last_one_put():
+    """The publish-side gate on the fused path (``fuse_frame``, the default with the dense method), as on the single
+    pair's: once the fused map of frame t is put, a fused map of an older frame is not put (``dropped.out_of_order``);
+    one as new or newer is, and the camera's mark is the newest stamp put (the arrival side checks against it)."""
+    from eonav.bus.freshness import FreshnessGate
+    t = time.time_ns() // 1000
+    gate = FreshnessGate(1.0, clock_us=lambda: t)
+    node, session, pubs, cams, pair = _pair_harness()
+    frames = [pair(stamp, seq).a for stamp, seq in ((t - 100_000, 5), (t - 200_000, 4), (t - 100_000, 6),
+                                                    (t - 50_000, 7))]
+    _fuse_frames(node, OneMapPerFrame(), pubs, cams, frames, gate)
+    put = [schema.decode(p, expect="range_map") for _, p in session.puts]
+    assert [(m["seq"], m["stamp_us"]) for m in put] == [(5, t - 100_000), (6, t - 100_000), (7, t - 50_000)]
+    assert all(m["method"] == "stand-in" and np.all(m["range_m"] == 25.0) for m in put)
+    c = node.counters()
+    assert c["dropped.out_of_order"] == 1 and c["maps_fused"] == 3 and gate.last_published_us("nose") == t - 50_000
+
