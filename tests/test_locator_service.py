@@ -729,3 +729,19 @@ def test_fused_path_never_puts_a_map_older_than_the_last_one_put():
     c = node.counters()
     assert c["dropped.out_of_order"] == 1 and c["maps_fused"] == 3 and gate.last_published_us("nose") == t - 50_000
 
+
+def test_fused_map_count_saturates_at_255():
+    """``n_fused`` travels as uint8 and saturates at 255 (docs/bus.md, range_map); the state counts up to 65535, so
+    a pixel fused 256, 300 or 1000 times reads 255, not the low byte (0, 44, 232: well measured shown as unmeasured
+    or barely measured)."""
+    node, session, pubs, cams, pair = _pair_harness()
+    n = np.zeros((12, 16), np.uint16)
+    n[0, :7] = [0, 1, 254, 255, 256, 300, 1000]
+    n[5:, :] = 65535
+    _fuse_frames(node, OneMapPerFrame(n), pubs, cams, [pair(time.time_ns() // 1000).a])
+    (_, payload), = session.puts
+    got = schema.decode(payload, expect="range_map")["n_fused"]
+    assert got.dtype == np.uint8 and got.shape == (12, 16)
+    assert got[0, :7].tolist() == [0, 1, 254, 255, 255, 255, 255]
+    assert np.all(got[5:] == 255) and np.all(got[1:5] == 0)
+
