@@ -745,3 +745,42 @@ def test_fused_map_count_saturates_at_255():
     assert got[0, :7].tolist() == [0, 1, 254, 255, 255, 255, 255]
     assert np.all(got[5:] == 255) and np.all(got[1:5] == 0)
 
+
+def test_a_failed_fusion_push_resets_the_cameras_state_and_the_next_maps_start_afresh(flight_frames):
+    """A push that raises (here: the measurement of frame 3) costs that frame's map, is counted (``locate_errors``,
+    ``fusion.resets_on_error``) and forgets the camera's state: the maps after it are built on the frames after it
+    only (per-pixel count 1, then 2), not on the state from before the failure (which would read 3, 4), and still
+    match the renderer's truth. The real fusion runner of the locator's default flags."""
+    import argparse
+
+    from eonav.services import locator
+    frames, _ = flight_frames
+    p = argparse.ArgumentParser()
+    locator.add_arguments(p)
+    runner = locator.fusion_runner(p.parse_args([]), {})
+    measure, failing = runner.measure, {"now": False}
+
+    def measure_or_fail(va, vb, **kw):
+        if failing["now"]:
+            raise ValueError("singular system")
+        return measure(va, vb, **kw)
+    runner.measure = measure_or_fail
+    node, session, pubs, cams, _ = _pair_harness()
+    stamps = [1_000_000 + 100_000 * i for i in range(len(frames))]
+    posed = [locator.frame_info(schema.decode(posed_frame_payload(i, stamps[i], view), expect="posed_frame"), cams)
+             for i, (_, view, _) in enumerate(frames)]
+    _fuse_frames(node, runner, pubs, cams, posed[:3])
+    failing["now"] = True
+    _fuse_frames(node, runner, pubs, cams, posed[3:4])
+    failing["now"] = False
+    _fuse_frames(node, runner, pubs, cams, posed[4:])
+    put = [schema.decode(p, expect="range_map") for _, p in session.puts]
+    assert [m["seq"] for m in put] == [1, 2, 4, 5]
+    assert [int(m["n_fused"].max()) for m in put] == [1, 2, 1, 2]
+    c = node.counters()
+    assert c["locate_errors"] == 1 and c["fusion.resets_on_error"] == 1 and c["maps_fused"] == 4
+    for m in put[2:]:
+        truth = frames[m["seq"]][2]
+        gt = on_grid(truth.range_m, m["range_m"].shape[1], m["range_m"].shape[0])
+        ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
+        assert ok.mean() > 0.2 and np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok]) < 0.05
