@@ -131,6 +131,14 @@ def test_outcome_exit_codes_and_the_summary_line():
     assert D.format_summary(s).splitlines()[-1].split()[:2] == ["verdict", "ok"]
 
 
+def test_verdict_exactly_at_the_threshold_is_ok():
+    # "fewer than 80 %" degrades, exactly 80 % does not: 8 of 10 frames seen is ok, 7 is not (the maps' side at
+    # exactly 80 %, 12 of 15, is above)
+    assert D.verdict(10, 8, 9) == ("ok", [])
+    state, why = D.verdict(10, 7, 9)
+    assert state == "degraded" and len(why) == 1 and "7/10 frames seen" in why[0]
+
+
 # ---- where a run writes ---------------------------------------------------------------------------------------
 
 def test_cache_is_per_user_and_run_folders_are_per_run(tmp_path, monkeypatch):
