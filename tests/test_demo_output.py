@@ -139,6 +139,12 @@ def test_verdict_exactly_at_the_threshold_is_ok():
     assert state == "degraded" and len(why) == 1 and "7/10 frames seen" in why[0]
 
 
+def test_an_interrupted_run_fails_whatever_it_ranged():
+    # Ctrl-C after every frame was ranged is still no finished run: failed, exit code 1, the reason given
+    out = D.outcome(_summary(16, 15), 0, "interrupted")
+    assert out["verdict"] == "failed" and out["exit_code"] == 1 and "stopped: interrupted" in out["verdict_reasons"][0]
+
+
 # ---- where a run writes ---------------------------------------------------------------------------------------
 
 def test_cache_is_per_user_and_run_folders_are_per_run(tmp_path, monkeypatch):
