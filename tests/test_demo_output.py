@@ -145,6 +145,55 @@ def test_an_interrupted_run_fails_whatever_it_ranged():
     assert out["verdict"] == "failed" and out["exit_code"] == 1 and "stopped: interrupted" in out["verdict_reasons"][0]
 
 
+# ---- the monitor's figures against the truth --------------------------------------------------------------------
+
+STAMP_US = 1_800_000_000_000_000
+
+
+class _Truth:
+    """Stands in for ``Truth``: one frame (stamped STAMP_US) whose true range is 20 m in the left half of an 8 x 8 grid
+    and 50 m in the right half, and whose nearest box, the pole, is 40 m away at bearing 50 deg from north."""
+    manifest = {"n_frames": 2}
+    range_m = np.hstack([np.full((8, 4), 20.0), np.full((8, 4), 50.0)])[None]
+
+    def index(self, stamp_us):
+        return 0 if stamp_us == STAMP_US else None
+
+    def nearest_box(self, i, min_pixels=50):
+        return ("pole", 40.0, 50.0)
+
+
+def _sample(kind, **fields):
+    """A bus sample carrying ``kind`` (what the monitor's callbacks take)."""
+    from types import SimpleNamespace
+
+    from eonav.bus import schema
+    data = schema.encode(kind, stamp_us=STAMP_US, **fields)
+    return SimpleNamespace(key_expr="test", payload=SimpleNamespace(to_bytes=lambda: data))
+
+
+def test_monitor_scores_only_the_valid_pixels_of_a_range_map():
+    """The demo's range error and coverage count the pixels the map says are VALID: on those the map is 10 % long
+    (error 0.1), on the other two rows it says 5 m (wrong, but flagged: not counted); coverage 48 / 64."""
+    from eonav.bus import schema
+    from eonav.geometry.camera import Camera
+    from eonav.ranging.rangemap import VALID
+    r = (_Truth.range_m[0] * 1.1).astype(np.float32)
+    flags = np.full((8, 8), VALID, np.uint8)
+    r[6:], flags[6:] = 5.0, 0
+    mon = D.Monitor("tcp/127.0.0.1:1", "v", _Truth())
+    mon._on_range(_sample("range_map", camera_id="nose", seq=1, method="test", range_m=r,
+                          confidence=np.ones((8, 8), np.float32), flags=flags,
+                          camera=schema.camera_to_msg(Camera("nose", 8, 8, 8.0, 8.0, 3.5, 3.5)),
+                          position_ned_m=[0, 0, 0], q_wxyz=[1, 0, 0, 0]), 0.0)
+    (score,) = mon.range_scores
+    assert score["frame"] == 0 and score["n_valid"] == 48 and score["coverage"] == 0.75
+    assert score["median_rel_error"] == pytest.approx(0.1, rel=1e-5)
+    assert score["p90_rel_error"] == pytest.approx(0.1, rel=1e-5)
+    s = mon.summary()
+    assert s["coverage"] == 0.75 and s["median_rel_error"] == pytest.approx(0.1, rel=1e-5)
+
+
 # ---- where a run writes ---------------------------------------------------------------------------------------
 
 def test_cache_is_per_user_and_run_folders_are_per_run(tmp_path, monkeypatch):
