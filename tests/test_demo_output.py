@@ -4,6 +4,7 @@ verdict on both sides of its threshold, and where a run writes (per-user cache, 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -192,6 +193,23 @@ def test_monitor_scores_only_the_valid_pixels_of_a_range_map():
     assert score["p90_rel_error"] == pytest.approx(0.1, rel=1e-5)
     s = mon.summary()
     assert s["coverage"] == 0.75 and s["median_rel_error"] == pytest.approx(0.1, rel=1e-5)
+
+
+def test_monitor_finds_the_nearest_box_at_its_bearing_from_the_nose():
+    """Obstacle bearings are from the nose (body frame, clockwise): with the vehicle yawed 30 deg (q_wxyz rotates body
+    into NED: cos 15 deg, 0, 0, sin 15 deg) the pole at 50 deg from north is 20 deg right of the nose. The obstacle
+    there (41 m: 2.5 % long) is the match, not the ones at 50 deg (north-referenced) or 80 deg (yaw added)."""
+    mon = D.Monitor("tcp/127.0.0.1:1", "v", _Truth())
+    h = math.radians(15.0)
+    obstacles = [{"id": 7, "distance_m": 30.0, "bearing_deg": 80.0}, {"id": 8, "distance_m": 35.0, "bearing_deg": 50.0},
+                 {"id": 9, "distance_m": 41.0, "bearing_deg": 20.0}]
+    mon._on_obstacles(_sample("obstacle_list", camera_id="nose", obstacles=obstacles,
+                              q_wxyz=[math.cos(h), 0.0, 0.0, math.sin(h)]), 0.0)
+    (score,) = mon.obst_scores
+    assert score["truth_box"] == "pole" and score["truth_bearing_deg"] == pytest.approx(20.0)
+    assert score["found"] and score["obstacle_id"] == 9 and score["rel_error"] == pytest.approx(0.025)
+    s = mon.summary()
+    assert s["nearest_box_found"] == "1/1" and s["nearest_box_median_rel_error"] == pytest.approx(0.025)
 
 
 # ---- where a run writes ---------------------------------------------------------------------------------------
