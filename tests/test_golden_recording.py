@@ -94,3 +94,12 @@ def test_compare_takes_a_runs_obstacles_in_any_order():
     rep = golden.compare(o, exp)
     assert rep["ok"], rep["problems"]
 
+
+def test_compare_fails_on_an_obstacle_list_nobody_expected():
+    """An obstacle list at a stamp with no expected one (a map made that should not have been) is a difference."""
+    exp = golden.load_expected(DATA)
+    o = expected_as_outputs(exp)
+    last = o["obstacle_lists"][-1]
+    o["obstacle_lists"].append(dict(copy.deepcopy(last), stamp_us=last["stamp_us"] + 200_000))
+    rep = golden.compare(o, exp)
+    assert not rep["ok"] and rep["problems"] == [f"unexpected obstacle lists at [{last['stamp_us'] + 200_000}]"]
