@@ -1,6 +1,8 @@
 """The demo's output: the picture (estimate and truth side by side, a colour bar in metres, obstacle boxes at their
 bbox with their range; checked pixel by pixel against a synthetic map of known ranges), the ok / degraded / failed
-verdict on both sides of its threshold, and where a run writes (per-user cache, per-run folder where it is run)."""
+verdict on both sides of its threshold, the monitor's figures against the truth (range error and coverage on VALID
+pixels, the nearest box matched at its bearing from the nose; hand-made maps and lists), and where a run writes
+(per-user cache, per-run folder where it is run)."""
 from __future__ import annotations
 
 import json
