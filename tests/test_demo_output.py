@@ -1,9 +1,12 @@
 """The demo's output: the picture (estimate and truth side by side, a colour bar in metres, obstacle boxes at their
 bbox with their range; checked pixel by pixel against a synthetic map of known ranges), the ok / degraded / failed
-verdict on both sides of its threshold, and where a run writes (per-user cache, per-run folder where it is run)."""
+verdict on both sides of its threshold, the monitor's figures against the truth (range error and coverage on VALID
+pixels, the nearest box matched at its bearing from the nose; hand-made maps and lists), and where a run writes
+(per-user cache, per-run folder where it is run)."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -129,6 +132,86 @@ def test_outcome_exit_codes_and_the_summary_line():
     assert line.split()[:2] == ["verdict", "degraded:"] and "12/16 frames seen" in line
     s.update(D.outcome(_summary(16, 15), 0, "replay ended"))
     assert D.format_summary(s).splitlines()[-1].split()[:2] == ["verdict", "ok"]
+
+
+def test_verdict_exactly_at_the_threshold_is_ok():
+    # "fewer than 80 %" degrades, exactly 80 % does not: 8 of 10 frames seen is ok, 7 is not (the maps' side at
+    # exactly 80 %, 12 of 15, is above)
+    assert D.verdict(10, 8, 9) == ("ok", [])
+    state, why = D.verdict(10, 7, 9)
+    assert state == "degraded" and len(why) == 1 and "7/10 frames seen" in why[0]
+
+
+def test_an_interrupted_run_fails_whatever_it_ranged():
+    # Ctrl-C after every frame was ranged is still no finished run: failed, exit code 1, the reason given
+    out = D.outcome(_summary(16, 15), 0, "interrupted")
+    assert out["verdict"] == "failed" and out["exit_code"] == 1 and "stopped: interrupted" in out["verdict_reasons"][0]
+
+
+# ---- the monitor's figures against the truth --------------------------------------------------------------------
+
+STAMP_US = 1_800_000_000_000_000
+
+
+class _Truth:
+    """Stands in for ``Truth``: one frame (stamped STAMP_US) whose true range is 20 m in the left half of an 8 x 8 grid
+    and 50 m in the right half, and whose nearest box, the pole, is 40 m away at bearing 50 deg from north."""
+    manifest = {"n_frames": 2}
+    range_m = np.hstack([np.full((8, 4), 20.0), np.full((8, 4), 50.0)])[None]
+
+    def index(self, stamp_us):
+        return 0 if stamp_us == STAMP_US else None
+
+    def nearest_box(self, i, min_pixels=50):
+        return ("pole", 40.0, 50.0)
+
+
+def _sample(kind, **fields):
+    """A bus sample carrying ``kind`` (what the monitor's callbacks take)."""
+    from types import SimpleNamespace
+
+    from eonav.bus import schema
+    data = schema.encode(kind, stamp_us=STAMP_US, **fields)
+    return SimpleNamespace(key_expr="test", payload=SimpleNamespace(to_bytes=lambda: data))
+
+
+def test_monitor_scores_only_the_valid_pixels_of_a_range_map():
+    """The demo's range error and coverage count the pixels the map says are VALID: on those the map is 10 % long
+    (error 0.1), on the other two rows it says 5 m (wrong, but flagged: not counted); coverage 48 / 64."""
+    from eonav.bus import schema
+    from eonav.geometry.camera import Camera
+    from eonav.ranging.rangemap import VALID
+    r = (_Truth.range_m[0] * 1.1).astype(np.float32)
+    flags = np.full((8, 8), VALID, np.uint8)
+    r[6:], flags[6:] = 5.0, 0
+    mon = D.Monitor("tcp/127.0.0.1:1", "v", _Truth())
+    mon._on_range(_sample("range_map", camera_id="nose", seq=1, method="test", range_m=r,
+                          confidence=np.ones((8, 8), np.float32), flags=flags,
+                          camera=schema.camera_to_msg(Camera("nose", 8, 8, 8.0, 8.0, 3.5, 3.5)),
+                          position_ned_m=[0, 0, 0], q_wxyz=[1, 0, 0, 0]), 0.0)
+    (score,) = mon.range_scores
+    assert score["frame"] == 0 and score["n_valid"] == 48 and score["coverage"] == 0.75
+    assert score["median_rel_error"] == pytest.approx(0.1, rel=1e-5)
+    assert score["p90_rel_error"] == pytest.approx(0.1, rel=1e-5)
+    s = mon.summary()
+    assert s["coverage"] == 0.75 and s["median_rel_error"] == pytest.approx(0.1, rel=1e-5)
+
+
+def test_monitor_finds_the_nearest_box_at_its_bearing_from_the_nose():
+    """Obstacle bearings are from the nose (body frame, clockwise): with the vehicle yawed 30 deg (q_wxyz rotates body
+    into NED: cos 15 deg, 0, 0, sin 15 deg) the pole at 50 deg from north is 20 deg right of the nose. The obstacle
+    there (41 m: 2.5 % long) is the match, not the ones at 50 deg (north-referenced) or 80 deg (yaw added)."""
+    mon = D.Monitor("tcp/127.0.0.1:1", "v", _Truth())
+    h = math.radians(15.0)
+    obstacles = [{"id": 7, "distance_m": 30.0, "bearing_deg": 80.0}, {"id": 8, "distance_m": 35.0, "bearing_deg": 50.0},
+                 {"id": 9, "distance_m": 41.0, "bearing_deg": 20.0}]
+    mon._on_obstacles(_sample("obstacle_list", camera_id="nose", obstacles=obstacles,
+                              q_wxyz=[math.cos(h), 0.0, 0.0, math.sin(h)]), 0.0)
+    (score,) = mon.obst_scores
+    assert score["truth_box"] == "pole" and score["truth_bearing_deg"] == pytest.approx(20.0)
+    assert score["found"] and score["obstacle_id"] == 9 and score["rel_error"] == pytest.approx(0.025)
+    s = mon.summary()
+    assert s["nearest_box_found"] == "1/1" and s["nearest_box_median_rel_error"] == pytest.approx(0.025)
 
 
 # ---- where a run writes ---------------------------------------------------------------------------------------

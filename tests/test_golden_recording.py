@@ -80,3 +80,26 @@ def test_compare_fails_on_drift_beyond_the_tolerances():
     o = expected_as_outputs(exp)                                  # moved by 0.2 %: within distance_rel 0.5 %
     o["obstacle_lists"][5]["obstacles"][0]["distance_m"] *= 1.002
     assert golden.compare(o, exp)["ok"]
+
+
+def test_compare_takes_a_runs_obstacles_in_any_order():
+    """Obstacles are compared nearest first (golden.TOLERANCES): the comparison sorts a run's list itself, as the
+    expected file is sorted, rather than relying on the obstacle service's order (nearest first today,
+    eonav.obstacles.detect), so every list reversed still compares equal."""
+    exp = golden.load_expected(DATA)
+    o = expected_as_outputs(exp)
+    for ol in o["obstacle_lists"]:
+        ol["obstacles"].reverse()
+    assert sum(len(ol["obstacles"]) > 1 for ol in o["obstacle_lists"]) == len(o["obstacle_lists"])
+    rep = golden.compare(o, exp)
+    assert rep["ok"], rep["problems"]
+
+
+def test_compare_fails_on_an_obstacle_list_nobody_expected():
+    """An obstacle list at a stamp with no expected one (a map made that should not have been) is a difference."""
+    exp = golden.load_expected(DATA)
+    o = expected_as_outputs(exp)
+    last = o["obstacle_lists"][-1]
+    o["obstacle_lists"].append(dict(copy.deepcopy(last), stamp_us=last["stamp_us"] + 200_000))
+    rep = golden.compare(o, exp)
+    assert not rep["ok"] and rep["problems"] == [f"unexpected obstacle lists at [{last['stamp_us'] + 200_000}]"]

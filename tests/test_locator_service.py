@@ -683,3 +683,104 @@ def test_range_pair_never_puts_a_map_older_than_the_last_one_put():
     put = [schema.decode(p, expect="range_map") for _, p in session.puts]
     assert [(m["seq"], m["stamp_us"]) for m in put] == [(5, t - 100_000), (6, t - 100_000), (7, t - 50_000)]
     assert node.counters()["dropped.out_of_order"] == 1 and gate.last_published_us("nose") == t - 50_000
+
+
+# ---- fuse_frame in process: the fused path's publish gate, its count, and the reset after a failed push ----------
+
+class OneMapPerFrame:
+    """Stands in for the fusion runner: each push gives one fused map of the pushed frame (25 m everywhere),
+    ``n_fused`` measurements per pixel (default 1). A runner whose state was just reset gives such a map for a frame
+    of any age."""
+
+    def __init__(self, n_fused=None):
+        self.n_fused, self.counts, self.measure = n_fused, {}, None
+
+    def push(self, fr):
+        from eonav.fusion.sequence import FusedMap
+        shape = (fr.camera.height, fr.camera.width)
+        n = np.ones(shape, np.uint16) if self.n_fused is None else self.n_fused
+        ms = [{"kind": "motion", "other_camera_id": fr.camera_id, "other_seq": fr.seq - 1, "baseline_m": 2.0}]
+        return [FusedMap(fr, _range_result(shape), n, ms, 0.01, 0.001)]
+
+
+def _fuse_frames(node, runner, pubs, cams, frames, gate=None):
+    """``fuse_frame`` for each posed frame in order, as the locate loop calls it (one scale controller, fixed
+    scale 1; the runner's counts and the frames behind the maps kept across calls)."""
+    from eonav.services.locator import fuse_frame, scale_controllers
+    sc, reported, sources = scale_controllers(1.0)(), {}, {}
+    for f in frames:
+        fuse_frame(node, runner, f, sc, pubs, "f16", time.perf_counter(), cams, "locate", reported, sources, gate)
+
+
+def test_fused_path_never_puts_a_map_older_than_the_last_one_put():
+    """The publish-side gate on the fused path (``fuse_frame``, the default with the dense method), as on the single
+    pair's: once the fused map of frame t is put, a fused map of an older frame is not put (``dropped.out_of_order``);
+    one as new or newer is, and the camera's mark is the newest stamp put (the arrival side checks against it)."""
+    from eonav.bus.freshness import FreshnessGate
+    t = time.time_ns() // 1000
+    gate = FreshnessGate(1.0, clock_us=lambda: t)
+    node, session, pubs, cams, pair = _pair_harness()
+    frames = [pair(stamp, seq).a for stamp, seq in ((t - 100_000, 5), (t - 200_000, 4), (t - 100_000, 6),
+                                                    (t - 50_000, 7))]
+    _fuse_frames(node, OneMapPerFrame(), pubs, cams, frames, gate)
+    put = [schema.decode(p, expect="range_map") for _, p in session.puts]
+    assert [(m["seq"], m["stamp_us"]) for m in put] == [(5, t - 100_000), (6, t - 100_000), (7, t - 50_000)]
+    assert all(m["method"] == "stand-in" and np.all(m["range_m"] == 25.0) for m in put)
+    c = node.counters()
+    assert c["dropped.out_of_order"] == 1 and c["maps_fused"] == 3 and gate.last_published_us("nose") == t - 50_000
+
+
+def test_fused_map_count_saturates_at_255():
+    """``n_fused`` travels as uint8 and saturates at 255 (docs/bus.md, range_map); the state counts up to 65535, so
+    a pixel fused 256, 300 or 1000 times reads 255, not the low byte (0, 44, 232: well measured shown as unmeasured
+    or barely measured)."""
+    node, session, pubs, cams, pair = _pair_harness()
+    n = np.zeros((12, 16), np.uint16)
+    n[0, :7] = [0, 1, 254, 255, 256, 300, 1000]
+    n[5:, :] = 65535
+    _fuse_frames(node, OneMapPerFrame(n), pubs, cams, [pair(time.time_ns() // 1000).a])
+    (_, payload), = session.puts
+    got = schema.decode(payload, expect="range_map")["n_fused"]
+    assert got.dtype == np.uint8 and got.shape == (12, 16)
+    assert got[0, :7].tolist() == [0, 1, 254, 255, 255, 255, 255]
+    assert np.all(got[5:] == 255) and np.all(got[1:5] == 0)
+
+
+def test_a_failed_fusion_push_resets_the_cameras_state_and_the_next_maps_start_afresh(flight_frames):
+    """A push that raises (here: the measurement of frame 3) costs that frame's map, is counted (``locate_errors``,
+    ``fusion.resets_on_error``) and forgets the camera's state: the maps after it are built on the frames after it
+    only (per-pixel count 1, then 2), not on the state from before the failure (which would read 3, 4), and still
+    match the renderer's truth. The real fusion runner of the locator's default flags."""
+    import argparse
+
+    from eonav.services import locator
+    frames, _ = flight_frames
+    p = argparse.ArgumentParser()
+    locator.add_arguments(p)
+    runner = locator.fusion_runner(p.parse_args([]), {})
+    measure, failing = runner.measure, {"now": False}
+
+    def measure_or_fail(va, vb, **kw):
+        if failing["now"]:
+            raise ValueError("singular system")
+        return measure(va, vb, **kw)
+    runner.measure = measure_or_fail
+    node, session, pubs, cams, _ = _pair_harness()
+    stamps = [1_000_000 + 100_000 * i for i in range(len(frames))]
+    posed = [locator.frame_info(schema.decode(posed_frame_payload(i, stamps[i], view), expect="posed_frame"), cams)
+             for i, (_, view, _) in enumerate(frames)]
+    _fuse_frames(node, runner, pubs, cams, posed[:3])
+    failing["now"] = True
+    _fuse_frames(node, runner, pubs, cams, posed[3:4])
+    failing["now"] = False
+    _fuse_frames(node, runner, pubs, cams, posed[4:])
+    put = [schema.decode(p, expect="range_map") for _, p in session.puts]
+    assert [m["seq"] for m in put] == [1, 2, 4, 5]
+    assert [int(m["n_fused"].max()) for m in put] == [1, 2, 1, 2]
+    c = node.counters()
+    assert c["locate_errors"] == 1 and c["fusion.resets_on_error"] == 1 and c["maps_fused"] == 4
+    for m in put[2:]:
+        truth = frames[m["seq"]][2]
+        gt = on_grid(truth.range_m, m["range_m"].shape[1], m["range_m"].shape[0])
+        ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
+        assert ok.mean() > 0.2 and np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok]) < 0.05
