@@ -268,6 +268,25 @@ def test_texture_has_energy_at_all_scales(pairs):
     assert min(energy) > 0.5, energy                                # grey levels; noise-free render
 
 
+def test_texture_frequency_clamp_is_per_point():
+    """The anti-aliasing clamp (eonav.sim.texture): an octave's weight is 0 at <= 2.5 footprints per centre
+    wavelength, 1 at >= 5, smoothstep between (hand: 3.125 -> s = 0.25 -> 0.15625; 3.75 -> 0.5). The texture is a
+    function of (point, footprint, seed) alone: a point whose footprint (20 m) fades out even the coarsest octave
+    (40.96 m) is exactly 0 -- also when evaluated together with near points -- and a near point's value does not
+    depend on what else is in the call. Catches the 'fully on everywhere' shortcut judged at the nearest footprint
+    (far points in a mixed render get unclamped, aliased octaves: two views of one surface disagree)."""
+    from eonav.sim.texture import fractal_noise, octave_weight
+    inv_fp = np.array([1 / 2.0, 2.5, 3.125, 3.75, 5.0, 8.0], np.float32)          # pixels per metre; lambda 1 m
+    np.testing.assert_allclose(octave_weight(1.0, inv_fp), [0.0, 0.0, 0.15625, 0.5, 1.0, 1.0], atol=1e-6)
+    x, y = np.array([3.1, 57.0, -8.2]), np.array([-1.7, 12.5, 40.0])
+    fp = np.array([0.004, 20.0, 0.3])                                  # near, beyond every octave, in between
+    both = fractal_noise(x, y, fp, seed=11)
+    alone = [fractal_noise(x[i:i + 1], y[i:i + 1], fp[i:i + 1], seed=11)[0] for i in range(3)]
+    assert alone[1] == 0.0 and both[1] == 0.0
+    assert abs(alone[0]) > 1e-3 and abs(alone[2]) > 1e-3
+    np.testing.assert_allclose(both, alone, rtol=1e-6, atol=1e-7)
+
+
 def test_write_pair_round_trips_through_the_pair_file(tmp_path, pairs):
     pair = pairs("stereo")
     path = write_pair(pair, tmp_path / "out")
