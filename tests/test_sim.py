@@ -248,6 +248,26 @@ def test_fast_preset_has_tens_of_pixels_of_disparity_at_full_size():
     assert np.hypot(u_b - u, v_b - v)[-1].min() > 20.0     # bottom row
 
 
+def test_scaled_camera_sees_the_same_field_of_view():
+    """scale_camera to another (w, h) keeps what each image edge looks at: pixel centres are at integers, so the
+    image spans u = -0.5 .. W - 0.5, and the rays through those edges, (u - cx) / fx and (v - cy) / fy, are the same
+    at 640 x 480 and at 320 x 120 (x halved, y quartered). Hand: fx 500 -> 250, fy 520 -> 130, cx 300 -> (300.5)
+    0.5 - 0.5 = 149.75, cy 239.5 -> 59.5 (centred stays centred); the mount unchanged. Catches the half-pixel offset
+    dropped (cx 150: the picture shifted) and fy scaled by the x factor (invisible at square sizes)."""
+    from eonav.sim.presets import scale_camera
+    cam = _camera(width=640, height=480, fx=500.0, fy=520.0, cx=300.0, cy=239.5)
+    s = scale_camera(cam, (320, 120))
+    assert (s.width, s.height) == (320, 120)
+    for got, want in ((s.fx, 250.0), (s.fy, 130.0), (s.cx, 149.75), (s.cy, 59.5)):
+        assert got == pytest.approx(want, abs=1e-12)
+    for u_full, u_small in ((-0.5, -0.5), (639.5, 319.5)):               # left and right edges
+        assert (u_full - cam.cx) / cam.fx == pytest.approx((u_small - s.cx) / s.fx, abs=1e-12)
+    for v_full, v_small in ((-0.5, -0.5), (479.5, 119.5)):               # top and bottom edges
+        assert (v_full - cam.cy) / cam.fy == pytest.approx((v_small - s.cy) / s.fy, abs=1e-12)
+    np.testing.assert_array_equal(s.l_body_m, cam.l_body_m)
+    np.testing.assert_array_equal(s.eps_rad, cam.eps_rad)
+
+
 def test_renders_are_deterministic_and_noise_is_seeded():
     a = make_pair("turning", size=48, seed=5)
     b = make_pair("turning", size=48, seed=5)
