@@ -268,6 +268,28 @@ def test_scaled_camera_sees_the_same_field_of_view():
     np.testing.assert_array_equal(s.eps_rad, cam.eps_rad)
 
 
+def test_motion_presets_turn_right_and_climb_up():
+    """The presets' second poses, hand-derived. "turning": 15 m/s at 15 deg of right bank, w = g tan 15 / 15 =
+    0.175239 rad/s, radius 85.5975 m: 0.1 s later the aircraft is at north R sin(w dt) = 1.499923 m, east R (1 -
+    cos(w dt)) = 0.013143 m -- towards its lowered right wing (FRD body y, NED (0, cos 15, sin 15)) -- yawed +1.004
+    deg. "climbing": 20 m/s, 3 m/s up: 0.1 s later 2 m north and 0.3 m higher (NED down -10 -> -10.3), pitched 5.3
+    deg nose up. Catches the turn's lateral motion or the climb's vertical motion with the wrong sign (a pair whose
+    motion contradicts its own attitude; the two views still agree, so the rendering tests cannot see it)."""
+    from eonav.geometry.frames import T_body_ned_from_ypr
+    from eonav.sim.presets import preset_scene
+    _, _, (s0, s1), _ = preset_scene("turning")
+    np.testing.assert_allclose(s0.position_ned_m, [0.0, 0.0, -8.0], atol=1e-12)
+    np.testing.assert_allclose(s1.position_ned_m, [1.4999232296, 0.0131425716, -8.0], atol=1e-9)
+    np.testing.assert_allclose(s1.T_body_ned, T_body_ned_from_ypr(np.deg2rad(1.0040442034), 0.0, np.deg2rad(15.0)),
+                               atol=1e-9)
+    c15, s15 = np.cos(np.deg2rad(15.0)), np.sin(np.deg2rad(15.0))
+    np.testing.assert_allclose(s0.T_body_ned[1], [0.0, c15, s15], atol=1e-12)               # right wing down
+    assert (s1.position_ned_m - s0.position_ned_m) @ s0.T_body_ned[1] > 0.01                 # moved towards it
+    _, _, (c0, c1), _ = preset_scene("climbing")
+    np.testing.assert_allclose(c1.position_ned_m - c0.position_ned_m, [2.0, 0.0, -0.3], atol=1e-12)
+    np.testing.assert_allclose(c1.T_body_ned[0], [np.cos(np.deg2rad(5.3)), 0.0, -np.sin(np.deg2rad(5.3))], atol=1e-12)
+
+
 def test_renders_are_deterministic_and_noise_is_seeded():
     a = make_pair("turning", size=48, seed=5)
     b = make_pair("turning", size=48, seed=5)
