@@ -233,6 +233,24 @@ def test_the_fusion_does_not_fuse_what_the_check_flags():
     assert filled[("stereo",)] == (0.0, 1.0)
 
 
+def test_the_references_reversed_pair_is_the_pair_b_to_a():
+    """tests/consistency_reference.py takes the pair b -> a's geometry (for the floor's sensitivity) from
+    ``consistency._reverse`` of the pair a -> b; it must be what ``pair_geometry`` computes from the views the other
+    way round: two cameras of different mounts on a vehicle that moved and turned, so R is not the identity and
+    t has a component along the optical axis. Catches the translation's sign flipped (X_a = R^T X_b + R^T t: the
+    reversed pair's B0 changes sign, which the kernel-vs-reference comparison alone absorbs within its tolerance)."""
+    from eonav.ranging.consistency import _reverse
+    ca = Camera("a", 40, 24, 50.0, 50.0, 19.5, 11.5, [1.5, -0.4, 0.3], np.deg2rad([2.0, -5.0, 1.0]))
+    cb = Camera("b", 40, 24, 55.0, 52.0, 20.0, 11.0, [1.4, 0.5, 0.2], np.deg2rad([-3.0, -4.0, 0.5]))
+    va = View(ca, VehicleState.from_ypr([0.0, 0.0, -10.0], np.deg2rad([0.0, 2.0, 0.0])), np.zeros((24, 40), F32))
+    vb = View(cb, VehicleState.from_ypr([2.5, 0.3, -10.2], np.deg2rad([4.0, 3.0, -6.0])), np.zeros((24, 40), F32))
+    rev, ba = _reverse(pair_geometry(va, vb)), pair_geometry(vb, va)
+    assert abs(ba.t_ba_m[0]) > 0.5 and not np.allclose(ba.R_ba, np.eye(3), atol=0.05)
+    assert (rev.cam_a.name, rev.cam_b.name) == ("b", "a")
+    np.testing.assert_allclose(rev.R_ba, ba.R_ba, atol=1e-12)
+    np.testing.assert_allclose(rev.t_ba_m, ba.t_ba_m, atol=1e-12)
+
+
 @pytest.mark.parametrize("case", ["box", "sim_stereo"])
 def test_kernel_matches_the_numpy_reference(case, box_results):
     """The numba kernel against the numpy formulation on the dense method's ``EpipolarMap``

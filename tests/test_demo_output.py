@@ -95,6 +95,64 @@ def test_demo_range_picture_boxes_the_obstacles_on_the_messages_grid():
     assert not pic[top + 52 * k, 10 * k + 3].any()                       # flags: no estimate in the hole
 
 
+def test_boxes_follow_each_axis_of_a_map_on_an_anisotropic_grid():
+    """A 48 x 32 map of a 96 x 128 frame (x halved, y quartered): k = ceil(384 / 32) = 12, so a frame pixel is 6
+    picture pixels wide and 3 high. The 10 m block at map pixels u 10..19, v 8..15 is frame bbox [20, 32, 39, 63]:
+    its box must run over picture columns 120..239 and rows 96..191, the block's own pixels (hand-derived). Catches
+    the x and y scales swapped (invisible on a square frame)."""
+    r = np.full((32, 48), 100.0, np.float32)
+    r[8:16, 10:20] = 10.0
+    ob = {"id": 1, "distance_m": 10.0, "bbox_px": [20, 32, 39, 63]}
+    pic, lay = V.estimate_truth_picture(r, np.ones(r.shape, bool), obstacles=[ob], frame_size=(96, 128),
+                                        near_m=NEAR_M, far_m=FAR_M)
+    assert lay["scale"] == 12 and lay["tiles"] == [0]
+    t = pic[lay["title_px"]:, :48 * 12]
+    u0, v0, u1, v1 = 120, 96, 239, 191
+    for edge in (t[v0, u0:u1 + 1], t[v1, u0:u1 + 1], t[v0:v1 + 1, u0], t[v0:v1 + 1, u1]):
+        assert (edge == V.BOX_BGR).all()
+    assert np.array_equal(t[v0 + 1, u0 + 1], _colour(10.0)) and np.array_equal(t[v1 - 1, u1 - 1], _colour(10.0))
+    assert np.array_equal(t[(v0 + v1) // 2, u1 + 1], _colour(100.0))
+    assert np.array_equal(t[v1 + 1, (u0 + u1) // 2], _colour(100.0))
+
+
+@pytest.mark.parametrize("rows,k", [(64, 6), (100, 4), (383, 2), (384, 1), (385, 1)])
+def test_maps_are_enlarged_by_the_smallest_whole_factor_reaching_the_minimum_height(rows, k):
+    """min_height_px = 384: a map of ``rows`` rows is enlarged k = ceil(384 / rows) times (hand: 100 rows -> 4, i.e.
+    400 >= 384 rows; 383 -> 2), never below the minimum. Catches the factor rounded down (100 rows -> 3 = 300)."""
+    pic, lay = V.estimate_truth_picture(np.full((rows, 4), 10.0, np.float32), np.ones((rows, 4), bool),
+                                        near_m=NEAR_M, far_m=FAR_M)
+    assert lay["scale"] == k and pic.shape[0] == lay["title_px"] + rows * k and rows * k >= 384
+
+
+def test_truth_beyond_the_far_end_of_the_scale_is_black():
+    """The truth tile is black where the truth is beyond ``far_m`` (150 m), infinite or not positive; the estimate
+    tile shows every VALID pixel, one beyond the scale in its far colour. Catches the truth's far cut dropped (a
+    truth of 151 m drawn as if it were 150 m, beside an estimate that is)."""
+    truth = np.array([[149.0, 151.0, 400.0, np.inf, 0.0]], np.float32)
+    est = np.full(truth.shape, 200.0, np.float32)
+    pic, lay = V.estimate_truth_picture(est, np.ones(est.shape, bool), truth, near_m=NEAR_M, far_m=FAR_M,
+                                        min_height_px=1)
+    top, (x_est, x_truth) = lay["title_px"], lay["tiles"]
+    assert lay["scale"] == 1
+    assert np.array_equal(pic[top, x_truth], _colour(149.0)) and _colour(149.0).any()
+    assert not pic[top, x_truth + 1:x_truth + 5].any()                  # 151 m, 400 m, inf, 0: black
+    assert (pic[top, x_est:x_est + 5] == _colour(FAR_M)).all() and _colour(FAR_M).any()
+
+
+def test_range_picture_dims_the_least_confident_tenth():
+    """``range_picture`` (eonav locate --png): confidences 1..100 on a 10 x 10 map at 20 m (scale 20..100 m, so
+    every pixel the near end's colour C): the 10th percentile of the positive confidences is 10.9, so exactly the
+    ten pixels of confidence 1..10 are drawn at C / 2 (floored) and the other ninety at C. Catches the dimming
+    applied to the most confident instead, or not at all."""
+    import cv2
+    c = np.arange(1, 101, dtype=np.float32).reshape(10, 10)
+    out = V.range_picture(np.full((10, 10), 20.0, np.float32), max_range_m=100.0, confidence=c)
+    C = cv2.applyColorMap(np.full((1, 1), 255, np.uint8), cv2.COLORMAP_TURBO)[0, 0]
+    dim = c <= 10
+    assert (out[~dim] == C).all()
+    assert (out[dim] == C // 2).all() and not np.array_equal(C // 2, C)
+
+
 # ---- verdict ----------------------------------------------------------------------------------------------
 
 def test_verdict_on_both_sides_of_the_threshold():

@@ -167,3 +167,32 @@ def test_16_bit_files_come_out_on_the_8_bit_scale(tmp_path):
         got = images.load_grey(tmp_path / name)
         assert got.dtype == np.float32
         np.testing.assert_allclose(got, np.full((2, 2), 21.85), atol=1e-3, err_msg=name)
+
+
+def _jpeg_segments(data: bytes):
+    """(marker, whole segment bytes) of a JPEG from after SOI up to start of scan, and the rest from SOS on."""
+    i, segs = 2, []
+    while data[i + 1] != 0xDA:
+        n = 2 + int.from_bytes(data[i + 2:i + 4], "big")
+        segs.append((data[i + 1], data[i:i + n]))
+        i += n
+    return segs, data[i:]
+
+
+def test_jpeg_huffman_tables_before_the_frame_header(tmp_path):
+    """JPEG allows its tables (DHT 0xC4, DQT) anywhere before the scan; some encoders write the Huffman tables before
+    the frame header (SOF0 0xC0). The same 41 x 29 picture with its DHTs moved ahead of SOF0 decodes to the same
+    pixels, and the header reader finds 41 x 29 in SOF0, not in a DHT (0xC4 is in the SOFn range 0xC0-0xCF but is
+    not a frame header). Catches 0xC4 dropped from the SOFn exclusions (a table's bytes read as a size)."""
+    a = np.random.default_rng(4).integers(0, 255, (29, 41), np.uint8)
+    ok, buf = cv2.imencode(".jpg", a)
+    assert ok
+    segs, scan = _jpeg_segments(buf.tobytes())
+    dht = [s for m, s in segs if m == 0xC4]
+    assert dht and [m for m, _ in segs].index(0xC0) < [m for m, _ in segs].index(0xC4)   # OpenCV: SOF0 first
+    moved = b"\xff\xd8" + b"".join(dht) + b"".join(s for m, s in segs if m != 0xC4) + scan
+    p = tmp_path / "dht_first.jpg"
+    p.write_bytes(moved)
+    assert images.image_size(moved) == (41, 29)
+    np.testing.assert_array_equal(images.load_grey(p, expect_wh=(41, 29)),
+                                  cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE).astype(np.float32))

@@ -248,6 +248,48 @@ def test_fast_preset_has_tens_of_pixels_of_disparity_at_full_size():
     assert np.hypot(u_b - u, v_b - v)[-1].min() > 20.0     # bottom row
 
 
+def test_scaled_camera_sees_the_same_field_of_view():
+    """scale_camera to another (w, h) keeps what each image edge looks at: pixel centres are at integers, so the
+    image spans u = -0.5 .. W - 0.5, and the rays through those edges, (u - cx) / fx and (v - cy) / fy, are the same
+    at 640 x 480 and at 320 x 120 (x halved, y quartered). Hand: fx 500 -> 250, fy 520 -> 130, cx 300 -> (300.5)
+    0.5 - 0.5 = 149.75, cy 239.5 -> 59.5 (centred stays centred); the mount unchanged. Catches the half-pixel offset
+    dropped (cx 150: the picture shifted) and fy scaled by the x factor (invisible at square sizes)."""
+    from eonav.sim.presets import scale_camera
+    cam = _camera(width=640, height=480, fx=500.0, fy=520.0, cx=300.0, cy=239.5)
+    s = scale_camera(cam, (320, 120))
+    assert (s.width, s.height) == (320, 120)
+    for got, want in ((s.fx, 250.0), (s.fy, 130.0), (s.cx, 149.75), (s.cy, 59.5)):
+        assert got == pytest.approx(want, abs=1e-12)
+    for u_full, u_small in ((-0.5, -0.5), (639.5, 319.5)):               # left and right edges
+        assert (u_full - cam.cx) / cam.fx == pytest.approx((u_small - s.cx) / s.fx, abs=1e-12)
+    for v_full, v_small in ((-0.5, -0.5), (479.5, 119.5)):               # top and bottom edges
+        assert (v_full - cam.cy) / cam.fy == pytest.approx((v_small - s.cy) / s.fy, abs=1e-12)
+    np.testing.assert_array_equal(s.l_body_m, cam.l_body_m)
+    np.testing.assert_array_equal(s.eps_rad, cam.eps_rad)
+
+
+def test_motion_presets_turn_right_and_climb_up():
+    """The presets' second poses, hand-derived. "turning": 15 m/s at 15 deg of right bank, w = g tan 15 / 15 =
+    0.175239 rad/s, radius 85.5975 m: 0.1 s later the aircraft is at north R sin(w dt) = 1.499923 m, east R (1 -
+    cos(w dt)) = 0.013143 m -- towards its lowered right wing (FRD body y, NED (0, cos 15, sin 15)) -- yawed +1.004
+    deg. "climbing": 20 m/s, 3 m/s up: 0.1 s later 2 m north and 0.3 m higher (NED down -10 -> -10.3), pitched 5.3
+    deg nose up. Catches the turn's lateral motion or the climb's vertical motion with the wrong sign (a pair whose
+    motion contradicts its own attitude; the two views still agree, so the rendering tests cannot see it)."""
+    from eonav.geometry.frames import T_body_ned_from_ypr
+    from eonav.sim.presets import preset_scene
+    _, _, (s0, s1), _ = preset_scene("turning")
+    np.testing.assert_allclose(s0.position_ned_m, [0.0, 0.0, -8.0], atol=1e-12)
+    np.testing.assert_allclose(s1.position_ned_m, [1.4999232296, 0.0131425716, -8.0], atol=1e-9)
+    np.testing.assert_allclose(s1.T_body_ned, T_body_ned_from_ypr(np.deg2rad(1.0040442034), 0.0, np.deg2rad(15.0)),
+                               atol=1e-9)
+    c15, s15 = np.cos(np.deg2rad(15.0)), np.sin(np.deg2rad(15.0))
+    np.testing.assert_allclose(s0.T_body_ned[1], [0.0, c15, s15], atol=1e-12)               # right wing down
+    assert (s1.position_ned_m - s0.position_ned_m) @ s0.T_body_ned[1] > 0.01                 # moved towards it
+    _, _, (c0, c1), _ = preset_scene("climbing")
+    np.testing.assert_allclose(c1.position_ned_m - c0.position_ned_m, [2.0, 0.0, -0.3], atol=1e-12)
+    np.testing.assert_allclose(c1.T_body_ned[0], [np.cos(np.deg2rad(5.3)), 0.0, -np.sin(np.deg2rad(5.3))], atol=1e-12)
+
+
 def test_renders_are_deterministic_and_noise_is_seeded():
     a = make_pair("turning", size=48, seed=5)
     b = make_pair("turning", size=48, seed=5)
@@ -266,6 +308,25 @@ def test_texture_has_energy_at_all_scales(pairs):
     levels = [cv2.GaussianBlur(patch, (0, 0), s) if s else patch for s in (0, 1, 2, 4, 8, 16)]
     energy = [float(np.std((levels[i] - levels[i + 1])[16:-16, 16:-16])) for i in range(len(levels) - 1)]
     assert min(energy) > 0.5, energy                                # grey levels; noise-free render
+
+
+def test_texture_frequency_clamp_is_per_point():
+    """The anti-aliasing clamp (eonav.sim.texture): an octave's weight is 0 at <= 2.5 footprints per centre
+    wavelength, 1 at >= 5, smoothstep between (hand: 3.125 -> s = 0.25 -> 0.15625; 3.75 -> 0.5). The texture is a
+    function of (point, footprint, seed) alone: a point whose footprint (20 m) fades out even the coarsest octave
+    (40.96 m) is exactly 0 -- also when evaluated together with near points -- and a near point's value does not
+    depend on what else is in the call. Catches the 'fully on everywhere' shortcut judged at the nearest footprint
+    (far points in a mixed render get unclamped, aliased octaves: two views of one surface disagree)."""
+    from eonav.sim.texture import fractal_noise, octave_weight
+    inv_fp = np.array([1 / 2.0, 2.5, 3.125, 3.75, 5.0, 8.0], np.float32)          # pixels per metre; lambda 1 m
+    np.testing.assert_allclose(octave_weight(1.0, inv_fp), [0.0, 0.0, 0.15625, 0.5, 1.0, 1.0], atol=1e-6)
+    x, y = np.array([3.1, 57.0, -8.2]), np.array([-1.7, 12.5, 40.0])
+    fp = np.array([0.004, 20.0, 0.3])                                  # near, beyond every octave, in between
+    both = fractal_noise(x, y, fp, seed=11)
+    alone = [fractal_noise(x[i:i + 1], y[i:i + 1], fp[i:i + 1], seed=11)[0] for i in range(3)]
+    assert alone[1] == 0.0 and both[1] == 0.0
+    assert abs(alone[0]) > 1e-3 and abs(alone[2]) > 1e-3
+    np.testing.assert_allclose(both, alone, rtol=1e-6, atol=1e-7)
 
 
 def test_write_pair_round_trips_through_the_pair_file(tmp_path, pairs):
