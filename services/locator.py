@@ -557,7 +557,7 @@ def locate_loop(node: Node, sub, policy, method: str, params: dict, new_controll
             return
         if runner is not None:
             fuse_frame(node, runner, f, sc, pubs, range_std, t_rx0, cameras, publish_grid, reported_fusion, sources,
-                       gate)
+                       gate, scalers)
             return
         d = policy.offer(f)
         node.count(f"pairs.{d.reason}")
@@ -597,16 +597,18 @@ def fresh_to_put(node: Node, gate: FreshnessGate | None, camera_id: str, stamp_u
 
 
 def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: float, cameras: CameraCache,
-               publish_grid: str, reported: dict, sources: dict, gate: FreshnessGate | None = None) -> None:
+               publish_grid: str, reported: dict, sources: dict, gate: FreshnessGate | None = None,
+               scalers: dict | None = None) -> None:
     """Push posed frame ``f`` through the fusion runner and publish the fused maps it returns (normally one: ``f``'s
-    camera; a stereo partner's frame returns the rig reference's). The compute time (measurements + fusion) drives
-    the camera's scale controller as a single pair's would."""
+    camera; a stereo partner's frame returns the rig reference's). A map carries the scale its own frame was pushed
+    at, and its compute time (measurements + fusion) drives its own camera's scale controller (``scalers``, by
+    camera id; ``sc``, ``f``'s, when absent) as a single pair's would."""
     scale = sc.scale
     t0, cpu0 = time.perf_counter(), time.thread_time()
     measure_cpu0 = getattr(runner.measure, "cpu_s", 0.0)
     worker_cpu0 = getattr(runner, "worker_cpu_s", 0.0)       # predict on the runner's worker thread
     node.latency("age.locate_start", (now_us() - f.stamp_us) * 1e-6)
-    sources[(f.camera_id, f.seq)] = f            # the posed frame behind a fused map (its quaternion, camera map)
+    sources[(f.camera_id, f.seq)] = (f, scale)   # the posed frame behind a fused map (its quaternion, camera map)
     while len(sources) > 64:
         sources.pop(next(iter(sources)))
     try:
@@ -631,10 +633,11 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
             reported[name] = v
     for m in maps:
         t_pub, cpu_pub = time.perf_counter(), time.thread_time()
-        a = sources.get((m.frame.camera_id, m.frame.seq))
+        a, map_scale = sources.get((m.frame.camera_id, m.frame.seq), (None, scale))
         if a is None:
             node.count("fusion.map_without_frame")
             continue
+        msc = (scalers or {}).get(a.camera_id, sc)
         ms = m.measurements[-1] if m.measurements else {}
         compute_s = m.locate_s + m.fusion_s
         fields = map_fields(m.result, a, m.frame.camera, range_std, publish_grid)
@@ -646,7 +649,7 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
         node.put(pubs[a.camera_id], "range_map", camera_id=a.camera_id, seq=a.seq, stamp_us=a.stamp_us,
                  other_camera_id=ms.get("other_camera_id", ""), other_seq=ms.get("other_seq", -1),
                  method=m.result.method, position_ned_m=a.state.position_ned_m, q_wxyz=a.payload["q_wxyz"],
-                 baseline_m=ms.get("baseline_m", float("nan")), compute_s=compute_s, scale=float(scale),
+                 baseline_m=ms.get("baseline_m", float("nan")), compute_s=compute_s, scale=float(map_scale),
                  overhead_s=(t0 - t_rx0), n_fused=n, frame_age_ms=age_ms(a.stamp_us), **fields)
         if gate is not None:
             gate.commit(a.camera_id, a.stamp_us)
@@ -661,11 +664,11 @@ def fuse_frame(node: Node, runner, f, sc, pubs: dict, range_std: str, t_rx0: flo
         age_s = (now_us() - a.stamp_us) * 1e-6
         node.latency("capture_to_published", age_s)
         if m.measurements:
-            report_change(node, a.camera_id, sc.observe_compute(scale, compute_s))
+            report_change(node, a.camera_id, msc.observe_compute(map_scale, compute_s))
         # the locator's own time for the frame (taken off the ring -> map put): what the scale controls
         frame_s = time.perf_counter() - t_rx0
         node.latency("frame_time", frame_s)
-        report_change(node, a.camera_id, sc.observe_latency(scale, frame_s))
+        report_change(node, a.camera_id, msc.observe_latency(map_scale, frame_s))
 
 
 def report_change(node: Node, camera_id: str, change) -> None:

@@ -784,3 +784,48 @@ def test_a_failed_fusion_push_resets_the_cameras_state_and_the_next_maps_start_a
         gt = on_grid(truth.range_m, m["range_m"].shape[1], m["range_m"].shape[0])
         ok = ((m["flags"] & VALID) != 0) & np.isfinite(m["range_m"]) & np.isfinite(gt)
         assert ok.mean() > 0.2 and np.median(np.abs(m["range_m"][ok] - gt[ok]) / gt[ok]) < 0.05
+
+
+def test_a_rig_partners_push_publishes_the_reference_map_at_the_references_scale():
+    """A stereo rig's reference map comes out of the partner camera's push (the reference's frame was held for the
+    stereo measurement): it is published with the scale the reference's frame was located at (0.5 here), not the
+    partner's (1.0), and its compute time goes to the reference camera's scale controller, whose map it is, as on
+    the single-pair path (``scalers[ref]``)."""
+    from eonav.fusion.sequence import FusedMap
+    from eonav.geometry.camera import Camera
+    from eonav.services.locator import fuse_frame, scale_controllers
+    node, session, pubs, cams, _ = _pair_harness()
+    pubs["right"] = node.publisher(K.range_map("v", "right"), image=True)
+    img = (np.arange(24 * 32).reshape(24, 32) % 251).astype(np.uint8)
+    t = time.time_ns() // 1000
+
+    def posed(cid, east_m):
+        from eonav.services.locator import frame_info
+        cam = Camera(cid, 32, 24, 32.0, 32.0, 15.5, 11.5)
+        return frame_info(schema.decode(schema.encode(
+            "posed_frame", camera_id=cid, seq=3, stamp_us=t, encoding="mono8", image=img,
+            camera=schema.camera_to_msg(cam), position_ned_m=[0.0, east_m, -5.0], q_wxyz=[1.0, 0.0, 0.0, 0.0]),
+            expect="posed_frame"), cams)
+
+    class HeldForStereo:
+        """The reference's push gives no map (held); the partner's push gives the reference's map."""
+        counts, measure, held = {}, None, None
+
+        def push(self, fr):
+            if fr.camera_id == "nose":
+                self.held = fr
+                return []
+            shape = (self.held.camera.height, self.held.camera.width)
+            ms = [{"kind": "stereo", "other_camera_id": "right", "other_seq": 3, "baseline_m": 0.8}]
+            return [FusedMap(self.held, _range_result(shape), np.ones(shape, np.uint16), ms, 0.02, 0.003)]
+
+    scalers = {"nose": scale_controllers(0.5)(), "right": scale_controllers(1.0)()}
+    runner, reported, sources = HeldForStereo(), {}, {}
+    for f in (posed("nose", 0.0), posed("right", 0.8)):
+        fuse_frame(node, runner, f, scalers[f.camera_id], pubs, "f16", time.perf_counter(), cams, "locate",
+                   reported, sources, None, scalers)
+    (key, payload), = session.puts
+    m = schema.decode(payload, expect="range_map")
+    assert m["camera_id"] == "nose" and m["scale"] == 0.5 and m["range_m"].shape == (12, 16)
+    assert scalers["nose"].measured_s(0.5) == pytest.approx(0.023)
+    assert scalers["right"].measured_s(1.0) is None
