@@ -18,7 +18,7 @@ from eonav.geometry.camera import Camera, VehicleState, View
 from eonav.ranging.methods import dense
 from eonav.ranging.methods.dense import locate_dense
 from eonav.ranging.methods.flow_baseline import locate_dis
-from eonav.ranging.rangemap import AT_INFINITY, VALID
+from eonav.ranging.rangemap import AT_INFINITY, LOW_TEXTURE, VALID
 from eonav.sim.visibility import measurable_in_b
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -271,6 +271,30 @@ def test_inverse_range_is_never_negative():
     fin = np.isfinite(rho)
     assert fin.mean() > 0.9                              # measured 1.0: the check is not vacuous
     assert rho[fin].min() >= 0.0, rho[fin].min()
+
+
+def test_a_brightness_ramp_is_low_texture_across_the_epipolar_lines_too():
+    """A window of a uniform brightness ramp holds nothing to match: shifted, it equals itself plus an offset,
+    which the window's brightness offset absorbs. LOW_TEXTURE (the windowed variance of the gradient below the
+    noise's) must say so whichever way the ramp runs: along the epipolar lines (here the rows) and across them --
+    a sky's brightness falls off upwards, across the lines of a horizontal baseline, and the fusion treats
+    LOW_TEXTURE as may-be-sky (no fill at the border). Rectified pair at disparity 6.3 px, textured top half (the
+    control: VALID), a ramp of 3 grey levels / px below; measured: the ramp's interior LOW_TEXTURE on 100 % of its
+    pixels either way (0 % across the lines with the gradient's vertical mean left out of the variance)."""
+    h, w, f, bl, d = 160, 200, 500.0, 0.1, 6.3
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    for along in (True, False):
+        def scene(xx):
+            ramp = 128.0 + 3.0 * ((xx - 100.0) if along else (y - 120.0))
+            return np.where(y < 80, sine_texture(xx, y), ramp)
+        rng = np.random.default_rng(1)
+        left = scene(x) + rng.normal(0, 1.0, (h, w))
+        right = scene(x + d) + rng.normal(0, 1.0, (h, w))            # R(u - d) = L(u)
+        res = locate_dense(*rectified_views(left.astype(np.float32), right.astype(np.float32), f, bl), fill=False)
+        assert np.mean((res.flags[10:70, 30:-10] & VALID) > 0) > 0.95, along
+        ramp = res.flags[95:150, 20:180]
+        assert np.mean((ramp & LOW_TEXTURE) > 0) > 0.98, along
+        assert not np.any(ramp & VALID), along
 
 
 def test_identical_poses_invent_no_range():
