@@ -537,6 +537,35 @@ def test_search_kernels_match_reference(preset, size, monkeypatch):
             np.testing.assert_array_equal(c1, c0)
 
 
+def test_search_sees_no_point_behind_camera_b():
+    """The search's in-view test (``_dense_kernels.search_warp``'s good) keeps out a hypothesis whose point lies
+    behind camera b, though its projection through b's pinhole lands inside the image. Camera b 1 m ahead of a on
+    the optical axis (9 x 9 px, f = 10 px, c = 4): a point of a's pixel (u, v) at range 1 / rho is seen by b at
+    c + (u - c) / (1 - rho), in front of b only for rho < 1. rho = 0: every pixel in view; rho = 0.5 (2 m, 1 m
+    ahead of b): magnified 2 x, in view where |u - c|, |v - c| <= 2; rho = 2 (0.5 m: behind b): none, though the
+    pinhole's mirror image c - (u - c) of every pixel lies inside b. (The search's rho reaches there with
+    per_pixel_search=False and a min_range_m below the baseline: only this test keeps such a match out.)"""
+    from eonav.geometry.camera import pair_geometry
+    from eonav.ranging.methods._common import EpipolarMap
+    n, c = 9, 4.0
+    img = (np.random.default_rng(0).random((n, n)) * 255).astype(np.float32)
+    st = VehicleState.from_ypr([0, 0, 0], [0, 0, 0])
+    cam_a = Camera("a", n, n, 10.0, 10.0, c, c, [0, 0, 0], [0, 0, 0])
+    cam_b = Camera("b", n, n, 10.0, 10.0, c, c, [1.0, 0, 0], [0, 0, 0])
+    em = EpipolarMap.build(pair_geometry(View(cam_a, st, img), View(cam_b, st, img)), 0, (n, n), (n, n))
+    hyp = np.array([0.0, 0.5, 2.0])
+    f32 = np.float32
+    B0, Q1, Q2 = f32(em.B[0]), f32(10.0 * em.B[1] + c * em.B[0]), f32(10.0 * em.B[2] + c * em.B[0])
+    planes = [np.full((3 * n, n), np.nan, f32) for _ in range(3)]
+    good = np.full((3 * n, n), 7, np.uint8)
+    dense._K.search_warp(hyp, False, np.arange(n), em.A0, em.A1, em.A2, em.A0, em.A0, f32(10.0), f32(c), f32(10.0),
+                         f32(c), B0, Q1, Q2, img, img, *planes, good)
+    near = np.abs(np.arange(n) - c) <= 2
+    np.testing.assert_array_equal(good[:n], np.ones((n, n), np.uint8))
+    np.testing.assert_array_equal(good[n:2 * n], (near[:, None] & near[None, :]).astype(np.uint8))
+    np.testing.assert_array_equal(good[2 * n:], np.zeros((n, n), np.uint8))
+
+
 @pytest.mark.realdata
 @pytest.mark.skipif(not MIDDLEBURY.is_dir(), reason=f"real data not found at {MIDDLEBURY} (../shared/data)")
 def test_sgm_reduces_gross_errors_teddy():
