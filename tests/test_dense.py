@@ -735,6 +735,20 @@ def test_warm_up_pair_is_the_plane_it_claims():
         assert abs(np.median(res.range_m[valid]) / range_m - 1) < 0.002
 
 
+def test_a_wall_ahead_is_never_at_infinity_near_the_focus_of_expansion():
+    """The warm-up pair's wall (20 m / 40 m ahead; camera b 1 m nearer, 0.3 m aside): near the focus of expansion
+    the parallax vanishes, rho falls within 2 sigma of 0, and only a sigma below rho_far (the inverse range of
+    0.5 px of parallax, 0.0037 /m here) may call it AT_INFINITY -- no pixel of a wall 20 m ahead may say "nothing
+    there" (range +inf). Measured: none (those pixels are ILL_CONDITIONED); without the rho_far bound 20 / 125
+    pixels of the wall at +inf."""
+    for range_m in (20.0, 40.0):
+        a, b = dense._plane_pair(160, range_m=range_m)
+        res = locate_dense(a, b, fill=False)
+        assert ((res.flags & VALID) > 0).mean() > 0.8
+        assert not np.any(res.flags & AT_INFINITY), (range_m, np.count_nonzero(res.flags & AT_INFINITY))
+        assert not np.any(np.isposinf(res.range_m)), range_m
+
+
 _SIGNATURES = """
 import json, sys
 import numba
