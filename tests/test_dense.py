@@ -18,7 +18,7 @@ from eonav.geometry.camera import Camera, VehicleState, View
 from eonav.ranging.methods import dense
 from eonav.ranging.methods.dense import locate_dense
 from eonav.ranging.methods.flow_baseline import locate_dis
-from eonav.ranging.rangemap import AT_INFINITY, VALID
+from eonav.ranging.rangemap import AT_INFINITY, LOW_TEXTURE, VALID
 from eonav.sim.visibility import measurable_in_b
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -242,20 +242,59 @@ def test_slant_curv_must_be_positive():
             locate_dense(a, b, slant_curv=bad)
 
 
-def test_textured_scene_at_infinity():
-    """Both images identical but a real baseline: every point at rho = 0, so range +inf and AT_INFINITY,
-    never a finite range."""
+def infinity_pair():
+    """Both images of one texture (independent unit noise) but a real baseline of 0.5 m: every point at rho = 0."""
     h, w = 128, 160
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
     img = sine_texture(x, y, seed=3)
     rng = np.random.default_rng(2)
-    a, b = rectified_views(img + rng.normal(0, 1, (h, w)).astype(np.float32),
+    return rectified_views(img + rng.normal(0, 1, (h, w)).astype(np.float32),
                            img + rng.normal(0, 1, (h, w)).astype(np.float32), f=500.0, b=0.5)
-    res = locate_dense(a, b)
+
+
+def test_textured_scene_at_infinity():
+    """Both images identical but a real baseline: every point at rho = 0, so range +inf and AT_INFINITY,
+    never a finite range."""
+    res = locate_dense(*infinity_pair())
     assert not np.any(np.isfinite(res.range_m))        # +inf or NaN only
     at_inf = (res.flags & AT_INFINITY) > 0
     assert at_inf.mean() > 0.9                           # measured 0.996
     assert np.all(np.isposinf(res.range_m[at_inf]))
+
+
+def test_inverse_range_is_never_negative():
+    """rho = 1 / range of a point in front of camera a is >= 0: the Gauss-Newton update is clipped at 0
+    (``_dense_kernels._damped_step``). At infinity (truth rho = 0 everywhere) the noise scatters the unclipped
+    estimates about 0: without the clip half of the pixels (measured 49 %) came out negative, down to -5e-4 /m."""
+    res = locate_dense(*infinity_pair())
+    rho = res.inv_range_per_m
+    fin = np.isfinite(rho)
+    assert fin.mean() > 0.9                              # measured 1.0: the check is not vacuous
+    assert rho[fin].min() >= 0.0, rho[fin].min()
+
+
+def test_a_brightness_ramp_is_low_texture_across_the_epipolar_lines_too():
+    """A window of a uniform brightness ramp holds nothing to match: shifted, it equals itself plus an offset,
+    which the window's brightness offset absorbs. LOW_TEXTURE (the windowed variance of the gradient below the
+    noise's) must say so whichever way the ramp runs: along the epipolar lines (here the rows) and across them --
+    a sky's brightness falls off upwards, across the lines of a horizontal baseline, and the fusion treats
+    LOW_TEXTURE as may-be-sky (no fill at the border). Rectified pair at disparity 6.3 px, textured top half (the
+    control: VALID), a ramp of 3 grey levels / px below; measured: the ramp's interior LOW_TEXTURE on 100 % of its
+    pixels either way (0 % across the lines with the gradient's vertical mean left out of the variance)."""
+    h, w, f, bl, d = 160, 200, 500.0, 0.1, 6.3
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    for along in (True, False):
+        def scene(xx):
+            ramp = 128.0 + 3.0 * ((xx - 100.0) if along else (y - 120.0))
+            return np.where(y < 80, sine_texture(xx, y), ramp)
+        rng = np.random.default_rng(1)
+        left = scene(x) + rng.normal(0, 1.0, (h, w))
+        right = scene(x + d) + rng.normal(0, 1.0, (h, w))            # R(u - d) = L(u)
+        res = locate_dense(*rectified_views(left.astype(np.float32), right.astype(np.float32), f, bl), fill=False)
+        assert np.mean((res.flags[10:70, 30:-10] & VALID) > 0) > 0.95, along
+        ramp = res.flags[95:150, 20:180]
+        assert np.mean((ramp & LOW_TEXTURE) > 0) > 0.98, along
+        assert not np.any(ramp & VALID), along
 
 
 def test_identical_poses_invent_no_range():
@@ -498,6 +537,35 @@ def test_search_kernels_match_reference(preset, size, monkeypatch):
             np.testing.assert_array_equal(c1, c0)
 
 
+def test_search_sees_no_point_behind_camera_b():
+    """The search's in-view test (``_dense_kernels.search_warp``'s good) keeps out a hypothesis whose point lies
+    behind camera b, though its projection through b's pinhole lands inside the image. Camera b 1 m ahead of a on
+    the optical axis (9 x 9 px, f = 10 px, c = 4): a point of a's pixel (u, v) at range 1 / rho is seen by b at
+    c + (u - c) / (1 - rho), in front of b only for rho < 1. rho = 0: every pixel in view; rho = 0.5 (2 m, 1 m
+    ahead of b): magnified 2 x, in view where |u - c|, |v - c| <= 2; rho = 2 (0.5 m: behind b): none, though the
+    pinhole's mirror image c - (u - c) of every pixel lies inside b. (The search's rho reaches there with
+    per_pixel_search=False and a min_range_m below the baseline: only this test keeps such a match out.)"""
+    from eonav.geometry.camera import pair_geometry
+    from eonav.ranging.methods._common import EpipolarMap
+    n, c = 9, 4.0
+    img = (np.random.default_rng(0).random((n, n)) * 255).astype(np.float32)
+    st = VehicleState.from_ypr([0, 0, 0], [0, 0, 0])
+    cam_a = Camera("a", n, n, 10.0, 10.0, c, c, [0, 0, 0], [0, 0, 0])
+    cam_b = Camera("b", n, n, 10.0, 10.0, c, c, [1.0, 0, 0], [0, 0, 0])
+    em = EpipolarMap.build(pair_geometry(View(cam_a, st, img), View(cam_b, st, img)), 0, (n, n), (n, n))
+    hyp = np.array([0.0, 0.5, 2.0])
+    f32 = np.float32
+    B0, Q1, Q2 = f32(em.B[0]), f32(10.0 * em.B[1] + c * em.B[0]), f32(10.0 * em.B[2] + c * em.B[0])
+    planes = [np.full((3 * n, n), np.nan, f32) for _ in range(3)]
+    good = np.full((3 * n, n), 7, np.uint8)
+    dense._K.search_warp(hyp, False, np.arange(n), em.A0, em.A1, em.A2, em.A0, em.A0, f32(10.0), f32(c), f32(10.0),
+                         f32(c), B0, Q1, Q2, img, img, *planes, good)
+    near = np.abs(np.arange(n) - c) <= 2
+    np.testing.assert_array_equal(good[:n], np.ones((n, n), np.uint8))
+    np.testing.assert_array_equal(good[n:2 * n], (near[:, None] & near[None, :]).astype(np.uint8))
+    np.testing.assert_array_equal(good[2 * n:], np.zeros((n, n), np.uint8))
+
+
 @pytest.mark.realdata
 @pytest.mark.skipif(not MIDDLEBURY.is_dir(), reason=f"real data not found at {MIDDLEBURY} (../shared/data)")
 def test_sgm_reduces_gross_errors_teddy():
@@ -665,6 +733,20 @@ def test_warm_up_pair_is_the_plane_it_claims():
         valid = (res.flags & VALID) > 0
         assert valid.mean() > 0.8
         assert abs(np.median(res.range_m[valid]) / range_m - 1) < 0.002
+
+
+def test_a_wall_ahead_is_never_at_infinity_near_the_focus_of_expansion():
+    """The warm-up pair's wall (20 m / 40 m ahead; camera b 1 m nearer, 0.3 m aside): near the focus of expansion
+    the parallax vanishes, rho falls within 2 sigma of 0, and only a sigma below rho_far (the inverse range of
+    0.5 px of parallax, 0.0037 /m here) may call it AT_INFINITY -- no pixel of a wall 20 m ahead may say "nothing
+    there" (range +inf). Measured: none (those pixels are ILL_CONDITIONED); without the rho_far bound 20 / 125
+    pixels of the wall at +inf."""
+    for range_m in (20.0, 40.0):
+        a, b = dense._plane_pair(160, range_m=range_m)
+        res = locate_dense(a, b, fill=False)
+        assert ((res.flags & VALID) > 0).mean() > 0.8
+        assert not np.any(res.flags & AT_INFINITY), (range_m, np.count_nonzero(res.flags & AT_INFINITY))
+        assert not np.any(np.isposinf(res.range_m)), range_m
 
 
 _SIGNATURES = """

@@ -100,6 +100,45 @@ def test_kernel_correction_matches_the_reference():
     assert np.median(np.abs(moved) / rho) > 1e-3
 
 
+def test_window_residual_variance_takes_off_the_two_fitted_parameters():
+    """The sigma's noise part is scaled by the window's own residual variance over the noise's
+    (``_dense_kernels.model_error_finish``): the residuals of the window's pixels in view of b, after its fit of rho
+    and a brightness offset, i.e. sum (r_j - mean r)^2 / (n - 2) over its n pixels in view -- the textbook estimate,
+    unbiased for a fit of two parameters (dividing by n under-reports it, by 4 % at n = 49). Hand-made 7 x 7 window
+    means, as ``_window_means`` forms them (a box over the residual, 0 out of view), of three pixels: a window fully
+    in view and one with 28 of its 49 pixels in view, both with residuals of variance ~4 against the noise's 1
+    (sigma x ~2), and one fitting better than the noise (variance ~0.25): at the default floor (the noise's own) its
+    sigma is left as it was. One rho per window (no centroid term) and no match floor: sigma_out = sigma_in x
+    sqrt(max(s_w^2, floor) / sigma_n^2)."""
+    rng = np.random.default_rng(11)
+    n_win = 49
+    masks = [np.ones(n_win, bool), np.arange(n_win) < 28, np.ones(n_win, bool)]
+    res = [rng.normal(0.5, 2.0, n_win), rng.normal(-0.3, 2.0, n_win), rng.normal(0.2, 0.5, n_win)]
+    w = len(masks)
+    mr = np.array([(r * m).sum() / n_win for r, m in zip(res, masks)], F32)[None, :]
+    mr2 = np.array([(r * r * m).sum() / n_win for r, m in zip(res, masks)], F32)[None, :]
+    mv = np.array([m.sum() / n_win for m in masks], F32)[None, :]
+    want_sw2 = np.array([np.sum((r[m] - r[m].mean()) ** 2) / (m.sum() - 2) for r, m in zip(res, masks)])
+    assert want_sw2[0] > 2 and want_sw2[1] > 2 and want_sw2[2] < 0.5          # the cases are what they claim
+    rho = np.full((1, w), 0.05, F32)
+    std_in = np.full((1, w), 0.001, F32)
+    std, flags = std_in.copy(), np.full((1, w), VALID, np.uint8)
+    rng_m, conf = np.full((1, w), np.nan, F32), np.zeros((1, w), F32)
+    zeros = np.zeros((1, w), F32)
+    rw = np.zeros((5, w), F32)
+    rw[0], rw[3] = 1.0, 100.0                     # den = 1, a gradient of the map (unused without a match floor)
+    lost = dense._K.model_error_finish(rho, rho.copy(), 3, rho.copy(), zeros, F32(10.0), zeros, zeros, zeros, zeros,
+                                       zeros, zeros, F32(3.0), mr, mr2, mv, F32(n_win), F32(1.0), F32(1.0), rw,
+                                       np.zeros((5, 1), F32), F32(0.0), F32(0.0), F32(0.34), False, std, flags,
+                                       rng_m, conf)
+    assert lost == 0 and np.all(flags == VALID)
+    want = 0.001 * np.sqrt(np.maximum(want_sw2, 1.0))
+    np.testing.assert_allclose(std[0], want, rtol=1e-4)
+    np.testing.assert_allclose(rho[0], 0.05)                                    # no centroid term: rho stays
+    np.testing.assert_allclose(rng_m[0], 20.0, rtol=1e-6)
+    np.testing.assert_allclose(conf[0], 0.05 / want, rtol=1e-4)
+
+
 def _misfit_pair(seed, extra_sigma):
     """A faint textured plane at disparity 6.3 px (rectified pair, unit sensor noise in both images) whose right
     half of image b carries extra noise of extra_sigma grey levels: a misfit of the brightness-constancy model there
