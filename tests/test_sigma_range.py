@@ -13,7 +13,7 @@ import dense_reference as ref
 from eonav import InputError
 from eonav.ranging.methods import dense
 from eonav.ranging.methods.dense import locate_dense
-from eonav.ranging.rangemap import VALID
+from eonav.ranging.rangemap import ILL_CONDITIONED, VALID
 from test_dense import rectified_views, sine_texture
 
 F32 = np.float32
@@ -138,6 +138,32 @@ def test_window_residual_variance_takes_off_the_two_fitted_parameters():
     np.testing.assert_allclose(rng_m[0], 20.0, rtol=1e-6)
     np.testing.assert_allclose(conf[0], 0.05 / want, rtol=1e-4)
 
+
+
+def test_a_pixel_whose_window_widens_its_sigma_past_the_limit_loses_valid():
+    """A VALID pixel whose own window's residual widens its sigma beyond ``max_rel_std`` x rho is no longer VALID
+    (``_dense_kernels.model_error_finish``): ILL_CONDITIONED, the VALID bit cleared, no range, confidence 0, counted
+    as lost; its neighbour with a residual at the noise keeps VALID. rho 0.05, sigma 0.01 (relative 0.2); residual
+    variances 4 and 1 x the noise: sigma 0.02 (0.4 > 0.34) and 0.01."""
+    n_win, w = 49, 2
+    sw2 = np.array([4.0, 1.0])                       # the window's residual variance (noise 1), mean residual 0
+    mv = np.ones((1, w), F32)
+    mr = np.zeros((1, w), F32)
+    mr2 = (sw2 * (n_win - 2) / n_win).astype(F32)[None, :]      # so that (mr2 - mr^2) n / (n - 2) = sw2
+    rho = np.full((1, w), 0.05, F32)
+    std, flags = np.full((1, w), 0.01, F32), np.full((1, w), VALID, np.uint8)
+    rng_m, conf = np.full((1, w), 20.0, F32), np.full((1, w), 5.0, F32)
+    zeros = np.zeros((1, w), F32)
+    rw = np.zeros((5, w), F32)
+    rw[0], rw[3] = 1.0, 100.0
+    lost = dense._K.model_error_finish(rho, rho.copy(), 3, rho.copy(), zeros, F32(10.0), zeros, zeros, zeros, zeros,
+                                       zeros, zeros, F32(3.0), mr, mr2, mv, F32(n_win), F32(1.0), F32(1.0), rw,
+                                       np.zeros((5, 1), F32), F32(0.0), F32(0.0), F32(0.34), False, std, flags,
+                                       rng_m, conf)
+    np.testing.assert_allclose(std[0], [0.02, 0.01], rtol=1e-5)
+    assert lost == 1
+    assert flags[0, 0] == ILL_CONDITIONED and np.isnan(rng_m[0, 0]) and conf[0, 0] == 0.0
+    assert flags[0, 1] == VALID and rng_m[0, 1] == pytest.approx(20.0) and conf[0, 1] == pytest.approx(5.0)
 
 def _misfit_pair(seed, extra_sigma):
     """A faint textured plane at disparity 6.3 px (rectified pair, unit sensor noise in both images) whose right
