@@ -345,3 +345,24 @@ def test_moment_and_window_kernels_equal_numpy_and_opencv_bit_for_bit(shape):
     fill_reference.down(want, D0)
     assert np.array_equal(D1.view(np.uint32), D0.view(np.uint32))
     assert D0[0].sum() == n.sum()
+
+
+def test_a_valid_pixel_without_a_finite_rho_is_no_support():
+    """A pixel flagged VALID whose rho is NaN or infinite (a caller's bad value) is not a measurement: it must not
+    enter the sums. The holes of the plane are filled with the plane as without those pixels, and the bad pixels
+    themselves are left as they came (VALID, not FILLED). Counted as support, one NaN made the measured mean, and so
+    every window's plane, NaN: nothing was filled anywhere."""
+    rho = plane_rho((0.3, 0.05, 0.9), 20.0)
+    flags = np.full(rho.shape, VALID, np.uint8)
+    holes = np.zeros(rho.shape, bool)
+    holes[60:75, 40:70] = True
+    flags[holes] = LOW_TEXTURE
+    r, s, f, rg, cf = outputs(rho, flags)
+    bad = [(30, 200), (100, 100), (180, 50), (220, 300)]
+    for (y, x), val in zip(bad, (np.nan, np.inf, np.nan, -np.inf)):
+        r[y, x] = val
+    assert fill_unmeasured(r, s, f, rg, cf, max_rel_std=0.34) == holes.sum()
+    assert ((f[holes] & FILLED) != 0).all()
+    assert np.abs(r[holes] / rho[holes] - 1).max() < 1e-3             # an exact plane: float rounding only
+    for y, x in bad:
+        assert f[y, x] == VALID and not np.isfinite(r[y, x])
