@@ -366,3 +366,23 @@ def test_a_valid_pixel_without_a_finite_rho_is_no_support():
     assert np.abs(r[holes] / rho[holes] - 1).max() < 1e-3             # an exact plane: float rounding only
     for y, x in bad:
         assert f[y, x] == VALID and not np.isfinite(r[y, x])
+
+
+def test_occluded_out_of_view_pixels_are_not_extrapolated_even_when_strict():
+    """Only a pixel out of view of image b and NOT occluded is extrapolated beyond the support (the ground band that
+    has left the image); one both out of view and occluded sits at a depth edge. The fused map hands its occluded
+    cells to the fill as ``strict`` (filled despite their no_fill bits when the plane is tight): an exact plane, a
+    24 px band out of view at the left (extrapolated with the plane) and one out of view and occluded at the right,
+    strict with a loose limit, whose pixels beyond the support stay empty."""
+    rho = plane_rho((0.6, 0.0, 0.9), 15.0)
+    flags = np.full(rho.shape, VALID, np.uint8)
+    flags[:, :24] = OUT_OF_VIEW
+    flags[:, -24:] = OUT_OF_VIEW | OCCLUDED
+    r, s, f, rg, cf = outputs(rho, flags)
+    strict = (flags & OCCLUDED) != 0
+    fill_unmeasured(r, s, f, rg, cf, max_rel_std=0.34, strict=strict, strict_rel_std=0.34)
+    left = (f[:, :24] & FILLED) != 0
+    assert left.mean() > 0.95
+    assert np.abs(r[:, :24][left] / rho[:, :24][left] - 1).max() < 0.01
+    assert not ((f[:, -12:] & FILLED) != 0).any()                    # more than a few pixels beyond the support
+    assert np.isnan(rg[:, -12:]).all()
