@@ -386,3 +386,25 @@ def test_occluded_out_of_view_pixels_are_not_extrapolated_even_when_strict():
     assert np.abs(r[:, :24][left] / rho[:, :24][left] - 1).max() < 0.01
     assert not ((f[:, -12:] & FILLED) != 0).any()                    # more than a few pixels beyond the support
     assert np.isnan(rg[:, -12:]).all()
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_plane_fit_of_four_samples_against_ordinary_least_squares_by_hand(reference):
+    """The per-cell plane kernel (and its numpy reference) on the window sums of four unit-weight samples: the
+    textbook least-squares plane, derived by hand. Samples (x, y, r): (0, 0, 1), (2, 0, 3), (0, 2, 5), (1, 1, 5),
+    i.e. r = 1 + x + 2 y plus 1 at the last. Residual space (orthogonal to 1, x, y): (0, -1, -1, 2)/sqrt 6, so the
+    residuals are (0, -1, -1, 2)/3, SSR 2/3 and the fitted plane 1 + 7/6 x + 13/6 y. Centroid (3/4, 3/4),
+    covariance [[11, -5], [-5, 11]]/16 (det 3/8); at the cell centre (3, 2): d = (9/4, 5/4), prediction 53/6,
+    leverage d^T C^-1 d = (11 81 + 2 5 45 + 11 25)/256 / (3/8) = 101/6; residual variance SSR/(n - 3) = 2/3 and
+    the prediction's error variance 2/3 (1 + (1 + 101/6)/4) = 131/36 (OLS: s^2 (1 + x0^T (X^T X)^-1 x0))."""
+    from eonav.ranging.methods import _fill_kernels
+    pts = np.array([(0, 0, 1), (2, 0, 3), (0, 2, 5), (1, 1, 5)], np.float64)
+    x, y, rr = pts.T
+    sums = [4, x.sum(), y.sum(), rr.sum(), (x * x).sum(), (x * y).sum(), (y * y).sum(), (x * rr).sum(),
+            (y * rr).sum(), (rr * rr).sum(), 0.0, 4]                  # no noise floor; 4 pixels in the image
+    S = [np.full((1, 1), s, np.float32) for s in sums]
+    out = [np.empty((1, 1), np.float32) for _ in range(5)]           # p, v, b, c, lev
+    plane = fill_reference.plane if reference else _fill_kernels.plane
+    plane(*S, np.array([3.0], np.float32), np.array([2.0], np.float32), 0.3, 0.0, *out)
+    p, v, b, c, lev = (float(a[0, 0]) for a in out)
+    np.testing.assert_allclose([p, b, c, lev, v], [53 / 6, 7 / 6, 13 / 6, 101 / 6, 131 / 36], rtol=1e-5)
