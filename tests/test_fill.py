@@ -345,3 +345,85 @@ def test_moment_and_window_kernels_equal_numpy_and_opencv_bit_for_bit(shape):
     fill_reference.down(want, D0)
     assert np.array_equal(D1.view(np.uint32), D0.view(np.uint32))
     assert D0[0].sum() == n.sum()
+
+
+def test_a_valid_pixel_without_a_finite_rho_is_no_support():
+    """A pixel flagged VALID whose rho is NaN or infinite (a caller's bad value) is not a measurement: it must not
+    enter the sums. The holes of the plane are filled with the plane as without those pixels, and the bad pixels
+    themselves are left as they came (VALID, not FILLED). Counted as support, one NaN made the measured mean, and so
+    every window's plane, NaN: nothing was filled anywhere."""
+    rho = plane_rho((0.3, 0.05, 0.9), 20.0)
+    flags = np.full(rho.shape, VALID, np.uint8)
+    holes = np.zeros(rho.shape, bool)
+    holes[60:75, 40:70] = True
+    flags[holes] = LOW_TEXTURE
+    r, s, f, rg, cf = outputs(rho, flags)
+    bad = [(30, 200), (100, 100), (180, 50), (220, 300)]
+    for (y, x), val in zip(bad, (np.nan, np.inf, np.nan, -np.inf)):
+        r[y, x] = val
+    assert fill_unmeasured(r, s, f, rg, cf, max_rel_std=0.34) == holes.sum()
+    assert ((f[holes] & FILLED) != 0).all()
+    assert np.abs(r[holes] / rho[holes] - 1).max() < 1e-3             # an exact plane: float rounding only
+    for y, x in bad:
+        assert f[y, x] == VALID and not np.isfinite(r[y, x])
+
+
+def test_occluded_out_of_view_pixels_are_not_extrapolated_even_when_strict():
+    """Only a pixel out of view of image b and NOT occluded is extrapolated beyond the support (the ground band that
+    has left the image); one both out of view and occluded sits at a depth edge. The fused map hands its occluded
+    cells to the fill as ``strict`` (filled despite their no_fill bits when the plane is tight): an exact plane, a
+    24 px band out of view at the left (extrapolated with the plane) and one out of view and occluded at the right,
+    strict with a loose limit, whose pixels beyond the support stay empty."""
+    rho = plane_rho((0.6, 0.0, 0.9), 15.0)
+    flags = np.full(rho.shape, VALID, np.uint8)
+    flags[:, :24] = OUT_OF_VIEW
+    flags[:, -24:] = OUT_OF_VIEW | OCCLUDED
+    r, s, f, rg, cf = outputs(rho, flags)
+    strict = (flags & OCCLUDED) != 0
+    fill_unmeasured(r, s, f, rg, cf, max_rel_std=0.34, strict=strict, strict_rel_std=0.34)
+    left = (f[:, :24] & FILLED) != 0
+    assert left.mean() > 0.95
+    assert np.abs(r[:, :24][left] / rho[:, :24][left] - 1).max() < 0.01
+    assert not ((f[:, -12:] & FILLED) != 0).any()                    # more than a few pixels beyond the support
+    assert np.isnan(rg[:, -12:]).all()
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_plane_fit_of_four_samples_against_ordinary_least_squares_by_hand(reference):
+    """The per-cell plane kernel (and its numpy reference) on the window sums of four unit-weight samples: the
+    textbook least-squares plane, derived by hand. Samples (x, y, r): (0, 0, 1), (2, 0, 3), (0, 2, 5), (1, 1, 5),
+    i.e. r = 1 + x + 2 y plus 1 at the last. Residual space (orthogonal to 1, x, y): (0, -1, -1, 2)/sqrt 6, so the
+    residuals are (0, -1, -1, 2)/3, SSR 2/3 and the fitted plane 1 + 7/6 x + 13/6 y. Centroid (3/4, 3/4),
+    covariance [[11, -5], [-5, 11]]/16 (det 3/8); at the cell centre (3, 2): d = (9/4, 5/4), prediction 53/6,
+    leverage d^T C^-1 d = (11 81 + 2 5 45 + 11 25)/256 / (3/8) = 101/6; residual variance SSR/(n - 3) = 2/3 and
+    the prediction's error variance 2/3 (1 + (1 + 101/6)/4) = 131/36 (OLS: s^2 (1 + x0^T (X^T X)^-1 x0))."""
+    from eonav.ranging.methods import _fill_kernels
+    pts = np.array([(0, 0, 1), (2, 0, 3), (0, 2, 5), (1, 1, 5)], np.float64)
+    x, y, rr = pts.T
+    sums = [4, x.sum(), y.sum(), rr.sum(), (x * x).sum(), (x * y).sum(), (y * y).sum(), (x * rr).sum(),
+            (y * rr).sum(), (rr * rr).sum(), 0.0, 4]                  # no noise floor; 4 pixels in the image
+    S = [np.full((1, 1), s, np.float32) for s in sums]
+    out = [np.empty((1, 1), np.float32) for _ in range(5)]           # p, v, b, c, lev
+    plane = fill_reference.plane if reference else _fill_kernels.plane
+    plane(*S, np.array([3.0], np.float32), np.array([2.0], np.float32), 0.3, 0.0, *out)
+    p, v, b, c, lev = (float(a[0, 0]) for a in out)
+    np.testing.assert_allclose([p, b, c, lev, v], [53 / 6, 7 / 6, 13 / 6, 101 / 6, 131 / 36], rtol=1e-5)
+
+
+@pytest.mark.parametrize("corner", ["left", "right"])
+def test_low_texture_beyond_a_diagonal_edge_of_the_support_is_not_filled(corner):
+    """A sloping horizon: the measured ground ends along a diagonal (45 degrees, down to the left or to the right),
+    textureless (maybe sky) beyond it. As beyond a level edge (the out-of-view test above), a pixel more than a few
+    pixels past the support is an extrapolation (a half-plane's rim has leverage ~3 > LEV_MAX) and stays empty. Here
+    the support's x and y spreads are correlated (either sign): a leverage that got the cross term's sign wrong filled
+    870 pixels up to 28 px into the sky (measured: none beyond 5.7 px)."""
+    rho = plane_rho((0.6, 0.0, 0.9), 15.0)
+    v, u = np.mgrid[0:H, 0:W]
+    across = u if corner == "left" else W - 1 - u
+    dist = (across + v - 200) / np.sqrt(2)                            # px from the edge, < 0 beyond it
+    flags = np.where(dist < 0, LOW_TEXTURE, VALID).astype(np.uint8)
+    r, s, f, rg, cf = outputs(rho, flags)
+    fill_unmeasured(r, s, f, rg, cf, max_rel_std=0.34)
+    filled = (f & FILLED) != 0
+    assert not filled[dist < -8].any()
+    assert np.isnan(rg[dist < -8]).all()
