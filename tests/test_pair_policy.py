@@ -58,6 +58,25 @@ def test_disparity_matches_projection_of_real_points():
     assert m.baseline_m == pytest.approx(math.hypot(3.0, 0.4), rel=1e-9)
 
 
+def test_probe_grid_spans_each_axis_of_a_wide_image():
+    """The probe grid spans 10..90 % of each axis: on a 321 x 161 camera (cx 160, cy 80) its offsets are {0, +-64,
+    +-128} px across and {0, +-32, +-64} px down; the 25 radial offsets sorted are 0, 32 x2, 64 x4, 71.6 x4, 90.5 x4,
+    ..., median (13th) 64 sqrt 2 px. 1 m forward at 50 m: 64 sqrt 2 * 0.02 / 1.02 px. Catches a planted swap of width
+    and height in the probe grid (probes below the image, the median of other pixels)."""
+    wide = Camera("wide", 321, 161, 160.0, 160.0, 160.0, 80.0)
+    m = pp.pair_metrics(frame(1, 0.1, north_m=1.0, cam=wide), frame(0, 0.0, cam=wide), ref_range_m=50.0)
+    assert m.disparity_px == pytest.approx(64 * math.sqrt(2) * 0.02 / 1.02, rel=1e-9)
+
+
+def test_disparity_in_pixels_does_not_depend_on_non_square_pixels():
+    """Moving forward shifts a pixel radially by r d rho / (1 + d rho) in pixels whatever fx and fy (the probe ray's
+    x_p / fx, y_p / fy and its projection's fx, fy cancel): a camera with fy = fx / 2 has the square camera's
+    102 * 0.02 / 1.02 px at 1 m and 50 m. Catches a planted fx for fy in the probe rays (the v shifts halved)."""
+    tall = Camera("nose", 256, 256, 256.0, 128.0, 127.5, 127.5)
+    m = pp.pair_metrics(frame(1, 0.1, north_m=1.0, cam=tall), frame(0, 0.0, cam=tall), ref_range_m=50.0)
+    assert m.disparity_px == pytest.approx(102 * 0.02 / 1.02, rel=1e-9)
+
+
 def test_parallax_threshold_on_both_sides():
     p = policy(min_disparity_px=2.0, ref_range_m=50.0)
     p.offer(frame(0, 0.0, 0.0))
