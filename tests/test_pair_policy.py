@@ -89,6 +89,20 @@ def test_parallax_threshold_on_both_sides():
     assert d.baseline_m == pytest.approx(1.05)
 
 
+def test_parallax_exactly_at_the_thresholds_qualifies():
+    """The thresholds are "at least": 0.5 m sideways judged at 64 m gives f B / Z = 256 * 0.5 / 64 = 2 px, exact in
+    binary floating point (every factor a power of two), so min_disparity_px = 2 pairs, as does min_baseline_m = 0.5
+    with the disparity far short. Catches a planted > for >= in the parallax test."""
+    p = policy(min_disparity_px=2.0, ref_range_m=64.0)
+    p.offer(frame(0, 0.0))
+    d = p.offer(frame(1, 0.1, east_m=0.5))
+    assert d.disparity_px == 2.0 and d.ok and d.b.seq == 0
+    p = policy(min_disparity_px=50.0, min_baseline_m=0.5, ref_range_m=64.0)
+    p.offer(frame(0, 0.0))
+    d = p.offer(frame(1, 0.1, east_m=0.5))
+    assert d.baseline_m == 0.5 and d.ok and d.b.seq == 0
+
+
 def test_newest_sufficient_frame_wins():
     p = policy(min_disparity_px=2.0, ref_range_m=50.0)
     for i in range(5):
