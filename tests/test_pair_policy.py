@@ -244,6 +244,47 @@ def test_stereo_falls_back_to_motion_when_partner_silent():
     assert d.reason == pp.OK_MOTION and d.b.seq == 0 and d.b.camera_id == "left"
 
 
+def test_stereo_pair_at_exactly_max_stereo_dt():
+    """max_stereo_dt_s is the largest stamp difference of a pair, inclusive: 2000 us apart pairs at 2 ms (integer
+    stamps; 0.002 * 1e6 is 2000.0 exactly), 2001 us does not (the right frame waits for a left one). Catches a planted
+    < for <= in the stereo match."""
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    d = p.offer(frame(0, 0.002, cam=RIGHT))
+    assert d.reason == pp.OK_STEREO and d.dt_s == pytest.approx(-0.002)
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    assert p.offer(frame(0, 0.002001, cam=RIGHT)).reason == pp.AWAITING_STEREO
+
+
+def test_stereo_reference_is_not_paired_twice_by_a_faster_partner():
+    """A partner frame arriving 1 ms after one already paired with the left reference (a faster partner camera, or a
+    repeat) is within 2 ms of that reference, but the reference has been measured: pairing it again would fuse the
+    same ranges twice. The right frame falls back to motion (none: it has not moved). Catches a planted removal of the
+    used-reference check."""
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    assert p.offer(frame(0, 0.0005, cam=RIGHT)).reason == pp.OK_STEREO
+    d = p.offer(frame(1, 0.0015, cam=RIGHT))
+    assert not d.ok and d.reason == pp.TOO_LITTLE_PARALLAX
+
+
+def test_stereo_frame_whose_partner_already_passed_its_instant_falls_back_to_motion():
+    """The right camera dropped its 0.1 s frame and delivered its 0.2 s one before the left 0.1 s frame arrived: no
+    right frame for 0.1 s can come any more, so the left frame does not wait but pairs with the left frame 2 m back
+    (102 * 0.04 / 1.04 px); at 0.2 s the rig pairs again. Catches a planted removal of "partner behind us" from the
+    wait (the frame would wait for a partner that never comes, and be lost)."""
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    assert p.offer(frame(0, 0.0, cam=RIGHT)).reason == pp.OK_STEREO
+    assert p.offer(frame(2, 0.2, 4.0, cam=RIGHT)).reason == pp.AWAITING_STEREO     # left behind: its frame will come
+    d = p.offer(frame(1, 0.1, 2.0, cam=LEFT))
+    assert d.reason == pp.OK_MOTION and d.b.seq == 0 and d.b.camera_id == "left"
+    assert d.disparity_px == pytest.approx(102 * 0.04 / 1.04)
+    d = p.offer(frame(2, 0.2, 4.0, cam=LEFT))
+    assert d.reason == pp.OK_STEREO and d.a.seq == 2 and d.b.seq == 2
+
+
 @pytest.mark.parametrize("kw, match", [
     ({"min_disparity_px": -1.0}, "min_disparity_px"),
     ({"ref_range_m": 0.0}, "ref_range_m"),
