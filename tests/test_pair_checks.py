@@ -148,6 +148,19 @@ def test_brightness_spread_threshold_is_the_robust_sigma():
             assert "brightness spread of the points below 8" in fit.reason
 
 
+def test_brightness_fit_drops_occluded_points():
+    """A bright object (250 grey levels) covers 60 of the 300 blocks in image a only, the occlusion the biweight is
+    there for: the fit finds the other 240 blocks' exact gain 1.2 and offset -10 (a plain least-squares fit through
+    all 300 is pulled towards the occluder). Catches a planted single pass of the IRLS loop (no reweighting)."""
+    vals = np.random.default_rng(7).uniform(60.0, 200.0, 300)
+    a, b, tr = _block_pair(vals, 1.2, -10.0)
+    for k in np.random.default_rng(8).choice(300, 60, replace=False):
+        r, c = divmod(int(k), 20)
+        a[16 * r:16 * (r + 1), 16 * c:16 * (c + 1)] = 250.0
+    fit = fit_brightness(a, b, tr)
+    assert fit.used and fit.gain == pytest.approx(1.2, abs=1e-4) and fit.offset == pytest.approx(-10.0, abs=0.02)
+
+
 def test_brightness_fit_through_the_memo_of_box_means_is_the_direct_fit():
     """Along a stream of gain-changed frames (each fitted against the one before) the memo blurs each image once
     and the fits are the direct ones exactly; the match's image b is gain * b + offset in float32."""
