@@ -161,6 +161,18 @@ def test_brightness_fit_drops_occluded_points():
     assert fit.used and fit.gain == pytest.approx(1.2, abs=1e-4) and fit.offset == pytest.approx(-10.0, abs=0.02)
 
 
+def test_brightness_change_is_judged_at_both_ends_of_the_points_brightness():
+    """min_change takes the larger change at the points' 10th and 90th percentile of b: with b's blocks half at 80,
+    half at 180, the gain 0.9 and offset 18 leave 180 unchanged but darken 80 by 10 grey levels, and the gain 1.1 and
+    offset -8 leave 80 unchanged but brighten 180 by 10: both are applied. Catches a planted change judged at one
+    end only (the 90th percentile: the first pair, a real change, would not be corrected)."""
+    vals = np.where(np.arange(300) % 2 == 0, 80.0, 180.0)
+    for gain, offset in ((0.9, 18.0), (1.1, -8.0)):
+        fit = fit_brightness(*_block_pair(vals, gain, offset))
+        assert fit.used and fit.reason == "ok", (gain, fit)
+        assert fit.gain == pytest.approx(gain, abs=1e-4) and fit.offset == pytest.approx(offset, abs=0.02)
+
+
 def test_brightness_fit_through_the_memo_of_box_means_is_the_direct_fit():
     """Along a stream of gain-changed frames (each fitted against the one before) the memo blurs each image once
     and the fits are the direct ones exactly; the match's image b is gain * b + offset in float32."""
