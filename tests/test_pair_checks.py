@@ -173,6 +173,16 @@ def test_brightness_change_is_judged_at_both_ends_of_the_points_brightness():
         assert fit.gain == pytest.approx(gain, abs=1e-4) and fit.offset == pytest.approx(offset, abs=0.02)
 
 
+def test_brightness_fit_with_exactly_min_points_tracks():
+    """min_points is the least number of tracks a fit takes: 30 of the block pair's tracks with min_points = 30 are
+    fitted (gain 1.2, offset -10 exactly), 29 are not. Catches a planted <= for < in the track count."""
+    a, b, tr = _block_pair(np.random.default_rng(6).uniform(60.0, 200.0, 300), 1.2, -10.0)
+    fit = fit_brightness(a, b, Tracks(tr.pts_a[:30], tr.pts_b[:30]), min_points=30)
+    assert fit.used and fit.n_points == 30 and fit.gain == pytest.approx(1.2, abs=1e-4)
+    fit = fit_brightness(a, b, Tracks(tr.pts_a[:29], tr.pts_b[:29]), min_points=30)
+    assert not fit.used and fit.reason == "29 tracked points (< 30)"
+
+
 def test_brightness_fit_through_the_memo_of_box_means_is_the_direct_fit():
     """Along a stream of gain-changed frames (each fitted against the one before) the memo blurs each image once
     and the fits are the direct ones exactly; the match's image b is gain * b + offset in float32."""
