@@ -148,6 +148,41 @@ def test_brightness_spread_threshold_is_the_robust_sigma():
             assert "brightness spread of the points below 8" in fit.reason
 
 
+def test_brightness_fit_drops_occluded_points():
+    """A bright object (250 grey levels) covers 60 of the 300 blocks in image a only, the occlusion the biweight is
+    there for: the fit finds the other 240 blocks' exact gain 1.2 and offset -10 (a plain least-squares fit through
+    all 300 is pulled towards the occluder). Catches a planted single pass of the IRLS loop (no reweighting)."""
+    vals = np.random.default_rng(7).uniform(60.0, 200.0, 300)
+    a, b, tr = _block_pair(vals, 1.2, -10.0)
+    for k in np.random.default_rng(8).choice(300, 60, replace=False):
+        r, c = divmod(int(k), 20)
+        a[16 * r:16 * (r + 1), 16 * c:16 * (c + 1)] = 250.0
+    fit = fit_brightness(a, b, tr)
+    assert fit.used and fit.gain == pytest.approx(1.2, abs=1e-4) and fit.offset == pytest.approx(-10.0, abs=0.02)
+
+
+def test_brightness_change_is_judged_at_both_ends_of_the_points_brightness():
+    """min_change takes the larger change at the points' 10th and 90th percentile of b: with b's blocks half at 80,
+    half at 180, the gain 0.9 and offset 18 leave 180 unchanged but darken 80 by 10 grey levels, and the gain 1.1 and
+    offset -8 leave 80 unchanged but brighten 180 by 10: both are applied. Catches a planted change judged at one
+    end only (the 90th percentile: the first pair, a real change, would not be corrected)."""
+    vals = np.where(np.arange(300) % 2 == 0, 80.0, 180.0)
+    for gain, offset in ((0.9, 18.0), (1.1, -8.0)):
+        fit = fit_brightness(*_block_pair(vals, gain, offset))
+        assert fit.used and fit.reason == "ok", (gain, fit)
+        assert fit.gain == pytest.approx(gain, abs=1e-4) and fit.offset == pytest.approx(offset, abs=0.02)
+
+
+def test_brightness_fit_with_exactly_min_points_tracks():
+    """min_points is the least number of tracks a fit takes: 30 of the block pair's tracks with min_points = 30 are
+    fitted (gain 1.2, offset -10 exactly), 29 are not. Catches a planted <= for < in the track count."""
+    a, b, tr = _block_pair(np.random.default_rng(6).uniform(60.0, 200.0, 300), 1.2, -10.0)
+    fit = fit_brightness(a, b, Tracks(tr.pts_a[:30], tr.pts_b[:30]), min_points=30)
+    assert fit.used and fit.n_points == 30 and fit.gain == pytest.approx(1.2, abs=1e-4)
+    fit = fit_brightness(a, b, Tracks(tr.pts_a[:29], tr.pts_b[:29]), min_points=30)
+    assert not fit.used and fit.reason == "29 tracked points (< 30)"
+
+
 def test_brightness_fit_through_the_memo_of_box_means_is_the_direct_fit():
     """Along a stream of gain-changed frames (each fitted against the one before) the memo blurs each image once
     and the fits are the direct ones exactly; the match's image b is gain * b + offset in float32."""

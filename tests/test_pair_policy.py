@@ -58,6 +58,25 @@ def test_disparity_matches_projection_of_real_points():
     assert m.baseline_m == pytest.approx(math.hypot(3.0, 0.4), rel=1e-9)
 
 
+def test_probe_grid_spans_each_axis_of_a_wide_image():
+    """The probe grid spans 10..90 % of each axis: on a 321 x 161 camera (cx 160, cy 80) its offsets are {0, +-64,
+    +-128} px across and {0, +-32, +-64} px down; the 25 radial offsets sorted are 0, 32 x2, 64 x4, 71.6 x4, 90.5 x4,
+    ..., median (13th) 64 sqrt 2 px. 1 m forward at 50 m: 64 sqrt 2 * 0.02 / 1.02 px. Catches a planted swap of width
+    and height in the probe grid (probes below the image, the median of other pixels)."""
+    wide = Camera("wide", 321, 161, 160.0, 160.0, 160.0, 80.0)
+    m = pp.pair_metrics(frame(1, 0.1, north_m=1.0, cam=wide), frame(0, 0.0, cam=wide), ref_range_m=50.0)
+    assert m.disparity_px == pytest.approx(64 * math.sqrt(2) * 0.02 / 1.02, rel=1e-9)
+
+
+def test_disparity_in_pixels_does_not_depend_on_non_square_pixels():
+    """Moving forward shifts a pixel radially by r d rho / (1 + d rho) in pixels whatever fx and fy (the probe ray's
+    x_p / fx, y_p / fy and its projection's fx, fy cancel): a camera with fy = fx / 2 has the square camera's
+    102 * 0.02 / 1.02 px at 1 m and 50 m. Catches a planted fx for fy in the probe rays (the v shifts halved)."""
+    tall = Camera("nose", 256, 256, 256.0, 128.0, 127.5, 127.5)
+    m = pp.pair_metrics(frame(1, 0.1, north_m=1.0, cam=tall), frame(0, 0.0, cam=tall), ref_range_m=50.0)
+    assert m.disparity_px == pytest.approx(102 * 0.02 / 1.02, rel=1e-9)
+
+
 def test_parallax_threshold_on_both_sides():
     p = policy(min_disparity_px=2.0, ref_range_m=50.0)
     p.offer(frame(0, 0.0, 0.0))
@@ -68,6 +87,20 @@ def test_parallax_threshold_on_both_sides():
     assert d.ok and d.reason == pp.OK_MOTION and d.kind == "motion"
     assert d.a.seq == 2 and d.b.seq == 0 and d.a.payload == 2 and d.b.payload == 0
     assert d.baseline_m == pytest.approx(1.05)
+
+
+def test_parallax_exactly_at_the_thresholds_qualifies():
+    """The thresholds are "at least": 0.5 m sideways judged at 64 m gives f B / Z = 256 * 0.5 / 64 = 2 px, exact in
+    binary floating point (every factor a power of two), so min_disparity_px = 2 pairs, as does min_baseline_m = 0.5
+    with the disparity far short. Catches a planted > for >= in the parallax test."""
+    p = policy(min_disparity_px=2.0, ref_range_m=64.0)
+    p.offer(frame(0, 0.0))
+    d = p.offer(frame(1, 0.1, east_m=0.5))
+    assert d.disparity_px == 2.0 and d.ok and d.b.seq == 0
+    p = policy(min_disparity_px=50.0, min_baseline_m=0.5, ref_range_m=64.0)
+    p.offer(frame(0, 0.0))
+    d = p.offer(frame(1, 0.1, east_m=0.5))
+    assert d.baseline_m == 0.5 and d.ok and d.b.seq == 0
 
 
 def test_newest_sufficient_frame_wins():
@@ -209,6 +242,47 @@ def test_stereo_falls_back_to_motion_when_partner_silent():
     p.offer(frame(0, 1.0, 0.0, cam=LEFT))               # right last seen 1 s ago: silent
     d = p.offer(frame(1, 1.1, 2.0, cam=LEFT))
     assert d.reason == pp.OK_MOTION and d.b.seq == 0 and d.b.camera_id == "left"
+
+
+def test_stereo_pair_at_exactly_max_stereo_dt():
+    """max_stereo_dt_s is the largest stamp difference of a pair, inclusive: 2000 us apart pairs at 2 ms (integer
+    stamps; 0.002 * 1e6 is 2000.0 exactly), 2001 us does not (the right frame waits for a left one). Catches a planted
+    < for <= in the stereo match."""
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    d = p.offer(frame(0, 0.002, cam=RIGHT))
+    assert d.reason == pp.OK_STEREO and d.dt_s == pytest.approx(-0.002)
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    assert p.offer(frame(0, 0.002001, cam=RIGHT)).reason == pp.AWAITING_STEREO
+
+
+def test_stereo_reference_is_not_paired_twice_by_a_faster_partner():
+    """A partner frame arriving 1 ms after one already paired with the left reference (a faster partner camera, or a
+    repeat) is within 2 ms of that reference, but the reference has been measured: pairing it again would fuse the
+    same ranges twice. The right frame falls back to motion (none: it has not moved). Catches a planted removal of the
+    used-reference check."""
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    assert p.offer(frame(0, 0.0005, cam=RIGHT)).reason == pp.OK_STEREO
+    d = p.offer(frame(1, 0.0015, cam=RIGHT))
+    assert not d.ok and d.reason == pp.TOO_LITTLE_PARALLAX
+
+
+def test_stereo_frame_whose_partner_already_passed_its_instant_falls_back_to_motion():
+    """The right camera dropped its 0.1 s frame and delivered its 0.2 s one before the left 0.1 s frame arrived: no
+    right frame for 0.1 s can come any more, so the left frame does not wait but pairs with the left frame 2 m back
+    (102 * 0.04 / 1.04 px); at 0.2 s the rig pairs again. Catches a planted removal of "partner behind us" from the
+    wait (the frame would wait for a partner that never comes, and be lost)."""
+    p = policy(stereo_rig=("left", "right"), max_stereo_dt_s=0.002)
+    p.offer(frame(0, 0.0, cam=LEFT))
+    assert p.offer(frame(0, 0.0, cam=RIGHT)).reason == pp.OK_STEREO
+    assert p.offer(frame(2, 0.2, 4.0, cam=RIGHT)).reason == pp.AWAITING_STEREO     # left behind: its frame will come
+    d = p.offer(frame(1, 0.1, 2.0, cam=LEFT))
+    assert d.reason == pp.OK_MOTION and d.b.seq == 0 and d.b.camera_id == "left"
+    assert d.disparity_px == pytest.approx(102 * 0.04 / 1.04)
+    d = p.offer(frame(2, 0.2, 4.0, cam=LEFT))
+    assert d.reason == pp.OK_STEREO and d.a.seq == 2 and d.b.seq == 2
 
 
 @pytest.mark.parametrize("kw, match", [
