@@ -127,6 +127,41 @@ def test_too_old():
     assert d.reason == pp.TOO_OLD and d.dt_s == pytest.approx(0.6)
 
 
+
+def test_a_partner_exactly_max_age_old_is_accepted_one_microsecond_more_is_not():
+    """max_age_s is the oldest partner accepted: 500 000 us is 0.5 s exactly (500000 x 1e-6 rounds to 0.5), so a
+    frame 0.5 s old pairs under max_age_s 0.5, one 1 us older is TOO_OLD. Catches a planted >= for > in the age
+    test (a partner at exactly the limit refused)."""
+    p = policy(max_age_s=0.5)
+    p.offer(frame(0, 0.0))
+    d = p.offer(frame(1, 0.5, 20.0))
+    assert d.ok and d.b.seq == 0 and d.dt_s == 0.5
+    p = policy(max_age_s=0.5)
+    p.offer(frame(0, 0.0))
+    assert p.offer(frame(1, 0.500001, 20.0)).reason == pp.TOO_OLD
+
+
+def test_too_old_reports_the_age_of_the_newest_earlier_frame():
+    """Every earlier frame too old: the decision gives how old the newest of them is (what a healthy stream would
+    have paired with), 1.0 - 0.2 = 0.8 s here, not the oldest's 1.0 s."""
+    p = policy(max_age_s=0.5)
+    p.offer(frame(0, 0.0))
+    p.offer(frame(1, 0.2, 0.5))
+    d = p.offer(frame(2, 1.0, 20.0))
+    assert d.reason == pp.TOO_OLD and d.dt_s == pytest.approx(0.8) and "0.800 s old" in d.detail
+
+
+def test_too_little_parallax_reports_the_best_candidate():
+    """No earlier frame gives enough parallax: the decision carries the candidate with the most (the one to wait
+    for), here frame 0, 0.75 m behind the new frame (102 x 0.015 / 1.015 px at 50 m), not the newest, 0.05 m
+    behind (0.1 px), nor the middle one, 0.15 m."""
+    p = policy(min_disparity_px=2.0, ref_range_m=50.0)
+    for i, north in enumerate((0.0, 0.6, 0.7)):
+        p.offer(frame(i, 0.1 * i, north))
+    d = p.offer(frame(3, 0.3, 0.75))
+    assert d.reason == pp.TOO_LITTLE_PARALLAX
+    assert d.disparity_px == pytest.approx(102 * 0.015 / 1.015) and d.baseline_m == pytest.approx(0.75)
+
 def test_too_much_rotation():
     p = policy(max_rotation_deg=10.0)
     p.offer(frame(0, 0.0, 0.0, yaw_deg=0.0))
