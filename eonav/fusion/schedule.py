@@ -238,8 +238,7 @@ class Scheduler:
         if (a.camera_id, a.seq, a.stamp_us) in self._stereo_done:
             return None
         m = pair_metrics(a, b, cfg.policy.ref_range_m)
-        if m.disparity_px < cfg.policy.min_disparity_px and not (
-                cfg.policy.min_baseline_m > 0 and m.baseline_m >= cfg.policy.min_baseline_m):
+        if not cfg.policy.parallax_ok(m):
             return None
         self._stereo_done.append((a.camera_id, a.seq, a.stamp_us))
         return Measurement(STEREO, a, b, m.disparity_px, m.baseline_m)

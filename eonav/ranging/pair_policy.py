@@ -82,6 +82,12 @@ class PairPolicyConfig:
                 raise InputError(f"pair policy: stereo_rig must be two different camera ids, got {self.stereo_rig!r}")
             object.__setattr__(self, "stereo_rig", rig)
 
+    def parallax_ok(self, m: "PairMetrics") -> bool:
+        """Enough parallax: the disparity at ``ref_range_m`` at least ``min_disparity_px``, or (``min_baseline_m``
+        > 0) the baseline at least that."""
+        return (m.disparity_px >= self.min_disparity_px
+                or (self.min_baseline_m > 0 and m.baseline_m >= self.min_baseline_m))
+
 
 @dataclass(frozen=True)
 class PairDecision:
@@ -216,7 +222,7 @@ class PairPolicy:
             if (a.camera_id, a.seq) in self._stereo_done:
                 return None
             m = pair_metrics(a, b, cfg.ref_range_m)
-            if not self._parallax_ok(m):
+            if not self.config.parallax_ok(m):
                 return PairDecision(TOO_LITTLE_PARALLAX, detail=f"stereo: {self._parallax_text(m)}", **_mfields(m))
             self._stereo_done.append((a.camera_id, a.seq))
             return PairDecision(OK_STEREO, a, b, detail=f"stereo {a.camera_id}/{b.camera_id}", **_mfields(m))
@@ -231,10 +237,6 @@ class PairPolicy:
         """``pair_metrics`` of a motion candidate (a subclass may compute a frame's candidates together)."""
         return pair_metrics(a, b, self.config.ref_range_m)
 
-    def _parallax_ok(self, m: PairMetrics) -> bool:
-        cfg = self.config
-        return (m.disparity_px >= cfg.min_disparity_px
-                or (cfg.min_baseline_m > 0 and m.baseline_m >= cfg.min_baseline_m))
 
     def _parallax_text(self, m: PairMetrics) -> str:
         cfg = self.config
@@ -256,7 +258,7 @@ class PairPolicy:
             if m.rotation_deg > cfg.max_rotation_deg:
                 seen_rot = seen_rot or m
                 continue
-            if not self._parallax_ok(m):
+            if not self.config.parallax_ok(m):
                 if seen_parallax is None or m.disparity_px > seen_parallax.disparity_px:
                     seen_parallax = m
                 continue
