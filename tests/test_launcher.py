@@ -196,6 +196,68 @@ def test_restart_count_resets_after_thirty_seconds_of_stable_running():
             p.popen.wait()
 
 
+# a child that appends the EONAV_RESTART_COUNT it was started with to $T_OUT, then exits $T_EXIT_CODE (a crash)
+CRASH = textwrap.dedent('''
+    import os, sys
+    with open(os.environ["T_OUT"], "a") as f:
+        f.write(os.environ.get("EONAV_RESTART_COUNT", "unset") + "\\n")
+    sys.exit(int(os.environ["T_EXIT_CODE"]))
+''')
+
+
+@pytest.fixture
+def crash_pkg(tmp_path, monkeypatch):
+    return install_service_package(tmp_path, monkeypatch, "lcrash", CRASH)
+
+
+def _reap(sup, p, now):
+    assert p.popen.wait(10) is not None
+    return sup.poll(now=now)
+
+
+def test_each_start_gets_its_restart_count(crash_pkg, tmp_path):
+    """A service that crashes (exit 3) with max_restarts 2 is started 3 times, with EONAV_RESTART_COUNT 0, 1, 2 (docs/
+    bus.md, "Supervision": a replay reads it to resume or end rather than start over), each restart due after the
+    back-off (0.5 s, then 1 s) from the clock given to poll(), then fails for good. Real child processes. Catches a
+    constant count passed (a restarted replay without a shift would present its recording's start as now)."""
+    out = tmp_path / "counts.txt"
+    spec = L.ServiceSpec(name="replay", module=crash_pkg, max_restarts=2, env={"T_OUT": str(out), "T_EXIT_CODE": "3"})
+    sup = L.Supervisor([spec], vehicle="lt", router="tcp/127.0.0.1:1", ctx={})
+    (p,) = sup.procs
+    sup.start_all()
+    assert _reap(sup, p, 100.0) == [p] and p.state == "restarting" and p.next_start_mono == 100.5
+    assert sup.poll(now=100.49) == [] and p.state == "restarting"          # not before its time
+    sup.poll(now=100.5)
+    assert p.state == "running"
+    assert _reap(sup, p, 200.0) == [p] and p.state == "restarting" and p.next_start_mono == 201.0
+    sup.poll(now=201.0)
+    assert _reap(sup, p, 300.0) == [p]
+    assert (p.state, p.restarts, p.exit_code) == ("failed", 2, 3)
+    assert out.read_text().split() == ["0", "1", "2"]
+
+
+def test_a_service_with_restart_false_is_not_restarted_after_a_crash(crash_pkg, tmp_path):
+    """``"restart": false``: a crash (exit 3) leaves the service failed with its exit code and no restart, while the
+    same crash of a restartable service is restarted after 0.5 s; it is not started again however long the
+    supervisor polls. Real child processes. Catches the restart flag ignored (only max_restarts consulted)."""
+    out = tmp_path / "counts.txt"
+    env = {"T_OUT": str(out), "T_EXIT_CODE": "3"}
+    sup = L.Supervisor([L.ServiceSpec(name="once", module=crash_pkg, restart=False, env=env),
+                        L.ServiceSpec(name="again", module=crash_pkg, env=env)],
+                       vehicle="lt", router="tcp/127.0.0.1:1", ctx={})
+    once, again = sup.procs
+    sup.start_all()
+    assert once.popen.wait(10) == 3 and again.popen.wait(10) == 3
+    assert sup.poll(now=100.0) == [once, again]
+    assert (once.state, once.restarts, once.exit_code) == ("failed", 0, 3)
+    assert (again.state, again.restarts, again.next_start_mono) == ("restarting", 1, 100.5)
+    pid = once.popen.pid
+    sup.poll(now=100.5)
+    sup.poll(now=1000.0)
+    assert once.state == "failed" and once.popen.pid == pid and again.popen.pid != pid
+    assert again.popen.wait(10) == 3
+    assert out.read_text().split() == ["0", "0", "1"]       # once, again, again restarted
+
 def test_stop_processes_grace_is_in_total_not_per_process():
     """stop_processes: SIGINT to each, ``grace_s`` in total, then SIGKILL the rest. Three children that ignore
     SIGINT are killed about 1 s after the call (not 3 x 1 s: the bound leaves a loaded machine 1.5 s); one that exits
