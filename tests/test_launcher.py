@@ -196,6 +196,111 @@ def test_restart_count_resets_after_thirty_seconds_of_stable_running():
             p.popen.wait()
 
 
+# a child that appends the EONAV_RESTART_COUNT it was started with to $T_OUT, then exits $T_EXIT_CODE (a crash)
+CRASH = textwrap.dedent('''
+    import os, sys
+    with open(os.environ["T_OUT"], "a") as f:
+        f.write(os.environ.get("EONAV_RESTART_COUNT", "unset") + "\\n")
+    sys.exit(int(os.environ["T_EXIT_CODE"]))
+''')
+
+
+@pytest.fixture
+def crash_pkg(tmp_path, monkeypatch):
+    return install_service_package(tmp_path, monkeypatch, "lcrash", CRASH)
+
+
+def _reap(sup, p, now):
+    assert p.popen.wait(10) is not None
+    return sup.poll(now=now)
+
+
+def test_each_start_gets_its_restart_count(crash_pkg, tmp_path):
+    """A service that crashes (exit 3) with max_restarts 2 is started 3 times, with EONAV_RESTART_COUNT 0, 1, 2 (docs/
+    bus.md, "Supervision": a replay reads it to resume or end rather than start over), each restart due after the
+    back-off (0.5 s, then 1 s) from the clock given to poll(), then fails for good. Real child processes. Catches a
+    constant count passed (a restarted replay without a shift would present its recording's start as now)."""
+    out = tmp_path / "counts.txt"
+    spec = L.ServiceSpec(name="replay", module=crash_pkg, max_restarts=2, env={"T_OUT": str(out), "T_EXIT_CODE": "3"})
+    sup = L.Supervisor([spec], vehicle="lt", router="tcp/127.0.0.1:1", ctx={})
+    (p,) = sup.procs
+    sup.start_all()
+    assert _reap(sup, p, 100.0) == [p] and p.state == "restarting" and p.next_start_mono == 100.5
+    assert sup.poll(now=100.49) == [] and p.state == "restarting"          # not before its time
+    sup.poll(now=100.5)
+    assert p.state == "running"
+    assert _reap(sup, p, 200.0) == [p] and p.state == "restarting" and p.next_start_mono == 201.0
+    sup.poll(now=201.0)
+    assert _reap(sup, p, 300.0) == [p]
+    assert (p.state, p.restarts, p.exit_code) == ("failed", 2, 3)
+    assert out.read_text().split() == ["0", "1", "2"]
+
+
+def test_a_service_with_restart_false_is_not_restarted_after_a_crash(crash_pkg, tmp_path):
+    """``"restart": false``: a crash (exit 3) leaves the service failed with its exit code and no restart, while the
+    same crash of a restartable service is restarted after 0.5 s; it is not started again however long the
+    supervisor polls. Real child processes. Catches the restart flag ignored (only max_restarts consulted)."""
+    out = tmp_path / "counts.txt"
+    env = {"T_OUT": str(out), "T_EXIT_CODE": "3"}
+    sup = L.Supervisor([L.ServiceSpec(name="once", module=crash_pkg, restart=False, env=env),
+                        L.ServiceSpec(name="again", module=crash_pkg, env=env)],
+                       vehicle="lt", router="tcp/127.0.0.1:1", ctx={})
+    once, again = sup.procs
+    sup.start_all()
+    assert once.popen.wait(10) == 3 and again.popen.wait(10) == 3
+    assert sup.poll(now=100.0) == [once, again]
+    assert (once.state, once.restarts, once.exit_code) == ("failed", 0, 3)
+    assert (again.state, again.restarts, again.next_start_mono) == ("restarting", 1, 100.5)
+    pid = once.popen.pid
+    sup.poll(now=100.5)
+    sup.poll(now=1000.0)
+    assert once.state == "failed" and once.popen.pid == pid and again.popen.pid != pid
+    assert again.popen.wait(10) == 3
+    assert out.read_text().split() == ["0", "0", "1"]       # once, again, again restarted
+
+
+def test_exit_code_1_after_a_configuration_error(crash_pkg, tmp_path):
+    """A service that exits 2 (configuration error) is not restarted and, once nothing is left running, ``eonav run``
+    ends with exit 1 (docs/bus.md, "Running": a service failed for good) and says why. Catches config_error left out
+    of the failed states the exit code counts (the run then exits 0 as if it had finished cleanly)."""
+    import io
+    err, seen = io.StringIO(), []
+    spec = {"services": [{"name": "bad", "module": crash_pkg,
+                          "env": {"T_OUT": str(tmp_path / "counts.txt"), "T_EXIT_CODE": "2"}}]}
+    code = L.run_pipeline(spec, vehicle="lt7", duration=20, on_status=seen.append, status_stream=err)
+    assert code == 1
+    assert (seen[-1]["bad"]["state"], seen[-1]["bad"]["exit_code"], seen[-1]["bad"]["restarts"]) == \
+        ("config_error", 2, 0)
+    assert err.getvalue().splitlines()[-1] == "eonav run: no service left running; bad=config_error(2)"
+    assert (tmp_path / "counts.txt").read_text().split() == ["0"]           # started once
+
+
+def test_exit_code_1_when_no_service_could_be_started():
+    """A pipeline none of whose modules exists starts nothing: ``eonav run`` stops at once with exit 1 and says so
+    (a typo in every module name is not a clean run). Catches that run ending with exit 0."""
+    import io
+    err = io.StringIO()
+    t0 = time.monotonic()
+    code = L.run_pipeline({"services": [{"name": "ghost", "module": "services.not_written_yet"}]}, vehicle="lt8",
+                          duration=20, status_stream=err)
+    assert code == 1 and time.monotonic() - t0 < 10
+    assert err.getvalue().splitlines()[-1] == "eonav run: no service could be started; ghost=missing"
+
+
+def test_status_line_shows_health_older_than_five_seconds_as_stale():
+    """A running service's status entry: its last health state while that message is under 5 s old, ``stale`` after
+    (the service stopped reporting: its "ok" no longer says anything), with its rate and restarts either way. Hand
+    values; the clock is given. Catches the age's sign flipped (an old health shown as current)."""
+    p = L.Proc(L.ServiceSpec(name="sync", module="m"), state="running", restarts=1, health_mono=1000.0,
+               health={"state": "ok", "detail": "", "rates_hz": {"frames": 4.96, "nav": 50.0}, "latency_ms": {},
+                       "counters": {}})
+    assert L._fmt_service(p, 1004.9) == "sync ok 50.0Hz r1"
+    assert L._fmt_service(p, 1005.0) == "sync stale 50.0Hz r1"
+    assert L._fmt_service(p, 1060.0) == "sync stale 50.0Hz r1"
+    p.health = dict(p.health, state="degraded", detail="no frames for 1.3 s; no nav for 0.6 s")
+    assert L._fmt_service(p, 1001.0) == "sync degraded(no frames for 1.3 s) 50.0Hz r1"
+    assert L._fmt_service(p, 1006.0) == "sync stale 50.0Hz r1"
+
 def test_stop_processes_grace_is_in_total_not_per_process():
     """stop_processes: SIGINT to each, ``grace_s`` in total, then SIGKILL the rest. Three children that ignore
     SIGINT are killed about 1 s after the call (not 3 x 1 s: the bound leaves a loaded machine 1.5 s); one that exits

@@ -88,6 +88,40 @@ def test_sources_first_stamps_and_the_joint_shift(rec, tmp_path):
         S.joint_replay_shift_us([S.camera_start("--camera nose=bare", str(bare)), tlog])
 
 
+def test_recordings_beside_a_live_source_get_no_joint_shift(rec):
+    """Two recordings and a live camera: a live stream cannot be shifted, so no joint shift (None: each replay maps
+    onto the current clock by itself, docs/bus.md "Running"), although two sources are recorded; the same two
+    recordings with a third one instead get the shift that puts the earliest first stamp (the tlog's) 2 s from now.
+    Catches the "recordings mixed with live sources" rule dropped (the earlier test mixes one recording only)."""
+    now = 1_800_000_000_000_000
+    folder = S.camera_start("--camera nose", str(rec / "frames"))
+    video = S.camera_start("--camera tail", str(rec / "nose.avi"))
+    tlog = S.mavlink_start("--mavlink", str(rec / "flight.tlog"))
+    live = S.camera_start("--camera belly", "/dev/video0")
+    assert live.kind == "v4l2" and not live.recorded
+    assert S.joint_replay_shift_us([folder, tlog, live], 2.0, now_us=now) is None
+    assert S.joint_replay_shift_us([live, folder, video, tlog], 2.0, now_us=now) is None
+    assert S.joint_replay_shift_us([folder, video, tlog], 2.0, now_us=now) == \
+        now + 2_000_000 - _first_tlog_us(rec / "flight.tlog")
+
+
+def test_a_recording_without_stamps_is_told_where_its_stamps_go(rec, tmp_path):
+    """The refusal names the stamps file the camera ingest would read for that kind of recording: an image folder's
+    ``timestamps.txt`` in the folder, a video's ``<video name>.timestamps.txt`` beside it. Catches the two hints
+    swapped (the earlier test's pattern matches either)."""
+    tlog = S.mavlink_start("--mavlink", str(rec / "flight.tlog"))
+    video = tmp_path / "clip.avi"
+    video.write_bytes((rec / "nose.avi").read_bytes())          # no clip.timestamps.txt beside it
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "f0.png"), np.zeros((8, 8), np.uint8))
+    v, f = S.camera_start("--camera tail", str(video)), S.camera_start("--camera nose", str(folder))
+    assert (v.kind, v.first_us, f.kind, f.first_us) == ("file", None, "folder", None)
+    with pytest.raises(InputError, match=r"^--camera tail: .*expected <video name>\.timestamps\.txt beside the video"):
+        S.joint_replay_shift_us([tlog, v])
+    with pytest.raises(InputError, match=r"^--camera nose: .*expected timestamps\.txt in the folder"):
+        S.joint_replay_shift_us([tlog, f])
+
 def test_default_pipeline_gets_the_cameras_file_and_one_shift(rec):
     cams = rec / "cameras.json"
     args = _run_args("--camera", f"nose={rec / 'frames'}", "--mavlink", rec / "flight.tlog", "--cameras", cams,
