@@ -121,11 +121,13 @@ class Publisher:
 
     def fast_forward(self, msg, rx_us: int) -> None:
         """Feed a record the replay passes over (already due when it started): the decoder (origin, system id)
-        and the clock estimator see it, nothing is published (``replay_skipped``)."""
+        and the clock estimator see it, nothing is published (``replay_skipped``), not even later: its sample does not
+        wait in the ingest for the clock to lock."""
         self.node.count("replay_skipped")
         if msg.get_type() != "BAD_DATA":
             with self.lock:
                 self.ingest.feed(msg, rx_us)
+                self.ingest.discard_pending()
 
     def publish(self, states, now: int) -> None:
         for d in states:

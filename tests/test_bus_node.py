@@ -215,6 +215,37 @@ def test_latency_window_percentiles():
     assert w.summary_ms() == {"n": 0}
 
 
+def test_rate_meter_after_its_window_and_before_it_fills():
+    """The rate is the ticks of the last 5 s over 5 s once the meter is older than its window (a service up for a
+    minute at 10 Hz reads 10 Hz, not its last 50 ticks over 60 s), and over the time since the first tick before
+    that (10 Hz for 2 s reads 10 Hz, not 20 ticks over 5 s)."""
+    clk = FakeClock()
+    m = RateMeter(window_s=5.0, clock=clk)
+    for _ in range(20):                                 # 10 Hz for 2 s
+        m.tick()
+        clk.t += 0.1
+    assert m.rate_hz() == pytest.approx(10.0, rel=1e-9)
+    for _ in range(580):                                # and on, 60 s in all
+        m.tick()
+        clk.t += 0.1
+    assert m.rate_hz() == pytest.approx(10.0, rel=0.03)   # 50 or 51 ticks in the window (its edge, float times)
+
+
+def test_latency_window_p99_of_a_few_samples_is_the_slowest():
+    """Percentiles are the sample at rank round(p (n - 1)): with fewer than 51 samples the p99 is the slowest one, so
+    ten 1 ms loop iterations and one 80 ms pause (a gc collection) read p50 1 ms, p99 80 ms; three read the middle
+    one as p50 and the slowest as p99. Rounded, not truncated: truncation would hide the pause."""
+    clk = FakeClock()
+    w = LatencyWindow(window_s=10.0, clock=clk)
+    for s in [0.001] * 5 + [0.080] + [0.001] * 5:
+        w.add(s)
+    assert w.summary_ms() == {"p50": 1.0, "p99": 80.0, "max": 80.0, "n": 11}
+    w = LatencyWindow(window_s=10.0, clock=clk)
+    for s in (0.100, 0.001, 0.002):
+        w.add(s)
+    assert w.summary_ms() == {"p50": 2.0, "p99": 100.0, "max": 100.0, "n": 3}
+
+
 class _Sample:
     def __init__(self, payload, key="eonav/x/nav/state"):
         self.key_expr = key

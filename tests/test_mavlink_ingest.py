@@ -100,8 +100,9 @@ class _StandInIngest:
         return self.est
 
 
-def _publisher():
-    """A Publisher on an in-process Node whose session records every put as (key, decoded message)."""
+def _publisher(ingest=None):
+    """A Publisher on an in-process Node whose session records every put as (key, decoded message); ``ingest``:
+    a real NavIngest (default: the stand-in)."""
     import argparse
     import logging
     from types import SimpleNamespace
@@ -112,7 +113,7 @@ def _publisher():
         put=lambda payload: puts.append((str(key), schema.decode(bytes(payload))))))
     node = Node("mavlink", argparse.Namespace(vehicle="v", input_grace_s=10.0, health_period_s=1.0), session,
                 log=logging.getLogger("test.mavlink_ingest"))
-    ingest = _StandInIngest()
+    ingest = _StandInIngest() if ingest is None else ingest
     return MI.Publisher(node, ingest), ingest, node, puts
 
 
@@ -149,6 +150,136 @@ def test_rejection_counters_mirror_the_ingests_running_totals():
     c = node.counters()
     assert (c["rejected.attitude_nonfinite"], c["rejected.time_backwards"], c["reboots"]) == (5, 1, 1)
     assert puts == []                                    # no states, no clock estimate: nothing put
+
+def test_corrupt_and_unknown_packets_are_counted_and_never_decoded():
+    """On a live link pymavlink hands over a packet whose CRC fails as BAD_DATA: it counts ``msg.BAD_DATA`` and
+    ``bad_data`` (a noisy radio shows in the health there, as a tlog's corrupt records do) and never reaches the
+    decoder (the stand-in ingest has no ``feed``); an id the dialect does not define counts ``msg.unknown`` and one
+    ``unknown_msg_ids`` per distinct id. Real packets, parsed by pymavlink."""
+    import struct
+    from eonav.nav.mavlink_in import mavlink2_dialect
+    ML = mavlink2_dialect()
+    mav = ML.MAVLink(None, srcSystem=1, srcComponent=1)
+    parser = ML.MAVLink(None)
+    parser.robust_parsing = True
+    corrupt = bytearray(ML.MAVLink_attitude_message(1000, 0.1, 0, 0, 0, 0, 0).pack(mav))
+    corrupt[-1] ^= 0xFF                                              # its CRC fails
+    unknown = [struct.pack("<BBBBBBB", 0xFD, 3, 0, 0, 0, 1, 1) + i.to_bytes(3, "little") + b"\x01\x07\x07\x00\x00"
+               for i in (0x100000, 0x100001, 0x100000)]              # two distinct undefined ids, one twice
+    msgs = [m for b in [bytes(corrupt), bytes(corrupt), *unknown] for m in parser.parse_buffer(b) or []]
+    assert [m.get_type() for m in msgs] == ["BAD_DATA"] * 2 + ["UNKNOWN_1048576", "UNKNOWN_1048577",
+                                                                 "UNKNOWN_1048576"]
+    pub, ingest, node, puts = _publisher()
+    for k, m in enumerate(msgs):
+        pub.feed(m, 1_000 + k)
+    assert node.counters() == {"msg.BAD_DATA": 2, "bad_data": 2, "msg.unknown": 3, "unknown_msg_ids": 2}
+    assert puts == []
+
+
+def _restarted_replay(path, skip_s: float):
+    """A joint replay of ``path`` (re)started when its record ``skip_s`` after the first was due RESUME_LATE_US ago,
+    through a Publisher and a real NavIngest (GLOBAL_POSITION_INT positions, origin: the first fix), on a fake
+    clock. Returns the nav_state messages put, the messages fed (not passed over) and the node."""
+    from types import SimpleNamespace
+    args = SimpleNamespace(system_id=None, origin=None, position_source="GLOBAL_POSITION_INT", clock="auto",
+                           clock_window_s=20.0, max_rtt_ms=10.0)
+    pub, ingest, node, puts = _publisher(MI.make_ingest(args, tlog=True))
+    now = {"us": 1_800_000_000_000_000}
+
+    def sleep(s):
+        now["us"] += int(round(s * 1e6))
+
+    fed = []
+
+    def feed(m, rx):
+        fed.append(m)
+        pub.feed(m, rx)
+
+    with open(path, "rb") as f:
+        first_hdr = int.from_bytes(f.read(8), "big")
+    shift = now["us"] - MI.RESUME_LATE_US - first_hdr - int(skip_s * 1e6)
+    MI.replay_tlog(path, feed, speed=1.0, stop=threading.Event(), clock=lambda: now["us"], sleep=sleep,
+                   shift_us=shift, skip=pub.fast_forward)
+    with pub.lock:
+        rest = ingest.flush()
+    pub.publish(rest, now["us"])                       # the end of the log, as _run_tlog does
+    return [m for k, m in puts if k == K.nav_state("v")], fed, node
+
+
+def test_replay_restarted_midway_publishes_only_the_records_it_feeds(tlog):
+    """A joint replay restarted 1 s into the log (before its receive clock has the 2 s it needs to lock) passes the
+    first second over: one nav_state per navigation record it feeds, none for the records it passed over, which
+    went through the decoder and the clock estimator only (docs/bus.md: "unpublished"). They used to wait in the
+    ingest's queue for the clock lock and come out with it, stamped more than RESUME_LATE_US in the past."""
+    path, counts = tlog
+    nav, fed, node = _restarted_replay(path, 1.0)
+    assert node.counters()["replay_skipped"] > 100
+    fed_nav = sorted((m.get_type(), m.time_boot_ms * 1000) for m in fed
+                     if m.get_type() in ("ATTITUDE", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT"))
+    assert len(fed_nav) > 100
+    assert sorted((m["source"], m["autopilot_time_us"]) for m in nav) == fed_nav
+
+
+def test_replay_restarted_midway_keeps_the_logs_first_fix_as_origin(tlog):
+    """A joint replay restarted 1 s into the log still shows the decoder the second it passed over
+    (``fast_forward``): GLOBAL_POSITION_INT positions stay about the log's first fix, so a restart does not move
+    the NED origin under the vehicle. Truth: the flight's NED position minus the one at t = 0 (the first fix). The
+    tolerance is the message's quantisation, 1e-7 deg (1.1 cm) on the sample and on the origin, 1 mm in alt."""
+    path, counts = tlog
+    nav, fed, node = _restarted_replay(path, 1.0)
+    pos = [m for m in nav if m["source"] == "GLOBAL_POSITION_INT"]
+    assert len(pos) >= 20
+    t_s = np.array([(m["autopilot_time_us"] + BOOT_OFFSET_US - DEFAULT_START_UNIX_US) / 1e6 for m in pos])
+    tr = nav_truth("turning", np.concatenate([[0.0], t_s]))["position_ned_m"]
+    np.testing.assert_allclose(np.array([m["position_ned_m"] for m in pos]), tr[1:] - tr[0], atol=0.025)
+
+
+def test_live_link_health_is_degraded_while_down_or_silent_and_ok_once_heard(monkeypatch):
+    """The receive loop of a live link turns the link's state into the health: ``down`` (not open) and ``silent``
+    (open, no MAVLink for 3 s: a UDP peer that is not there, a radio out of range) are ``degraded`` with the link's
+    own detail, ``up`` is ``ok``; each change as it happens. A scripted link, no sockets."""
+    from types import SimpleNamespace
+    pub, ingest, node, puts = _publisher()
+    steps = [("down", "--source tcp:a:1 down (ConnectionRefusedError)"), ("silent", "--source tcp:a:1 open, no "
+             "MAVLink for 0.0 s"), ("up", "--source tcp:a:1 up"), ("silent", "--source tcp:a:1 open, no MAVLink "
+             "for 3.1 s"), ("up", "--source tcp:a:1 up")]
+    seen = []
+
+    class ScriptedLink:
+        conn = None
+
+        def __init__(self, *a, **kw):
+            self.i = 0
+
+        def recv(self, timeout_s, stop):              # no message; the health as the last status left it
+            if self.i:
+                seen.append((steps[self.i - 1][0], node.state, node.health_fields()["detail"]))
+            if self.i == len(steps):
+                stop.set()
+            else:
+                self.i += 1
+            return None
+
+        def status(self):
+            return steps[self.i - 1]
+
+        def send(self, fn):
+            return False
+
+        def close(self):
+            pass
+
+    workers = {}
+    monkeypatch.setattr(MI, "MavLink", ScriptedLink)
+    monkeypatch.setattr(node, "worker", lambda fn, *a, name=None: workers.setdefault(name, fn))
+    args = SimpleNamespace(source="tcp:a:1", baud=57600, source_system=1, timesync_hz=0.0, request_streams=False,
+                           stream_hz=50.0)
+    MI._start_live(node, args, pub)
+    workers["receive"]()
+    assert [(s, st) for s, st, _ in seen] == [("down", "degraded"), ("silent", "degraded"), ("up", "ok"),
+                                            ("silent", "degraded"), ("up", "ok")]
+    assert [d for _, _, d in seen] == [d for _, d in steps]
+
 
 def _run(args, subs, timeout=30):
     from eonav.bus.session import endpoint, listener_session

@@ -338,6 +338,32 @@ def test_tlog_replay_restarted_midway_fast_forwards_and_resumes(tmp_path):
     assert len(skipped) + len(fed) == len(headers)
 
 
+def test_tlog_replay_resumes_at_a_record_due_exactly_the_limit_ago(tmp_path):
+    """As the camera replay's: a record due exactly RESUME_LATE_US (0.1 s) ago when the replay (re)starts is fed,
+    one due a microsecond longer ago is passed over, so the frames and the tlog of one joint replay resume at the
+    same line."""
+    p = tmp_path / "f.tlog"
+    write_tlog(p, "turning", 1.0, start_unix_us=DEFAULT_START_UNIX_US, boot_offset_us=DEFAULT_START_UNIX_US - 10**8,
+               latency_us=(1000, 3000), seed=4)
+    with MI.TlogReader(p) as reader:
+        headers = [h for h, _ in reader]
+    k = 40
+    assert headers[k - 1] < headers[k] < headers[k + 1]
+    assert MI.RESUME_LATE_US == C.RESUME_LATE_US == 100_000
+    for late_us, first_fed in ((100_000, k), (100_001, k + 1)):
+        now = {"us": NOW_US}
+
+        def sleep(s):
+            now["us"] += int(round(s * 1e6))
+
+        shift = NOW_US - late_us - headers[k]                              # record k due late_us ago
+        fed, skipped = [], []
+        MI.replay_tlog(p, lambda m, rx: fed.append(rx), speed=1.0, stop=threading.Event(), clock=lambda: now["us"],
+                       sleep=sleep, shift_us=shift, skip=lambda m, rx: skipped.append(rx))
+        assert len(skipped) == first_fed and fed[0] == headers[first_fed] + shift, late_us
+        assert len(fed) == len(headers) - first_fed
+
+
 def test_status_line_shows_the_silent_input():
     import time as _t
     from eonav.app import launcher as L

@@ -613,6 +613,13 @@ class NavIngest:
         """At the end of a stream: map what is pending with the best estimate there is."""
         return self._drain(force=True)
 
+    def discard_pending(self) -> int:
+        """Drop the samples waiting for the clock to lock (a resumed replay's passed-over records, which must not
+        come out with the lock later); returns how many."""
+        n = len(self._pending)
+        self._pending.clear()
+        return n
+
     def _state(self, s: NavSample) -> dict | None:
         if s.time_base == "unix":
             stamp, off = s.autopilot_time_us, 0
