@@ -195,6 +195,24 @@ def test_attitude_sigma_adds_its_angle_times_the_focal_length_to_each_pixel_sigm
                                rtol=1e-9, atol=1e-12)
 
 
+def test_attitude_sigma_is_taken_at_the_frames_focal_length_on_a_reduced_map():
+    """A map located at half the frame's resolution (its grid camera's focal length F_PX / 2, the bbox in frame
+    pixels): the pixel sigmas are in frame pixels, the attitude term 0.2 deg x F_PX (1.53 px) included, so the
+    covariance is the full-resolution one, hand-derived on the axis at 40 m: east and down variances (40 s / F_PX)^2
+    with s^2 = 1 + (0.15 w)^2 + (0.2 deg x F_PX)^2. The attitude term taken at the map's focal length would be half
+    (0.77 px): across-ray sigmas too small on every reduced map."""
+    from eonav.geometry.camera import scaled_camera
+    cfg = T.TrackerConfig(nav_sigma_m=0.0)
+    att = math.pi * 0.2 / 180.0
+    o = _obstacle([40.0, 0.0, -10.0], bbox=[155, 90, 164, 149])             # 10 x 60 frame pixels
+    s_u = math.sqrt(1.0 + (0.15 * 10) ** 2 + (att * F_PX) ** 2)
+    s_v = math.sqrt(1.0 + (0.15 * 60) ** 2 + (att * F_PX) ** 2)
+    want = np.diag([(40.0 * s_u / F_PX) ** 2, (40.0 * s_v / F_PX) ** 2])
+    for cam, frame in ((CAM, None), (scaled_camera(CAM, 0.5), (320, 240))):
+        m, = T.measurements_from_obstacles([o], cam, HOVER, cfg, frame_size=frame)
+        np.testing.assert_allclose(m.cov_ned_m2[1:, 1:], want, rtol=1e-9, atol=1e-12, err_msg=cam.name)
+
+
 def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
     cov = np.diag([0.25, 0.01, 0.01])
     # a pole (0.3 m wide) listed as three stacked pieces 0.2 m apart, and a second pole 2 m to the east
