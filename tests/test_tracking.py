@@ -213,6 +213,19 @@ def test_attitude_sigma_is_taken_at_the_frames_focal_length_on_a_reduced_map():
         np.testing.assert_allclose(m.cov_ned_m2[1:, 1:], want, rtol=1e-9, atol=1e-12, err_msg=cam.name)
 
 
+def test_merged_fragments_confidence_is_their_pixel_weighted_mean():
+    """The merged measurement's confidence (the track's measurement_confidence on the message) is its fragments'
+    pixel-weighted mean, as its position: pieces of 100, 300 and 100 pixels with confidences 0.5, 0.9 and 0.7 give
+    0.2 x 0.5 + 0.6 x 0.9 + 0.2 x 0.7 = 0.78, in whichever order the list gives them."""
+    cov = np.diag([0.25, 0.01, 0.01])
+    parts = [T.Measurement([60.0, 0.0, -1.0], cov, [0.3, 0.3, 2.0], 100, 0.5),
+             T.Measurement([60.2, 0.0, -3.2], cov, [0.3, 0.3, 2.0], 300, 0.9),
+             T.Measurement([60.0, 0.1, -5.4], cov, [0.3, 0.3, 2.0], 100, 0.7)]
+    for order in (parts, parts[::-1], parts[1:] + parts[:1]):
+        m, = T.merge_fragments(order, gap_m=0.5)
+        assert m.confidence == pytest.approx(0.78, abs=1e-12)
+
+
 def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
     cov = np.diag([0.25, 0.01, 0.01])
     # a pole (0.3 m wide) listed as three stacked pieces 0.2 m apart, and a second pole 2 m to the east
