@@ -481,6 +481,26 @@ def test_a_surface_within_the_tracks_range_sigma_along_the_axis_is_no_occluder_w
         assert trk.last_outcome == outcome and trk.misses == (1 if outcome == "miss" else 0), seen_m
 
 
+def test_a_surface_within_the_tracks_depth_along_the_axis_is_no_occluder():
+    """The occlusion margin also takes the track's own depth along the optical axis: a building 10 m deep along the
+    view (its extent 2, 10, 2 m in N, E, D) tracked at its centre 50 m east of a vehicle yawed 90 deg. A map that sees
+    a surface at 44 m there (6 m nearer: beyond the 8 % margin, 4 m, and 3 of the track's 0.8 m sigma along the axis,
+    but within its 10 m depth) sees the building itself, so the map missed the track; a surface at 38 m (12 m nearer)
+    hides it. The depth is taken along the axis (east here), not north (2 m: the 4 m margin would decide)."""
+    st = VehicleState.from_ypr([0.0, 0.0, -10.0], [math.radians(90.0), 0.0, 0.0])
+    p = st.position_ned_m + np.array([0.0, 50.0, 0.0])
+    assert x_c(p, st) == pytest.approx(50.0)
+    cov = T.camera_covariance(p, CAM, st, 0.5, 1.0, 1.0)
+    for seen_m, outcome in ((44.0, "miss"), (38.0, T.OCCLUDED)):
+        tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+        tr.update([T.Measurement(p, cov, [2.0, 10.0, 2.0])], us(0.0))
+        trk, = tr.confirmed()
+        np.testing.assert_allclose(trk.extent_ned_m, [2.0, 10.0, 2.0])
+        tr.update([], us(1 / RATE_HZ), fov(st, range_m=np.full((CAM.height, CAM.width), seen_m, np.float32)))
+        assert 3.0 * math.sqrt(trk.P[1, 1]) < 4.0                          # the 8 % margin is the larger of those two
+        assert trk.last_outcome == outcome and trk.misses == (1 if outcome == "miss" else 0), seen_m
+
+
 def test_obstacle_leaving_view_coasts_then_is_deleted_and_returns_with_its_id_in_time():
     rng = np.random.default_rng(16)
     p = np.array([50.0, 0.0, -8.0])
