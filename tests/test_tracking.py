@@ -501,6 +501,24 @@ def test_a_surface_within_the_tracks_depth_along_the_axis_is_no_occluder():
         assert trk.last_outcome == outcome and trk.misses == (1 if outcome == "miss" else 0), seen_m
 
 
+def test_a_confirmed_track_coasts_where_the_map_has_no_range():
+    """A confirmed track whose pixel has no usable range in the next map (NaN: unmatched or unconfident there) was
+    not looked at: no miss, its state coasting, as out of view or occluded (what the obstacle_tracks message says of
+    it); and it outlives more than M = 6 such maps. Where the map sees the sky (infinity, a usable range) it is a
+    miss and its state stays confirmed."""
+    p = [50.0, 0.0, -10.0]
+    nodata = np.full((CAM.height, CAM.width), np.nan, np.float32)
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement(p, 0.04 * np.eye(3))], us(0.0), fov(HOVER))
+    trk, = tr.confirmed()
+    for k in range(1, 10):
+        tr.update([], us(k / RATE_HZ), fov(HOVER, range_m=nodata))
+        assert tr.tracks == [trk]
+        assert (trk.last_outcome, trk.misses, trk.state) == (T.NO_DATA, 0, T.COASTING), k
+    tr.update([], us(10 / RATE_HZ), fov(HOVER, range_m=np.full((CAM.height, CAM.width), np.inf, np.float32)))
+    assert (trk.last_outcome, trk.misses, trk.state) == ("miss", 1, T.CONFIRMED)
+
+
 def test_obstacle_leaving_view_coasts_then_is_deleted_and_returns_with_its_id_in_time():
     rng = np.random.default_rng(16)
     p = np.array([50.0, 0.0, -8.0])
