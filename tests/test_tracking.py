@@ -519,6 +519,23 @@ def test_a_confirmed_track_coasts_where_the_map_has_no_range():
     assert (trk.last_outcome, trk.misses, trk.state) == ("miss", 1, T.CONFIRMED)
 
 
+def test_a_tentative_track_is_confirmed_within_confirm_window_s_or_dies_just_after():
+    """A tentative track (2 hits of 3, hovering: the static-world test passes) that then coasts (no range at its
+    pixel: no miss counted) lives while it may still be confirmed within confirm_window_s (1 s) of its birth: alive
+    at exactly 1 s, gone 1 us later."""
+    p = [50.0, 0.0, -10.0]
+    nodata = np.full((CAM.height, CAM.width), np.nan, np.float32)
+    for last_us, alive in ((us(1.0), True), (us(1.0) + 1, False)):
+        tr = T.Tracker()
+        tr.update([T.Measurement(p, 0.04 * np.eye(3))], us(0.0), fov(HOVER))
+        tr.update([T.Measurement(p, 0.04 * np.eye(3))], us(1 / RATE_HZ), fov(HOVER))
+        tr.update([], us(0.5), fov(HOVER, range_m=nodata))
+        trk, = tr.tracks
+        assert (trk.confirmed, trk.misses, trk.last_outcome, trk.verdict) == (False, 0, T.NO_DATA, T.STATIC)
+        tr.update([], last_us, fov(HOVER, range_m=nodata))
+        assert (tr.tracks == [trk]) is alive, last_us
+
+
 def test_obstacle_leaving_view_coasts_then_is_deleted_and_returns_with_its_id_in_time():
     rng = np.random.default_rng(16)
     p = np.array([50.0, 0.0, -8.0])
