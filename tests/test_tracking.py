@@ -611,6 +611,20 @@ def test_field_of_view_vertical_edges():
         assert v.classify([50.0, 0.0, -10.0 - dz]) == want, ("above", deg)
 
 
+def test_occlusion_looks_at_the_3_x_3_pixels_around_the_projected_one():
+    """``occlusion_window_px`` = 1: the map is read in the 3 x 3 pixels centred on the track's projected pixel. A
+    point 50 m ahead that projects exactly onto pixel (u, v) = (170, 130); a map without data (NaN) but for one pixel
+    ranged at 40 m (10 m nearer, beyond the 8 % margin): any of the nine pixels of the window occludes the track, a
+    pixel two away (outside the window) leaves it without data."""
+    p = [50.0, 50.0 * (170 - CAM.cx) / F_PX, -10.0 + 50.0 * (130 - CAM.cy) / F_PX]
+    for dv in (-2, -1, 0, 1, 2):
+        for du in (-2, -1, 0, 1, 2):
+            r = np.full((CAM.height, CAM.width), np.nan, np.float32)
+            r[130 + dv, 170 + du] = 40.0
+            want = T.OCCLUDED if max(abs(du), abs(dv)) <= 1 else T.NO_DATA
+            assert fov(HOVER, range_m=r).classify(p) == want, (du, dv)
+
+
 # -- velocity and time to contact ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("name, p0, v", [("crossing", [50.0, -12.0, -6.0], [0.0, 8.0, 0.0]),
                                          ("receding", [40.0, 3.0, -6.0], [8.0, 0.0, 0.0]),
