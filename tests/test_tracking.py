@@ -195,6 +195,37 @@ def test_attitude_sigma_adds_its_angle_times_the_focal_length_to_each_pixel_sigm
                                rtol=1e-9, atol=1e-12)
 
 
+def test_attitude_sigma_is_taken_at_the_frames_focal_length_on_a_reduced_map():
+    """A map located at half the frame's resolution (its grid camera's focal length F_PX / 2, the bbox in frame
+    pixels): the pixel sigmas are in frame pixels, the attitude term 0.2 deg x F_PX (1.53 px) included, so the
+    covariance is the full-resolution one, hand-derived on the axis at 40 m: east and down variances (40 s / F_PX)^2
+    with s^2 = 1 + (0.15 w)^2 + (0.2 deg x F_PX)^2. The attitude term taken at the map's focal length would be half
+    (0.77 px): across-ray sigmas too small on every reduced map."""
+    from eonav.geometry.camera import scaled_camera
+    cfg = T.TrackerConfig(nav_sigma_m=0.0)
+    att = math.pi * 0.2 / 180.0
+    o = _obstacle([40.0, 0.0, -10.0], bbox=[155, 90, 164, 149])             # 10 x 60 frame pixels
+    s_u = math.sqrt(1.0 + (0.15 * 10) ** 2 + (att * F_PX) ** 2)
+    s_v = math.sqrt(1.0 + (0.15 * 60) ** 2 + (att * F_PX) ** 2)
+    want = np.diag([(40.0 * s_u / F_PX) ** 2, (40.0 * s_v / F_PX) ** 2])
+    for cam, frame in ((CAM, None), (scaled_camera(CAM, 0.5), (320, 240))):
+        m, = T.measurements_from_obstacles([o], cam, HOVER, cfg, frame_size=frame)
+        np.testing.assert_allclose(m.cov_ned_m2[1:, 1:], want, rtol=1e-9, atol=1e-12, err_msg=cam.name)
+
+
+def test_merged_fragments_confidence_is_their_pixel_weighted_mean():
+    """The merged measurement's confidence (the track's measurement_confidence on the message) is its fragments'
+    pixel-weighted mean, as its position: pieces of 100, 300 and 100 pixels with confidences 0.5, 0.9 and 0.7 give
+    0.2 x 0.5 + 0.6 x 0.9 + 0.2 x 0.7 = 0.78, in whichever order the list gives them."""
+    cov = np.diag([0.25, 0.01, 0.01])
+    parts = [T.Measurement([60.0, 0.0, -1.0], cov, [0.3, 0.3, 2.0], 100, 0.5),
+             T.Measurement([60.2, 0.0, -3.2], cov, [0.3, 0.3, 2.0], 300, 0.9),
+             T.Measurement([60.0, 0.1, -5.4], cov, [0.3, 0.3, 2.0], 100, 0.7)]
+    for order in (parts, parts[::-1], parts[1:] + parts[:1]):
+        m, = T.merge_fragments(order, gap_m=0.5)
+        assert m.confidence == pytest.approx(0.78, abs=1e-12)
+
+
 def test_fragments_of_one_pole_merge_and_a_neighbour_does_not():
     cov = np.diag([0.25, 0.01, 0.01])
     # a pole (0.3 m wide) listed as three stacked pieces 0.2 m apart, and a second pole 2 m to the east
@@ -450,6 +481,61 @@ def test_a_surface_within_the_tracks_range_sigma_along_the_axis_is_no_occluder_w
         assert trk.last_outcome == outcome and trk.misses == (1 if outcome == "miss" else 0), seen_m
 
 
+def test_a_surface_within_the_tracks_depth_along_the_axis_is_no_occluder():
+    """The occlusion margin also takes the track's own depth along the optical axis: a building 10 m deep along the
+    view (its extent 2, 10, 2 m in N, E, D) tracked at its centre 50 m east of a vehicle yawed 90 deg. A map that sees
+    a surface at 44 m there (6 m nearer: beyond the 8 % margin, 4 m, and 3 of the track's 0.8 m sigma along the axis,
+    but within its 10 m depth) sees the building itself, so the map missed the track; a surface at 38 m (12 m nearer)
+    hides it. The depth is taken along the axis (east here), not north (2 m: the 4 m margin would decide)."""
+    st = VehicleState.from_ypr([0.0, 0.0, -10.0], [math.radians(90.0), 0.0, 0.0])
+    p = st.position_ned_m + np.array([0.0, 50.0, 0.0])
+    assert x_c(p, st) == pytest.approx(50.0)
+    cov = T.camera_covariance(p, CAM, st, 0.5, 1.0, 1.0)
+    for seen_m, outcome in ((44.0, "miss"), (38.0, T.OCCLUDED)):
+        tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+        tr.update([T.Measurement(p, cov, [2.0, 10.0, 2.0])], us(0.0))
+        trk, = tr.confirmed()
+        np.testing.assert_allclose(trk.extent_ned_m, [2.0, 10.0, 2.0])
+        tr.update([], us(1 / RATE_HZ), fov(st, range_m=np.full((CAM.height, CAM.width), seen_m, np.float32)))
+        assert 3.0 * math.sqrt(trk.P[1, 1]) < 4.0                          # the 8 % margin is the larger of those two
+        assert trk.last_outcome == outcome and trk.misses == (1 if outcome == "miss" else 0), seen_m
+
+
+def test_a_confirmed_track_coasts_where_the_map_has_no_range():
+    """A confirmed track whose pixel has no usable range in the next map (NaN: unmatched or unconfident there) was
+    not looked at: no miss, its state coasting, as out of view or occluded (what the obstacle_tracks message says of
+    it); and it outlives more than M = 6 such maps. Where the map sees the sky (infinity, a usable range) it is a
+    miss and its state stays confirmed."""
+    p = [50.0, 0.0, -10.0]
+    nodata = np.full((CAM.height, CAM.width), np.nan, np.float32)
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement(p, 0.04 * np.eye(3))], us(0.0), fov(HOVER))
+    trk, = tr.confirmed()
+    for k in range(1, 10):
+        tr.update([], us(k / RATE_HZ), fov(HOVER, range_m=nodata))
+        assert tr.tracks == [trk]
+        assert (trk.last_outcome, trk.misses, trk.state) == (T.NO_DATA, 0, T.COASTING), k
+    tr.update([], us(10 / RATE_HZ), fov(HOVER, range_m=np.full((CAM.height, CAM.width), np.inf, np.float32)))
+    assert (trk.last_outcome, trk.misses, trk.state) == ("miss", 1, T.CONFIRMED)
+
+
+def test_a_tentative_track_is_confirmed_within_confirm_window_s_or_dies_just_after():
+    """A tentative track (2 hits of 3, hovering: the static-world test passes) that then coasts (no range at its
+    pixel: no miss counted) lives while it may still be confirmed within confirm_window_s (1 s) of its birth: alive
+    at exactly 1 s, gone 1 us later."""
+    p = [50.0, 0.0, -10.0]
+    nodata = np.full((CAM.height, CAM.width), np.nan, np.float32)
+    for last_us, alive in ((us(1.0), True), (us(1.0) + 1, False)):
+        tr = T.Tracker()
+        tr.update([T.Measurement(p, 0.04 * np.eye(3))], us(0.0), fov(HOVER))
+        tr.update([T.Measurement(p, 0.04 * np.eye(3))], us(1 / RATE_HZ), fov(HOVER))
+        tr.update([], us(0.5), fov(HOVER, range_m=nodata))
+        trk, = tr.tracks
+        assert (trk.confirmed, trk.misses, trk.last_outcome, trk.verdict) == (False, 0, T.NO_DATA, T.STATIC)
+        tr.update([], last_us, fov(HOVER, range_m=nodata))
+        assert (tr.tracks == [trk]) is alive, last_us
+
+
 def test_obstacle_leaving_view_coasts_then_is_deleted_and_returns_with_its_id_in_time():
     rng = np.random.default_rng(16)
     p = np.array([50.0, 0.0, -8.0])
@@ -523,6 +609,20 @@ def test_field_of_view_vertical_edges():
         dz = 50.0 * math.tan(math.radians(deg))
         assert v.classify([50.0, 0.0, -10.0 + dz]) == want, ("below", deg)          # down is +D
         assert v.classify([50.0, 0.0, -10.0 - dz]) == want, ("above", deg)
+
+
+def test_occlusion_looks_at_the_3_x_3_pixels_around_the_projected_one():
+    """``occlusion_window_px`` = 1: the map is read in the 3 x 3 pixels centred on the track's projected pixel. A
+    point 50 m ahead that projects exactly onto pixel (u, v) = (170, 130); a map without data (NaN) but for one pixel
+    ranged at 40 m (10 m nearer, beyond the 8 % margin): any of the nine pixels of the window occludes the track, a
+    pixel two away (outside the window) leaves it without data."""
+    p = [50.0, 50.0 * (170 - CAM.cx) / F_PX, -10.0 + 50.0 * (130 - CAM.cy) / F_PX]
+    for dv in (-2, -1, 0, 1, 2):
+        for du in (-2, -1, 0, 1, 2):
+            r = np.full((CAM.height, CAM.width), np.nan, np.float32)
+            r[130 + dv, 170 + du] = 40.0
+            want = T.OCCLUDED if max(abs(du), abs(dv)) <= 1 else T.NO_DATA
+            assert fov(HOVER, range_m=r).classify(p) == want, (du, dv)
 
 
 # -- velocity and time to contact ----------------------------------------------------------------------------------

@@ -200,6 +200,38 @@ def test_a_static_obstacle_confirms_within_a_second_and_stays():
     assert trk.verdict == T.STATIC and abs(trk.drift_mps) < 3.0
 
 
+def test_the_scatter_floor_is_relative_to_the_distance_from_the_vehicle_not_from_the_ned_origin():
+    """The drift fit's scatter floor is ``follow_rel_scatter`` of the detections' distance from the vehicle. The
+    static-obstacle flight moved 5 km north, vehicle and obstacle both (NED set up where the flight began): each
+    detection's distance is the one to the vehicle (under 100 m: 95 m less 20 m/s x t, plus the noise), and the
+    track confirms in the same map as near the origin (same seed, same detections but for the offset). A floor of
+    1 % of the 5 km from the origin (51 m) would hold every obstacle UNDECIDED, never confirmed."""
+    def run(north_m):
+        off = np.array([north_m, 0.0, 0.0])
+        rng = np.random.default_rng(5)
+        tr = T.Tracker(CFG)
+        first, dists = None, []
+        for k in range(int(2.0 * RATE_HZ)):
+            t = k / RATE_HZ
+            st = VehicleState.from_ypr(state(t).position_ned_m + off, [0.0, 0.0, 0.0])
+            z = observe(np.array([95.0, 3.0, -2.0]) + off, st, rng)
+            tr.update([z], us(t), T.FieldOfView(CAM, st, 100.0))
+            dists.append(float(np.linalg.norm(z.position_ned_m - st.position_ned_m)))
+            if first is None and tr.confirmed():
+                first = t
+        trk, = tr.tracks
+        return first, trk, dists
+
+    first, _, _ = run(0.0)
+    assert first is not None and first <= 1.0
+    far_first, trk, dists = run(5000.0)
+    assert far_first == first
+    # the last follow_window_s of detections carry their distances from the vehicle
+    got = [d[2] for d in trk.detections]
+    np.testing.assert_allclose(got, dists[-len(got):], rtol=1e-9)
+    assert max(got) < 100.0
+
+
 @pytest.mark.parametrize("name, p0, v", [("crossing", [90.0, -20.0, -1.0], [0.0, 6.0, 0.0]),
                                          ("oncoming", [110.0, 4.0, -1.0], [-8.0, 0.0, 0.0])])
 def test_movers_across_and_towards_the_path_confirm_within_a_second(name, p0, v):
