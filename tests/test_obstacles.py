@@ -357,6 +357,24 @@ def test_horizontal_ray_counts_as_at_the_horizon():
     assert full.data_mask[127, 128:192].all() and not res.data_mask[127, 128:192].any()
 
 
+def test_data_mask_is_the_confident_pixels_and_the_sky():
+    # the tracker's visibility mask (FieldOfView.data_mask): pixels with a usable range, confident or at infinity. A
+    # level camera over flat ground: sky (rows 0..127, +inf, AT_INFINITY) and ground (rows 128..255, VALID); the left
+    # quarter unmeasured (NaN) and a 40 x 20 px ground patch the estimator does not stand behind (flags 0). The mask
+    # is columns 64..255 whole, less the patch: a track seen against the sky is visible and missed, not unmeasured
+    r = ground_and_sky()
+    r[:, :64] = np.nan
+    flags = np.where(np.isinf(r), AT_INFINITY, VALID).astype(np.uint8)
+    flags[:, :64] = 0
+    flags[160:200, 100:120] = 0
+    res = ob.analyse(r, CAM, LEVEL, flags=flags, cfg=CFG)
+    want = np.zeros(r.shape, bool)
+    want[:, 64:] = True
+    want[160:200, 100:120] = False
+    assert np.array_equal(res.data_mask, want)
+    assert res.n_confident == 128 * 192 - 40 * 20                                  # the ground's share of it
+
+
 def test_obstacle_elevation_is_positive_up():
     # a patch ranged 40 m over rows 40..79, columns 128..191 (above the horizon; full resolution): its median body
     # point is (40, 40 x 32 / 128, 40 x (59.5 - 127.5) / 128) = (40, 10, -21.25) m (FRD: z down), so it stands
