@@ -255,6 +255,22 @@ def test_depth_discontinuity_splits_adjacent_objects():
     assert all(abs(x - 40) <= 2 for x in d[1:])
 
 
+def test_obstacle_list_is_nearest_first_and_keeps_the_max_obstacles_nearest():
+    # three walls facing the camera at x_c 30 m (columns 200..231, up to 10 m above the vehicle: top row 85), 40 m
+    # (40..71, top row 96) and 20 m (120..135, up to 2 m above it: top row 115). Scanned row by row their components
+    # come as 30, 40, 20 m; the list is nearest first (ids 1, 2, 3 in that order), and max_obstacles 2 keeps the two
+    # nearest, 20 and 30 m, not the first two found. A facing wall's median point lies on its plane: north = x_c
+    r = add_wall(ground_and_sky(), 30.0, 200, 232, top_down_m=-20.0)
+    r = add_wall(r, 40.0, 40, 72, top_down_m=-20.0)
+    r = add_wall(r, 20.0, 120, 136, top_down_m=-12.0)
+    assert [int(np.flatnonzero(r[:, c] == x)[0]) for c, x in ((200, 30.0), (40, 40.0), (120, 20.0))] == [85, 96, 115]
+    every = ob.analyse(r, CAM, LEVEL, cfg=CFG).obstacles
+    assert [round(o.position_ned_m[0], 3) for o in every] == [20.0, 30.0, 40.0] and [o.id for o in every] == [1, 2, 3]
+    assert every[0].distance_m < every[1].distance_m < every[2].distance_m
+    two = ob.analyse(r, CAM, LEVEL, cfg=replace(CFG, max_obstacles=2)).obstacles
+    assert [round(o.position_ned_m[0], 3) for o in two] == [20.0, 30.0] and [o.id for o in two] == [1, 2]
+
+
 def test_flags_confidence_and_std_gate_pixels():
     r = add_wall(ground_and_sky(), 20.0, 128, 192)
     flags = np.full(r.shape, VALID, np.uint8)
