@@ -549,6 +549,24 @@ def test_runner_drops_out_of_order_frames_and_resets_after_a_gap(fast_sequence):
     assert [m.frame.seq for m in maps] == [2]
 
 
+def test_a_state_exactly_max_gap_s_old_is_predicted_and_one_a_microsecond_older_is_dropped(fast_sequence):
+    """``max_gap_s`` is the oldest a state may be and still be carried into the next frame: a camera whose frames
+    come exactly max_gap_s apart (0.5 s: 2 fps) keeps fusing (its cells' n grows to 2), a frame 0.5 s + 1 us after
+    the state starts fresh (n 1, counted gap_resets). Catches a planted ``>=`` for ``>`` in push's gap test (such a
+    camera would never fuse two frames)."""
+    v = fast_sequence.views
+    runner = FusionRunner(FusionConfig(max_gap_s=0.5))
+    runner.push(frame("nose", v[0], 1_000_000, 0))
+    m1, = runner.push(frame("nose", v[1], 1_500_000, 1))
+    m2, = runner.push(frame("nose", v[2], 2_000_000, 2))
+    assert "gap_resets" not in runner.counts
+    assert m1.n_fused.max() == 1 and m2.n_fused.max() == 2
+    m3, = runner.push(frame("nose", v[3], 2_500_001, 3))
+    assert runner.counts["gap_resets"] == 1
+    st = runner.states["nose"]
+    assert m3.n_fused.max() == 1 and (st.n[st.occupied()] == 1).all()
+
+
 def test_runner_drops_a_frame_delivered_twice_and_leaves_the_state_alone(fast_sequence):
     """A frame with the same stamp as its camera's state (the same instant delivered twice) is not newer: dropped and
     counted out_of_order, no second map of that instant (it would be published again) and the state untouched (not
