@@ -1029,6 +1029,40 @@ def test_a_custom_measurement_is_left_alone_unless_declared_fresh():
             assert all(np.all(r.inv_range_std_per_m == 1e-3) and np.all(r.range_m == 20.0) for r in kept)
 
 
+def test_a_hovering_cameras_frames_without_a_partner_still_give_the_predicted_map():
+    """A camera that stops (hovers) keeps pairing with its frames of before the stop until they are older than the
+    pair policy's max_age_s (1 s); its frames after that have no partner and are measured against nothing, yet each
+    still gives the map of its predicted state (what the obstacle service publishes from): the 20 m the stub
+    measurement ranged, no measurement, n_fused as the frame before's. Catches a planted map condition that wants a
+    measurement of the frame (a hovering vehicle's maps would stop 1 s after it stopped)."""
+    from eonav.ranging.rangemap import RangeResult
+    c = cam(32, 24)
+
+    def plane(va, vb):               # every pixel 20 m (1 / 0.05), sigma 1e-3 per m
+        sh = (c.height, c.width)
+        return RangeResult(range_m=np.full(sh, 20.0, np.float32), confidence=np.full(sh, 20.0, np.float32),
+                           method="test", inv_range_per_m=np.full(sh, 0.05, np.float32),
+                           inv_range_std_per_m=np.full(sh, 1e-3, np.float32), flags=np.full(sh, VALID, np.uint8),
+                           info={})
+
+    # 5 m to the right a frame (0.1 s), then still at 10 m east from 0.2 s to 1.5 s
+    views = [View(c, pose(east=5.0 * min(k, 2), t=0.1 * k), np.zeros((24, 32), np.float32)) for k in range(16)]
+    runner = FusionRunner(FusionConfig(), measure=plane, fresh_measurements=True)
+    maps = {}
+    for k, v in enumerate(views):
+        out = runner.push(frame("c", v, int(round(v.state.t_s * 1e6)), k))
+        assert [m.frame.seq for m in out] == ([k] if k else []), k
+        maps[k] = out[0] if out else None
+    alone = [k for k in range(1, 16) if not maps[k].measurements]
+    assert alone == list(range(12, 16))       # frame 11 (1.1 s) pairs with frame 1 (0.1 s): 1 s old, still in age
+    for k in alone:
+        m, before = maps[k], maps[k - 1]
+        ok = (m.result.flags & VALID) != 0
+        assert ok.mean() > 0.9 and np.allclose(m.result.range_m[ok], 20.0, rtol=1e-3)
+        assert np.array_equal(m.n_fused, before.n_fused)
+        assert m.n_fused.max() >= 2
+
+
 def test_schedulers_batched_pair_policy_decides_as_the_pair_policy():
     # the scheduler's pair policy takes its candidates' metrics from one wide_metrics pass per frame: on a stream of
     # a turning (some pairs beyond 10 deg), climbing camera at varying speed and with a gap older than the age limit,
