@@ -549,6 +549,24 @@ def test_runner_drops_out_of_order_frames_and_resets_after_a_gap(fast_sequence):
     assert [m.frame.seq for m in maps] == [2]
 
 
+def test_a_state_exactly_max_gap_s_old_is_predicted_and_one_a_microsecond_older_is_dropped(fast_sequence):
+    """``max_gap_s`` is the oldest a state may be and still be carried into the next frame: a camera whose frames
+    come exactly max_gap_s apart (0.5 s: 2 fps) keeps fusing (its cells' n grows to 2), a frame 0.5 s + 1 us after
+    the state starts fresh (n 1, counted gap_resets). Catches a planted ``>=`` for ``>`` in push's gap test (such a
+    camera would never fuse two frames)."""
+    v = fast_sequence.views
+    runner = FusionRunner(FusionConfig(max_gap_s=0.5))
+    runner.push(frame("nose", v[0], 1_000_000, 0))
+    m1, = runner.push(frame("nose", v[1], 1_500_000, 1))
+    m2, = runner.push(frame("nose", v[2], 2_000_000, 2))
+    assert "gap_resets" not in runner.counts
+    assert m1.n_fused.max() == 1 and m2.n_fused.max() == 2
+    m3, = runner.push(frame("nose", v[3], 2_500_001, 3))
+    assert runner.counts["gap_resets"] == 1
+    st = runner.states["nose"]
+    assert m3.n_fused.max() == 1 and (st.n[st.occupied()] == 1).all()
+
+
 def test_runner_drops_a_frame_delivered_twice_and_leaves_the_state_alone(fast_sequence):
     """A frame with the same stamp as its camera's state (the same instant delivered twice) is not newer: dropped and
     counted out_of_order, no second map of that instant (it would be published again) and the state untouched (not
@@ -1009,6 +1027,40 @@ def test_a_custom_measurement_is_left_alone_unless_declared_fresh():
         else:
             assert not any(shared)
             assert all(np.all(r.inv_range_std_per_m == 1e-3) and np.all(r.range_m == 20.0) for r in kept)
+
+
+def test_a_hovering_cameras_frames_without_a_partner_still_give_the_predicted_map():
+    """A camera that stops (hovers) keeps pairing with its frames of before the stop until they are older than the
+    pair policy's max_age_s (1 s); its frames after that have no partner and are measured against nothing, yet each
+    still gives the map of its predicted state (what the obstacle service publishes from): the 20 m the stub
+    measurement ranged, no measurement, n_fused as the frame before's. Catches a planted map condition that wants a
+    measurement of the frame (a hovering vehicle's maps would stop 1 s after it stopped)."""
+    from eonav.ranging.rangemap import RangeResult
+    c = cam(32, 24)
+
+    def plane(va, vb):               # every pixel 20 m (1 / 0.05), sigma 1e-3 per m
+        sh = (c.height, c.width)
+        return RangeResult(range_m=np.full(sh, 20.0, np.float32), confidence=np.full(sh, 20.0, np.float32),
+                           method="test", inv_range_per_m=np.full(sh, 0.05, np.float32),
+                           inv_range_std_per_m=np.full(sh, 1e-3, np.float32), flags=np.full(sh, VALID, np.uint8),
+                           info={})
+
+    # 5 m to the right a frame (0.1 s), then still at 10 m east from 0.2 s to 1.5 s
+    views = [View(c, pose(east=5.0 * min(k, 2), t=0.1 * k), np.zeros((24, 32), np.float32)) for k in range(16)]
+    runner = FusionRunner(FusionConfig(), measure=plane, fresh_measurements=True)
+    maps = {}
+    for k, v in enumerate(views):
+        out = runner.push(frame("c", v, int(round(v.state.t_s * 1e6)), k))
+        assert [m.frame.seq for m in out] == ([k] if k else []), k
+        maps[k] = out[0] if out else None
+    alone = [k for k in range(1, 16) if not maps[k].measurements]
+    assert alone == list(range(12, 16))       # frame 11 (1.1 s) pairs with frame 1 (0.1 s): 1 s old, still in age
+    for k in alone:
+        m, before = maps[k], maps[k - 1]
+        ok = (m.result.flags & VALID) != 0
+        assert ok.mean() > 0.9 and np.allclose(m.result.range_m[ok], 20.0, rtol=1e-3)
+        assert np.array_equal(m.n_fused, before.n_fused)
+        assert m.n_fused.max() >= 2
 
 
 def test_schedulers_batched_pair_policy_decides_as_the_pair_policy():

@@ -330,22 +330,26 @@ def test_a_rigs_frames_count_once_in_the_pushed_stream(oncoming_frames, partner_
             assert "n_instant_capped" not in runner.counts
 
 
-def _rig_pushes(fr, order, drop_partner=(), partner_seen=True, third=False):
+def _rig_pushes(fr, order, drop_partner=(), partner_seen=True, third=False, partner_dt_us=0, superseded=()):
     """Push a rig's frames (``order``: "partner-first" or "arrival"); the partner's frames of ``drop_partner`` never
     come, and with ``partner_seen`` False none does; ``third``: a camera outside the rig pushes a frame between the
-    reference's and the partner's. Returns (the runner, the reference's frame index of each map of the reference
-    camera given, in order)."""
+    reference's and the partner's; ``partner_dt_us``: the partner's stamps that much after the reference's (its
+    pose that of the reference's instant); ``superseded``: the partner's frames of these instants remembered, not
+    pushed (the locator's "a newer frame of this camera is already waiting"). Returns (the runner, the reference's
+    frame index of each map of the reference camera given, in order)."""
     runner = FusionRunner(FusionConfig(schedule=ScheduleConfig(stereo_rig=("nose", PARTNER_ID))))
     got = []
     for i, (stamp, view, _, _, partner) in enumerate(fr):
-        pf = frame(PARTNER_ID, partner, stamp, i)
+        pf = frame(PARTNER_ID, partner, stamp + partner_dt_us, i)
         send = partner_seen and i not in drop_partner
         if send and order == "partner-first":
             runner.remember(pf)
         got += [m.frame.seq for m in runner.push(frame("nose", view, stamp, i)) if m.frame.camera_id == "nose"]
         if third:
             got += [m.frame.seq for m in runner.push(frame("tail", view, stamp + 1, i)) if m.frame.camera_id == "nose"]
-        if send and order == "arrival":
+        if send and order == "arrival" and i in superseded:
+            runner.remember(pf)
+        elif send and order == "arrival":
             got += [m.frame.seq for m in runner.push(pf) if m.frame.camera_id == "nose"]
     return runner, got
 
@@ -382,3 +386,29 @@ def test_a_reference_frame_first_waits_for_its_stereo_partner_and_a_lost_partner
     # (frame 0 has no partner, frame 1 too little parallax against it), as with one camera
     runner, got = _rig_pushes(fr, "arrival", partner_seen=False)
     assert got == list(range(2, 12)) and "held_for_stereo" not in runner.counts
+
+
+def test_a_partner_stamped_just_before_the_reference_is_waited_for(oncoming_frames):
+    """The partner's frame of an instant may be stamped up to ``max_stereo_dt_s`` (2 ms) before the reference's (the
+    scheduler pairs them either way): it still delivered the reference's previous instant, so each reference frame
+    after the first waits for it and its map comes once, with the stereo measurement leading; stamped 1 ms after,
+    the same. Catches the partner's liveness taken against the reference's previous stamp exactly (a partner
+    stamped 1 ms early was never waited for: two maps a frame, the motion one ungated)."""
+    fr = oncoming_frames[:6]
+    for dt_us in (-1000, 1000):
+        runner, got = _rig_pushes(fr, "arrival", partner_dt_us=dt_us)
+        assert got == list(range(6)), (dt_us, got)
+        assert runner.counts.get("held_for_stereo") == runner.counts.get("held_joined") == 5, dt_us
+        assert runner.counts.get("measurements.stereo") == 6, dt_us
+
+
+def test_a_superseded_partner_frame_still_tells_that_the_partner_is_alive(oncoming_frames):
+    """``remember`` (the locator's answer to a partner frame a newer one supersedes) records the partner as alive:
+    with the partner's frame 3 remembered, not pushed, frame 3's measurements wait in vain and are fused without it
+    when frame 4 arrives (frame 3: no map), and frame 4 still waits for the partner's frame 4, whose push gives its
+    one map. Catches a planted ``remember`` that does not note the frame's stamp (frame 4 then not waited for: a map
+    at its own push, its motion measurement ungated, and a second one with the stereo measurement)."""
+    runner, got = _rig_pushes(oncoming_frames[:6], "arrival", superseded={3})
+    assert got == [0, 1, 2, 4, 5], got
+    assert runner.counts.get("held_for_stereo") == 5 and runner.counts.get("held_joined") == 4
+    assert runner.counts.get("held_fused_without_stereo") == 1

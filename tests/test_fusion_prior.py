@@ -144,3 +144,41 @@ def test_prior_config_errors_name_the_field():
             PriorConfig(**kw)
     assert PriorConfig(full_every=1, kinds=["near", "wide"]).kinds == ("near", "wide")
     assert FusionConfig().prior.full_every == 1          # off by default (docs/methods.md, "Fusion")
+
+
+def test_the_prior_holds_the_cells_of_enough_agreeing_measurements_on_both_paths(monkeypatch):
+    """``FusionRunner.prior`` by hand on a 4 x 2 state, numba's pass and the numpy path alike: a cell is in the prior
+    (its rho, its sigma = sqrt(var)) when it holds an estimate of at least ``min_fused`` (2) measurements whose
+    evidence agrees (a >= eta_inlier (0.65) x (a + b)), else NaN / inf; the prior is offered while it holds at least
+    ``min_fraction`` (0.8) x the pixels the last full search measured (4 cells: offered after a search of 5, as the
+    least share 4 / 8 of the pixels; not after one of 6). Catches a planted ``n > min_fused`` in the numpy path
+    (the cells of exactly 2 measurements left out: only the numba pass was reached by the other tests)."""
+    import pytest
+
+    import eonav.fusion.sequence as seq_mod
+    from eonav.fusion.state import InverseRangeState, optional_kernels
+    cam = Camera("nose", 4, 2, 4.0, 4.0, 1.5, 0.5)
+    nan = np.nan
+    rho = np.array([[0.05, 0.05, 0.05, 0.05], [nan, 0.1, 0.02, 0.02]], np.float32)
+    var = np.array([[1e-6, 1e-6, 1e-6, 1e-6], [np.inf, 4e-6, 1e-8, 1e-8]], np.float32)
+    n = np.array([[2, 1, 3, 3], [0, 5, 2, 2]], np.uint16)
+    a = np.array([[5, 5, 1, 7], [0, 9, 2, 6]], np.float32)      # E[inlier ratio]: 0.83 0.83 0.5 0.7 / - 0.9 0.67 0.6
+    b = np.array([[1, 1, 1, 3], [0, 1, 1, 4]], np.float32)
+    want_rho = np.array([[0.05, nan, nan, 0.05], [nan, 0.1, 0.02, nan]], np.float32)
+    want_std = np.array([[1e-3, np.inf, np.inf, 1e-3], [np.inf, 2e-3, 1e-4, np.inf]], np.float32)
+    for kernels in ([True] if optional_kernels() is not None else []) + [False]:      # (numba's first)
+        if not kernels:
+            monkeypatch.setattr(seq_mod, "optional_kernels", lambda: None)
+        assert (seq_mod.optional_kernels() is not None) == kernels
+        runner = FusionRunner(FusionConfig(prior=PriorConfig(full_every=3)))
+        level = VehicleState.from_ypr([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], 0.0)
+        st = runner.states["nose"] = InverseRangeState.empty(cam, level, 0.0)
+        st.rho[...], st.var[...], st.n[...], st.a[...], st.b[...] = rho, var, n.astype(st.n.dtype), a, b
+        assert runner.prior("nose") is None                   # no full search yet
+        runner._full_measured["nose"] = 5
+        p_rho, p_std, least = runner.prior("nose")
+        np.testing.assert_array_equal(p_rho, want_rho)
+        np.testing.assert_allclose(p_std, want_std, rtol=1e-6)
+        assert least == pytest.approx(0.5)
+        runner._full_measured["nose"] = 6
+        assert runner.prior("nose") is None, kernels

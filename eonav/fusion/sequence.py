@@ -320,7 +320,8 @@ class FusionRunner:
     def _hold_or_join(self, f: PosedFrameInfo, prev: PosedFrameInfo | None, live: list, results: list) -> tuple:
         """A rig's stereo measurement must come before its motion measurements of the same instant for the gates of
         ``eonav.fusion.update`` ("Stereo leads") to act. When the reference's frame comes first (no stereo
-        measurement of it in this push) and the partner camera delivered the reference's previous instant, its
+        measurement of it in this push) and the partner camera delivered the reference's previous instant (a frame
+        stamped no more than ``max_stereo_dt_s`` before it: the scheduler's stereo pairing), its
         measurements are measured now and held, not fused, and no map of it is given; the partner's push, which
         makes the stereo measurement of that frame, fuses them just before it, as if the partner's frame had come
         first, and gives the map. Held measurements whose partner never comes are fused, ungated, when the
@@ -337,8 +338,9 @@ class FusionRunner:
             live = live[:at] + [m for m, _ in items] + live[at:]
             results = results[:at] + [r for _, r in items] + results[at:]
             return live, results, False, seconds
+        seen = self._seen_us.get(rig[1])             # the partner's newest frame: of the previous instant or later?
         if (f.camera_id != ref or prev is None or any(m.kind == STEREO and _same(m.a, f) for m in live)
-                or self._seen_us.get(rig[1], -1) < prev.stamp_us):
+                or seen is None or seen < prev.stamp_us - self.config.schedule.max_stereo_dt_s * 1e6):
             return live, results, False, 0.0
         mine = [_same(m.a, f) for m in live]       # (none: its map still waits for the stereo measurement)
         held = [(m, r) for m, r, x in zip(live, results, mine) if x]
