@@ -40,10 +40,10 @@ class RecordingSender:
         self.updates.append((sectors, stamp_us, source))
 
 
-def wall_map(stamp_us: int, camera_id: str = "nose", seq: int = 1) -> SimpleNamespace:
+def wall_map(stamp_us: int, camera_id: str = "nose", seq: int = 1, wall: bool = True) -> SimpleNamespace:
     """A received sample: the range map of flat ground 10 m below a level camera at NED (0, 0, -10) and a wall 20 m
-    ahead over the middle quarter of the columns (straight ahead included)."""
-    r = add_wall(ground_and_sky(), 20.0, 96, 160)
+    ahead over the middle quarter of the columns (straight ahead included); ``wall`` False: ground and sky only."""
+    r = add_wall(ground_and_sky(), 20.0, 96, 160) if wall else ground_and_sky()
     payload = schema.encode(
         "range_map", camera_id=camera_id, seq=seq, stamp_us=stamp_us, method="synthetic", range_m=r,
         confidence=np.ones(r.shape, np.float16), flags=np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8),
@@ -149,3 +149,23 @@ def test_the_obstacle_list_goes_out_before_the_track_message_that_labels_it():
     ids = {o["id"] for m in lists for o in m["obstacles"]}
     assert len(ids) == 1 and 0 not in ids
     assert [t["id"] for t in tracks[-1]["tracks"]] == list(ids)
+
+
+def test_a_tracked_wall_that_gives_way_to_open_sky_is_missed_and_dropped():
+    """Each map tells the tracker what it could see (its camera and pose, the distances from ``min_distance_m`` to
+    ``max_obstacle_distance_m``): the wall 20 m ahead, tracked over five maps, then gone from maps that see open sky
+    and ground where it stood, is missed once per map while still listed ("confirmed", not "coasting" as a track out
+    of view would be) and is no longer published after TrackerConfig.max_misses (6) such maps."""
+    from eonav.bus import guidance_msg
+    from eonav.obstacles.tracking import TrackerConfig
+    svc = Service()
+    gone = TrackerConfig().max_misses
+    assert gone == 6
+    for k in range(5 + gone):
+        svc.now["us"] = svc.t0 + k * 100_000
+        svc.map(wall_map(svc.now["us"], seq=k + 1, wall=k < 5))
+    tracks = [guidance_msg.decode(p)["tracks"] for key, p in svc.session.puts if key == K.obstacle_tracks("v")]
+    assert [(t["state"], t["hits"], t["misses"]) for t, in tracks[4:5 + gone - 1]] == [
+        ("confirmed", 5, m) for m in range(gone)]
+    assert tracks[-1] == []
+
