@@ -169,3 +169,19 @@ def test_a_tracked_wall_that_gives_way_to_open_sky_is_missed_and_dropped():
         ("confirmed", 5, m) for m in range(gone)]
     assert tracks[-1] == []
 
+
+def test_the_track_message_describes_the_vehicle_by_the_latest_nav_pose_and_its_stamp(monkeypatch):
+    """Guidance's track message gives the vehicle of the latest nav pose (0.3 s newer than the map, 10 m north,
+    20 m/s north) with that pose's stamp (``nav_stamp_us``), carried on by its velocity to the message's time: the
+    message of t0 + 0.5 s puts the vehicle at 10 + 20 x 0.2 = 14 m north, not 10 + 20 x 0.5 as if the pose were the
+    map's capture time."""
+    from eonav.bus import guidance_msg
+    svc = Service()
+    svc.nav_at(svc.t0 + 300_000, 10.0)
+    monkeypatch.setattr(O, "now_us", lambda: svc.t0 + 500_000)       # the service's clock when the message is made
+    svc.map(wall_map(svc.t0))
+    m, = [guidance_msg.decode(p) for key, p in svc.session.puts if key == K.obstacle_tracks("v")]
+    assert (m["stamp_us"], m["map_stamp_us"], m["nav_stamp_us"]) == (svc.t0 + 500_000, svc.t0, svc.t0 + 300_000)
+    np.testing.assert_allclose(m["position_ned_m"], [14.0, 0.0, -ALT_M], atol=1e-9)
+    np.testing.assert_allclose(m["velocity_ned_mps"], [20.0, 0.0, 0.0])
+
