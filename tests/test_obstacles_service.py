@@ -185,3 +185,24 @@ def test_the_track_message_describes_the_vehicle_by_the_latest_nav_pose_and_its_
     np.testing.assert_allclose(m["position_ned_m"], [14.0, 0.0, -ALT_M], atol=1e-9)
     np.testing.assert_allclose(m["velocity_ned_mps"], [20.0, 0.0, 0.0])
 
+
+def test_a_map_too_old_on_arrival_is_neither_analysed_nor_counted_as_input():
+    """A range map already 1.5 s old on arrival (max age 1 s) is dropped before the analysis (``dropped.too_old``,
+    no analysis time spent on it, nothing published) and does not count as the "range maps" input flowing: a stream of
+    nothing but stale maps leaves the input silent, so the service reports degraded (Node.input_seen). A fresh map
+    then does both."""
+    svc = Service()
+    calls = []
+    analyse = svc.ob.analyse
+    svc.ob.analyse = lambda *a, **kw: calls.append(1) or analyse(*a, **kw)
+    t = time.monotonic()
+    svc.node.expect_input("range maps", 1.0, grace_s=1.0, now=t - 10.0)       # watched for 10 s, nothing yet
+    svc.map(wall_map(svc.t0 - 1_500_000))
+    assert svc.node.counters()["dropped.too_old"] == 1 and svc.session.puts == [] and svc.sender.updates == []
+    assert calls == []
+    svc.node.check_inputs()
+    assert svc.node.silent_inputs() != []
+    svc.map(wall_map(svc.t0))
+    assert calls == [1] and len(svc.lists()) == 1
+    svc.node.check_inputs()
+    assert svc.node.silent_inputs() == []
