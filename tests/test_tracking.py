@@ -848,6 +848,20 @@ def test_message_validation_errors_name_the_field():
         G.encode({k: v for k, v in good.items() if k != "tracks"})
 
 
+def test_message_fields_left_out_read_as_unknown():
+    """The optional top-level fields a publisher may leave out (an older or external one) read as their documented
+    "unknown" (docs/guidance.md): vehicle velocity NaN (then nothing is in the cone; never a hovering vehicle),
+    ``nav_stamp_us`` -1 (the map's capture pose), no tentative tracks, no nearest threat."""
+    msg = G._plain({"kind": G.KIND, "v": G.SCHEMA_VERSION,
+                    **GP.build(_tracker_with_tracks(), _own(), us(0.25), seq=1, trigger="map", stale_after_s=0.5)})
+    for name in ("velocity_ned_mps", "nav_stamp_us", "n_tentative", "nearest_threat"):
+        del msg[name]
+    back = G.decode(G.msgpack.packb(msg, use_bin_type=True))
+    assert back["velocity_ned_mps"].shape == (3,) and np.all(np.isnan(back["velocity_ned_mps"]))
+    assert back["nav_stamp_us"] == -1 and back["n_tentative"] == 0 and back["nearest_threat"] is None
+    assert len(back["tracks"]) == 2
+
+
 def test_publisher_timer_grid_map_trigger_and_stall():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
     pub = GP.GuidancePublisher(tr, rate_hz=10.0, stale_after_s=0.5)
