@@ -862,6 +862,20 @@ def test_message_fields_left_out_read_as_unknown():
     assert len(back["tracks"]) == 2
 
 
+def test_message_validation_refuses_infinite_track_states():
+    """A track's position, velocity or covariance must be finite numbers (docs/guidance.md): +inf or -inf in any of
+    them is refused naming the field, as NaN is (an infinite position would read as "infinitely far: no threat")."""
+    good = G._plain({"kind": G.KIND, "v": G.SCHEMA_VERSION,
+                     **GP.build(_tracker_with_tracks(), _own(), us(0.25), seq=1, trigger="map", stale_after_s=0.5)})
+    G.validate(good)
+    for name, bad in (("position_ned_m", [math.inf, 0.0, -10.0]), ("velocity_ned_mps", [0.0, -math.inf, 0.0]),
+                      ("position_cov_ned_m2", [[math.inf, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+                      ("velocity_cov_ned_m2_per_s2", [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, math.inf]])):
+        m = {**good, "tracks": [dict(good["tracks"][0], **{name: bad}), good["tracks"][1]]}
+        with pytest.raises(SchemaError, match=rf"tracks\[0\]\.{name}: expected finite"):
+            G.decode(G.msgpack.packb(m, use_bin_type=True))
+
+
 def test_publisher_timer_grid_map_trigger_and_stall():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
     pub = GP.GuidancePublisher(tr, rate_hz=10.0, stale_after_s=0.5)
