@@ -876,6 +876,19 @@ def test_message_validation_refuses_infinite_track_states():
             G.decode(G.msgpack.packb(m, use_bin_type=True))
 
 
+def test_message_map_age_is_never_negative_infinite_or_nan():
+    """``map_age_s`` is >= 0 s, +inf when there is no map yet (docs/guidance.md): a message of a tracker that has
+    seen no map decodes with +inf; the same message with -inf (a negative age: "fresher than fresh") or NaN is
+    refused naming the field, as -0.1 s is."""
+    empty = G._plain({"kind": G.KIND, "v": G.SCHEMA_VERSION,
+                      **GP.build(T.Tracker(), _own(), us(0.25), seq=0, trigger="timer", stale_after_s=0.5)})
+    back = G.decode(G.msgpack.packb(empty, use_bin_type=True))
+    assert back["status"] == "no_map" and back["map_age_s"] == math.inf
+    for bad in (-math.inf, math.nan, -0.1):
+        with pytest.raises(SchemaError, match="map_age_s: expected >= 0"):
+            G.decode(G.msgpack.packb({**empty, "map_age_s": bad}, use_bin_type=True))
+
+
 def test_publisher_timer_grid_map_trigger_and_stall():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
     pub = GP.GuidancePublisher(tr, rate_hz=10.0, stale_after_s=0.5)
