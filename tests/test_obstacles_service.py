@@ -2,8 +2,9 @@
 session records every put, a range map of a wall 20 m ahead of a level camera 10 m up (closed-form geometry, the
 helpers of tests/test_obstacles.py), and a MAVLink sender that records what it is given. Checked: which pose the
 autopilot's sectors are measured from (the latest nav pose only when it is newer than the map and on its timeline),
-the freshness rules at arrival and at publishing (docs/bus.md, Staleness), and the order of the two messages a map
-makes. The same service as a real process: tests/test_locator_service.py."""
+the freshness rules at arrival and at publishing (docs/bus.md, Staleness), the order of the two messages a map
+makes, what the tracker is told each map could see, and the vehicle pose the track message gives. The same service as
+a real process: tests/test_locator_service.py."""
 from __future__ import annotations
 
 import argparse
