@@ -1276,6 +1276,25 @@ def test_latest_nav_joins_parts_up_to_200_ms_apart_and_not_beyond():
             assert nav.add(1_000_000 + skew_us, q1, p1, nan3) is joined, (first_is_attitude, skew_us)
             assert nav.get()[1] == (1_000_000 + skew_us if joined else None)
 
+
+def test_latest_nav_keeps_the_newest_parts_when_older_ones_arrive_late():
+    """Nav parts can arrive out of order (two links, a replay's seam): an attitude or a position older than the one
+    held does not replace it. After a pose heading east at (10, 20, -5), stamped 1.0 s, a late attitude heading north
+    (0.9 s) and a late position (0.95 s) leave the pose as it was; a stale part would otherwise be joined into a pose
+    that carries the newer stamp."""
+    from eonav.services.obstacles import LatestNav
+    nan3, nan4 = [math.nan] * 3, [math.nan] * 4
+    nav = LatestNav()
+    q_east = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]
+    assert nav.add(1_000_000, q_east, [10.0, 20.0, -5.0], [0.0, 3.0, 0.0])
+    nav.add(900_000, [1.0, 0.0, 0.0, 0.0], nan3, nan3)                  # late attitude, heading north
+    nav.add(950_000, nan4, [0.0, 0.0, -5.0], [3.0, 0.0, 0.0])          # late position and velocity
+    state, stamp = nav.get()
+    assert stamp == 1_000_000 and state.position_ned_m == pytest.approx([10.0, 20.0, -5.0])
+    assert state.T_body_ned @ np.array([0.0, 1.0, 0.0]) == pytest.approx([1.0, 0.0, 0.0], abs=1e-9)   # east = nose
+    assert nav.ownship(None, -1).velocity_ned_mps == pytest.approx([0.0, 3.0, 0.0])
+
+
 def test_mixture_sigma_against_a_sampled_mixture():
     # equal sigmas: that sigma
     assert ob.mixture_sigma(np.full(50, 2.0)) == pytest.approx(2.0, rel=1e-6)

@@ -2,8 +2,9 @@
 session records every put, a range map of a wall 20 m ahead of a level camera 10 m up (closed-form geometry, the
 helpers of tests/test_obstacles.py), and a MAVLink sender that records what it is given. Checked: which pose the
 autopilot's sectors are measured from (the latest nav pose only when it is newer than the map and on its timeline),
-the freshness rules at arrival and at publishing (docs/bus.md, Staleness), and the order of the two messages a map
-makes. The same service as a real process: tests/test_locator_service.py."""
+the freshness rules at arrival and at publishing (docs/bus.md, Staleness), the order of the two messages a map
+makes, what the tracker is told each map could see, and the vehicle pose the track message gives. The same service as
+a real process: tests/test_locator_service.py."""
 from __future__ import annotations
 
 import argparse
@@ -40,10 +41,10 @@ class RecordingSender:
         self.updates.append((sectors, stamp_us, source))
 
 
-def wall_map(stamp_us: int, camera_id: str = "nose", seq: int = 1) -> SimpleNamespace:
+def wall_map(stamp_us: int, camera_id: str = "nose", seq: int = 1, wall: bool = True) -> SimpleNamespace:
     """A received sample: the range map of flat ground 10 m below a level camera at NED (0, 0, -10) and a wall 20 m
-    ahead over the middle quarter of the columns (straight ahead included)."""
-    r = add_wall(ground_and_sky(), 20.0, 96, 160)
+    ahead over the middle quarter of the columns (straight ahead included); ``wall`` False: ground and sky only."""
+    r = add_wall(ground_and_sky(), 20.0, 96, 160) if wall else ground_and_sky()
     payload = schema.encode(
         "range_map", camera_id=camera_id, seq=seq, stamp_us=stamp_us, method="synthetic", range_m=r,
         confidence=np.ones(r.shape, np.float16), flags=np.where(np.isfinite(r), VALID, AT_INFINITY).astype(np.uint8),
@@ -149,3 +150,60 @@ def test_the_obstacle_list_goes_out_before_the_track_message_that_labels_it():
     ids = {o["id"] for m in lists for o in m["obstacles"]}
     assert len(ids) == 1 and 0 not in ids
     assert [t["id"] for t in tracks[-1]["tracks"]] == list(ids)
+
+
+def test_a_tracked_wall_that_gives_way_to_open_sky_is_missed_and_dropped():
+    """Each map tells the tracker what it could see (its camera and pose, the distances from ``min_distance_m`` to
+    ``max_obstacle_distance_m``): the wall 20 m ahead, tracked over five maps, then gone from maps that see open sky
+    and ground where it stood, is missed once per map while still listed ("confirmed", not "coasting" as a track out
+    of view would be) and is no longer published after TrackerConfig.max_misses (6) such maps."""
+    from eonav.bus import guidance_msg
+    from eonav.obstacles.tracking import TrackerConfig
+    svc = Service()
+    gone = TrackerConfig().max_misses
+    assert gone == 6
+    for k in range(5 + gone):
+        svc.now["us"] = svc.t0 + k * 100_000
+        svc.map(wall_map(svc.now["us"], seq=k + 1, wall=k < 5))
+    tracks = [guidance_msg.decode(p)["tracks"] for key, p in svc.session.puts if key == K.obstacle_tracks("v")]
+    assert [(t["state"], t["hits"], t["misses"]) for t, in tracks[4:5 + gone - 1]] == [
+        ("confirmed", 5, m) for m in range(gone)]
+    assert tracks[-1] == []
+
+
+def test_the_track_message_describes_the_vehicle_by_the_latest_nav_pose_and_its_stamp(monkeypatch):
+    """Guidance's track message gives the vehicle of the latest nav pose (0.3 s newer than the map, 10 m north,
+    20 m/s north) with that pose's stamp (``nav_stamp_us``), carried on by its velocity to the message's time: the
+    message of t0 + 0.5 s puts the vehicle at 10 + 20 x 0.2 = 14 m north, not 10 + 20 x 0.5 as if the pose were the
+    map's capture time."""
+    from eonav.bus import guidance_msg
+    svc = Service()
+    svc.nav_at(svc.t0 + 300_000, 10.0)
+    monkeypatch.setattr(O, "now_us", lambda: svc.t0 + 500_000)       # the service's clock when the message is made
+    svc.map(wall_map(svc.t0))
+    m, = [guidance_msg.decode(p) for key, p in svc.session.puts if key == K.obstacle_tracks("v")]
+    assert (m["stamp_us"], m["map_stamp_us"], m["nav_stamp_us"]) == (svc.t0 + 500_000, svc.t0, svc.t0 + 300_000)
+    np.testing.assert_allclose(m["position_ned_m"], [14.0, 0.0, -ALT_M], atol=1e-9)
+    np.testing.assert_allclose(m["velocity_ned_mps"], [20.0, 0.0, 0.0])
+
+
+def test_a_map_too_old_on_arrival_is_neither_analysed_nor_counted_as_input():
+    """A range map already 1.5 s old on arrival (max age 1 s) is dropped before the analysis (``dropped.too_old``,
+    no analysis time spent on it, nothing published) and does not count as the "range maps" input flowing: a stream of
+    nothing but stale maps leaves the input silent, so the service reports degraded (Node.input_seen). A fresh map
+    then does both."""
+    svc = Service()
+    calls = []
+    analyse = svc.ob.analyse
+    svc.ob.analyse = lambda *a, **kw: calls.append(1) or analyse(*a, **kw)
+    t = time.monotonic()
+    svc.node.expect_input("range maps", 1.0, grace_s=1.0, now=t - 10.0)       # watched for 10 s, nothing yet
+    svc.map(wall_map(svc.t0 - 1_500_000))
+    assert svc.node.counters()["dropped.too_old"] == 1 and svc.session.puts == [] and svc.sender.updates == []
+    assert calls == []
+    svc.node.check_inputs()
+    assert svc.node.silent_inputs() != []
+    svc.map(wall_map(svc.t0))
+    assert calls == [1] and len(svc.lists()) == 1
+    svc.node.check_inputs()
+    assert svc.node.silent_inputs() == []

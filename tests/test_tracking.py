@@ -948,6 +948,47 @@ def test_message_validation_errors_name_the_field():
         G.encode({k: v for k, v in good.items() if k != "tracks"})
 
 
+def test_message_fields_left_out_read_as_unknown():
+    """The optional top-level fields a publisher may leave out (an older or external one) read as their documented
+    "unknown" (docs/guidance.md): vehicle velocity NaN (then nothing is in the cone; never a hovering vehicle),
+    ``nav_stamp_us`` -1 (the map's capture pose), no tentative tracks, no nearest threat."""
+    msg = G._plain({"kind": G.KIND, "v": G.SCHEMA_VERSION,
+                    **GP.build(_tracker_with_tracks(), _own(), us(0.25), seq=1, trigger="map", stale_after_s=0.5)})
+    for name in ("velocity_ned_mps", "nav_stamp_us", "n_tentative", "nearest_threat"):
+        del msg[name]
+    back = G.decode(G.msgpack.packb(msg, use_bin_type=True))
+    assert back["velocity_ned_mps"].shape == (3,) and np.all(np.isnan(back["velocity_ned_mps"]))
+    assert back["nav_stamp_us"] == -1 and back["n_tentative"] == 0 and back["nearest_threat"] is None
+    assert len(back["tracks"]) == 2
+
+
+def test_message_validation_refuses_infinite_track_states():
+    """A track's position, velocity or covariance must be finite numbers (docs/guidance.md): +inf or -inf in any of
+    them is refused naming the field, as NaN is (an infinite position would read as "infinitely far: no threat")."""
+    good = G._plain({"kind": G.KIND, "v": G.SCHEMA_VERSION,
+                     **GP.build(_tracker_with_tracks(), _own(), us(0.25), seq=1, trigger="map", stale_after_s=0.5)})
+    G.validate(good)
+    for name, bad in (("position_ned_m", [math.inf, 0.0, -10.0]), ("velocity_ned_mps", [0.0, -math.inf, 0.0]),
+                      ("position_cov_ned_m2", [[math.inf, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+                      ("velocity_cov_ned_m2_per_s2", [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, math.inf]])):
+        m = {**good, "tracks": [dict(good["tracks"][0], **{name: bad}), good["tracks"][1]]}
+        with pytest.raises(SchemaError, match=rf"tracks\[0\]\.{name}: expected finite"):
+            G.decode(G.msgpack.packb(m, use_bin_type=True))
+
+
+def test_message_map_age_is_never_negative_infinite_or_nan():
+    """``map_age_s`` is >= 0 s, +inf when there is no map yet (docs/guidance.md): a message of a tracker that has
+    seen no map decodes with +inf; the same message with -inf (a negative age: "fresher than fresh") or NaN is
+    refused naming the field, as -0.1 s is."""
+    empty = G._plain({"kind": G.KIND, "v": G.SCHEMA_VERSION,
+                      **GP.build(T.Tracker(), _own(), us(0.25), seq=0, trigger="timer", stale_after_s=0.5)})
+    back = G.decode(G.msgpack.packb(empty, use_bin_type=True))
+    assert back["status"] == "no_map" and back["map_age_s"] == math.inf
+    for bad in (-math.inf, math.nan, -0.1):
+        with pytest.raises(SchemaError, match="map_age_s: expected >= 0"):
+            G.decode(G.msgpack.packb({**empty, "map_age_s": bad}, use_bin_type=True))
+
+
 def test_publisher_timer_grid_map_trigger_and_stall():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
     pub = GP.GuidancePublisher(tr, rate_hz=10.0, stale_after_s=0.5)

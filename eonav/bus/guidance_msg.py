@@ -113,7 +113,7 @@ def validate(msg: dict) -> dict:
         raise SchemaError(f"{KIND}.status: expected one of {STATUSES}, got {out['status']!r}")
     if out["trigger"] not in TRIGGERS:
         raise SchemaError(f"{KIND}.trigger: expected one of {TRIGGERS}, got {out['trigger']!r}")
-    if not (out["map_age_s"] >= 0 or math.isinf(out["map_age_s"])):
+    if not out["map_age_s"] >= 0:                 # +inf (no map yet) passes; -inf and NaN do not
         raise SchemaError(f"{KIND}.map_age_s: expected >= 0 s, got {out['map_age_s']!r}")
     tracks = []
     for i, t in enumerate(out["tracks"]):
