@@ -207,3 +207,62 @@ def test_a_map_too_old_on_arrival_is_neither_analysed_nor_counted_as_input():
     assert calls == [1] and len(svc.lists()) == 1
     svc.node.check_inputs()
     assert svc.node.silent_inputs() == []
+
+
+def test_the_track_topic_ticks_on_its_timer_and_tells_how_old_its_newest_map_is():
+    """Guidance's fixed-rate messages (``Guidance.timer_loop``, 10 Hz here): with no vehicle state to describe (no
+    navigation, no map) nothing is sent; with a nav pose and no map yet, "timer" messages with status "no_map", no map
+    stamp (-1), an infinite map age, the nav pose's stamp and its position carried at its velocity (20 m/s north) to
+    the message's time, seq rising by one, never more of them than
+    the rate allows; after a map, every timer message refers to it, its age the message stamp minus the map's capture
+    stamp, its status "ok" up to stale_after_s (0.3 s) and "stale" beyond (a stall guidance can see), until it is
+    stopped. Waits on what arrives (20 s at most), not on fixed sleeps."""
+    import threading
+
+    from eonav.bus import guidance_msg
+    from eonav.bus.node import now_us
+    svc = Service()
+
+    def timer_msgs():                                                  # (of the first 200 puts: a runaway loop
+        puts = svc.session.puts[:200]                                  # fails the waits below, not the machine)
+        return [m for m in (guidance_msg.decode(p) for k, p in puts if k == K.obstacle_tracks("v"))
+                if m["trigger"] == "timer"]
+
+    def wait_for(cond):
+        deadline = time.monotonic() + 20.0
+        while not cond() and time.monotonic() < deadline:
+            threading.Event().wait(0.01)
+        assert cond()
+
+    loop = threading.Thread(target=svc.guidance.timer_loop)
+    t_start = now_us()
+    loop.start()
+    try:
+        threading.Event().wait(0.25)
+        assert svc.session.puts == []                                  # nothing to describe yet
+        nav_us = now_us()
+        svc.nav_at(nav_us, 5.0)
+        wait_for(lambda: len(timer_msgs()) >= 3)
+        first = timer_msgs()
+        for m in first:
+            assert (m["status"], m["map_stamp_us"], m["map_age_s"]) == ("no_map", -1, float("inf"))
+            dt_s = (m["stamp_us"] - nav_us) * 1e-6                   # the vehicle carried to the message's time
+            assert m["nav_stamp_us"] == nav_us and m["position_ned_m"] == pytest.approx([5.0 + 20.0 * dt_s, 0.0, -ALT_M])
+        assert [m["seq"] for m in first] == list(range(first[0]["seq"], first[0]["seq"] + len(first)))
+        map_us = svc.now["us"] = now_us()
+        svc.map(wall_map(map_us))
+        wait_for(lambda: any(m["status"] == "stale" for m in timer_msgs()))
+    finally:
+        svc.node.stop_event.set()
+        loop.join(5)
+    assert not loop.is_alive()
+    msgs = timer_msgs()
+    map_msg, = [guidance_msg.decode(p) for k, p in svc.session.puts[:200]
+                if k == K.obstacle_tracks("v") and guidance_msg.decode(p)["trigger"] == "map"]
+    after = [m for m in msgs if m["seq"] > map_msg["seq"]]           # built after the tracker took the map
+    assert after and all(m["map_stamp_us"] == map_us for m in after)
+    for m in after:
+        assert m["map_age_s"] == pytest.approx((m["stamp_us"] - map_us) * 1e-6, abs=1e-9)
+        assert m["status"] == ("ok" if m["map_age_s"] <= 0.3 else "stale"), m["map_age_s"]
+    elapsed_s = (msgs[-1]["stamp_us"] - t_start) * 1e-6
+    assert len(msgs) <= elapsed_s / 0.1 + 1                            # never faster than the rate
