@@ -95,6 +95,19 @@ def test_merge_sectors_keeps_nearest_then_clear_then_unknown():
         ob.merge_sectors([a, ob.Sectors(b.distances_cm, 5.0, 0.0, 50, 10000)])
 
 
+def test_merge_sectors_keeps_an_obstacle_at_max_distance():
+    """A bin at exactly max_distance_cm is an obstacle (the sectors clip obstacle points farther out to it; the
+    autopilots read [min, max] as measured): the merge keeps it alone, against another camera's clear or unknown, and
+    a nearer one still wins. Catches the hit test taken as d < max_distance_cm (the bin became unknown)."""
+    U, M, C = ob.UINT16_MAX, 15000, 15001
+    a = ob.Sectors(np.full(72, U, np.uint16), 5.0, 0.0, 50, M)
+    b = ob.Sectors(np.full(72, U, np.uint16), 5.0, 0.0, 50, M)
+    a.distances_cm[[0, 1, 2, 3]] = [M, M, M, C]
+    b.distances_cm[[0, 1, 2, 3]] = [U, C, 14000, U]
+    assert list(ob.merge_sectors([a, b]).distances_cm[:5]) == [M, M, 14000, C, U]
+    assert list(ob.merge_sectors([a]).distances_cm[:5]) == [M, M, M, C, U]
+
+
 def hand_points(bearings_deg, hdist_m, weight):
     """Points at given body-relative bearings and horizontal distances (only what the sectors read)."""
     b = np.radians(np.asarray(bearings_deg, float))
