@@ -898,6 +898,19 @@ def test_obstacle_distance_rejects_bad_sectors():
         ob.ObstacleConfig(min_distance_m=0.004)
 
 
+def test_obstacle_distance_max_distance_leaves_clear_below_unknown():
+    """max_distance_cm 65533 is the largest sent: its "clear" value, max + 1 = 65534, is still not UINT16_MAX (65535,
+    "unknown"); with 65534 a clear bin would read as unknown, so it is refused. Catches the bound taken as
+    max_distance_cm < UINT16_MAX."""
+    from eonav.nav import mavlink_out as mo
+    mu = mo.mavutil()
+    clear = ob.Sectors(np.full(72, 65534, np.uint16), 5.0, 0.0, 50, 65533)
+    m, = mu.mavlink.MAVLink(None).parse_buffer(mo.encode_obstacle_distance(clear, 0))
+    assert m.max_distance == 65533 and set(m.distances) == {65534}
+    with pytest.raises(InputError, match="min_distance_cm"):
+        mo.encode_obstacle_distance(ob.Sectors(np.full(72, ob.UINT16_MAX, np.uint16), 5.0, 0.0, 50, 65534), 0)
+
+
 def test_sender_fresh_then_unknown_over_udp():
     from eonav.nav import mavlink_out as mo
     mu = mo.mavutil()
