@@ -1009,6 +1009,54 @@ def test_sender_merges_every_fresh_camera_and_stamps_the_oldest_capture():
         rx.close()
 
 
+def test_sender_cadence_after_a_late_call_and_the_stale_limit():
+    """Injected clock, 4 Hz (exact binary times). A caller late by a whole period (due at 0.25 s, called at 0.5 s)
+    gets one message and the next a period later (0.75 s), not a second one at once (catches '>=' for '>' in
+    _next_due: a late call landing on the grid re-armed the send for now, a burst). With stale_s 0.25 a camera is
+    fresh at exactly 0.25 s after its update and stale just after (catches '<' for '<=' in _fresh)."""
+    from eonav.nav import mavlink_out as mo
+    mu = mo.mavutil()
+    port = _free_udp_port()
+    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", rate_hz=4.0, stale_s=0.25, clock=lambda: t[0],
+                                   wall_us=lambda: 42)
+
+    def sent():
+        out = []
+        while (m := rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.2)) is not None:
+            out.append(m)
+        return out
+
+    try:
+        s = _wall_sectors()
+        tx.update(s, 1_700_000_000_000_000)
+        assert tx.tick() == 0.25 and len(sent()) == 1                  # t = 0: sent, next at 0.25
+        t[0] = 0.375
+        tx.update(s, 1_700_000_000_375_000)
+        t[0] = 0.5                                                     # the 0.25 s send was missed
+        assert tx.tick() == 0.25                                       # next at 0.75, not now
+        assert tx.tick() == 0.25                                       # called again at once: nothing more
+        got = sent()
+        assert len(got) == 1 and got[0].time_usec == 1_700_000_000_375_000
+        tx.update(s, 1_700_000_000_500_000)                            # at 0.5 s: fresh up to 0.75 s inclusive
+        t[0] = 0.75
+        assert tx.is_fresh()
+        tx.tick()
+        got = sent()
+        assert len(got) == 1 and got[0].time_usec == 1_700_000_000_500_000
+        t[0] = 0.75000001
+        assert not tx.is_fresh()
+        t[0] = 1.0                                                     # the next send: the flush
+        tx.tick()
+        got = sent()
+        assert len(got) == 1 and set(got[0].distances) == {65535}
+        assert tx.counters["od_sent_fresh"] == 3 and tx.counters["od_sent_flush"] == 1
+    finally:
+        tx.close()
+        rx.close()
+
+
 def test_sender_real_time_rate():
     import threading
     import time
