@@ -229,6 +229,29 @@ def test_sender_carries_a_moving_track_by_the_age_of_the_tracks():
         rx.conn.close()
 
 
+def test_sender_does_not_carry_a_track_back_when_the_wall_clock_is_behind_its_stamp():
+    """The wall clock reads 0.25 s BEFORE the tracks' stamp (stepped back by a time sync, or the tracks stamped on a
+    clock ahead): a track moving 2 m/s west is sent where it was measured (10 m east), not 0.5 m back along its
+    velocity (catches the clamp of the tracks' age at 0 dropped)."""
+    port = _free_udp_port()
+    rx = Rx(port)
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], wall_us=lambda: 750_000,
+                                   messages="obstacle_distance_3d")
+    s = pose()
+    try:
+        tx.update_tracks([track(5, (0, 10, 0), velocity=(0, -2, 0), moving=True)], 1_000_000, s.position_ned_m,
+                         s.T_body_ned, 0.5, 40.0)
+        t[0] = 0.1
+        tx.tick()
+        by_id = {m.obstacle_id: m for m in rx.drain()}
+        assert sorted(by_id) == [5, 65535]
+        np.testing.assert_allclose([by_id[5].x, by_id[5].y, by_id[5].z], [0.0, 10.0, 0.0], atol=1e-5)
+    finally:
+        tx.close()
+        rx.conn.close()
+
+
 def test_sender_obstacle_distance_only_sends_no_3d():
     port = _free_udp_port()
     rx = Rx(port)
