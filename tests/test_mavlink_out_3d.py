@@ -252,6 +252,19 @@ def test_sender_does_not_carry_a_track_back_when_the_wall_clock_is_behind_its_st
         rx.conn.close()
 
 
+def test_a_moving_track_without_a_finite_velocity_is_sent_where_it_is():
+    """A track entry marked moving whose velocity is not finite (NaN: unknown) is carried by no velocity: its point
+    is the measured one, finite, and encodes; a NaN point would raise InputError inside the sender's tick, which
+    only survives OSError (catches the finite-velocity fallback of TrackBox.from_track_msg dropped)."""
+    s = pose()
+    box = mo.TrackBox.from_track_msg(track(3, (0, 10, 0), (2, 2, 2), velocity=(math.nan, -2.0, 0.0), moving=True))
+    np.testing.assert_array_equal(box.velocity_ned_mps, [0.0, 0.0, 0.0])
+    (oid, p), = mo.obstacle_points_frd([box], s.position_ned_m, s.T_body_ned, 0.5, 40.0, dt_s=0.5)
+    assert oid == 3
+    np.testing.assert_allclose(p, [0.0, 9.0, 0.0], atol=1e-12)      # the box's west face, 9 m east
+    mo.encode_obstacle_distance_3d(oid, p, 1, 0.5, 40.0)
+
+
 def test_sender_obstacle_distance_only_sends_no_3d():
     port = _free_udp_port()
     rx = Rx(port)
