@@ -686,6 +686,20 @@ def test_nearest_threat_is_the_soonest_contact_not_the_nearest_surface():
     assert T.nearest_threat(views) is vv
 
 
+def test_surface_distance_to_obstacles_south_west_and_above():
+    """2 m cubes 30 m south, 30 m west and 30 m above a hovering vehicle: each surface is 29 m away, as the one 30 m
+    north (the box's near face is on the vehicle's side whatever the sign of the offset). Catches the absolute value
+    dropped from the surface distance (those behind the NED axes came out at 0 m)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    offsets = ([-30.0, 0.0, 0.0], [0.0, -30.0, 0.0], [0.0, 0.0, -30.0], [30.0, 0.0, 0.0])
+    tr.update([T.Measurement(HOVER.position_ned_m + o, np.diag([0.04] * 3), [2.0, 2.0, 2.0]) for o in offsets],
+              us(0.0))
+    views = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [0.0, 0.0, 0.0], us(0.0)), us(0.0))
+    assert len(views) == 4
+    for v in views:
+        assert v.distance_m == pytest.approx(30.0) and v.surface_distance_m == pytest.approx(29.0)
+
+
 # -- message and publisher ----------------------------------------------------------------------------------------
 def _tracker_with_tracks():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
