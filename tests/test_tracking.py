@@ -700,6 +700,24 @@ def test_surface_distance_to_obstacles_south_west_and_above():
         assert v.distance_m == pytest.approx(30.0) and v.surface_distance_m == pytest.approx(29.0)
 
 
+def _view_ahead(north_m, east_m=0.0, extent=(0.0, 0.0, 0.0), cone=T.ConeConfig()):
+    """One fresh track (0.5 m 1-sigma per axis) at ``north_m`` / ``east_m`` from a vehicle flying north at 10 m/s."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement(HOVER.position_ned_m + [north_m, east_m, 0.0], np.diag([0.25] * 3), extent)], us(0.0))
+    v, = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [10.0, 0.0, 0.0], us(0.0)), us(0.0), cone)
+    return v
+
+
+def test_a_contact_at_exactly_the_horizon_is_a_threat():
+    """Default cone (radius 1 m, 2 sigma, horizon 30 s): a point 302 m ahead is entered 302 - 1 - 2 x 0.5 = 300 m
+    out, at 10 m/s exactly 30 s: in the cone with time to contact 30 s ("within horizon_s"); 1 m farther, 30.1 s,
+    it is not. Catches '<' for '<=' at the horizon in assess."""
+    v = _view_ahead(302.0)
+    assert v.in_cone and v.time_to_contact_s == 30.0
+    v = _view_ahead(303.0)
+    assert not v.in_cone and math.isnan(v.time_to_contact_s)
+
+
 # -- message and publisher ----------------------------------------------------------------------------------------
 def _tracker_with_tracks():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
