@@ -718,6 +718,26 @@ def test_a_contact_at_exactly_the_horizon_is_a_threat():
     assert not v.in_cone and math.isnan(v.time_to_contact_s)
 
 
+def test_nearest_threat_ties_go_to_the_nearer_surface():
+    """Two 1 m cubes 30 m ahead of a vehicle flying north at 10 m/s, one on the path, one 3 m east but 5 m wide (the
+    path runs through its grown box): both entered at (30 - 0.5 - 1 - 2 x 0.2) / 10 = 2.81 s, a tie; the nearest
+    threat is the one whose surface is nearer (29.5 m, not hypot(29.5, 0.5)) whichever comes first in the snapshot.
+    Catches the surface distance dropped from nearest_threat's key (the first listed won)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    cov = np.diag([0.04] * 3)
+    tr.update([T.Measurement(HOVER.position_ned_m + [30.0, 3.0, 0.0], cov, [1.0, 5.0, 1.0]),
+               T.Measurement(HOVER.position_ned_m + [30.0, 0.0, 0.0], cov, [1.0, 1.0, 1.0])], us(0.0))
+    views = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [10.0, 0.0, 0.0], us(0.0)), us(0.0),
+                     T.ConeConfig(vehicle_radius_m=1.0, k_sigma=2.0))
+    wide, on_path = views
+    assert wide.in_cone and on_path.in_cone
+    assert wide.time_to_contact_s == on_path.time_to_contact_s == pytest.approx(2.81)
+    assert on_path.surface_distance_m == pytest.approx(29.5)
+    assert wide.surface_distance_m == pytest.approx(math.hypot(29.5, 0.5))
+    assert T.nearest_threat(views) is on_path
+    assert T.nearest_threat(views[::-1]) is on_path
+
+
 # -- message and publisher ----------------------------------------------------------------------------------------
 def _tracker_with_tracks():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
