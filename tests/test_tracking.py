@@ -853,6 +853,25 @@ def test_nearest_threat_is_a_confirmed_track_even_when_a_tentative_one_comes_fir
     assert G.decode(G.encode(msg))["nearest_threat"]["id"] == conf.id
 
 
+def test_message_says_moving_for_the_moving_obstacle_only():
+    """Noise-free detections at 15 Hz for 3 s of an obstacle closing on a hovering vehicle at 10 m/s and of a static
+    one: the message's ``moving`` (the chi-square test docs/guidance.md gives; it decides whether the autopilot's
+    OBSTACLE_DISTANCE_3D carries the track along its velocity) is true for the first only, whose velocity is the
+    true -10 m/s north. Catches ``moving`` published as true for every track."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
+    cov = np.diag([0.25, 0.04, 0.04])
+    for k in range(int(3 * RATE_HZ)):
+        t = k / RATE_HZ
+        tr.update([T.Measurement([80.0 - 10.0 * t, 0.0, -10.0], cov, [1.0, 1.0, 1.0]),
+                   T.Measurement([60.0, 20.0, -10.0], cov, [1.0, 1.0, 1.0])], us(t))
+    msg = GP.build(tr, _own(t, (0.0, 0.0, 0.0)), us(t), seq=0, trigger="map", stale_after_s=0.5)
+    by_east = sorted(msg["tracks"], key=lambda x: x["position_ned_m"][1])
+    mover, static = by_east
+    assert static["position_ned_m"][1] == pytest.approx(20.0) and mover["position_ned_m"][1] == pytest.approx(0.0)
+    assert mover["moving"] is True and static["moving"] is False
+    assert mover["velocity_ned_mps"][0] == pytest.approx(-10.0, rel=0.05)
+
+
 def test_message_registers_in_the_project_schema(monkeypatch):
     from eonav.bus import schema
     monkeypatch.setitem(schema.FIELDS, G.KIND, G.FIELDS)
