@@ -872,6 +872,18 @@ def test_message_says_moving_for_the_moving_obstacle_only():
     assert mover["velocity_ned_mps"][0] == pytest.approx(-10.0, rel=0.05)
 
 
+def test_message_status_is_ok_up_to_exactly_stale_after_s():
+    """The newest map 0.5 s old with stale_after_s 0.5 is "ok" ("at most stale_after_s old", docs/guidance.md); 1 us
+    older it is "stale". Catches '<' for '<=' in the status."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement([40.0, 0.0, -10.0], np.eye(3) * 0.1, [1.0, 1.0, 1.0])], us(1.0))
+    own = _own(1.0, (0.0, 0.0, 0.0))
+    m = GP.build(tr, own, us(1.5), seq=0, trigger="timer", stale_after_s=0.5)
+    assert m["status"] == "ok" and m["map_age_s"] == 0.5
+    m = GP.build(tr, own, us(1.5) + 1, seq=1, trigger="timer", stale_after_s=0.5)
+    assert m["status"] == "stale" and m["map_age_s"] == pytest.approx(0.500001)
+
+
 def test_message_registers_in_the_project_schema(monkeypatch):
     from eonav.bus import schema
     monkeypatch.setitem(schema.FIELDS, G.KIND, G.FIELDS)
