@@ -700,11 +700,12 @@ def test_surface_distance_to_obstacles_south_west_and_above():
         assert v.distance_m == pytest.approx(30.0) and v.surface_distance_m == pytest.approx(29.0)
 
 
-def _view_ahead(north_m, east_m=0.0, extent=(0.0, 0.0, 0.0), cone=T.ConeConfig()):
-    """One fresh track (0.5 m 1-sigma per axis) at ``north_m`` / ``east_m`` from a vehicle flying north at 10 m/s."""
+def _view_ahead(north_m):
+    """One fresh point track (0.5 m 1-sigma per axis) ``north_m`` ahead of a vehicle flying north at 10 m/s, assessed
+    with the default cone."""
     tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
-    tr.update([T.Measurement(HOVER.position_ned_m + [north_m, east_m, 0.0], np.diag([0.25] * 3), extent)], us(0.0))
-    v, = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [10.0, 0.0, 0.0], us(0.0)), us(0.0), cone)
+    tr.update([T.Measurement(HOVER.position_ned_m + [north_m, 0.0, 0.0], np.diag([0.25] * 3))], us(0.0))
+    v, = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [10.0, 0.0, 0.0], us(0.0)), us(0.0))
     return v
 
 
