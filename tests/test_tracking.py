@@ -885,6 +885,17 @@ def test_message_status_is_ok_up_to_exactly_stale_after_s():
     assert m["status"] == "stale" and m["map_age_s"] == pytest.approx(0.500001)
 
 
+def test_message_of_a_map_stamped_after_now_has_age_zero_and_encodes():
+    """A map stamped 10 ms after the publisher's now (the camera host's clock a little ahead): map_age_s is 0, not
+    -0.01 s, status ok, and the message passes the schema, which refuses a negative age. Catches the clamp at 0
+    dropped from the age (the message failed the schema; only a timing-dependent service test saw it)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement([40.0, 0.0, -10.0], np.eye(3) * 0.1, [1.0, 1.0, 1.0])], us(1.01))
+    m = GP.build(tr, _own(1.0, (0.0, 0.0, 0.0)), us(1.0), seq=0, trigger="timer", stale_after_s=0.5)
+    assert m["status"] == "ok" and m["map_age_s"] == 0.0 and m["map_stamp_us"] == us(1.01)
+    assert G.decode(G.encode(m))["map_age_s"] == 0.0
+
+
 def test_message_registers_in_the_project_schema(monkeypatch):
     from eonav.bus import schema
     monkeypatch.setitem(schema.FIELDS, G.KIND, G.FIELDS)
