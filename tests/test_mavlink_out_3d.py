@@ -229,6 +229,42 @@ def test_sender_carries_a_moving_track_by_the_age_of_the_tracks():
         rx.conn.close()
 
 
+def test_sender_does_not_carry_a_track_back_when_the_wall_clock_is_behind_its_stamp():
+    """The wall clock reads 0.25 s BEFORE the tracks' stamp (stepped back by a time sync, or the tracks stamped on a
+    clock ahead): a track moving 2 m/s west is sent where it was measured (10 m east), not 0.5 m back along its
+    velocity (catches the clamp of the tracks' age at 0 dropped)."""
+    port = _free_udp_port()
+    rx = Rx(port)
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], wall_us=lambda: 750_000,
+                                   messages="obstacle_distance_3d")
+    s = pose()
+    try:
+        tx.update_tracks([track(5, (0, 10, 0), velocity=(0, -2, 0), moving=True)], 1_000_000, s.position_ned_m,
+                         s.T_body_ned, 0.5, 40.0)
+        t[0] = 0.1
+        tx.tick()
+        by_id = {m.obstacle_id: m for m in rx.drain()}
+        assert sorted(by_id) == [5, 65535]
+        np.testing.assert_allclose([by_id[5].x, by_id[5].y, by_id[5].z], [0.0, 10.0, 0.0], atol=1e-5)
+    finally:
+        tx.close()
+        rx.conn.close()
+
+
+def test_a_moving_track_without_a_finite_velocity_is_sent_where_it_is():
+    """A track entry marked moving whose velocity is not finite (NaN: unknown) is carried by no velocity: its point
+    is the measured one, finite, and encodes; a NaN point would raise InputError inside the sender's tick, which
+    only survives OSError (catches the finite-velocity fallback of TrackBox.from_track_msg dropped)."""
+    s = pose()
+    box = mo.TrackBox.from_track_msg(track(3, (0, 10, 0), (2, 2, 2), velocity=(math.nan, -2.0, 0.0), moving=True))
+    np.testing.assert_array_equal(box.velocity_ned_mps, [0.0, 0.0, 0.0])
+    (oid, p), = mo.obstacle_points_frd([box], s.position_ned_m, s.T_body_ned, 0.5, 40.0, dt_s=0.5)
+    assert oid == 3
+    np.testing.assert_allclose(p, [0.0, 9.0, 0.0], atol=1e-12)      # the box's west face, 9 m east
+    mo.encode_obstacle_distance_3d(oid, p, 1, 0.5, 40.0)
+
+
 def test_sender_obstacle_distance_only_sends_no_3d():
     port = _free_udp_port()
     rx = Rx(port)

@@ -95,6 +95,19 @@ def test_merge_sectors_keeps_nearest_then_clear_then_unknown():
         ob.merge_sectors([a, ob.Sectors(b.distances_cm, 5.0, 0.0, 50, 10000)])
 
 
+def test_merge_sectors_keeps_an_obstacle_at_max_distance():
+    """A bin at exactly max_distance_cm is an obstacle (the sectors clip obstacle points farther out to it; the
+    autopilots read [min, max] as measured): the merge keeps it alone, against another camera's clear or unknown, and
+    a nearer one still wins. Catches the hit test taken as d < max_distance_cm (the bin became unknown)."""
+    U, M, C = ob.UINT16_MAX, 15000, 15001
+    a = ob.Sectors(np.full(72, U, np.uint16), 5.0, 0.0, 50, M)
+    b = ob.Sectors(np.full(72, U, np.uint16), 5.0, 0.0, 50, M)
+    a.distances_cm[[0, 1, 2, 3]] = [M, M, M, C]
+    b.distances_cm[[0, 1, 2, 3]] = [U, C, 14000, U]
+    assert list(ob.merge_sectors([a, b]).distances_cm[:5]) == [M, M, 14000, C, U]
+    assert list(ob.merge_sectors([a]).distances_cm[:5]) == [M, M, M, C, U]
+
+
 def hand_points(bearings_deg, hdist_m, weight):
     """Points at given body-relative bearings and horizontal distances (only what the sectors read)."""
     b = np.radians(np.asarray(bearings_deg, float))
@@ -937,6 +950,19 @@ def test_obstacle_distance_rejects_bad_sectors():
         ob.ObstacleConfig(min_distance_m=0.004)
 
 
+def test_obstacle_distance_max_distance_leaves_clear_below_unknown():
+    """max_distance_cm 65533 is the largest sent: its "clear" value, max + 1 = 65534, is still not UINT16_MAX (65535,
+    "unknown"); with 65534 a clear bin would read as unknown, so it is refused. Catches the bound taken as
+    max_distance_cm < UINT16_MAX."""
+    from eonav.nav import mavlink_out as mo
+    mu = mo.mavutil()
+    clear = ob.Sectors(np.full(72, 65534, np.uint16), 5.0, 0.0, 50, 65533)
+    m, = mu.mavlink.MAVLink(None).parse_buffer(mo.encode_obstacle_distance(clear, 0))
+    assert m.max_distance == 65533 and set(m.distances) == {65534}
+    with pytest.raises(InputError, match="min_distance_cm"):
+        mo.encode_obstacle_distance(ob.Sectors(np.full(72, ob.UINT16_MAX, np.uint16), 5.0, 0.0, 50, 65534), 0)
+
+
 def test_sender_fresh_then_unknown_over_udp():
     from eonav.nav import mavlink_out as mo
     mu = mo.mavutil()
@@ -1030,6 +1056,54 @@ def test_sender_merges_every_fresh_camera_and_stamps_the_oldest_capture():
         m, = sent()
         assert list(m.distances) == [int(x) for x in left] and m.time_usec == 1_700_000_000_050_000
         assert tx.counters["od_sent_flush"] == 0
+    finally:
+        tx.close()
+        rx.close()
+
+
+def test_sender_cadence_after_a_late_call_and_the_stale_limit():
+    """Injected clock, 4 Hz (exact binary times). A caller late by a whole period (due at 0.25 s, called at 0.5 s)
+    gets one message and the next a period later (0.75 s), not a second one at once (catches '>=' for '>' in
+    _next_due: a late call landing on the grid re-armed the send for now, a burst). With stale_s 0.25 a camera is
+    fresh at exactly 0.25 s after its update and stale just after (catches '<' for '<=' in _fresh)."""
+    from eonav.nav import mavlink_out as mo
+    mu = mo.mavutil()
+    port = _free_udp_port()
+    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", rate_hz=4.0, stale_s=0.25, clock=lambda: t[0],
+                                   wall_us=lambda: 42)
+
+    def sent():
+        out = []
+        while (m := rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.2)) is not None:
+            out.append(m)
+        return out
+
+    try:
+        s = _wall_sectors()
+        tx.update(s, 1_700_000_000_000_000)
+        assert tx.tick() == 0.25 and len(sent()) == 1                  # t = 0: sent, next at 0.25
+        t[0] = 0.375
+        tx.update(s, 1_700_000_000_375_000)
+        t[0] = 0.5                                                     # the 0.25 s send was missed
+        assert tx.tick() == 0.25                                       # next at 0.75, not now
+        assert tx.tick() == 0.25                                       # called again at once: nothing more
+        got = sent()
+        assert len(got) == 1 and got[0].time_usec == 1_700_000_000_375_000
+        tx.update(s, 1_700_000_000_500_000)                            # at 0.5 s: fresh up to 0.75 s inclusive
+        t[0] = 0.75
+        assert tx.is_fresh()
+        tx.tick()
+        got = sent()
+        assert len(got) == 1 and got[0].time_usec == 1_700_000_000_500_000
+        t[0] = 0.75000001
+        assert not tx.is_fresh()
+        t[0] = 1.0                                                     # the next send: the flush
+        tx.tick()
+        got = sent()
+        assert len(got) == 1 and set(got[0].distances) == {65535}
+        assert tx.counters["od_sent_fresh"] == 3 and tx.counters["od_sent_flush"] == 1
     finally:
         tx.close()
         rx.close()

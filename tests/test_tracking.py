@@ -786,6 +786,59 @@ def test_nearest_threat_is_the_soonest_contact_not_the_nearest_surface():
     assert T.nearest_threat(views) is vv
 
 
+def test_surface_distance_to_obstacles_south_west_and_above():
+    """2 m cubes 30 m south, 30 m west and 30 m above a hovering vehicle: each surface is 29 m away, as the one 30 m
+    north (the box's near face is on the vehicle's side whatever the sign of the offset). Catches the absolute value
+    dropped from the surface distance (those behind the NED axes came out at 0 m)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    offsets = ([-30.0, 0.0, 0.0], [0.0, -30.0, 0.0], [0.0, 0.0, -30.0], [30.0, 0.0, 0.0])
+    tr.update([T.Measurement(HOVER.position_ned_m + o, np.diag([0.04] * 3), [2.0, 2.0, 2.0]) for o in offsets],
+              us(0.0))
+    views = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [0.0, 0.0, 0.0], us(0.0)), us(0.0))
+    assert len(views) == 4
+    for v in views:
+        assert v.distance_m == pytest.approx(30.0) and v.surface_distance_m == pytest.approx(29.0)
+
+
+def _view_ahead(north_m):
+    """One fresh point track (0.5 m 1-sigma per axis) ``north_m`` ahead of a vehicle flying north at 10 m/s, assessed
+    with the default cone."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement(HOVER.position_ned_m + [north_m, 0.0, 0.0], np.diag([0.25] * 3))], us(0.0))
+    v, = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [10.0, 0.0, 0.0], us(0.0)), us(0.0))
+    return v
+
+
+def test_a_contact_at_exactly_the_horizon_is_a_threat():
+    """Default cone (radius 1 m, 2 sigma, horizon 30 s): a point 302 m ahead is entered 302 - 1 - 2 x 0.5 = 300 m
+    out, at 10 m/s exactly 30 s: in the cone with time to contact 30 s ("within horizon_s"); 1 m farther, 30.1 s,
+    it is not. Catches '<' for '<=' at the horizon in assess."""
+    v = _view_ahead(302.0)
+    assert v.in_cone and v.time_to_contact_s == 30.0
+    v = _view_ahead(303.0)
+    assert not v.in_cone and math.isnan(v.time_to_contact_s)
+
+
+def test_nearest_threat_ties_go_to_the_nearer_surface():
+    """Two 1 m cubes 30 m ahead of a vehicle flying north at 10 m/s, one on the path, one 3 m east but 5 m wide (the
+    path runs through its grown box): both entered at (30 - 0.5 - 1 - 2 x 0.2) / 10 = 2.81 s, a tie; the nearest
+    threat is the one whose surface is nearer (29.5 m, not hypot(29.5, 0.5)) whichever comes first in the snapshot.
+    Catches the surface distance dropped from nearest_threat's key (the first listed won)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    cov = np.diag([0.04] * 3)
+    tr.update([T.Measurement(HOVER.position_ned_m + [30.0, 3.0, 0.0], cov, [1.0, 5.0, 1.0]),
+               T.Measurement(HOVER.position_ned_m + [30.0, 0.0, 0.0], cov, [1.0, 1.0, 1.0])], us(0.0))
+    views = T.assess(tr.snapshot(us(0.0)), T.Ownship.from_state(HOVER, [10.0, 0.0, 0.0], us(0.0)), us(0.0),
+                     T.ConeConfig(vehicle_radius_m=1.0, k_sigma=2.0))
+    wide, on_path = views
+    assert wide.in_cone and on_path.in_cone
+    assert wide.time_to_contact_s == on_path.time_to_contact_s == pytest.approx(2.81)
+    assert on_path.surface_distance_m == pytest.approx(29.5)
+    assert wide.surface_distance_m == pytest.approx(math.hypot(29.5, 0.5))
+    assert T.nearest_threat(views) is on_path
+    assert T.nearest_threat(views[::-1]) is on_path
+
+
 # -- message and publisher ----------------------------------------------------------------------------------------
 def _tracker_with_tracks():
     tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
@@ -899,6 +952,48 @@ def test_nearest_threat_is_a_confirmed_track_even_when_a_tentative_one_comes_fir
     assert msg["nearest_threat"]["id"] == conf.id and msg["n_tentative"] == 1
     assert msg["nearest_threat"]["time_to_contact_s"] == pytest.approx(views[conf.id].time_to_contact_s)
     assert G.decode(G.encode(msg))["nearest_threat"]["id"] == conf.id
+
+
+def test_message_says_moving_for_the_moving_obstacle_only():
+    """Noise-free detections at 15 Hz for 3 s of an obstacle closing on a hovering vehicle at 10 m/s and of a static
+    one: the message's ``moving`` (the chi-square test docs/guidance.md gives; it decides whether the autopilot's
+    OBSTACLE_DISTANCE_3D carries the track along its velocity) is true for the first only, whose velocity is the
+    true -10 m/s north. Catches ``moving`` published as true for every track."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=2))
+    cov = np.diag([0.25, 0.04, 0.04])
+    for k in range(int(3 * RATE_HZ)):
+        t = k / RATE_HZ
+        tr.update([T.Measurement([80.0 - 10.0 * t, 0.0, -10.0], cov, [1.0, 1.0, 1.0]),
+                   T.Measurement([60.0, 20.0, -10.0], cov, [1.0, 1.0, 1.0])], us(t))
+    msg = GP.build(tr, _own(t, (0.0, 0.0, 0.0)), us(t), seq=0, trigger="map", stale_after_s=0.5)
+    by_east = sorted(msg["tracks"], key=lambda x: x["position_ned_m"][1])
+    mover, static = by_east
+    assert static["position_ned_m"][1] == pytest.approx(20.0) and mover["position_ned_m"][1] == pytest.approx(0.0)
+    assert mover["moving"] is True and static["moving"] is False
+    assert mover["velocity_ned_mps"][0] == pytest.approx(-10.0, rel=0.05)
+
+
+def test_message_status_is_ok_up_to_exactly_stale_after_s():
+    """The newest map 0.5 s old with stale_after_s 0.5 is "ok" ("at most stale_after_s old", docs/guidance.md); 1 us
+    older it is "stale". Catches '<' for '<=' in the status."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement([40.0, 0.0, -10.0], np.eye(3) * 0.1, [1.0, 1.0, 1.0])], us(1.0))
+    own = _own(1.0, (0.0, 0.0, 0.0))
+    m = GP.build(tr, own, us(1.5), seq=0, trigger="timer", stale_after_s=0.5)
+    assert m["status"] == "ok" and m["map_age_s"] == 0.5
+    m = GP.build(tr, own, us(1.5) + 1, seq=1, trigger="timer", stale_after_s=0.5)
+    assert m["status"] == "stale" and m["map_age_s"] == pytest.approx(0.500001)
+
+
+def test_message_of_a_map_stamped_after_now_has_age_zero_and_encodes():
+    """A map stamped 10 ms after the publisher's now (the camera host's clock a little ahead): map_age_s is 0, not
+    -0.01 s, status ok, and the message passes the schema, which refuses a negative age. Catches the clamp at 0
+    dropped from the age (the message failed the schema; only a timing-dependent service test saw it)."""
+    tr = T.Tracker(T.TrackerConfig(confirm_hits=1))
+    tr.update([T.Measurement([40.0, 0.0, -10.0], np.eye(3) * 0.1, [1.0, 1.0, 1.0])], us(1.01))
+    m = GP.build(tr, _own(1.0, (0.0, 0.0, 0.0)), us(1.0), seq=0, trigger="timer", stale_after_s=0.5)
+    assert m["status"] == "ok" and m["map_age_s"] == 0.0 and m["map_stamp_us"] == us(1.01)
+    assert G.decode(G.encode(m))["map_age_s"] == 0.0
 
 
 def test_message_registers_in_the_project_schema(monkeypatch):
