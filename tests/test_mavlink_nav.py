@@ -91,6 +91,36 @@ def test_attitude_range_limits_roll_and_yaw_pi_pitch_half_pi():
     assert d.rejected == Counter({"attitude_out_of_range": 3})
 
 
+def test_attitude_at_exactly_its_range_limits_is_kept_after_float32_rounding():
+    """ATTITUDE's angles travel as float32, and float32(pi) = 3.14159274 > math.pi, float32(pi/2) > pi/2: a vehicle
+    heading due south (yaw pi), flying inverted (roll -pi) or pointing straight up (pitch pi/2) arrives just beyond
+    the range's own limits and must be kept (the check allows 1e-4 rad for that rounding). Hand values, q up to
+    sign: yaw pi is q = [cos pi/2, 0, 0, sin pi/2] = [0, 0, 0, 1]; roll -pi is [0, -1, 0, 0]; pitch pi/2 is
+    [cos pi/4, 0, sin pi/4, 0]."""
+    assert float(np.float32(math.pi)) > math.pi and float(np.float32(math.pi / 2)) > math.pi / 2
+    d = NavDecoder()
+    for t_ms, kw, q in ((100, dict(yaw=math.pi), [0, 0, 0, 1]), (120, dict(roll=-math.pi), [0, -1, 0, 0]),
+                        (140, dict(pitch=math.pi / 2), [math.cos(math.pi / 4), 0, math.sin(math.pi / 4), 0])):
+        s = d.decode(att(t_ms, **kw))
+        assert s is not None, (kw, d.rejected)
+        q = np.array(q, float)
+        assert min(np.abs(s.q_wxyz - q).max(), np.abs(s.q_wxyz + q).max()) < 1e-6, (kw, s.q_wxyz)
+    assert d.rejected == Counter()
+
+
+def test_body_rates_are_roll_pitch_yaw_in_that_order():
+    """rates_frd_radps = (rollspeed, pitchspeed, yawspeed): the rates about body x (forward), y (right), z (down),
+    from ATTITUDE and ATTITUDE_QUATERNION alike. The messages are built with each field set by its name, three
+    different values exact in float32 (every other test sends zero rates)."""
+    rates = dict(rollspeed=0.125, pitchspeed=-0.25, yawspeed=0.5)
+    d = NavDecoder()
+    s = d.decode(wire(ML.MAVLink_attitude_message(time_boot_ms=100, roll=0.0, pitch=0.0, yaw=0.0, **rates)))
+    np.testing.assert_array_equal(s.rates_frd_radps, [0.125, -0.25, 0.5])
+    s = d.decode(wire(ML.MAVLink_attitude_quaternion_message(time_boot_ms=100, q1=1.0, q2=0.0, q3=0.0, q4=0.0,
+                                                             repr_offset_q=[0, 0, 0, 0], **rates)))
+    np.testing.assert_array_equal(s.rates_frd_radps, [0.125, -0.25, 0.5])
+
+
 def test_local_position_and_nonfinite():
     d = NavDecoder()
     s = d.decode(lpos(100, (1.5, -2.0, -30.0), (3.0, 0.5, -1.0)))
