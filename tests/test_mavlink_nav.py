@@ -190,6 +190,25 @@ def test_alt_step_within_vertical_speed_is_motion_not_a_datum_change():
     assert d.rejected["global_alt_datum_jump"] == 1
 
 
+def test_global_position_east_of_90_degrees_longitude():
+    """Longitude spans [-180, 180] deg (latitude [-90, 90]): a flight near Canberra (lon 149.165, the ArduPilot SITL
+    home) or west of -90 is a valid fix; only beyond 180 is out of range. Hand value: 0.001 deg of longitude east
+    at latitude phi is N cos(phi) dlon, N = a / sqrt(1 - e2 sin^2 phi). (Before this only the real ArduCopter tlog,
+    shared data, saw a longitude beyond 90.)"""
+    lat = -35.363262
+    sl = math.sin(math.radians(lat))
+    N = WGS84_A_M / math.sqrt(1 - WGS84_E2 * sl * sl)
+    d = NavDecoder()
+    assert d.decode(gpos(100, lat, 149.165237, 584.0)) is not None, d.rejected
+    s = d.decode(gpos(200, lat, 149.166237, 584.0))
+    assert s.position_ned_m[1] == pytest.approx(N * math.cos(math.radians(lat)) * math.radians(1e-3), abs=0.02)
+    assert abs(s.position_ned_m[0]) < 0.02
+    d = NavDecoder(origin_lla=(37.0, -122.4, 0.0))
+    assert d.decode(gpos(100, 37.0, -122.4, 0.0)) is not None
+    assert d.decode(gpos(200, 37.0, 180.5, 0.0)) is None
+    assert d.rejected == Counter({"global_out_of_range": 1})
+
+
 def test_position_source_auto_locks_first():
     d = NavDecoder()
     assert d.decode(lpos(100, (1, 2, 3))) is not None
