@@ -260,6 +260,23 @@ def test_reboot_detected_after_confirmation():
     assert d2.decode(att(100_020)) is not None and d2.reboots == 0
 
 
+def test_two_jumps_back_that_disagree_are_not_a_reboot():
+    """A reboot is time_boot jumping back by more than 2 s on two consecutive messages that agree with each other
+    (within 2 s: one new boot clock running). Two corrupt times far apart (3 s, then 50 s, after 100 s) are two
+    glitches: both rejected as time_backwards, no reboot, the stream goes on at 100.04 s in boot epoch 0. A real
+    reboot afterwards (5 s, then 5.02 s) is still confirmed."""
+    d = NavDecoder()
+    assert d.decode(att(100_000)) is not None
+    assert d.decode(att(3_000)) is None
+    assert d.decode(att(50_000)) is None
+    assert d.reboots == 0 and d.rejected == Counter({"time_backwards": 2})
+    s = d.decode(att(100_040))
+    assert s is not None and s.boot_epoch == 0
+    assert d.decode(att(5_000)) is None
+    s = d.decode(att(5_020))
+    assert d.reboots == 1 and s.boot_epoch == 1 and s.autopilot_time_us == 5_020_000
+
+
 def test_system_filter():
     d = NavDecoder()
     assert d.decode(att(10, sysid=255, compid=190)) is None       # a GCS: never the autopilot
