@@ -327,6 +327,36 @@ def test_timesync_estimate_is_the_lowest_rtt_quarter():
     assert ts.offset_us == 900_000_000                  # the median of all eight would be 900_004_000
 
 
+def test_timesync_round_trip_limit_is_inclusive():
+    """Replies with a round trip ABOVE max_rtt_us are rejected (docs/mavlink.md: 'above 10 ms'): exactly 10 ms is an
+    exchange, 10.001 ms is not. Symmetric 5 ms each way; autopilot clock = companion - 900 s, so the offset is
+    exactly 900 s."""
+    ts = TimesyncEstimator(max_rtt_us=10_000)
+    t = 1_000_000_000_000
+    ts1 = ts.request(t)
+    assert ts.on_reply(tc1_ns=ts1 + 5_000_000 - 900_000_000_000, ts1_ns=ts1, t_rx_ns=ts1 + 10_000_000)
+    assert ts.rtt_us == 10_000 and ts.offset_us == 900_000_000
+    ts1 = ts.request(t + 100_000_000)
+    assert not ts.on_reply(tc1_ns=ts1 + 5_000_500 - 900_000_000_000, ts1_ns=ts1, t_rx_ns=ts1 + 10_001_000)
+    assert ts.samples == 1 and ts.rejected == Counter({"timesync_rtt_too_long": 1})
+
+
+def test_timesync_reply_received_twice_is_one_exchange():
+    """A reply that arrives twice (a router or a second link forwarding the same packet) answers its request once:
+    the copy is 'not ours'. Counted twice, copies would make the 3 exchanges of the lock out of fewer real ones,
+    and a copy arriving 5 ms late would join the estimate with a 2.5 ms bias. Offset 900 s by hand, as above."""
+    cm = ClockMapper(prefer=("timesync",))
+    ts = cm.timesync
+    t = 1_000_000_000_000
+    for k in range(2):
+        ts1 = ts.request(t + k * 100_000_000)
+        tc1 = ts1 + 500_000 - 900_000_000_000
+        assert ts.on_reply(tc1_ns=tc1, ts1_ns=ts1, t_rx_ns=ts1 + 1_000_000)
+        assert not ts.on_reply(tc1_ns=tc1, ts1_ns=ts1, t_rx_ns=ts1 + 6_000_000)     # the copy
+    assert ts.samples == 2 and ts.rejected == Counter({"timesync_not_ours": 2})
+    assert ts.offset_us == 900_000_000 and not cm.locked                            # 2 exchanges: not locked
+
+
 def test_clock_mapper_slews_down_and_steps_up():
     cm = ClockMapper(prefer=("receive",), lock_span_us=0, slew=0.1)
     cm.receive.add(1_000_300_000, 0)               # first sample 300 ms late
