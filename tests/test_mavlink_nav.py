@@ -357,6 +357,24 @@ def test_timesync_reply_received_twice_is_one_exchange():
     assert ts.offset_us == 900_000_000 and not cm.locked                            # 2 exchanges: not locked
 
 
+def test_timesync_outranks_a_locked_receive_clock_only_after_three_exchanges():
+    """The mapper's TIMESYNC estimate is locked after 3 exchanges (docs/mavlink.md); before that a locked estimate
+    further down the preference (receive time, 2 s seen) is used, and one or two replies do not take over. Hand
+    values: receive latency floor 700 us over an offset of exactly 5000 s; TIMESYNC 0.5 ms each way -> 5000 s."""
+    cm = ClockMapper()                                    # timesync, system_time, receive; lock 2 s
+    off_us = 5_000_000_000
+    for k in range(3):
+        cm.receive.add(k * 1_000_000 + off_us + 700, k * 1_000_000)
+    assert cm.locked and (cm.best().method, cm.best().offset_us) == ("receive", off_us + 700)
+    t = 1_000_000_000_000_000
+    for k in range(3):
+        assert cm.best().method == "receive", k
+        ts1 = cm.timesync.request(t + k * 100_000_000)
+        assert cm.timesync.on_reply(tc1_ns=ts1 + 500_000 - off_us * 1000, ts1_ns=ts1, t_rx_ns=ts1 + 1_000_000)
+    est = cm.best()
+    assert (est.method, est.offset_us, est.samples, est.rtt_us) == ("timesync", off_us, 3, 1000)
+
+
 def test_clock_mapper_slews_down_and_steps_up():
     cm = ClockMapper(prefer=("receive",), lock_span_us=0, slew=0.1)
     cm.receive.add(1_000_300_000, 0)               # first sample 300 ms late
