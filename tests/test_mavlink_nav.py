@@ -390,6 +390,20 @@ def test_clock_mapper_slews_down_and_steps_up():
     assert cm.map(3_000_000) == 3_000_000 + 1_000_500_000    # increases step at once
 
 
+def test_clock_mapper_slew_ignores_an_older_sample_mapped_later():
+    """Streams are mapped in arrival order, so a sample can carry an earlier autopilot time than the last one mapped
+    (a GLOBAL_POSITION_INT stamped 20 ms before the ATTITUDE received just before it). While the offset slews down,
+    such a sample neither slews it (no autopilot time passed) nor pushes it back up. Hand values as in the test
+    above: first offset 300 ms late, floor then 100 ms lower, 0.1 s/s: 100 ms -> 10 ms less, 20 ms -> 2 ms less."""
+    cm = ClockMapper(prefer=("receive",), lock_span_us=0, slew=0.1)
+    cm.receive.add(1_000_300_000, 0)
+    assert cm.map(0) == 1_000_300_000
+    cm.receive.add(1_000_100_000 + 100_000, 100_000)
+    assert cm.map(100_000) == 100_000 + 1_000_290_000
+    assert cm.map(80_000) == 80_000 + 1_000_290_000          # older: the offset held
+    assert cm.map(120_000) == 120_000 + 1_000_288_000        # 20 ms on from 100 ms: 2 ms less
+
+
 def test_ingest_waits_for_clock_lock_then_maps_all():
     ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=1_000_000))
     boot_offset = 1_700_000_000_000_000
