@@ -422,6 +422,38 @@ def test_ingest_waits_for_clock_lock_then_maps_all():
     assert np.all(np.isnan(out[0]["position_ned_m"]))
 
 
+def test_ingest_locks_when_the_clock_has_seen_exactly_the_lock_span():
+    """The mapper locks once its estimator has seen lock_span_us of autopilot time, that span included
+    (docs/mavlink.md: 2 s): ATTITUDE at 10.00 s .. 10.04 s with a 40 ms lock span are held until the third, which
+    releases all three. Stamps: autopilot time + 5000 s + the 700 us latency floor."""
+    ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=40_000))
+    off_us = 5_000_000_000 + 700
+    assert ing.feed(att(10_000), 10_000_000 + off_us) == []
+    assert ing.feed(att(10_020), 10_020_000 + off_us) == []
+    out = ing.feed(att(10_040), 10_040_000 + off_us)
+    assert [o["stamp_us"] for o in out] == [t + off_us for t in (10_000_000, 10_020_000, 10_040_000)]
+    cm = ClockMapper(prefer=("receive",))                  # the default lock span, 2 s
+    cm.receive.add(off_us, 0)
+    cm.receive.add(1_999_999 + off_us, 1_999_999)
+    assert not cm.locked
+    cm.receive.add(2_000_000 + off_us, 2_000_000)
+    assert cm.locked
+
+
+def test_ingest_holds_at_most_max_pending_samples_before_the_lock():
+    """Before the clock locks, samples wait in a queue of max_pending; beyond that the oldest are dropped and
+    counted (clock_unlocked). max_pending 3, five ATTITUDE 20 ms apart and a lock at 80 ms of autopilot time (the
+    fifth): the two oldest are dropped, the three newest come out with the lock."""
+    ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=80_000), max_pending=3)
+    off_us = 5_000_000_000 + 700
+    out = []
+    for t_ms in (1_000, 1_020, 1_040, 1_060, 1_080):
+        out += ing.feed(att(t_ms), t_ms * 1000 + off_us)
+    assert [o["autopilot_time_us"] for o in out] == [1_040_000, 1_060_000, 1_080_000]
+    assert [o["stamp_us"] for o in out] == [t + off_us for t in (1_040_000, 1_060_000, 1_080_000)]
+    assert ing.rejected["clock_unlocked"] == 2
+
+
 def test_system_time_zero_ignored_and_used_after_fix():
     ing = NavIngest(mapper=ClockMapper(prefer=("system_time", "receive"), lock_span_us=0))
     ing.feed(wire(ML.MAVLink_system_time_message(0, 5000)), 77)
