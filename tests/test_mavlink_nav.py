@@ -476,6 +476,22 @@ def test_autopilot_timesync_request_is_a_receive_time_sample_in_us():
     assert ing.mapper.receive.samples == 2                # a GCS's request is not the autopilot's clock
 
 
+def test_autopilot_reboot_restarts_the_receive_clock():
+    """After a reboot the autopilot's boot clock restarts, so companion - autopilot grows by the old boot time: the
+    estimators restart and the new boot's stamps are its receive times again (latency 500 us), not 105 s in the
+    past as the old estimate would put them. Boot A at 100.00 .. 100.04 s received at U + t + 500 us; boot B
+    at 5.00, 5.02 s received 10 s later. (Before this only the real ArduCopter tlog, shared data, saw a reboot.)"""
+    ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=0))
+    U = 1_700_000_000_000_000
+    for t_ms in (100_000, 100_020, 100_040):
+        (o,) = ing.feed(att(t_ms), U + t_ms * 1000 + 500)
+        assert o["stamp_us"] == U + t_ms * 1000 + 500
+    assert ing.feed(att(5_000), U + 110_000_500) == []             # a reboot candidate
+    (o,) = ing.feed(att(5_020), U + 110_020_500)                   # confirmed
+    assert ing.decoder.reboots == 1
+    assert o["stamp_us"] == U + 110_020_500 and o["clock_offset_us"] == U + 105_000_500
+
+
 def test_timesync_over_udp_loopback_against_simulated_autopilot():
     """pymavlink on both ends: an autopilot thread answers TIMESYNC with its boot clock (ns)."""
     mavutil = mavutil_v2()
