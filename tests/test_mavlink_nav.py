@@ -91,6 +91,36 @@ def test_attitude_range_limits_roll_and_yaw_pi_pitch_half_pi():
     assert d.rejected == Counter({"attitude_out_of_range": 3})
 
 
+def test_attitude_at_exactly_its_range_limits_is_kept_after_float32_rounding():
+    """ATTITUDE's angles travel as float32, and float32(pi) = 3.14159274 > math.pi, float32(pi/2) > pi/2: a vehicle
+    heading due south (yaw pi), flying inverted (roll -pi) or pointing straight up (pitch pi/2) arrives just beyond
+    the range's own limits and must be kept (the check allows 1e-4 rad for that rounding). Hand values, q up to
+    sign: yaw pi is q = [cos pi/2, 0, 0, sin pi/2] = [0, 0, 0, 1]; roll -pi is [0, -1, 0, 0]; pitch pi/2 is
+    [cos pi/4, 0, sin pi/4, 0]."""
+    assert float(np.float32(math.pi)) > math.pi and float(np.float32(math.pi / 2)) > math.pi / 2
+    d = NavDecoder()
+    for t_ms, kw, q in ((100, dict(yaw=math.pi), [0, 0, 0, 1]), (120, dict(roll=-math.pi), [0, -1, 0, 0]),
+                        (140, dict(pitch=math.pi / 2), [math.cos(math.pi / 4), 0, math.sin(math.pi / 4), 0])):
+        s = d.decode(att(t_ms, **kw))
+        assert s is not None, (kw, d.rejected)
+        q = np.array(q, float)
+        assert min(np.abs(s.q_wxyz - q).max(), np.abs(s.q_wxyz + q).max()) < 1e-6, (kw, s.q_wxyz)
+    assert d.rejected == Counter()
+
+
+def test_body_rates_are_roll_pitch_yaw_in_that_order():
+    """rates_frd_radps = (rollspeed, pitchspeed, yawspeed): the rates about body x (forward), y (right), z (down),
+    from ATTITUDE and ATTITUDE_QUATERNION alike. The messages are built with each field set by its name, three
+    different values exact in float32 (every other test sends zero rates)."""
+    rates = dict(rollspeed=0.125, pitchspeed=-0.25, yawspeed=0.5)
+    d = NavDecoder()
+    s = d.decode(wire(ML.MAVLink_attitude_message(time_boot_ms=100, roll=0.0, pitch=0.0, yaw=0.0, **rates)))
+    np.testing.assert_array_equal(s.rates_frd_radps, [0.125, -0.25, 0.5])
+    s = d.decode(wire(ML.MAVLink_attitude_quaternion_message(time_boot_ms=100, q1=1.0, q2=0.0, q3=0.0, q4=0.0,
+                                                             repr_offset_q=[0, 0, 0, 0], **rates)))
+    np.testing.assert_array_equal(s.rates_frd_radps, [0.125, -0.25, 0.5])
+
+
 def test_local_position_and_nonfinite():
     d = NavDecoder()
     s = d.decode(lpos(100, (1.5, -2.0, -30.0), (3.0, 0.5, -1.0)))
@@ -160,6 +190,25 @@ def test_alt_step_within_vertical_speed_is_motion_not_a_datum_change():
     assert d.rejected["global_alt_datum_jump"] == 1
 
 
+def test_global_position_east_of_90_degrees_longitude():
+    """Longitude spans [-180, 180] deg (latitude [-90, 90]): a flight near Canberra (lon 149.165, the ArduPilot SITL
+    home) or west of -90 is a valid fix; only beyond 180 is out of range. Hand value: 0.001 deg of longitude east
+    at latitude phi is N cos(phi) dlon, N = a / sqrt(1 - e2 sin^2 phi). (Before this only the real ArduCopter tlog,
+    shared data, saw a longitude beyond 90.)"""
+    lat = -35.363262
+    sl = math.sin(math.radians(lat))
+    N = WGS84_A_M / math.sqrt(1 - WGS84_E2 * sl * sl)
+    d = NavDecoder()
+    assert d.decode(gpos(100, lat, 149.165237, 584.0)) is not None, d.rejected
+    s = d.decode(gpos(200, lat, 149.166237, 584.0))
+    assert s.position_ned_m[1] == pytest.approx(N * math.cos(math.radians(lat)) * math.radians(1e-3), abs=0.02)
+    assert abs(s.position_ned_m[0]) < 0.02
+    d = NavDecoder(origin_lla=(37.0, -122.4, 0.0))
+    assert d.decode(gpos(100, 37.0, -122.4, 0.0)) is not None
+    assert d.decode(gpos(200, 37.0, 180.5, 0.0)) is None
+    assert d.rejected == Counter({"global_out_of_range": 1})
+
+
 def test_position_source_auto_locks_first():
     d = NavDecoder()
     assert d.decode(lpos(100, (1, 2, 3))) is not None
@@ -209,6 +258,23 @@ def test_reboot_detected_after_confirmation():
     d2.decode(att(100_000))
     assert d2.decode(att(3_000)) is None
     assert d2.decode(att(100_020)) is not None and d2.reboots == 0
+
+
+def test_two_jumps_back_that_disagree_are_not_a_reboot():
+    """A reboot is time_boot jumping back by more than 2 s on two consecutive messages that agree with each other
+    (within 2 s: one new boot clock running). Two corrupt times far apart (3 s, then 50 s, after 100 s) are two
+    glitches: both rejected as time_backwards, no reboot, the stream goes on at 100.04 s in boot epoch 0. A real
+    reboot afterwards (5 s, then 5.02 s) is still confirmed."""
+    d = NavDecoder()
+    assert d.decode(att(100_000)) is not None
+    assert d.decode(att(3_000)) is None
+    assert d.decode(att(50_000)) is None
+    assert d.reboots == 0 and d.rejected == Counter({"time_backwards": 2})
+    s = d.decode(att(100_040))
+    assert s is not None and s.boot_epoch == 0
+    assert d.decode(att(5_000)) is None
+    s = d.decode(att(5_020))
+    assert d.reboots == 1 and s.boot_epoch == 1 and s.autopilot_time_us == 5_020_000
 
 
 def test_system_filter():
@@ -261,6 +327,54 @@ def test_timesync_estimate_is_the_lowest_rtt_quarter():
     assert ts.offset_us == 900_000_000                  # the median of all eight would be 900_004_000
 
 
+def test_timesync_round_trip_limit_is_inclusive():
+    """Replies with a round trip ABOVE max_rtt_us are rejected (docs/mavlink.md: 'above 10 ms'): exactly 10 ms is an
+    exchange, 10.001 ms is not. Symmetric 5 ms each way; autopilot clock = companion - 900 s, so the offset is
+    exactly 900 s."""
+    ts = TimesyncEstimator(max_rtt_us=10_000)
+    t = 1_000_000_000_000
+    ts1 = ts.request(t)
+    assert ts.on_reply(tc1_ns=ts1 + 5_000_000 - 900_000_000_000, ts1_ns=ts1, t_rx_ns=ts1 + 10_000_000)
+    assert ts.rtt_us == 10_000 and ts.offset_us == 900_000_000
+    ts1 = ts.request(t + 100_000_000)
+    assert not ts.on_reply(tc1_ns=ts1 + 5_000_500 - 900_000_000_000, ts1_ns=ts1, t_rx_ns=ts1 + 10_001_000)
+    assert ts.samples == 1 and ts.rejected == Counter({"timesync_rtt_too_long": 1})
+
+
+def test_timesync_reply_received_twice_is_one_exchange():
+    """A reply that arrives twice (a router or a second link forwarding the same packet) answers its request once:
+    the copy is 'not ours'. Counted twice, copies would make the 3 exchanges of the lock out of fewer real ones,
+    and a copy arriving 5 ms late would join the estimate with a 2.5 ms bias. Offset 900 s by hand, as above."""
+    cm = ClockMapper(prefer=("timesync",))
+    ts = cm.timesync
+    t = 1_000_000_000_000
+    for k in range(2):
+        ts1 = ts.request(t + k * 100_000_000)
+        tc1 = ts1 + 500_000 - 900_000_000_000
+        assert ts.on_reply(tc1_ns=tc1, ts1_ns=ts1, t_rx_ns=ts1 + 1_000_000)
+        assert not ts.on_reply(tc1_ns=tc1, ts1_ns=ts1, t_rx_ns=ts1 + 6_000_000)     # the copy
+    assert ts.samples == 2 and ts.rejected == Counter({"timesync_not_ours": 2})
+    assert ts.offset_us == 900_000_000 and not cm.locked                            # 2 exchanges: not locked
+
+
+def test_timesync_outranks_a_locked_receive_clock_only_after_three_exchanges():
+    """The mapper's TIMESYNC estimate is locked after 3 exchanges (docs/mavlink.md); before that a locked estimate
+    further down the preference (receive time, 2 s seen) is used, and one or two replies do not take over. Hand
+    values: receive latency floor 700 us over an offset of exactly 5000 s; TIMESYNC 0.5 ms each way -> 5000 s."""
+    cm = ClockMapper()                                    # timesync, system_time, receive; lock 2 s
+    off_us = 5_000_000_000
+    for k in range(3):
+        cm.receive.add(k * 1_000_000 + off_us + 700, k * 1_000_000)
+    assert cm.locked and (cm.best().method, cm.best().offset_us) == ("receive", off_us + 700)
+    t = 1_000_000_000_000_000
+    for k in range(3):
+        assert cm.best().method == "receive", k
+        ts1 = cm.timesync.request(t + k * 100_000_000)
+        assert cm.timesync.on_reply(tc1_ns=ts1 + 500_000 - off_us * 1000, ts1_ns=ts1, t_rx_ns=ts1 + 1_000_000)
+    est = cm.best()
+    assert (est.method, est.offset_us, est.samples, est.rtt_us) == ("timesync", off_us, 3, 1000)
+
+
 def test_clock_mapper_slews_down_and_steps_up():
     cm = ClockMapper(prefer=("receive",), lock_span_us=0, slew=0.1)
     cm.receive.add(1_000_300_000, 0)               # first sample 300 ms late
@@ -274,6 +388,20 @@ def test_clock_mapper_slews_down_and_steps_up():
     cm.receive.reset()
     cm.receive.add(1_000_500_000 + 3_000_000, 3_000_000)
     assert cm.map(3_000_000) == 3_000_000 + 1_000_500_000    # increases step at once
+
+
+def test_clock_mapper_slew_ignores_an_older_sample_mapped_later():
+    """Streams are mapped in arrival order, so a sample can carry an earlier autopilot time than the last one mapped
+    (a GLOBAL_POSITION_INT stamped 20 ms before the ATTITUDE received just before it). While the offset slews down,
+    such a sample neither slews it (no autopilot time passed) nor pushes it back up. Hand values as in the test
+    above: first offset 300 ms late, floor then 100 ms lower, 0.1 s/s: 100 ms -> 10 ms less, 20 ms -> 2 ms less."""
+    cm = ClockMapper(prefer=("receive",), lock_span_us=0, slew=0.1)
+    cm.receive.add(1_000_300_000, 0)
+    assert cm.map(0) == 1_000_300_000
+    cm.receive.add(1_000_100_000 + 100_000, 100_000)
+    assert cm.map(100_000) == 100_000 + 1_000_290_000
+    assert cm.map(80_000) == 80_000 + 1_000_290_000          # older: the offset held
+    assert cm.map(120_000) == 120_000 + 1_000_288_000        # 20 ms on from 100 ms: 2 ms less
 
 
 def test_ingest_waits_for_clock_lock_then_maps_all():
@@ -292,6 +420,38 @@ def test_ingest_waits_for_clock_lock_then_maps_all():
     np.testing.assert_array_equal(st[:50] - (10_000_000 + 20_000 * np.arange(50)), boot_offset + 500)
     assert out[0]["clock_offset_us"] == boot_offset + 500 and out[0]["source"] == "ATTITUDE"
     assert np.all(np.isnan(out[0]["position_ned_m"]))
+
+
+def test_ingest_locks_when_the_clock_has_seen_exactly_the_lock_span():
+    """The mapper locks once its estimator has seen lock_span_us of autopilot time, that span included
+    (docs/mavlink.md: 2 s): ATTITUDE at 10.00 s .. 10.04 s with a 40 ms lock span are held until the third, which
+    releases all three. Stamps: autopilot time + 5000 s + the 700 us latency floor."""
+    ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=40_000))
+    off_us = 5_000_000_000 + 700
+    assert ing.feed(att(10_000), 10_000_000 + off_us) == []
+    assert ing.feed(att(10_020), 10_020_000 + off_us) == []
+    out = ing.feed(att(10_040), 10_040_000 + off_us)
+    assert [o["stamp_us"] for o in out] == [t + off_us for t in (10_000_000, 10_020_000, 10_040_000)]
+    cm = ClockMapper(prefer=("receive",))                  # the default lock span, 2 s
+    cm.receive.add(off_us, 0)
+    cm.receive.add(1_999_999 + off_us, 1_999_999)
+    assert not cm.locked
+    cm.receive.add(2_000_000 + off_us, 2_000_000)
+    assert cm.locked
+
+
+def test_ingest_holds_at_most_max_pending_samples_before_the_lock():
+    """Before the clock locks, samples wait in a queue of max_pending; beyond that the oldest are dropped and
+    counted (clock_unlocked). max_pending 3, five ATTITUDE 20 ms apart and a lock at 80 ms of autopilot time (the
+    fifth): the two oldest are dropped, the three newest come out with the lock."""
+    ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=80_000), max_pending=3)
+    off_us = 5_000_000_000 + 700
+    out = []
+    for t_ms in (1_000, 1_020, 1_040, 1_060, 1_080):
+        out += ing.feed(att(t_ms), t_ms * 1000 + off_us)
+    assert [o["autopilot_time_us"] for o in out] == [1_040_000, 1_060_000, 1_080_000]
+    assert [o["stamp_us"] for o in out] == [t + off_us for t in (1_040_000, 1_060_000, 1_080_000)]
+    assert ing.rejected["clock_unlocked"] == 2
 
 
 def test_system_time_zero_ignored_and_used_after_fix():
@@ -314,6 +474,22 @@ def test_autopilot_timesync_request_is_a_receive_time_sample_in_us():
     assert ing.clock().method == "receive" and ing.clock().offset_us == 1_700_000_000_000_300
     ing.feed(wire(ML.MAVLink_timesync_message(0, 7_000_000_000), sysid=255, compid=190), 1_700_000_006_500_000)
     assert ing.mapper.receive.samples == 2                # a GCS's request is not the autopilot's clock
+
+
+def test_autopilot_reboot_restarts_the_receive_clock():
+    """After a reboot the autopilot's boot clock restarts, so companion - autopilot grows by the old boot time: the
+    estimators restart and the new boot's stamps are its receive times again (latency 500 us), not 105 s in the
+    past as the old estimate would put them. Boot A at 100.00 .. 100.04 s received at U + t + 500 us; boot B
+    at 5.00, 5.02 s received 10 s later. (Before this only the real ArduCopter tlog, shared data, saw a reboot.)"""
+    ing = NavIngest(mapper=ClockMapper(prefer=("receive",), lock_span_us=0))
+    U = 1_700_000_000_000_000
+    for t_ms in (100_000, 100_020, 100_040):
+        (o,) = ing.feed(att(t_ms), U + t_ms * 1000 + 500)
+        assert o["stamp_us"] == U + t_ms * 1000 + 500
+    assert ing.feed(att(5_000), U + 110_000_500) == []             # a reboot candidate
+    (o,) = ing.feed(att(5_020), U + 110_020_500)                   # confirmed
+    assert ing.decoder.reboots == 1
+    assert o["stamp_us"] == U + 110_020_500 and o["clock_offset_us"] == U + 105_000_500
 
 
 def test_timesync_over_udp_loopback_against_simulated_autopilot():
