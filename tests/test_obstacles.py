@@ -1,6 +1,7 @@
 """Obstacle sectors and obstacle list against hand-made range maps (closed-form geometry) and simulator scenes
 with known box positions (distance from the vehicle origin to the solid box, computed from the box itself)."""
 import math
+import struct
 import sys
 from dataclasses import replace
 
@@ -1008,7 +1009,8 @@ def test_sender_fresh_then_unknown_over_udp():
             t[0] = now
             tx.tick()
         assert [m.get_type() for m in drain()] == ["HEARTBEAT"]
-        assert tx.counters == {"od_sent_fresh": 2, "od_sent_flush": 1, "heartbeats_sent": 2, "send_errors": 0}
+        assert tx.counters == {"od_sent_fresh": 2, "od_sent_flush": 1, "heartbeats_sent": 2, "send_errors": 0,
+                               "encode_errors": 0}
         tx.update(s, 1_700_000_001_000_000)                  # maps flow again: sent on the next 10 Hz tick
         t[0] = 1.16
         tx.tick()
@@ -1018,6 +1020,43 @@ def test_sender_fresh_then_unknown_over_udp():
         tx.close()
         rx.close()
 
+
+
+def test_sender_skips_a_message_it_cannot_pack_and_keeps_sending(monkeypatch):
+    """A message pymavlink cannot pack (a value outside its field: struct.error, or the encoder's own InputError)
+    is counted (``encode_errors``) and skipped; it does not end the sender's loop nor mark the link lost: the next
+    tick's OBSTACLE_DISTANCE and the heartbeats go out."""
+    from eonav.nav import mavlink_out as mo
+    mu = mo.mavutil()
+    port = _free_udp_port()
+    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
+    t = [0.0]
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", system_id=1, rate_hz=10.0, clock=lambda: t[0],
+                                   wall_us=lambda: 42)
+    real, fail = mo.obstacle_distance_message, [struct.error("ushort format requires 0 <= number <= 65535"),
+                                                InputError("min_distance_cm out of range")]
+
+    def sometimes_bad(*a, **kw):
+        if fail:
+            raise fail.pop(0)
+        return real(*a, **kw)
+    monkeypatch.setattr(mo, "obstacle_distance_message", sometimes_bad)
+    try:
+        s = _wall_sectors()
+        tx.update(s, 1_700_000_000_000_000)
+        for now in (0.0, 0.1, 0.2):
+            t[0] = now
+            tx.tick()
+        got = []
+        while (m := rx.recv_match(blocking=True, timeout=0.5)) is not None:
+            got.append(m)
+        assert [m.get_type() for m in got] == ["HEARTBEAT", "OBSTACLE_DISTANCE"]
+        assert list(got[1].distances) == list(s.distances_cm)
+        assert tx.counters["encode_errors"] == 2 and tx.counters["od_sent_fresh"] == 1
+        assert tx.counters["send_errors"] == 0
+    finally:
+        tx.close()
+        rx.close()
 
 def test_sender_merges_every_fresh_camera_and_stamps_the_oldest_capture():
     """Two cameras through one sender: each message is the per-bin merge of the fresh cameras (nearest obstacle,

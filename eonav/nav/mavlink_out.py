@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -234,7 +235,8 @@ class ObstacleDistanceSender:
         self._tracks = None                     # (boxes, stamp_us, position_ned_m, T_body_ned, received at clock())
         self._t0 = clock()                      # time_boot_ms counts from here
         self._next_send = self._next_hb = 0.0
-        self.counters = {"od_sent_fresh": 0, "od_sent_flush": 0, "heartbeats_sent": 0, "send_errors": 0}
+        self.counters = {"od_sent_fresh": 0, "od_sent_flush": 0, "heartbeats_sent": 0, "send_errors": 0,
+                         "encode_errors": 0}
         if self.send_3d:
             self.counters.update(od3d_sent=0, od3d_sent_end=0)
         self.link = None
@@ -278,6 +280,9 @@ class ObstacleDistanceSender:
             log.warning("MAVLink send on %s failed: %s", self.connection, e)
             if self.link is not None:
                 self.link.mark_lost(self.conn, e)
+        except (ValueError, OverflowError, struct.error) as e:    # a message that cannot be packed (a value outside
+            self.counters["encode_errors"] += 1                     # its field): that one is skipped, the link and
+            log.error("MAVLink %s not sent: %s", counter, e)        # the next messages are fine
 
     def link_status(self) -> tuple:
         """(state, detail) of the output link: ``up``, ``silent`` (open, the autopilot not heard) or ``down``."""
