@@ -120,10 +120,29 @@ def test_acl_init_makes_files_private_that_were_not(tmp_path):
 def test_policy_refuses_unknown_modules_and_reserved_names():
     with pytest.raises(InputError, match="no role"):
         acl.access_control({"x": "recorder"})
-    with pytest.raises(InputError, match="reserved"):
-        acl.access_control({"operator": "locator"})
+    # every reserved user: a service called "router" would share the routers' password and their relay rule (every
+    # message on eonav/**); one called "guidance" would add its role to guidance's (caught a reserved list without
+    # the router)
+    for reserved in (acl.ROUTER_USER, acl.OPERATOR_USER, acl.GUIDANCE_USER):
+        with pytest.raises(InputError, match="reserved"):
+            acl.access_control({reserved: "locator"})
     with pytest.raises(InputError, match="service name"):
         acl.access_control({"a/b": "locator"})
+
+
+def test_services_named_by_module_path_get_their_roles(tmp_path):
+    """``eonav run --secure`` names each service's module by its path (eonav.services.locator): the policy is the
+    same as for the short names ``eonav acl init`` takes, and every service of the default pipeline gets its
+    session. Catches a role looked up by the path's first part ("eonav": no role, the secure pipeline refused)."""
+    from eonav.app import launcher as L
+    short = {"camera_nose": "camera_ingest", "mavlink": "mavlink_ingest", "sync": "sync", "locator": "locator",
+             "obstacles": "obstacles"}
+    assert acl.access_control({n: f"eonav.services.{m}" for n, m in short.items()}) == acl.access_control(short)
+    services = L.parse_spec(L.default_spec(cameras=["nose=/dev/video0"]))
+    assert {s.name: s.module for s in services} == {n: f"eonav.services.{m}" for n, m in short.items()}
+    configs, monitor = L.secure_sessions(tmp_path, services, write=True)
+    assert set(configs) == set(short) and all(p.is_file() for p in configs.values()) and monitor.is_file()
+    assert set(acl.read_users(tmp_path)) == {*short, "operator", "guidance", "router"}
 
 
 def test_acl_init_command(tmp_path, capsys):
