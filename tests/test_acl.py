@@ -4,6 +4,7 @@ credentials are refused, config queryables answer only the operator, liveliness 
 service, TLS works with a throwaway CA, and the real pipeline under ``eonav run``'s access control still ranges and
 publishes obstacles while forged samples go nowhere."""
 import json
+import os
 import shutil
 import stat
 import subprocess
@@ -143,6 +144,26 @@ def test_services_named_by_module_path_get_their_roles(tmp_path):
     configs, monitor = L.secure_sessions(tmp_path, services, write=True)
     assert set(configs) == set(short) and all(p.is_file() for p in configs.values()) and monitor.is_file()
     assert set(acl.read_users(tmp_path)) == {*short, "operator", "guidance", "router"}
+
+
+def test_secrets_are_never_readable_by_others_not_even_while_written(tmp_path, monkeypatch):
+    """Every file ``eonav acl init`` writes holds a password (or names the routers); under a permissive umask (0:
+    what a service manager may hand down) each one is already 0600 when its text is written, not made so after:
+    another user could open it in between and keep reading. Catches a file created with 0644 and chmodded later."""
+    seen = {}
+    fdopen = os.fdopen
+
+    def spy(fd, *a, **kw):
+        seen[os.readlink(f"/proc/self/fd/{fd}")] = stat.S_IMODE(os.fstat(fd).st_mode)
+        return fdopen(fd, *a, **kw)
+    monkeypatch.setattr(acl.os, "fdopen", spy)
+    old_umask = os.umask(0)
+    try:
+        acl.write_acl_dir(tmp_path, {"locator": "locator"})
+    finally:
+        os.umask(old_umask)
+    assert sorted(seen) == sorted(str(f.resolve()) for f in tmp_path.iterdir()) and len(seen) == 6, seen
+    assert all(mode == 0o600 for mode in seen.values()), {f: oct(m) for f, m in seen.items()}
 
 
 def test_acl_init_command(tmp_path, capsys):
