@@ -166,6 +166,27 @@ def test_secrets_are_never_readable_by_others_not_even_while_written(tmp_path, m
     assert all(mode == 0o600 for mode in seen.values()), {f: oct(m) for f, m in seen.items()}
 
 
+def test_other_hosts_routers_are_trusted_from_the_first_init(tmp_path):
+    """``eonav acl init --other-host``: the routers file of the first host already names every host with a zid of
+    its own, and its router trusts all of them (the one that dials is known by its zid only, docs/zenoh.md "Access
+    control"; host a may dial b). The second host, given that file, keeps every zid. Catches --other-host ignored
+    (host a's router does not know b's: a link that a dials relays nothing)."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    acl.write_acl_dir(a, {"locator": "locator"}, host="a", hosts=("b", "c"))
+    zids = acl.read_users(a, acl.ROUTERS_FILE)
+    assert set(zids) == {"a", "b", "c"} and len(set(zids.values())) == 3
+    b.mkdir()
+    for f in (acl.USERS_FILE, acl.ROUTERS_FILE):
+        shutil.copy(a / f, b / f)
+    acl.write_acl_dir(b, {"locator": "locator"}, host="b")
+    assert acl.read_users(b, acl.ROUTERS_FILE) == zids
+    for h, d in (("a", a), ("b", b)):
+        r = zenoh.Config.from_file(str(d / acl.ROUTER_FILE))
+        assert json.loads(r.get_json("id")) == zids[h]
+        subjects = {s["id"]: s for s in json.loads(r.get_json("access_control/subjects"))}
+        assert subjects["router-zids"]["zids"] == sorted(zids.values())
+
+
 def test_acl_init_command(tmp_path, capsys):
     assert cli.main(["acl", "init", str(tmp_path), "--camera-ids", "nose,tail",
                      "--listen", "tcp/127.0.0.1:7447", "--connect", "tcp/192.0.2.11:7447"]) == 0
