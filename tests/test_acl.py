@@ -187,6 +187,17 @@ def test_other_hosts_routers_are_trusted_from_the_first_init(tmp_path):
         assert subjects["router-zids"]["zids"] == sorted(zids.values())
 
 
+def test_router_finds_the_users_file_from_any_working_directory(tmp_path, monkeypatch):
+    """``eonav acl init DIR`` with a relative DIR: the router config names the users file by its absolute path, as
+    zenohd under systemd (working directory /) or on another shell must find it. Catches the path written as given
+    (relative: every session refused, the pipeline locked out)."""
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["acl", "init", "etc/eonav"]) == 0
+    r = zenoh.Config.from_file(str(tmp_path / "etc/eonav" / acl.ROUTER_FILE))
+    users_file = json.loads(r.get_json("transport/auth/usrpwd/dictionary_file"))
+    assert users_file == str((tmp_path / "etc/eonav" / acl.USERS_FILE).resolve())
+
+
 def test_acl_init_command(tmp_path, capsys):
     assert cli.main(["acl", "init", str(tmp_path), "--camera-ids", "nose,tail",
                      "--listen", "tcp/127.0.0.1:7447", "--connect", "tcp/192.0.2.11:7447"]) == 0
