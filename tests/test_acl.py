@@ -198,14 +198,28 @@ def test_router_finds_the_users_file_from_any_working_directory(tmp_path, monkey
     assert users_file == str((tmp_path / "etc/eonav" / acl.USERS_FILE).resolve())
 
 
+def test_acl_init_refuses_part_of_the_tls_flags(tmp_path, capsys):
+    """--tls-ca, --tls-cert and --tls-key go together: any one or two of them is an error (exit 2, nothing
+    written), not a plain-TCP router config that the operator believes is TLS. Catches the check dropped."""
+    flags = {"--tls-ca": "ca.pem", "--tls-cert": "router.pem", "--tls-key": "router.key"}
+    for given in (["--tls-ca"], ["--tls-cert"], ["--tls-key"], ["--tls-ca", "--tls-cert"],
+                  ["--tls-ca", "--tls-key"], ["--tls-cert", "--tls-key"]):
+        d = tmp_path / "-".join(g.strip("-") for g in given)
+        assert cli.main(["acl", "init", str(d), *(x for g in given for x in (g, flags[g]))]) == 2, given
+        assert "go together" in capsys.readouterr().err
+        assert not d.exists(), given
+
+
 def test_acl_init_command(tmp_path, capsys):
     assert cli.main(["acl", "init", str(tmp_path), "--camera-ids", "nose,tail",
-                     "--listen", "tcp/127.0.0.1:7447", "--connect", "tcp/192.0.2.11:7447"]) == 0
+                     "--listen", "tcp/127.0.0.1:7447,tcp/192.0.2.10:7447", "--connect", "tcp/192.0.2.11:7447"]) == 0
     users = acl.read_users(tmp_path)
     assert set(users) == {"camera_nose", "camera_tail", "mavlink", "sync", "locator", "obstacles", "operator",
                           "guidance", "router"}
     r = zenoh.Config.from_file(str(tmp_path / acl.ROUTER_FILE))
     assert json.loads(r.get_json("connect/endpoints")) == ["tcp/192.0.2.11:7447"]
+    # the LAN address as well as loopback: the other host's router dials it (caught --listen ignored)
+    assert json.loads(r.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447", "tcp/192.0.2.10:7447"]
     assert json.loads(r.get_json("access_control/default_permission")) == "deny"
     zids = acl.read_users(tmp_path, acl.ROUTERS_FILE)
     assert set(zids) == {"a"} and json.loads(r.get_json("id")) == zids["a"]
