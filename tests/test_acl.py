@@ -323,6 +323,38 @@ def test_only_the_owner_reaches_a_subscriber(bus, key, owner, sub_key, consumer,
             s.close()
 
 
+SNOOPS = [
+    # (who subscribes to what it was not granted, the FORGERIES case whose owner puts); "outsider": a peer without
+    # credentials. Each service and guidance subscribe to their inputs only: frames and nav stay on the vehicle's
+    # pipeline (caught a grant of every key to guidance)
+    ("guidance", "frame"), ("guidance", "nav"), ("guidance", "range_map"), ("camera_nose", "nav"),
+    ("locator", "obstacles"), ("mavlink", "frame"), ("outsider", "nav"),
+]
+
+
+@pytest.mark.parametrize("snooper,case", SNOOPS, ids=[f"{a}-{b}" for a, b in SNOOPS])
+def test_a_subscriber_beyond_its_grant_receives_nothing(bus, snooper, case):
+    """The owner's samples reach the operator (so they were put and routed) and never a subscriber whose user has
+    no grant for the key."""
+    key, owner, sub_key, _, kind, fields = next(p.values for p in FORGERIES if p.id == case)
+    d, ep, pw = bus
+    snoop = zenoh.open(no_credentials(ep, mode="peer") if snooper == "outsider" else config_as(bus, snooper))
+    sessions = [snoop, *(zenoh.open(config_as(bus, u)) for u in (acl.OPERATOR_USER, owner))]
+    try:
+        spy = snoop.declare_subscriber(sub_key, zenoh.handlers.FifoChannel(1000))
+        control = sessions[1].declare_subscriber(sub_key, zenoh.handlers.FifoChannel(1000))
+        pub = sessions[2].declare_publisher(key)
+        wait_until(lambda: pub.matching_status.matching, 5.0, what=f"{owner} matching")
+        for _ in range(N):
+            pub.put(schema.encode(kind, **fields(owner)))
+        collect(control, N, what=f"{owner}'s samples at the operator")
+        time.sleep(0.3)
+        assert drain(spy) == [], f"{snooper} received {owner}'s {kind}"
+    finally:
+        for s in sessions:
+            s.close()
+
+
 def test_config_queryable_answers_only_the_operator(bus):
     sessions = {u: zenoh.open(config_as(bus, u)) for u in ("locator", "operator", "guidance", "obstacles",
                                                              "camera_nose")}
