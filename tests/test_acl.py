@@ -4,6 +4,7 @@ credentials are refused, config queryables answer only the operator, liveliness 
 service, TLS works with a throwaway CA, and the real pipeline under ``eonav run``'s access control still ranges and
 publishes obstacles while forged samples go nowhere."""
 import json
+import os
 import shutil
 import stat
 import subprocess
@@ -120,20 +121,105 @@ def test_acl_init_makes_files_private_that_were_not(tmp_path):
 def test_policy_refuses_unknown_modules_and_reserved_names():
     with pytest.raises(InputError, match="no role"):
         acl.access_control({"x": "recorder"})
-    with pytest.raises(InputError, match="reserved"):
-        acl.access_control({"operator": "locator"})
+    # every reserved user: a service called "router" would share the routers' password and their relay rule (every
+    # message on eonav/**); one called "guidance" would add its role to guidance's (caught a reserved list without
+    # the router)
+    for reserved in (acl.ROUTER_USER, acl.OPERATOR_USER, acl.GUIDANCE_USER):
+        with pytest.raises(InputError, match="reserved"):
+            acl.access_control({reserved: "locator"})
     with pytest.raises(InputError, match="service name"):
         acl.access_control({"a/b": "locator"})
 
 
+def test_services_named_by_module_path_get_their_roles(tmp_path):
+    """``eonav run --secure`` names each service's module by its path (eonav.services.locator): the policy is the
+    same as for the short names ``eonav acl init`` takes, and every service of the default pipeline gets its
+    session. Catches a role looked up by the path's first part ("eonav": no role, the secure pipeline refused)."""
+    from eonav.app import launcher as L
+    short = {"camera_nose": "camera_ingest", "mavlink": "mavlink_ingest", "sync": "sync", "locator": "locator",
+             "obstacles": "obstacles"}
+    assert acl.access_control({n: f"eonav.services.{m}" for n, m in short.items()}) == acl.access_control(short)
+    services = L.parse_spec(L.default_spec(cameras=["nose=/dev/video0"]))
+    assert {s.name: s.module for s in services} == {n: f"eonav.services.{m}" for n, m in short.items()}
+    configs, monitor = L.secure_sessions(tmp_path, services, write=True)
+    assert set(configs) == set(short) and all(p.is_file() for p in configs.values()) and monitor.is_file()
+    assert set(acl.read_users(tmp_path)) == {*short, "operator", "guidance", "router"}
+
+
+def test_secrets_are_never_readable_by_others_not_even_while_written(tmp_path, monkeypatch):
+    """Every file ``eonav acl init`` writes holds a password (or names the routers); under a permissive umask (0:
+    what a service manager may hand down) each one is already 0600 when its text is written, not made so after:
+    another user could open it in between and keep reading. Catches a file created with 0644 and chmodded later."""
+    seen = {}
+    fdopen = os.fdopen
+
+    def spy(fd, *a, **kw):
+        seen[os.readlink(f"/proc/self/fd/{fd}")] = stat.S_IMODE(os.fstat(fd).st_mode)
+        return fdopen(fd, *a, **kw)
+    monkeypatch.setattr(acl.os, "fdopen", spy)
+    old_umask = os.umask(0)
+    try:
+        acl.write_acl_dir(tmp_path, {"locator": "locator"})
+    finally:
+        os.umask(old_umask)
+    assert sorted(seen) == sorted(str(f.resolve()) for f in tmp_path.iterdir()) and len(seen) == 6, seen
+    assert all(mode == 0o600 for mode in seen.values()), {f: oct(m) for f, m in seen.items()}
+
+
+def test_other_hosts_routers_are_trusted_from_the_first_init(tmp_path):
+    """``eonav acl init --other-host``: the routers file of the first host already names every host with a zid of
+    its own, and its router trusts all of them (the one that dials is known by its zid only, docs/zenoh.md "Access
+    control"; host a may dial b). The second host, given that file, keeps every zid. Catches --other-host ignored
+    (host a's router does not know b's: a link that a dials relays nothing)."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    acl.write_acl_dir(a, {"locator": "locator"}, host="a", hosts=("b", "c"))
+    zids = acl.read_users(a, acl.ROUTERS_FILE)
+    assert set(zids) == {"a", "b", "c"} and len(set(zids.values())) == 3
+    b.mkdir()
+    for f in (acl.USERS_FILE, acl.ROUTERS_FILE):
+        shutil.copy(a / f, b / f)
+    acl.write_acl_dir(b, {"locator": "locator"}, host="b")
+    assert acl.read_users(b, acl.ROUTERS_FILE) == zids
+    for h, d in (("a", a), ("b", b)):
+        r = zenoh.Config.from_file(str(d / acl.ROUTER_FILE))
+        assert json.loads(r.get_json("id")) == zids[h]
+        subjects = {s["id"]: s for s in json.loads(r.get_json("access_control/subjects"))}
+        assert subjects["router-zids"]["zids"] == sorted(zids.values())
+
+
+def test_router_finds_the_users_file_from_any_working_directory(tmp_path, monkeypatch):
+    """``eonav acl init DIR`` with a relative DIR: the router config names the users file by its absolute path, as
+    zenohd under systemd (working directory /) or on another shell must find it. Catches the path written as given
+    (relative: every session refused, the pipeline locked out)."""
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["acl", "init", "etc/eonav"]) == 0
+    r = zenoh.Config.from_file(str(tmp_path / "etc/eonav" / acl.ROUTER_FILE))
+    users_file = json.loads(r.get_json("transport/auth/usrpwd/dictionary_file"))
+    assert users_file == str((tmp_path / "etc/eonav" / acl.USERS_FILE).resolve())
+
+
+def test_acl_init_refuses_part_of_the_tls_flags(tmp_path, capsys):
+    """--tls-ca, --tls-cert and --tls-key go together: any one or two of them is an error (exit 2, nothing
+    written), not a plain-TCP router config that the operator believes is TLS. Catches the check dropped."""
+    flags = {"--tls-ca": "ca.pem", "--tls-cert": "router.pem", "--tls-key": "router.key"}
+    for given in (["--tls-ca"], ["--tls-cert"], ["--tls-key"], ["--tls-ca", "--tls-cert"],
+                  ["--tls-ca", "--tls-key"], ["--tls-cert", "--tls-key"]):
+        d = tmp_path / "-".join(g.strip("-") for g in given)
+        assert cli.main(["acl", "init", str(d), *(x for g in given for x in (g, flags[g]))]) == 2, given
+        assert "go together" in capsys.readouterr().err
+        assert not d.exists(), given
+
+
 def test_acl_init_command(tmp_path, capsys):
     assert cli.main(["acl", "init", str(tmp_path), "--camera-ids", "nose,tail",
-                     "--listen", "tcp/127.0.0.1:7447", "--connect", "tcp/192.0.2.11:7447"]) == 0
+                     "--listen", "tcp/127.0.0.1:7447,tcp/192.0.2.10:7447", "--connect", "tcp/192.0.2.11:7447"]) == 0
     users = acl.read_users(tmp_path)
     assert set(users) == {"camera_nose", "camera_tail", "mavlink", "sync", "locator", "obstacles", "operator",
                           "guidance", "router"}
     r = zenoh.Config.from_file(str(tmp_path / acl.ROUTER_FILE))
     assert json.loads(r.get_json("connect/endpoints")) == ["tcp/192.0.2.11:7447"]
+    # the LAN address as well as loopback: the other host's router dials it (caught --listen ignored)
+    assert json.loads(r.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447", "tcp/192.0.2.10:7447"]
     assert json.loads(r.get_json("access_control/default_permission")) == "deny"
     zids = acl.read_users(tmp_path, acl.ROUTERS_FILE)
     assert set(zids) == {"a"} and json.loads(r.get_json("id")) == zids["a"]
@@ -234,6 +320,38 @@ def test_only_the_owner_reaches_a_subscriber(bus, key, owner, sub_key, consumer,
             assert set(tags) == {owner}, f"{who} received forged {kind}: {sorted(set(tags) - {owner})}"
     finally:
         for s in (outsider, *readers.values(), *writers.values()):
+            s.close()
+
+
+SNOOPS = [
+    # (who subscribes to what it was not granted, the FORGERIES case whose owner puts); "outsider": a peer without
+    # credentials. Each service and guidance subscribe to their inputs only: frames and nav stay on the vehicle's
+    # pipeline (caught a grant of every key to guidance)
+    ("guidance", "frame"), ("guidance", "nav"), ("guidance", "range_map"), ("camera_nose", "nav"),
+    ("locator", "obstacles"), ("mavlink", "frame"), ("outsider", "nav"),
+]
+
+
+@pytest.mark.parametrize("snooper,case", SNOOPS, ids=[f"{a}-{b}" for a, b in SNOOPS])
+def test_a_subscriber_beyond_its_grant_receives_nothing(bus, snooper, case):
+    """The owner's samples reach the operator (so they were put and routed) and never a subscriber whose user has
+    no grant for the key."""
+    key, owner, sub_key, _, kind, fields = next(p.values for p in FORGERIES if p.id == case)
+    d, ep, pw = bus
+    snoop = zenoh.open(no_credentials(ep, mode="peer") if snooper == "outsider" else config_as(bus, snooper))
+    sessions = [snoop, *(zenoh.open(config_as(bus, u)) for u in (acl.OPERATOR_USER, owner))]
+    try:
+        spy = snoop.declare_subscriber(sub_key, zenoh.handlers.FifoChannel(1000))
+        control = sessions[1].declare_subscriber(sub_key, zenoh.handlers.FifoChannel(1000))
+        pub = sessions[2].declare_publisher(key)
+        wait_until(lambda: pub.matching_status.matching, 5.0, what=f"{owner} matching")
+        for _ in range(N):
+            pub.put(schema.encode(kind, **fields(owner)))
+        collect(control, N, what=f"{owner}'s samples at the operator")
+        time.sleep(0.3)
+        assert drain(spy) == [], f"{snooper} received {owner}'s {kind}"
+    finally:
+        for s in sessions:
             s.close()
 
 

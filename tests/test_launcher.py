@@ -57,15 +57,25 @@ def svc_pkg(tmp_path, monkeypatch):
 
 
 def _gone(pid):
+    """Whether ``pid`` has exited: no such process, or a zombie (ours is reaped here; an orphan's waits for init).
+    A live process that is not our child (the orphans of a killed launcher: waitpid cannot see them) is NOT gone: an
+    earlier version called every non-child gone, so the orphan test passed with a router that never stopped."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return True
-    # a zombie of ours counts as gone
     try:
-        return os.waitpid(pid, os.WNOHANG)[0] == pid
+        if os.waitpid(pid, os.WNOHANG)[0] == pid:
+            return True
     except ChildProcessError:
-        return True
+        pass
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            state = f.read().rsplit(")", 1)[1].split()[0]      # the field after "(comm)"
+    except FileNotFoundError:
+        assert os.path.exists("/proc/self/stat"), "needs /proc to tell a live process from a zombie"
+        return True                                             # exited between the two looks
+    return state in ("Z", "X")
 
 
 # ---- spec -------------------------------------------------------------------------------------------
@@ -469,12 +479,16 @@ def test_deploy_configs_are_valid_zenoh_configs():
 
 
 def test_children_stop_when_launcher_is_killed(svc_pkg):
+    """A launcher killed outright (SIGKILL: no clean-up) leaves its router and service orphaned; both see their
+    supervisor gone (EONAV_SUPERVISOR_PID) and exit by themselves. Catches a router that logs the supervisor gone
+    and keeps running (a planted ``continue`` for the ``break`` in eonav.bus.router.serve)."""
     import shutil
     if not shutil.which("pgrep"):
         pytest.skip("needs pgrep (procps)")
     port = free_port()
     proc = start_launcher({"services": [{"name": "orphan", "module": svc_pkg}]},
                           "vehicle='lt6', port=%d, quiet=True" % port)
+    pids = []
     try:
         _wait_port(port)
         with client_session(f"tcp/127.0.0.1:{port}") as s:
@@ -482,10 +496,10 @@ def test_children_stop_when_launcher_is_killed(svc_pkg):
             wait_until(lambda: alive.try_recv() is not None, 30, what="service alive")
             alive.undeclare()
         import subprocess
-        pids = []
         for pattern in ("--vehicle lt6", f"eonav.bus.router --listen tcp/127.0.0.1:{port}"):
-            out = subprocess.run(["pgrep", "-f", "--", pattern], capture_output=True, text=True).stdout.split()
-            pids += [int(p) for p in out if int(p) != proc.pid]
+            out = subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "--", pattern], capture_output=True,
+                                 text=True).stdout.split()                  # this launcher's children only
+            pids += [int(p) for p in out]
         assert len(pids) == 2, pids                           # the service and the router
         proc.kill()                                           # no chance to clean up
         proc.wait(10)
@@ -493,6 +507,12 @@ def test_children_stop_when_launcher_is_killed(svc_pkg):
     finally:
         if proc.poll() is None:
             proc.kill()
+        for p in pids:                                        # a failed run leaves no orphan behind
+            if not _gone(p):
+                try:
+                    os.kill(p, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
 
 
 def test_children_import_the_installed_eonav_not_a_folder_of_that_name_in_the_working_directory(tmp_path, monkeypatch):

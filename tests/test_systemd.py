@@ -234,6 +234,10 @@ def test_every_service_starts_as_installed(tmp_path):
             procs.append(subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                           text=True, start_new_session=True))
         cfg = zenoh.Config.from_file(str(root / "etc/eonav/zenoh-operator.json5"))
+        # the generated session waits for its router for ever: a router not listening where the sessions connect
+        # (caught --listen ignored by eonav acl init) fails here instead of hanging the test
+        cfg.insert_json5("connect/timeout_ms", "15000")
+        cfg.insert_json5("connect/exit_on_failure", "true")
         with zenoh.open(cfg) as op:
             vehicle = _unit_process(root, services[0], {})[1]["EONAV_VEHICLE"]
             alive = op.liveliness().declare_subscriber(f"eonav/{vehicle}/alive/*", zenoh.handlers.FifoChannel(64),
