@@ -1,6 +1,7 @@
 """OBSTACLE_DISTANCE_3D of the confirmed tracks (eonav.nav.mavlink_out): the body-frame point of each track against
 hand-computed coordinates for yawed and pitched vehicles, the wire bytes through pymavlink's own parser, and the
 sender's cycle (order, the end message, both sides of its thresholds, a stall) over a real UDP socket."""
+import contextlib
 import math
 import os
 import socket
@@ -136,16 +137,26 @@ class Rx:
         return out
 
 
-@pytest.mark.parametrize("messages", ["obstacle_distance_3d", "both"])
-def test_sender_cycle_end_message_and_stall(messages):
+@contextlib.contextmanager
+def sender_to_rx(**kw):
+    """An ``ObstacleDistanceSender`` to a loopback UDP port with an injected clock (``t[0]``, seconds) and its
+    receiving end (``Rx``): yields (tx, t, rx); both closed after."""
     port = _free_udp_port()
     rx = Rx(port)
     t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], wall_us=lambda: 1_000_000,
-                                   messages=messages)
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], **kw)
+    try:
+        yield tx, t, rx
+    finally:
+        tx.close()
+        rx.conn.close()
+
+
+@pytest.mark.parametrize("messages", ["obstacle_distance_3d", "both"])
+def test_sender_cycle_end_message_and_stall(messages):
     s = pose(yaw_deg=30.0)
     tracks = [track(5, (0, 10, -4), (2, 2, 2)), track(6, (20, 0, 0)), track(7, (3, 0, 1.5))]
-    try:
+    with sender_to_rx(wall_us=lambda: 1_000_000, messages=messages) as (tx, t, rx):
         tx.tick()                                      # t = 0: heartbeat only, nothing known yet
         assert rx.drain() == []
         tx.update(_sectors(), 1_000_000)
@@ -201,22 +212,14 @@ def test_sender_cycle_end_message_and_stall(messages):
             tx.tick()
         assert rx.drain() == []
         assert tx.counters["od3d_sent_end"] == 4 and tx.counters["od3d_sent"] == (4 if both else 6)
-    finally:
-        tx.close()
-        rx.conn.close()
 
 
 def test_sender_carries_a_moving_track_by_the_age_of_the_tracks():
     """The tracks were stamped 0.25 s before the send (wall clock in µs): a track moving 2 m/s west is sent 0.5 m
     nearer on east, a static one where it was; both against hand-computed points of a vehicle heading north."""
-    port = _free_udp_port()
-    rx = Rx(port)
-    t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], wall_us=lambda: 1_250_000,
-                                   messages="obstacle_distance_3d")
     s = pose()
     tracks = [track(5, (0, 10, 0), velocity=(0, -2, 0), moving=True), track(6, (12, 0, 0), velocity=(3, 0, 0))]
-    try:
+    with sender_to_rx(wall_us=lambda: 1_250_000, messages="obstacle_distance_3d") as (tx, t, rx):
         tx.update_tracks(tracks, 1_000_000, s.position_ned_m, s.T_body_ned, 0.5, 40.0)
         t[0] = 0.1
         tx.tick()
@@ -224,22 +227,14 @@ def test_sender_carries_a_moving_track_by_the_age_of_the_tracks():
         assert sorted(by_id) == [5, 6, 65535]
         np.testing.assert_allclose([by_id[5].x, by_id[5].y, by_id[5].z], [0.0, 9.5, 0.0], atol=1e-5)
         np.testing.assert_allclose([by_id[6].x, by_id[6].y, by_id[6].z], [12.0, 0.0, 0.0], atol=1e-5)
-    finally:
-        tx.close()
-        rx.conn.close()
 
 
 def test_sender_does_not_carry_a_track_back_when_the_wall_clock_is_behind_its_stamp():
     """The wall clock reads 0.25 s BEFORE the tracks' stamp (stepped back by a time sync, or the tracks stamped on a
     clock ahead): a track moving 2 m/s west is sent where it was measured (10 m east), not 0.5 m back along its
     velocity (catches the clamp of the tracks' age at 0 dropped)."""
-    port = _free_udp_port()
-    rx = Rx(port)
-    t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], wall_us=lambda: 750_000,
-                                   messages="obstacle_distance_3d")
     s = pose()
-    try:
+    with sender_to_rx(wall_us=lambda: 750_000, messages="obstacle_distance_3d") as (tx, t, rx):
         tx.update_tracks([track(5, (0, 10, 0), velocity=(0, -2, 0), moving=True)], 1_000_000, s.position_ned_m,
                          s.T_body_ned, 0.5, 40.0)
         t[0] = 0.1
@@ -247,9 +242,6 @@ def test_sender_does_not_carry_a_track_back_when_the_wall_clock_is_behind_its_st
         by_id = {m.obstacle_id: m for m in rx.drain()}
         assert sorted(by_id) == [5, 65535]
         np.testing.assert_allclose([by_id[5].x, by_id[5].y, by_id[5].z], [0.0, 10.0, 0.0], atol=1e-5)
-    finally:
-        tx.close()
-        rx.conn.close()
 
 
 def test_a_moving_track_without_a_finite_velocity_is_sent_where_it_is():
@@ -266,21 +258,14 @@ def test_a_moving_track_without_a_finite_velocity_is_sent_where_it_is():
 
 
 def test_sender_obstacle_distance_only_sends_no_3d():
-    port = _free_udp_port()
-    rx = Rx(port)
-    t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0])
     s = pose()
-    try:
+    with sender_to_rx() as (tx, t, rx):
         tx.update(_sectors(), 1_000_000)
         tx.update_tracks([track(5, (0, 10, -4))], 1_000_000, s.position_ned_m, s.T_body_ned, 0.5, 40.0)
         t[0] = 0.1
         tx.tick()
         assert [m.get_type() for m in rx.drain()] == ["OBSTACLE_DISTANCE"]
         assert "od3d_sent" not in tx.counters
-    finally:
-        tx.close()
-        rx.conn.close()
 
 
 def test_obstacles_service_sends_the_tracks_as_obstacle_distance_3d():

@@ -1,5 +1,6 @@
 """Obstacle sectors and obstacle list against hand-made range maps (closed-form geometry) and simulator scenes
 with known box positions (distance from the vehicle origin to the solid box, computed from the box itself)."""
+import contextlib
 import math
 import struct
 import sys
@@ -913,6 +914,30 @@ def _free_udp_port():
         return s.getsockname()[1]
 
 
+@contextlib.contextmanager
+def udp_sender(**kw):
+    """An ``ObstacleDistanceSender`` to a loopback UDP port with an injected clock (``t[0]``, seconds) and wall
+    clock (42 us unless given), and the receiving end: yields (tx, t, received); ``received(type)`` returns the
+    messages (of ``type``, or all) that arrived, up to the first 0.2 s without one. Both ends closed after."""
+    from eonav.nav import mavlink_out as mo
+    port = _free_udp_port()
+    rx = mo.mavutil().mavlink_connection(f"udpin:127.0.0.1:{port}")
+    t = [0.0]
+    kw.setdefault("wall_us", lambda: 42)
+    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", clock=lambda: t[0], **kw)
+
+    def received(type=None):
+        out = []
+        while (m := rx.recv_match(type=type, blocking=True, timeout=0.2)) is not None:
+            out.append(m)
+        return out
+    try:
+        yield tx, t, received
+    finally:
+        tx.close()
+        rx.close()
+
+
 def test_obstacle_distance_bytes_decode_back():
     from eonav.nav import mavlink_out as mo
     mu = mo.mavutil()
@@ -967,22 +992,7 @@ def test_obstacle_distance_max_distance_leaves_clear_below_unknown():
 def test_sender_fresh_then_unknown_over_udp():
     from eonav.nav import mavlink_out as mo
     mu = mo.mavutil()
-    port = _free_udp_port()
-    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
-    t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", system_id=1, rate_hz=10.0, clock=lambda: t[0],
-                                   wall_us=lambda: 42)
-    try:
-        def drain():
-            out = []
-            deadline = __import__("time").time() + 1.0
-            while __import__("time").time() < deadline:
-                m = rx.recv_match(blocking=True, timeout=0.2)
-                if m is None:
-                    break
-                out.append(m)
-            return out
-
+    with udp_sender(system_id=1, rate_hz=10.0) as (tx, t, drain):
         tx.tick()                                            # t = 0: heartbeat, no data yet -> no OBSTACLE_DISTANCE
         got = drain()
         assert [m.get_type() for m in got] == ["HEARTBEAT"]
@@ -1016,10 +1026,6 @@ def test_sender_fresh_then_unknown_over_udp():
         tx.tick()
         got = [m for m in drain() if m.get_type() == "OBSTACLE_DISTANCE"]
         assert len(got) == 1 and got[0].time_usec == 1_700_000_001_000_000
-    finally:
-        tx.close()
-        rx.close()
-
 
 
 def test_sender_skips_a_message_it_cannot_pack_and_keeps_sending(monkeypatch):
@@ -1027,12 +1033,6 @@ def test_sender_skips_a_message_it_cannot_pack_and_keeps_sending(monkeypatch):
     is counted (``encode_errors``) and skipped; it does not end the sender's loop nor mark the link lost: the next
     tick's OBSTACLE_DISTANCE and the heartbeats go out."""
     from eonav.nav import mavlink_out as mo
-    mu = mo.mavutil()
-    port = _free_udp_port()
-    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
-    t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", system_id=1, rate_hz=10.0, clock=lambda: t[0],
-                                   wall_us=lambda: 42)
     real, fail = mo.obstacle_distance_message, [struct.error("ushort format requires 0 <= number <= 65535"),
                                                 InputError("min_distance_cm out of range")]
 
@@ -1041,46 +1041,28 @@ def test_sender_skips_a_message_it_cannot_pack_and_keeps_sending(monkeypatch):
             raise fail.pop(0)
         return real(*a, **kw)
     monkeypatch.setattr(mo, "obstacle_distance_message", sometimes_bad)
-    try:
+    with udp_sender(system_id=1, rate_hz=10.0) as (tx, t, received):
         s = _wall_sectors()
         tx.update(s, 1_700_000_000_000_000)
         for now in (0.0, 0.1, 0.2):
             t[0] = now
             tx.tick()
-        got = []
-        while (m := rx.recv_match(blocking=True, timeout=0.5)) is not None:
-            got.append(m)
+        got = received()
         assert [m.get_type() for m in got] == ["HEARTBEAT", "OBSTACLE_DISTANCE"]
         assert list(got[1].distances) == list(s.distances_cm)
         assert tx.counters["encode_errors"] == 2 and tx.counters["od_sent_fresh"] == 1
         assert tx.counters["send_errors"] == 0
-    finally:
-        tx.close()
-        rx.close()
 
 def test_sender_merges_every_fresh_camera_and_stamps_the_oldest_capture():
     """Two cameras through one sender: each message is the per-bin merge of the fresh cameras (nearest obstacle,
     else clear, else unknown; hand-written below), stamped with the OLDER of their captures (the picture is no
     newer than its oldest part); a camera gone stale leaves the merge while the other keeps it fresh."""
-    from eonav.nav import mavlink_out as mo
-    mu = mo.mavutil()
     U, C = ob.UINT16_MAX, 4001                                   # unknown; clear (max_distance + 1)
     nose, left = np.full(72, U, np.uint16), np.full(72, U, np.uint16)
     nose[[3, 4, 5]] = [C, 1234, C]                               # nose: an obstacle at 12.34 m in bin 4
     left[[4, 5, 60]] = [2000, 800, C]                            # left: farther in bin 4, the only one in bin 5
     lay = (5.0, -20.0, 50, 4000)
-    port = _free_udp_port()
-    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
-    t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", rate_hz=10.0, clock=lambda: t[0], wall_us=lambda: 42)
-
-    def sent():
-        out = []
-        while (m := rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.2)) is not None:
-            out.append(m)
-        return out
-
-    try:
+    with udp_sender(rate_hz=10.0) as (tx, t, received):
         tx.update(ob.Sectors(nose, *lay), 1_700_000_000_000_000, "nose")       # captured 50 ms before left's
         t[0] = 0.2
         tx.update(ob.Sectors(left, *lay), 1_700_000_000_050_000, "left")
@@ -1088,16 +1070,13 @@ def test_sender_merges_every_fresh_camera_and_stamps_the_oldest_capture():
         tx.tick()
         want = np.full(72, U)
         want[[3, 4, 5, 60]] = [C, 1234, 800, C]
-        m, = sent()
+        m, = received("OBSTACLE_DISTANCE")
         assert list(m.distances) == list(want) and m.time_usec == 1_700_000_000_000_000
         t[0] = 0.45                                              # nose 0.45 s old (stale), left 0.25 s (fresh)
         tx.tick()
-        m, = sent()
+        m, = received("OBSTACLE_DISTANCE")
         assert list(m.distances) == [int(x) for x in left] and m.time_usec == 1_700_000_000_050_000
         assert tx.counters["od_sent_flush"] == 0
-    finally:
-        tx.close()
-        rx.close()
 
 
 def test_sender_cadence_after_a_late_call_and_the_stale_limit():
@@ -1105,47 +1084,30 @@ def test_sender_cadence_after_a_late_call_and_the_stale_limit():
     gets one message and the next a period later (0.75 s), not a second one at once (catches '>=' for '>' in
     _next_due: a late call landing on the grid re-armed the send for now, a burst). With stale_s 0.25 a camera is
     fresh at exactly 0.25 s after its update and stale just after (catches '<' for '<=' in _fresh)."""
-    from eonav.nav import mavlink_out as mo
-    mu = mo.mavutil()
-    port = _free_udp_port()
-    rx = mu.mavlink_connection(f"udpin:127.0.0.1:{port}")
-    t = [0.0]
-    tx = mo.ObstacleDistanceSender(f"udpout:127.0.0.1:{port}", rate_hz=4.0, stale_s=0.25, clock=lambda: t[0],
-                                   wall_us=lambda: 42)
-
-    def sent():
-        out = []
-        while (m := rx.recv_match(type="OBSTACLE_DISTANCE", blocking=True, timeout=0.2)) is not None:
-            out.append(m)
-        return out
-
-    try:
+    with udp_sender(rate_hz=4.0, stale_s=0.25) as (tx, t, received):
         s = _wall_sectors()
         tx.update(s, 1_700_000_000_000_000)
-        assert tx.tick() == 0.25 and len(sent()) == 1                  # t = 0: sent, next at 0.25
+        assert tx.tick() == 0.25 and len(received("OBSTACLE_DISTANCE")) == 1                  # t = 0: sent, next at 0.25
         t[0] = 0.375
         tx.update(s, 1_700_000_000_375_000)
         t[0] = 0.5                                                     # the 0.25 s send was missed
         assert tx.tick() == 0.25                                       # next at 0.75, not now
         assert tx.tick() == 0.25                                       # called again at once: nothing more
-        got = sent()
+        got = received("OBSTACLE_DISTANCE")
         assert len(got) == 1 and got[0].time_usec == 1_700_000_000_375_000
         tx.update(s, 1_700_000_000_500_000)                            # at 0.5 s: fresh up to 0.75 s inclusive
         t[0] = 0.75
         assert tx.is_fresh()
         tx.tick()
-        got = sent()
+        got = received("OBSTACLE_DISTANCE")
         assert len(got) == 1 and got[0].time_usec == 1_700_000_000_500_000
         t[0] = 0.75000001
         assert not tx.is_fresh()
         t[0] = 1.0                                                     # the next send: the flush
         tx.tick()
-        got = sent()
+        got = received("OBSTACLE_DISTANCE")
         assert len(got) == 1 and set(got[0].distances) == {65535}
         assert tx.counters["od_sent_fresh"] == 3 and tx.counters["od_sent_flush"] == 1
-    finally:
-        tx.close()
-        rx.close()
 
 
 def test_sender_real_time_rate():
