@@ -535,3 +535,44 @@ def test_children_import_the_installed_eonav_not_a_folder_of_that_name_in_the_wo
     assert argv[:4] == [sys.executable, "-P", "-m", "eonav.services.sync"]
     started = subprocess.run([*argv[:4], "--help"], capture_output=True, text=True, timeout=60)
     assert started.returncode == 0 and "usage" in started.stdout
+
+
+STUCK_SVC = textwrap.dedent('''
+    import os, threading
+    from eonav.bus.node import service_main
+
+    def body(node, args):
+        never = threading.Event()
+        node.worker(never.wait, name="stuck")          # ignores stop_event: a call that never returns
+        node.worker(never.wait, name="stuck2")
+        node.worker(lambda: node.stop_event.wait(), name="fine")
+        open(os.environ["T_READY"], "w").close()
+
+    if __name__ == "__main__":
+        service_main("stuck", None, body)
+''')
+
+
+def test_a_service_whose_workers_do_not_stop_still_exits_after_the_join_deadline(tmp_path, monkeypatch):
+    """SIGINT to a service two of whose workers ignore ``stop_event``: it logs each stuck worker, exits with code 1
+    (the shutdown failed) and does so within one join deadline (``JOIN_TIMEOUT_S``, 5 s, shared by all workers,
+    not 5 s each), instead of waiting forever for its non-daemon threads at interpreter exit."""
+    from eonav.app.processes import stop_service
+    from eonav.bus.node import JOIN_TIMEOUT_S
+    module = install_service_package(tmp_path, monkeypatch, "stucksvc", STUCK_SVC)
+    ready = tmp_path / "ready"
+    proc = start_service(["-m", module, "--vehicle", "st", "--listen", f"tcp/127.0.0.1:{free_port()}"],
+                         env={"T_READY": str(ready)})
+    try:
+        wait_until(lambda: proc.poll() is not None or ready.exists(), timeout=30, what="the service's workers")
+        assert proc.poll() is None, proc.communicate()
+    except AssertionError:
+        proc.kill()
+        raise
+    t0 = time.monotonic()
+    code, err = stop_service(proc, timeout=30.0)
+    took = time.monotonic() - t0
+    assert code == 1, err
+    assert "worker stuck.stuck did not stop" in err and "worker stuck.stuck2 did not stop" in err
+    assert "exiting without waiting for threads still running: " in err
+    assert JOIN_TIMEOUT_S - 0.5 < took < 2 * JOIN_TIMEOUT_S, took

@@ -586,10 +586,11 @@ class Node:
             except Exception:
                 pass
         me = threading.current_thread()
+        deadline = time.monotonic() + JOIN_TIMEOUT_S        # one deadline for all: N stuck workers cost 5 s, not 5 N
         for t in self._workers:
             if t is me:
                 continue
-            t.join(JOIN_TIMEOUT_S)
+            t.join(max(0.0, deadline - time.monotonic()))
             if t.is_alive():
                 self.log.error("worker %s did not stop within %.0f s (does its loop check stop_event?)",
                                t.name, JOIN_TIMEOUT_S)
@@ -744,8 +745,19 @@ def freeze_startup_objects() -> None:
 def service_main(name: str, add_arguments: Callable | None, body: Callable, argv=None, *,
                  module: str | None = None) -> None:
     """Parse flags, run the node, ``sys.exit`` with its code. ``name``: the default instance name (``--name``);
-    ``module``: see :func:`build_parser`. ``argv`` defaults to ``sys.argv[1:]``."""
-    sys.exit(main(name, add_arguments, body, argv, freeze_gc=True, module=module))
+    ``module``: see :func:`build_parser`. ``argv`` defaults to ``sys.argv[1:]``. A worker still running after the
+    shutdown (stuck in a call that ignores ``stop_event``; ``Node._shutdown`` has logged it and set exit code 1)
+    would keep the interpreter waiting for it forever: the process then exits without waiting."""
+    code = main(name, add_arguments, body, argv, freeze_gc=True, module=module)
+    stuck = [t.name for t in threading.enumerate() if t.is_alive() and not t.daemon and t is not threading.main_thread()]
+    if stuck:
+        logging.getLogger(f"eonav.service.{name}").error("exiting without waiting for threads still running: %s",
+                                                         ", ".join(stuck))
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code or EXIT_ERROR)
+    sys.exit(code)
 
 
 def main(name: str, add_arguments: Callable | None, body: Callable, argv=None, freeze_gc: bool = False,
