@@ -685,6 +685,34 @@ def test_range_pair_never_puts_a_map_older_than_the_last_one_put():
     assert node.counters()["dropped.out_of_order"] == 1 and gate.last_published_us("nose") == t - 50_000
 
 
+def test_range_pair_at_a_scale_publishes_the_reference_frames_pose_and_the_partners_stamp():
+    """A pair located at --scale 0.75 of a 16 x 12 (non-square) camera: locate gets both frames at 12 x 9, and the
+    map is put with the reference frame's pose (a, 2 m north: not the partner's, 2 m behind), the partner's seq and
+    stamp (100 ms before a's), scale 0.75, the scaled camera (fx 16 x 0.75 = 12, pixel centres kept:
+    cx (7.5 + 0.5) x 0.75 - 0.5 = 5.5, cy (5.5 + 0.5) x 0.75 - 0.5 = 4) and the frame's size as width 16, height 12
+    (the obstacle service maps the map's pixels back to the frame with them)."""
+    from eonav.services.locator import range_pair
+    node, session, pubs, cams, pair = _pair_harness()
+    shapes = []
+
+    def working(va, vb, **kw):
+        shapes.append((va.image.shape, vb.image.shape, va.camera.width, vb.camera.width))
+        return _range_result(shape=(9, 12))
+    t = time.time_ns() // 1000
+    errors, compute_s = range_pair(node, pair(t, seq=7), pubs, "dense", {}, 0.75, "f16", 0, time.perf_counter(), cams,
+                                   working)
+    assert errors == 0 and compute_s is not None and shapes == [((9, 12), (9, 12), 12, 12)]
+    (_, payload), = session.puts
+    m = schema.decode(payload, expect="range_map")
+    assert (m["seq"], m["stamp_us"], m["other_seq"], m["other_stamp_us"]) == (7, t, 6, t - 100_000)
+    assert m["position_ned_m"].tolist() == [2.0, 0.0, -5.0] and m["baseline_m"] == 2.0
+    assert m["scale"] == 0.75 and m["range_m"].shape == (9, 12)
+    c = m["camera"]
+    assert (c["width"], c["height"], c["fx"], c["fy"], c["cx"], c["cy"]) == (12, 9, 12.0, 12.0, 5.5, 4.0)
+    assert (m["frame_width"], m["frame_height"]) == (16, 12)
+    assert node.counters()["pairs_computed.scale_75"] == 1
+
+
 # ---- fuse_frame in process: the fused path's publish gate, its count, and the reset after a failed push ----------
 
 class OneMapPerFrame:
