@@ -713,6 +713,26 @@ def test_range_pair_at_a_scale_publishes_the_reference_frames_pose_and_the_partn
     assert node.counters()["pairs_computed.scale_75"] == 1
 
 
+def test_drain_latest_marks_only_each_cameras_last_frame_as_newest():
+    """Latest frame wins: of a drained batch (the frame just received, then all waiting in the ring, in arrival
+    order) only the last frame of each camera (key) is ranged; earlier ones of the same camera are partners only. The
+    order is kept."""
+    from types import SimpleNamespace
+
+    from eonav.services.locator import drain_latest
+
+    def smp(cam, seq):
+        return SimpleNamespace(key_expr=K.posed_frame("v", cam), seq=seq)
+    waiting = [smp("right", 1), smp("nose", 2), smp("nose", 3), smp("right", 2)]
+    sub = SimpleNamespace(try_recv=lambda: waiting.pop(0) if waiting else None)
+    out = drain_latest(smp("nose", 1), sub)
+    assert [(str(s.key_expr).split("/")[-2], s.seq, n) for s, n in out] == [
+        ("nose", 1, False), ("right", 1, False), ("nose", 2, False), ("nose", 3, True), ("right", 2, True)]
+    assert waiting == []
+    (s, n), = drain_latest(smp("nose", 9), sub)          # nothing waiting: the frame itself is the newest
+    assert s.seq == 9 and n is True
+
+
 # ---- fuse_frame in process: the fused path's publish gate, its count, and the reset after a failed push ----------
 
 class OneMapPerFrame:
