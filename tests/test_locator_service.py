@@ -337,6 +337,40 @@ def test_warm_up_times_every_rung_on_a_synthetic_partner_and_calibrates(flight_f
     assert counted == {"warmup_errors": 1} and c2.scale == 1.0 and len(calls) == 1
 
 
+def test_warm_up_hands_its_timings_to_the_controller_which_starts_at_the_rung_that_fits(monkeypatch):
+    """A successful warm-up calibrates the camera's controller: with a 40 ms budget and locate timed at 65 ms at
+    full scale and 20 ms at 0.5 (a clock advanced by the stand-in locate: 5 ms a call and 0.25 us a pixel of the
+    480 x 500 frame), the camera starts at 0.5 with the calibrated cost ratio 65 / 20 = 3.25 (not the area's 4), and
+    the warm-up's time is recorded (health latency ``warmup``), no error counted."""
+    from types import SimpleNamespace
+
+    from eonav.bus.node import Node
+    from eonav.geometry.camera import Camera
+    from eonav.ranging.scale_control import ScaleController
+    from eonav.services import locator
+    clock = {"s": 100.0}
+    monkeypatch.setattr(locator, "time", SimpleNamespace(perf_counter=lambda: clock["s"], thread_time=time.thread_time))
+    timed = []
+
+    def area_cost(va, vb, method, **kw):
+        timed.append(va.image.shape)
+        clock["s"] += 0.005 + 0.25e-6 * va.image.size
+        return _range_result(va.image.shape)
+    node = Node("locator", SimpleNamespace(vehicle="v", input_grace_s=10.0, health_period_s=1.0), RecordingSession())
+    cams = locator.CameraCache(1.0)
+    img = np.zeros((500, 480), np.uint8)
+    f = locator.frame_info(schema.decode(schema.encode(
+        "posed_frame", camera_id="nose", seq=1, stamp_us=1_000_000, encoding="mono8", image=img,
+        camera=schema.camera_to_msg(Camera("nose", 480, 500, 400.0, 400.0, 239.5, 249.5)),
+        position_ned_m=[0.0, 0.0, -5.0], q_wxyz=[1.0, 0.0, 0.0, 0.0]), expect="posed_frame"), cams)
+    c = ScaleController(budget_s=0.04)
+    locator.warm_up_camera(node, f, c, "dense", {}, cams, area_cost)
+    assert timed == [(250, 240), (250, 240), (500, 480)]     # the untimed first call at the lowest rung, then each
+    assert c.scale == 0.5 and c.ratio(1.0, 0.5) == pytest.approx(3.25)
+    assert "warmup_errors" not in node.counters()
+    assert node.health_fields()["latency_ms"]["warmup"]["n"] == 1
+
+
 def test_half_scale_maps_on_the_locate_grid_feed_the_obstacle_service(flight_frames):
     """--scale 0.5 (default --publish-grid locate): the range map is 128 x 128 with the scaled camera in the message
     and the frame size beside it, accurate against the truth sampled at its pixel centres; the obstacle service
