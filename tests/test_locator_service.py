@@ -767,6 +767,53 @@ def test_drain_latest_marks_only_each_cameras_last_frame_as_newest():
     assert s.seq == 9 and n is True
 
 
+def test_locate_loop_counts_skipped_frames_and_a_restarted_cameras_seq_jump(monkeypatch):
+    """The single-pair loop (fusion off) in process with a stand-in locate, frames arriving one at a time: seq 0
+    (first frame: no pair), 1 (pair with 0), 4 (pair with 1; the ring dropped 2 and 3: frames_skipped 2, not 3), then
+    0 again with a newer stamp (a restarted camera: seq_jumps 1, a seq going back is no gap). Every decision of the
+    pair policy is counted (pairs.<reason>, skipped.<reason>) and each pair's map is put with its partner's seq."""
+    from types import SimpleNamespace
+
+    import eonav.ranging.locate
+    from eonav.geometry.camera import Camera
+    from eonav.ranging.pair_policy import PairPolicy, PairPolicyConfig
+    from eonav.services.locator import locate_loop
+    node, session, pubs, cams, _ = _pair_harness()
+    monkeypatch.setattr(eonav.ranging.locate, "locate", lambda va, vb, **kw: _range_result())
+    img = (np.arange(12 * 16).reshape(12, 16) % 251).astype(np.uint8)
+    cam = schema.camera_to_msg(Camera("nose", 16, 12, 16.0, 16.0, 7.5, 5.5))
+    t = time.time_ns() // 1000
+    samples = []
+    for k, seq in enumerate((0, 1, 4, 0)):
+        payload = schema.encode("posed_frame", camera_id="nose", seq=seq, stamp_us=t - 400_000 + 100_000 * k,
+                                encoding="mono8", image=img, camera=cam, position_ned_m=[2.0 * k, 0.0, -5.0],
+                                q_wxyz=[1.0, 0.0, 0.0, 0.0])
+        samples.append(SimpleNamespace(key_expr=K.posed_frame("v", "nose"),
+                                       payload=SimpleNamespace(to_bytes=lambda p=payload: p)))
+    policy = PairPolicy(PairPolicyConfig(min_baseline_m=1.0))
+    locate_loop(node, _OneAtATime(samples), policy, "dense", {})
+    c = node.counters()
+    assert c["frames_skipped"] == 2 and c["seq_jumps"] == 1
+    assert c["pairs.first_frame"] == c["skipped.first_frame"] == 1 and c.get("frames_superseded", 0) == 0
+    put = [schema.decode(p, expect="range_map") for _, p in session.puts]
+    # (the restarted camera's frame pairs with the last one before the restart: 100 ms and 2 m apart)
+    assert [(m["seq"], m["other_seq"]) for m in put] == [(1, 0), (4, 1), (0, 4)]
+    assert c["pairs.motion"] == c["pairs_computed.motion"] == c["pairs_computed"] == 3 and c["skipped"] == 1
+
+
+class _OneAtATime:
+    """A subscriber whose samples arrive one at a time (nothing waits in the ring behind the one received)."""
+
+    def __init__(self, samples):
+        self.samples = list(samples)
+
+    def __iter__(self):
+        return iter(self.samples)
+
+    def try_recv(self):
+        return None
+
+
 # ---- fuse_frame in process: the fused path's publish gate, its count, and the reset after a failed push ----------
 
 class OneMapPerFrame:
