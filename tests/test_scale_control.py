@@ -458,3 +458,17 @@ def test_a_step_up_by_the_rule_pushed_off_makes_the_next_one_wait_too():
     waits = [u - d for d, u in zip(downs, ups)]
     assert waits == pytest.approx([1.17, 10.0, 20.0, 40.0], abs=0.2)
     assert c.ups_failed == 4 and len(downs) == 5 and c.scale == 0.5
+
+
+def test_a_step_up_learns_the_ratio_of_the_upper_rungs_cost_to_the_lower_ones():
+    """The cost ratio of two rungs is learnt at every change between them, up as well as down: 1.0 at 50 ms steps
+    down (budget 40 ms) and learns 50 / 12.5 = 4 from the first pair at 0.5; 0.5 at 5 ms then predicts 20 ms < 28 ms
+    at full scale and steps up; the first pair there costs 15 ms: the ratio is now 15 / 5 = 3 (the upper rung's cost
+    over the lower one's), and the prediction at 0.5 from full scale 15 / 3 = 5 ms."""
+    c = ScaleController(window=1, min_samples=1, up_after=1)
+    feed_frames(c, 10)                                         # 15 fps: budget 40 ms
+    assert [(x.old, x.new) for x in run(c, {1.0: 0.050, 0.5: 0.0125}, 2)] == [(1.0, 0.5)]
+    assert c.ratio(1.0, 0.5) == pytest.approx(4.0)
+    assert [(x.old, x.new) for x in run(c, {1.0: 0.015, 0.5: 0.005}, 2)] == [(0.5, 1.0)]
+    assert c.ratio(1.0, 0.5) == pytest.approx(3.0)
+    assert c.predicted_s(0.5) == pytest.approx(0.005)
