@@ -472,3 +472,16 @@ def test_a_step_up_learns_the_ratio_of_the_upper_rungs_cost_to_the_lower_ones():
     assert [(x.old, x.new) for x in run(c, {1.0: 0.015, 0.5: 0.005}, 2)] == [(0.5, 1.0)]
     assert c.ratio(1.0, 0.5) == pytest.approx(3.0)
     assert c.predicted_s(0.5) == pytest.approx(0.005)
+
+
+def test_a_replay_restart_restarts_the_wait_before_a_probe():
+    """A replay restarted (frame stamps back at the start) while the controller waits at 0.3 below a rung it held:
+    the wait restarts with the stamps, and the probe comes probe_s (5 s) of frame time after the restart, not 5 s
+    after the step down measured on the stamps of before the restart (here 16.1 s: 15.1 s into the restarted replay)."""
+    c = half_controller()
+    _, t = stream(c, 10.0, cost_half, age_half, 1_000_000)     # 0.5 held
+    ch, t = stream(c, 2.0, cost_half, lambda s: 0.040, t)       # a burst: down to 0.3 at 11.1 s (4 late of 30)
+    assert [x[:3] for x in ch] == [(0.5, 0.3, False)] and ch[0][3] == pytest.approx(11.1, abs=0.05)
+    ch, _ = stream(c, 30.0, cost_half, age_half, 1_000_000)     # the replay restarts at 1 s, without the load
+    assert [x[:3] for x in ch] == [(0.3, 0.5, True)]
+    assert ch[0][3] == pytest.approx(1.0 + 5.0, abs=0.1)
