@@ -485,3 +485,23 @@ def test_a_replay_restart_restarts_the_wait_before_a_probe():
     ch, _ = stream(c, 30.0, cost_half, age_half, 1_000_000)     # the replay restarts at 1 s, without the load
     assert [x[:3] for x in ch] == [(0.3, 0.5, True)]
     assert ch[0][3] == pytest.approx(1.0 + 5.0, abs=0.1)
+
+
+def test_a_step_up_that_holds_lets_the_next_step_up_by_the_rule_come_without_a_wait():
+    """Only a step up pushed off before it held makes the next one wait: here full scale's maps first take 60 ms
+    (the rule's step up after the first step down, 1.17 s, is pushed off; the next waits 10 s), then, from 5 s on,
+    20 ms: that step up holds. A later burst steps down again; once it is over the rule steps up after a window of maps and
+    up_after pairs (~1.17 s) as at the start, not after the 5 s wait of a blocked one."""
+    c = ScaleController(budget_s=0.04, latency_target_s=0.05)
+    cost = lambda s: {1.0: 0.020, 0.5: 0.005}[s]
+    ch, t = stream(c, 5.0, cost, lambda s: {1.0: 0.060, 0.5: 0.008}[s], 1_000_000)
+    ch2, t = stream(c, 17.0, cost, lambda s: {1.0: 0.020, 0.5: 0.008}[s], t)
+    ch += ch2
+    assert [x[:2] for x in ch] == [(1.0, 0.5), (0.5, 1.0), (1.0, 0.5), (0.5, 1.0)] and c.ups_failed == 1
+    assert ch[3][3] - ch[2][3] == pytest.approx(10.0, abs=0.2) and c.scale == 1.0
+    ch, t = stream(c, 1.0, cost, lambda s: {1.0: 0.060, 0.5: 0.008}[s], t)     # a burst: down
+    assert [x[:2] for x in ch] == [(1.0, 0.5)]
+    down = ch[0][3]
+    ch, t = stream(c, 10.0, cost, lambda s: {1.0: 0.020, 0.5: 0.008}[s], t)
+    assert [x[:3] for x in ch] == [(0.5, 1.0, False)]
+    assert ch[0][3] - down == pytest.approx(1.17, abs=0.2) and c.ups_failed == 1
