@@ -146,6 +146,36 @@ def test_publish_time_is_the_log_time_when_the_sample_has_none(tmp_path):
                    (b'{"alive": true}', 7_000_000_000, 7_000_000_000)]
 
 
+def test_a_recording_cut_short_replays_the_messages_before_the_cut(tmp_path):
+    """A recorder killed mid-write (SIGKILL, power lost) leaves a file with no summary and a torn last chunk: the
+    replay reads it front to back and gives every message of the chunks written whole, in order, and its keys (so
+    the service starts instead of failing). Which messages those are comes from the intact file's chunk index (a
+    message every 1 ms of log time, 16 KiB chunks of 2 kB messages)."""
+    from eonav.recording.replayer import recorded_keys
+    rng = np.random.default_rng(3)
+    full = tmp_path / "full.mcap"
+    rec = Recorder(RecordingWriter(full, chunk_bytes=16 * 1024))
+    sent = []
+    for i in range(50):
+        payload = rng.bytes(2000)
+        rec.record("eonav/cut/k", "application/octet-stream", payload, i * 1_000_000)
+        sent.append(("eonav/cut/k", "application/octet-stream", payload, None))
+    rec.close()
+    data = full.read_bytes()
+    cut = len(data) // 2
+    with open(full, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    whole = [c for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
+    n_whole = max(c.message_end_time for c in whole) // 1_000_000 + 1          # messages 0 .. end time in ms
+    assert 5 <= n_whole < 50
+    short = tmp_path / "short.mcap"
+    short.write_bytes(data[:cut])
+    got = raw_from(short)
+    assert len(got) >= n_whole and got == sent[:len(got)]
+    assert recorded_keys([short]) == [("eonav/cut/k", "application/octet-stream")]
+
+
+
 # --------------------------------------------------------------------------------------------------
 # Foxglove channels
 
