@@ -175,6 +175,19 @@ def test_a_recording_cut_short_replays_the_messages_before_the_cut(tmp_path):
     assert recorded_keys([short]) == [("eonav/cut/k", "application/octet-stream")]
 
 
+def test_replay_reads_in_file_order_when_the_clock_stepped_back(tmp_path):
+    """The replay puts messages in the order the recorder received them (file order), not sorted by log time: the
+    host clock stepped back 0.9 s mid-recording (NTP or GPS time set after boot) must not move the later messages
+    before the earlier ones."""
+    path = tmp_path / "step.mcap"
+    rec = Recorder(RecordingWriter(path))
+    log_s = [10.0, 10.1, 10.2, 9.3, 9.4]
+    for i, t in enumerate(log_s):
+        rec.record("eonav/step/k", "text/plain", b"msg-%d" % i, int(t * 1e9))
+    rec.close()
+    assert [r.payload for r in read_records([path])] == [b"msg-0", b"msg-1", b"msg-2", b"msg-3", b"msg-4"]
+
+
 
 # --------------------------------------------------------------------------------------------------
 # Foxglove channels
