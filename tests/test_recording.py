@@ -188,6 +188,24 @@ def test_replay_reads_in_file_order_when_the_clock_stepped_back(tmp_path):
     assert [r.payload for r in read_records([path])] == [b"msg-0", b"msg-1", b"msg-2", b"msg-3", b"msg-4"]
 
 
+def test_one_key_with_two_encodings_is_two_channels(tmp_path):
+    """A raw channel is one key AND one zenoh encoding: a key whose publisher switches from msgpack to JSON is
+    recorded on two channels, each with its own ``zenoh.encoding``, and every sample is replayed with the encoding
+    it was sent with."""
+    path = tmp_path / "enc.mcap"
+    rec = Recorder(RecordingWriter(path))
+    nav = schema.encode("nav_state", stamp_us=1_000_000, position_ned_m=[1.0, 2.0, 3.0], q_wxyz=[1.0, 0.0, 0.0, 0.0])
+    sent = [("eonav/enc/k", MSGPACK, nav, None), ("eonav/enc/k", "application/json", b'{"a": 1}', None),
+            ("eonav/enc/k", MSGPACK, nav, None)]
+    for i, (key, enc, payload, _) in enumerate(sent):
+        rec.record(key, enc, payload, (i + 1) * 1_000_000_000)
+    rec.close()
+    assert raw_messages(path) == sent
+    with open(path, "rb") as f:
+        raw = [c for c in make_reader(f).get_summary().channels.values() if c.metadata.get("eonav.role") == "raw"]
+    assert sorted((c.message_encoding, c.metadata["zenoh.encoding"]) for c in raw) == [
+        ("json", "application/json"), ("msgpack", MSGPACK)]
+
 
 # --------------------------------------------------------------------------------------------------
 # Foxglove channels
