@@ -413,8 +413,18 @@ def test_camera_mount_transform_points_the_optical_axis_where_the_camera_looks(t
     assert [mount.translation.x, mount.translation.y, mount.translation.z] == pytest.approx([0.5, 0.2, -0.1])
 
 
-# --------------------------------------------------------------------------------------------------
-# rotation
+def test_range_picture_and_frame_share_the_frame_of_their_calibration(tmp_path):
+    """Foxglove projects an image with the CameraCalibration of the same frame_id: the range picture is on the
+    camera's own pixel grid, so it (like the camera image) is in cam_<id>_optical, the calibration's frame, not in
+    cam_<id> (whose x axis is the optical axis)."""
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    d = decoded(path)
+    cal = d["/camera/nose/calibration"][0][3]
+    assert cal.frame_id == "cam_nose_optical"
+    assert d["/range/nose/image"][0][3].frame_id == cal.frame_id
+    assert d["/camera/nose/image"][0][3].frame_id == cal.frame_id
+
 
 def write_random(path, n, log_step_ns, **kw):
     rng = np.random.default_rng(1)
