@@ -426,6 +426,20 @@ def test_range_picture_and_frame_share_the_frame_of_their_calibration(tmp_path):
     assert d["/camera/nose/image"][0][3].frame_id == cal.frame_id
 
 
+def test_calibration_projection_matrix_maps_a_point_to_its_pixel(tmp_path):
+    """CameraCalibration.P (what Foxglove projects with) takes a point of the optical frame to its pixel: the point
+    seen at pixel (u, v) = (3, 25) at x_c = 20 m of the fixture camera (fx = fy = 50, cx = 19.5, cy = 14.5) is
+    (x, y, z)_optical = (20 (3 - 19.5) / 50, 20 (25 - 14.5) / 50, 20) = (-6.6, 4.2, 20); P [x y z 1] / w = (3, 25).
+    Hand-derived from eqs. 8-9."""
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    cal = decoded(path)["/camera/nose/calibration"][0][3]
+    P = np.asarray(cal.P).reshape(3, 4)
+    uvw = P @ [-6.6, 4.2, 20.0, 1.0]
+    assert uvw[:2] / uvw[2] == pytest.approx([3.0, 25.0])
+    assert np.asarray(cal.K).reshape(3, 3) @ [-6.6, 4.2, 20.0] / 20.0 == pytest.approx([3.0, 25.0, 1.0])
+
+
 def write_random(path, n, log_step_ns, **kw):
     rng = np.random.default_rng(1)
     w = RecordingWriter(path, **kw)
