@@ -413,6 +413,14 @@ def test_camera_mount_transform_points_the_optical_axis_where_the_camera_looks(t
     assert [mount.translation.x, mount.translation.y, mount.translation.z] == pytest.approx([0.5, 0.2, -0.1])
 
 
+def record_messages(path, items, converter=None):
+    """Record (key, payload, log_time_ns, publish_time_ns) with a Foxglove converter (raw images)."""
+    rec = Recorder(RecordingWriter(path), converter or FoxgloveConverter("raw"))
+    for key, payload, log_ns, pub_ns in items:
+        rec.record(key, MSGPACK, payload, log_ns, publish_time_ns=pub_ns)
+    rec.close()
+
+
 def test_range_picture_and_frame_share_the_frame_of_their_calibration(tmp_path):
     """Foxglove projects an image with the CameraCalibration of the same frame_id: the range picture is on the
     camera's own pixel grid, so it (like the camera image) is in cam_<id>_optical, the calibration's frame, not in
@@ -438,6 +446,33 @@ def test_calibration_projection_matrix_maps_a_point_to_its_pixel(tmp_path):
     uvw = P @ [-6.6, 4.2, 20.0, 1.0]
     assert uvw[:2] / uvw[2] == pytest.approx([3.0, 25.0])
     assert np.asarray(cal.K).reshape(3, 3) @ [-6.6, 4.2, 20.0] / 20.0 == pytest.approx([3.0, 25.0, 1.0])
+
+
+def test_obstacles_gone_from_the_list_are_gone_from_the_scene(tmp_path):
+    """Each /obstacles SceneUpdate replaces the scene: an obstacle the tracker dropped must not stay drawn. Applying
+    the updates as Foxglove does (a deletion of type ALL removes every entity of the topic up to its timestamp,
+    MATCHING_ID only the one with its id; then the entities are added) leaves obstacle 7 after a list of 3 and 7
+    followed by one of 7, and nothing after an empty list."""
+    def obstacle(i, d):
+        return {"id": i, "distance_m": d, "bearing_deg": 0.0, "position_ned_m": [d, 0.0, -2.0],
+                "extent_ned_m": [1.0, 1.0, 1.0]}
+    lists = [[obstacle(3, 20.0), obstacle(7, 40.0)], [obstacle(7, 38.0)], []]
+    path = tmp_path / "obs.mcap"
+    record_messages(path, [(K.obstacles("ob"), schema.encode("obstacle_list", stamp_us=1_000_000 + 100_000 * i,
+                                                             camera_id="nose", obstacles=obs),
+                            (i + 1) * 1_000_000_000, None) for i, obs in enumerate(lists)])
+    scene, seen = {}, []
+    for *_, upd in decoded(path)["/obstacles"]:
+        for dl in upd.deletions:
+            kind = dl.DESCRIPTOR.fields_by_name["type"].enum_type.values_by_number[dl.type].name
+            t = (dl.timestamp.seconds, dl.timestamp.nanos)
+            if kind == "ALL":
+                scene = {k: e for k, e in scene.items() if (e.timestamp.seconds, e.timestamp.nanos) > t}
+            else:
+                scene.pop(dl.id, None)
+        scene.update({e.id: e for e in upd.entities})
+        seen.append(sorted(scene))
+    assert seen == [["obstacle/3", "obstacle/7"], ["obstacle/7"], []]
 
 
 def write_random(path, n, log_step_ns, **kw):
