@@ -475,6 +475,21 @@ def test_obstacles_gone_from_the_list_are_gone_from_the_scene(tmp_path):
     assert seen == [["obstacle/3", "obstacle/7"], ["obstacle/7"], []]
 
 
+def test_obstacle_cubes_are_red_when_near_and_yellow_when_far(tmp_path):
+    """Cube colour (r, g, b) = (1, g, 0) with g = (d - near) / (far - near) clamped to 0..1, near 5 m and far 150 m:
+    2 m -> 0 (red), 20.5 m -> 15.5 / 145, 60 m -> 55 / 145, 400 m -> 1 (yellow). Hand-derived."""
+    obs = [{"id": i, "distance_m": d, "bearing_deg": 0.0, "position_ned_m": [d, 0.0, 0.0], "extent_ned_m": [1, 1, 1]}
+           for i, d in enumerate([2.0, 20.5, 60.0, 400.0])]
+    path = tmp_path / "col.mcap"
+    record_messages(path, [(K.obstacles("co"), schema.encode("obstacle_list", stamp_us=1_000_000, camera_id="nose",
+                                                             obstacles=obs), 1_000_000_000, None)],
+                    FoxgloveConverter("raw", near_m=5.0, far_m=150.0))
+    upd = decoded(path)["/obstacles"][0][3]
+    col = {e.id: e.cubes[0].color for e in upd.entities}
+    got = [[col[f"obstacle/{i}"].r, col[f"obstacle/{i}"].g, col[f"obstacle/{i}"].b] for i in range(4)]
+    np.testing.assert_allclose(got, [[1, 0, 0], [1, 15.5 / 145, 0], [1, 55 / 145, 0], [1, 1, 0]], rtol=1e-6)
+
+
 def write_random(path, n, log_step_ns, **kw):
     rng = np.random.default_rng(1)
     w = RecordingWriter(path, **kw)
