@@ -490,6 +490,21 @@ def test_obstacle_cubes_are_red_when_near_and_yellow_when_far(tmp_path):
     np.testing.assert_allclose(got, [[1, 0, 0], [1, 15.5 / 145, 0], [1, 55 / 145, 0], [1, 1, 0]], rtol=1e-6)
 
 
+def test_foxglove_messages_keep_the_log_and_publish_time_of_their_sample(tmp_path):
+    """A Foxglove message made from a sample has the sample's log time and publish time (its zenoh timestamp,
+    10 ms before it was received here), not its log time twice."""
+    path = tmp_path / "pt.mcap"
+    nav = schema.encode("nav_state", stamp_us=1_000_000, position_ned_m=[1.0, 2.0, 3.0], q_wxyz=[1.0, 0.0, 0.0, 0.0])
+    record_messages(path, [(K.nav_state("pt"), nav, 5_000_000_000, 4_990_000_000)])
+    with open(path, "rb") as f:
+        got = {(c.topic, m.log_time, m.publish_time) for _, c, m in make_reader(f).iter_messages(log_time_order=False)}
+    assert got == {(K.nav_state("pt"), 5_000_000_000, 4_990_000_000), ("/pose", 5_000_000_000, 4_990_000_000),
+                   ("/tf", 5_000_000_000, 4_990_000_000)}
+
+
+# --------------------------------------------------------------------------------------------------
+# rotation
+
 def write_random(path, n, log_step_ns, **kw):
     rng = np.random.default_rng(1)
     w = RecordingWriter(path, **kw)
