@@ -628,34 +628,61 @@ def test_replay_waits_for_subscribers_before_the_first_message(tmp_path):
         assert 0 < len(got) < len(sent) and got == sent[len(sent) - len(got):]
 
 
-def test_replay_speed_factor_paces_by_log_time(tmp_path):
-    """``--speed 4``: a message recorded t seconds after the first is put t / 4 seconds after it (never earlier).
-    11 messages over 4 s of log time arrive over 1 s (4 s if the factor were ignored, 16 s if it multiplied; the
-    bound between leaves a loaded machine 1.5 s of lateness). The replay's own body on a Node of an in-process
-    session, its subscriber in the same session."""
+def replay_in_process(path, vehicle: str, speed: float) -> tuple[list, str]:
+    """Run the replay's own body on a Node of an in-process session (its subscriber in the same session) until it
+    stops; returns [(monotonic arrival time, payload)] and the node's stop reason."""
     import argparse
 
     from eonav.app.processes import free_port
     from eonav.bus.node import Node
     from eonav.bus.session import listener_session
     from eonav.recording import replayer
-    path = tmp_path / "speed.mcap"
-    sent = write_sequence(path, n=11, step_s=0.4, vehicle="sp")
-    args = argparse.Namespace(inputs=[str(path)], speed=4.0, as_fast_as_possible=False, include=None, exclude=None,
-                              as_vehicle=None, wait_for=None, wait_timeout_s=5.0, vehicle="sp")
+    args = argparse.Namespace(inputs=[str(path)], speed=speed, as_fast_as_possible=False, include=None, exclude=None,
+                              as_vehicle=None, wait_for=None, wait_timeout_s=5.0, vehicle=vehicle)
     arrivals = []
     with listener_session(free_port()) as s:
-        s.declare_subscriber("eonav/sp/data", lambda x: arrivals.append((time.monotonic(), x.payload.to_bytes())))
+        s.declare_subscriber(f"eonav/{vehicle}/data",
+                             lambda x: arrivals.append((time.monotonic(), x.payload.to_bytes())))
         node = Node("replay", args, s)
         replayer.body(node, args)
-        assert node.stop_event.wait(30) and node.stop_reason == "end of the recording (11 messages)"
+        assert node.stop_event.wait(30)
         for t in node._workers:
             t.join(5)
+    return arrivals, node.stop_reason
+
+
+def test_replay_speed_factor_paces_by_log_time(tmp_path):
+    """``--speed 4``: a message recorded t seconds after the first is put t / 4 seconds after it (never earlier).
+    11 messages over 4 s of log time arrive over 1 s (4 s if the factor were ignored, 16 s if it multiplied; the
+    bound between leaves a loaded machine 1.5 s of lateness)."""
+    path = tmp_path / "speed.mcap"
+    sent = write_sequence(path, n=11, step_s=0.4, vehicle="sp")
+    arrivals, reason = replay_in_process(path, "sp", 4.0)
+    assert reason == "end of the recording (11 messages)"
     assert [p for _, p in arrivals] == sent
     offsets = [t - arrivals[0][0] for t, _ in arrivals]
     for i, off in enumerate(offsets):
         assert off >= i * 0.4 / 4 - 0.01, (i, offsets)
     assert offsets[-1] < 2.5, offsets
+
+
+def test_replay_paces_by_log_time_not_publish_time(tmp_path):
+    """Pacing follows the log times (when the recorder received each sample), not the publish times: 6 samples
+    received 0.1 s apart that all carry one zenoh timestamp (stamped by a source that sent them in a burst, or by a
+    clock that stood still) still arrive 0.1 s apart at --speed 1, the last 0.5 s after the first."""
+    path = tmp_path / "pace.mcap"
+    rec = Recorder(RecordingWriter(path))
+    sent = [b"msg-%d" % i for i in range(6)]
+    for i, payload in enumerate(sent):
+        rec.record("eonav/pc/data", "text/plain", payload, 1_000_000_000 + i * 100_000_000, publish_time_ns=900_000_000)
+    rec.close()
+    arrivals, reason = replay_in_process(path, "pc", 1.0)
+    assert reason == "end of the recording (6 messages)"
+    assert [p for _, p in arrivals] == sent
+    offsets = [t - arrivals[0][0] for t, _ in arrivals]
+    for i, off in enumerate(offsets):
+        assert off >= i * 0.1 - 0.01, (i, offsets)
+    assert offsets[-1] < 2.0, offsets
 
 
 # --------------------------------------------------------------------------------------------------
