@@ -146,6 +146,67 @@ def test_publish_time_is_the_log_time_when_the_sample_has_none(tmp_path):
                    (b'{"alive": true}', 7_000_000_000, 7_000_000_000)]
 
 
+def test_a_recording_cut_short_replays_the_messages_before_the_cut(tmp_path):
+    """A recorder killed mid-write (SIGKILL, power lost) leaves a file with no summary and a torn last chunk: the
+    replay reads it front to back and gives every message of the chunks written whole, in order, and its keys (so
+    the service starts instead of failing). Which messages those are comes from the intact file's chunk index (a
+    message every 1 ms of log time, 16 KiB chunks of 2 kB messages)."""
+    from eonav.recording.replayer import recorded_keys
+    rng = np.random.default_rng(3)
+    full = tmp_path / "full.mcap"
+    rec = Recorder(RecordingWriter(full, chunk_bytes=16 * 1024))
+    sent = []
+    for i in range(50):
+        payload = rng.bytes(2000)
+        rec.record("eonav/cut/k", "application/octet-stream", payload, i * 1_000_000)
+        sent.append(("eonav/cut/k", "application/octet-stream", payload, None))
+    rec.close()
+    data = full.read_bytes()
+    cut = len(data) // 2
+    with open(full, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    whole = [c for c in chunks if c.chunk_start_offset + c.chunk_length <= cut]
+    n_whole = max(c.message_end_time for c in whole) // 1_000_000 + 1          # messages 0 .. end time in ms
+    assert 5 <= n_whole < 50
+    short = tmp_path / "short.mcap"
+    short.write_bytes(data[:cut])
+    got = raw_from(short)
+    assert len(got) >= n_whole and got == sent[:len(got)]
+    assert recorded_keys([short]) == [("eonav/cut/k", "application/octet-stream")]
+
+
+def test_replay_reads_in_file_order_when_the_clock_stepped_back(tmp_path):
+    """The replay puts messages in the order the recorder received them (file order), not sorted by log time: the
+    host clock stepped back 0.9 s mid-recording (NTP or GPS time set after boot) must not move the later messages
+    before the earlier ones."""
+    path = tmp_path / "step.mcap"
+    rec = Recorder(RecordingWriter(path))
+    log_s = [10.0, 10.1, 10.2, 9.3, 9.4]
+    for i, t in enumerate(log_s):
+        rec.record("eonav/step/k", "text/plain", b"msg-%d" % i, int(t * 1e9))
+    rec.close()
+    assert [r.payload for r in read_records([path])] == [b"msg-0", b"msg-1", b"msg-2", b"msg-3", b"msg-4"]
+
+
+def test_one_key_with_two_encodings_is_two_channels(tmp_path):
+    """A raw channel is one key AND one zenoh encoding: a key whose publisher switches from msgpack to JSON is
+    recorded on two channels, each with its own ``zenoh.encoding``, and every sample is replayed with the encoding
+    it was sent with."""
+    path = tmp_path / "enc.mcap"
+    rec = Recorder(RecordingWriter(path))
+    nav = schema.encode("nav_state", stamp_us=1_000_000, position_ned_m=[1.0, 2.0, 3.0], q_wxyz=[1.0, 0.0, 0.0, 0.0])
+    sent = [("eonav/enc/k", MSGPACK, nav, None), ("eonav/enc/k", "application/json", b'{"a": 1}', None),
+            ("eonav/enc/k", MSGPACK, nav, None)]
+    for i, (key, enc, payload, _) in enumerate(sent):
+        rec.record(key, enc, payload, (i + 1) * 1_000_000_000)
+    rec.close()
+    assert raw_messages(path) == sent
+    with open(path, "rb") as f:
+        raw = [c for c in make_reader(f).get_summary().channels.values() if c.metadata.get("eonav.role") == "raw"]
+    assert sorted((c.message_encoding, c.metadata["zenoh.encoding"]) for c in raw) == [
+        ("json", "application/json"), ("msgpack", MSGPACK)]
+
+
 # --------------------------------------------------------------------------------------------------
 # Foxglove channels
 
@@ -352,6 +413,95 @@ def test_camera_mount_transform_points_the_optical_axis_where_the_camera_looks(t
     assert [mount.translation.x, mount.translation.y, mount.translation.z] == pytest.approx([0.5, 0.2, -0.1])
 
 
+def record_messages(path, items, converter=None):
+    """Record (key, payload, log_time_ns, publish_time_ns) with a Foxglove converter (raw images)."""
+    rec = Recorder(RecordingWriter(path), converter or FoxgloveConverter("raw"))
+    for key, payload, log_ns, pub_ns in items:
+        rec.record(key, MSGPACK, payload, log_ns, publish_time_ns=pub_ns)
+    rec.close()
+
+
+def test_range_picture_and_frame_share_the_frame_of_their_calibration(tmp_path):
+    """Foxglove projects an image with the CameraCalibration of the same frame_id: the range picture is on the
+    camera's own pixel grid, so it (like the camera image) is in cam_<id>_optical, the calibration's frame, not in
+    cam_<id> (whose x axis is the optical axis)."""
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    d = decoded(path)
+    cal = d["/camera/nose/calibration"][0][3]
+    assert cal.frame_id == "cam_nose_optical"
+    assert d["/range/nose/image"][0][3].frame_id == cal.frame_id
+    assert d["/camera/nose/image"][0][3].frame_id == cal.frame_id
+
+
+def test_calibration_projection_matrix_maps_a_point_to_its_pixel(tmp_path):
+    """CameraCalibration.P (what Foxglove projects with) takes a point of the optical frame to its pixel: the point
+    seen at pixel (u, v) = (3, 25) at x_c = 20 m of the fixture camera (fx = fy = 50, cx = 19.5, cy = 14.5) is
+    (x, y, z)_optical = (20 (3 - 19.5) / 50, 20 (25 - 14.5) / 50, 20) = (-6.6, 4.2, 20); P [x y z 1] / w = (3, 25).
+    Hand-derived from eqs. 8-9."""
+    path = tmp_path / "fx.mcap"
+    record_fixture(path)
+    cal = decoded(path)["/camera/nose/calibration"][0][3]
+    P = np.asarray(cal.P).reshape(3, 4)
+    uvw = P @ [-6.6, 4.2, 20.0, 1.0]
+    assert uvw[:2] / uvw[2] == pytest.approx([3.0, 25.0])
+    assert np.asarray(cal.K).reshape(3, 3) @ [-6.6, 4.2, 20.0] / 20.0 == pytest.approx([3.0, 25.0, 1.0])
+
+
+def test_obstacles_gone_from_the_list_are_gone_from_the_scene(tmp_path):
+    """Each /obstacles SceneUpdate replaces the scene: an obstacle the tracker dropped must not stay drawn. Applying
+    the updates as Foxglove does (a deletion of type ALL removes every entity of the topic up to its timestamp,
+    MATCHING_ID only the one with its id; then the entities are added) leaves obstacle 7 after a list of 3 and 7
+    followed by one of 7, and nothing after an empty list."""
+    def obstacle(i, d):
+        return {"id": i, "distance_m": d, "bearing_deg": 0.0, "position_ned_m": [d, 0.0, -2.0],
+                "extent_ned_m": [1.0, 1.0, 1.0]}
+    lists = [[obstacle(3, 20.0), obstacle(7, 40.0)], [obstacle(7, 38.0)], []]
+    path = tmp_path / "obs.mcap"
+    record_messages(path, [(K.obstacles("ob"), schema.encode("obstacle_list", stamp_us=1_000_000 + 100_000 * i,
+                                                             camera_id="nose", obstacles=obs),
+                            (i + 1) * 1_000_000_000, None) for i, obs in enumerate(lists)])
+    scene, seen = {}, []
+    for *_, upd in decoded(path)["/obstacles"]:
+        for dl in upd.deletions:
+            kind = dl.DESCRIPTOR.fields_by_name["type"].enum_type.values_by_number[dl.type].name
+            t = (dl.timestamp.seconds, dl.timestamp.nanos)
+            if kind == "ALL":
+                scene = {k: e for k, e in scene.items() if (e.timestamp.seconds, e.timestamp.nanos) > t}
+            else:
+                scene.pop(dl.id, None)
+        scene.update({e.id: e for e in upd.entities})
+        seen.append(sorted(scene))
+    assert seen == [["obstacle/3", "obstacle/7"], ["obstacle/7"], []]
+
+
+def test_obstacle_cubes_are_red_when_near_and_yellow_when_far(tmp_path):
+    """Cube colour (r, g, b) = (1, g, 0) with g = (d - near) / (far - near) clamped to 0..1, near 5 m and far 150 m:
+    2 m -> 0 (red), 20.5 m -> 15.5 / 145, 60 m -> 55 / 145, 400 m -> 1 (yellow). Hand-derived."""
+    obs = [{"id": i, "distance_m": d, "bearing_deg": 0.0, "position_ned_m": [d, 0.0, 0.0], "extent_ned_m": [1, 1, 1]}
+           for i, d in enumerate([2.0, 20.5, 60.0, 400.0])]
+    path = tmp_path / "col.mcap"
+    record_messages(path, [(K.obstacles("co"), schema.encode("obstacle_list", stamp_us=1_000_000, camera_id="nose",
+                                                             obstacles=obs), 1_000_000_000, None)],
+                    FoxgloveConverter("raw", near_m=5.0, far_m=150.0))
+    upd = decoded(path)["/obstacles"][0][3]
+    col = {e.id: e.cubes[0].color for e in upd.entities}
+    got = [[col[f"obstacle/{i}"].r, col[f"obstacle/{i}"].g, col[f"obstacle/{i}"].b] for i in range(4)]
+    np.testing.assert_allclose(got, [[1, 0, 0], [1, 15.5 / 145, 0], [1, 55 / 145, 0], [1, 1, 0]], rtol=1e-6)
+
+
+def test_foxglove_messages_keep_the_log_and_publish_time_of_their_sample(tmp_path):
+    """A Foxglove message made from a sample has the sample's log time and publish time (its zenoh timestamp,
+    10 ms before it was received here), not its log time twice."""
+    path = tmp_path / "pt.mcap"
+    nav = schema.encode("nav_state", stamp_us=1_000_000, position_ned_m=[1.0, 2.0, 3.0], q_wxyz=[1.0, 0.0, 0.0, 0.0])
+    record_messages(path, [(K.nav_state("pt"), nav, 5_000_000_000, 4_990_000_000)])
+    with open(path, "rb") as f:
+        got = {(c.topic, m.log_time, m.publish_time) for _, c, m in make_reader(f).iter_messages(log_time_order=False)}
+    assert got == {(K.nav_state("pt"), 5_000_000_000, 4_990_000_000), ("/pose", 5_000_000_000, 4_990_000_000),
+                   ("/tf", 5_000_000_000, 4_990_000_000)}
+
+
 # --------------------------------------------------------------------------------------------------
 # rotation
 
@@ -478,34 +628,61 @@ def test_replay_waits_for_subscribers_before_the_first_message(tmp_path):
         assert 0 < len(got) < len(sent) and got == sent[len(sent) - len(got):]
 
 
-def test_replay_speed_factor_paces_by_log_time(tmp_path):
-    """``--speed 4``: a message recorded t seconds after the first is put t / 4 seconds after it (never earlier).
-    11 messages over 4 s of log time arrive over 1 s (4 s if the factor were ignored, 16 s if it multiplied; the
-    bound between leaves a loaded machine 1.5 s of lateness). The replay's own body on a Node of an in-process
-    session, its subscriber in the same session."""
+def replay_in_process(path, vehicle: str, speed: float) -> tuple[list, str]:
+    """Run the replay's own body on a Node of an in-process session (its subscriber in the same session) until it
+    stops; returns [(monotonic arrival time, payload)] and the node's stop reason."""
     import argparse
 
     from eonav.app.processes import free_port
     from eonav.bus.node import Node
     from eonav.bus.session import listener_session
     from eonav.recording import replayer
-    path = tmp_path / "speed.mcap"
-    sent = write_sequence(path, n=11, step_s=0.4, vehicle="sp")
-    args = argparse.Namespace(inputs=[str(path)], speed=4.0, as_fast_as_possible=False, include=None, exclude=None,
-                              as_vehicle=None, wait_for=None, wait_timeout_s=5.0, vehicle="sp")
+    args = argparse.Namespace(inputs=[str(path)], speed=speed, as_fast_as_possible=False, include=None, exclude=None,
+                              as_vehicle=None, wait_for=None, wait_timeout_s=5.0, vehicle=vehicle)
     arrivals = []
     with listener_session(free_port()) as s:
-        s.declare_subscriber("eonav/sp/data", lambda x: arrivals.append((time.monotonic(), x.payload.to_bytes())))
+        s.declare_subscriber(f"eonav/{vehicle}/data",
+                             lambda x: arrivals.append((time.monotonic(), x.payload.to_bytes())))
         node = Node("replay", args, s)
         replayer.body(node, args)
-        assert node.stop_event.wait(30) and node.stop_reason == "end of the recording (11 messages)"
+        assert node.stop_event.wait(30)
         for t in node._workers:
             t.join(5)
+    return arrivals, node.stop_reason
+
+
+def test_replay_speed_factor_paces_by_log_time(tmp_path):
+    """``--speed 4``: a message recorded t seconds after the first is put t / 4 seconds after it (never earlier).
+    11 messages over 4 s of log time arrive over 1 s (4 s if the factor were ignored, 16 s if it multiplied; the
+    bound between leaves a loaded machine 1.5 s of lateness)."""
+    path = tmp_path / "speed.mcap"
+    sent = write_sequence(path, n=11, step_s=0.4, vehicle="sp")
+    arrivals, reason = replay_in_process(path, "sp", 4.0)
+    assert reason == "end of the recording (11 messages)"
     assert [p for _, p in arrivals] == sent
     offsets = [t - arrivals[0][0] for t, _ in arrivals]
     for i, off in enumerate(offsets):
         assert off >= i * 0.4 / 4 - 0.01, (i, offsets)
     assert offsets[-1] < 2.5, offsets
+
+
+def test_replay_paces_by_log_time_not_publish_time(tmp_path):
+    """Pacing follows the log times (when the recorder received each sample), not the publish times: 6 samples
+    received 0.1 s apart that all carry one zenoh timestamp (stamped by a source that sent them in a burst, or by a
+    clock that stood still) still arrive 0.1 s apart at --speed 1, the last 0.5 s after the first."""
+    path = tmp_path / "pace.mcap"
+    rec = Recorder(RecordingWriter(path))
+    sent = [b"msg-%d" % i for i in range(6)]
+    for i, payload in enumerate(sent):
+        rec.record("eonav/pc/data", "text/plain", payload, 1_000_000_000 + i * 100_000_000, publish_time_ns=900_000_000)
+    rec.close()
+    arrivals, reason = replay_in_process(path, "pc", 1.0)
+    assert reason == "end of the recording (6 messages)"
+    assert [p for _, p in arrivals] == sent
+    offsets = [t - arrivals[0][0] for t, _ in arrivals]
+    for i, off in enumerate(offsets):
+        assert off >= i * 0.1 - 0.01, (i, offsets)
+    assert offsets[-1] < 2.0, offsets
 
 
 # --------------------------------------------------------------------------------------------------

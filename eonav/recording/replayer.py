@@ -64,6 +64,18 @@ def _open_reader(path: Path):
     return f, reader
 
 
+def _in_file_order(f, reader):
+    """(schema, channel, message) of a file in file order. A file without a readable footer (a recorder killed
+    mid-write) is read front to back: its index is what is missing, not its first chunks."""
+    from mcap.reader import NonSeekingReader
+    try:
+        reader.get_summary()
+    except Exception:
+        f.seek(0)
+        reader = NonSeekingReader(f)
+    return reader.iter_messages(log_time_order=False)
+
+
 def read_records(paths, include=None, exclude=DEFAULT_EXCLUDE, as_vehicle: str | None = None):
     """Yield the raw :class:`Record` s of ``paths`` in file order (files in the order given)."""
     import zenoh
@@ -74,7 +86,7 @@ def read_records(paths, include=None, exclude=DEFAULT_EXCLUDE, as_vehicle: str |
         with f:
             pending: dict[tuple, bytes] = {}
             try:
-                for _schema, channel, message in reader.iter_messages(log_time_order=False):
+                for _schema, channel, message in _in_file_order(f, reader):
                     role = channel.metadata.get(ROLE)
                     if role == "attachment":
                         pending[(channel.metadata.get("eonav.attachment_for"), message.sequence)] = message.data
@@ -104,7 +116,8 @@ def rewrite_vehicle(key: str, vehicle: str) -> str:
 
 
 def recorded_keys(paths, **kw) -> list[tuple[str, str]]:
-    """(key, encoding) of every raw channel that would be replayed, from the files' summaries (no message read)."""
+    """(key, encoding) of every raw channel that would be replayed, from the files' summaries (no message read;
+    a file without one, cut short, is read)."""
     import zenoh
     inc = [zenoh.KeyExpr(e) for e in (kw.get("include") or [])]
     exc = [zenoh.KeyExpr(e) for e in (kw.get("exclude", DEFAULT_EXCLUDE) or [])]
@@ -112,9 +125,17 @@ def recorded_keys(paths, **kw) -> list[tuple[str, str]]:
     for path in map(Path, paths):
         f, reader = _open_reader(path)
         with f:
-            summary = reader.get_summary()
-            channels = summary.channels.values() if summary is not None else []
-            for ch in channels:
+            try:
+                summary = reader.get_summary()
+            except Exception:
+                summary = None
+            if summary is None:     # no summary (a file cut short): the keys of the messages that can be read
+                for rec in read_records([path], include=kw.get("include"), exclude=kw.get("exclude", DEFAULT_EXCLUDE),
+                                        as_vehicle=kw.get("as_vehicle")):
+                    if (rec.key, rec.encoding) not in out:
+                        out.append((rec.key, rec.encoding))
+                continue
+            for ch in summary.channels.values():
                 if ch.metadata.get(ROLE) != "raw" or ch.topic.endswith(ATTACHMENT_SUFFIX):
                     continue
                 ke = zenoh.KeyExpr(ch.topic)
