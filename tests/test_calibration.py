@@ -264,6 +264,31 @@ def test_mount_from_T_cam_imu_rejects_a_mirrored_rotation():
         mount_from_T_cam_imu(T)
 
 
+def test_mount_from_T_cam_imu_rejects_a_transposed_matrix():
+    """A T_cam_imu written column-major (transposed) has the translation in its last row and a rotation block that
+    is still a proper rotation (R^T): only the last-row check tells it from a camera at the IMU origin with the
+    inverse attitude, so it must be refused, not turned into a mount 0.32 m and 126 deg off."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_CAM0_IMU, -R_CAM0_IMU @ L_CAM0_BODY
+    with pytest.raises(InputError, match=r"T_cam_imu: expected a 4 x 4 rigid transform with last row \[0, 0, 0, 1\]"):
+        mount_from_T_cam_imu(T.T)
+
+
+def test_mount_from_T_cam_imu_rotation_tolerance_both_sides():
+    """Kalibr prints T_cam_imu to ~1e-7 and that rounding is no error: the mount is the exact one to 1e-6. A block
+    stretched by 1e-4 (R R^T off I by 2e-4: lengths change, no rigid motion does that) is refused, not taken as
+    the nearest rotation."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_CAM0_IMU, -R_CAM0_IMU @ L_CAM0_BODY
+    l_m, eps = mount_from_T_cam_imu(np.round(T, 7))
+    np.testing.assert_allclose(l_m, L_CAM0_BODY, atol=1e-6)
+    np.testing.assert_allclose(np.rad2deg(eps), [0.0, -5.0, 0.0], atol=1e-4)
+    stretched = T.copy()
+    stretched[:3, :3] *= 1.0 + 1e-4
+    with pytest.raises(InputError, match="not a proper rotation"):
+        mount_from_T_cam_imu(stretched)
+
+
 # ---- pair file and cameras file --------------------------------------------------------------------------------
 
 PAIR = {
@@ -352,6 +377,21 @@ def test_explicit_mount_wins_over_the_kalibr_extrinsics(tmp_path):
     np.testing.assert_allclose(nose.camera.l_body_m, [7.6, 0.0, 0.6], atol=1e-12)
     np.testing.assert_allclose(np.rad2deg(nose.camera.eps_rad), [0.0, -2.0, 1.5], atol=1e-9)
     assert nose.time_offset_s == pytest.approx(-0.0123) and nose.undistort is not None
+
+
+@pytest.mark.parametrize("mount,l_m,eps_deg", [({"eps_deg": [0.0, -2.0, 1.5]}, [0.0, 0.0, 0.0], [0.0, -2.0, 1.5]),
+                                               ({"l_m": [7.6, 0.0, 0.6]}, [7.6, 0.0, 0.6], [0.0, 0.0, 0.0]),
+                                               ({}, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])])
+def test_partial_explicit_mount_wins_whole_over_the_kalibr_extrinsics(tmp_path, mount, l_m, eps_deg):
+    """docs/pair-file.md: an explicit mount wins whole; its missing parts are zero, not the file's. cam0's T_cam_imu
+    says lens at L_CAM0_BODY, 5 deg down: a mount giving only eps_deg has its lens at the body origin, one giving
+    only l_m looks along the nose, and an empty mount is all zero."""
+    (tmp_path / "camchain-imucam.yaml").write_text(kalibr_text())
+    p = tmp_path / "cameras.json"
+    p.write_text(json.dumps({"nose": {"calibration": "camchain-imucam.yaml", "mount": mount}}))
+    nose = load_camera_models(p)["nose"]
+    np.testing.assert_allclose(nose.camera.l_body_m, l_m, atol=1e-12)
+    np.testing.assert_allclose(np.rad2deg(nose.camera.eps_rad), eps_deg, atol=1e-9)
 
 
 @pytest.mark.parametrize("path,value,match", [
