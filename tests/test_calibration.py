@@ -394,6 +394,34 @@ def test_partial_explicit_mount_wins_whole_over_the_kalibr_extrinsics(tmp_path, 
     np.testing.assert_allclose(np.rad2deg(nose.camera.eps_rad), eps_deg, atol=1e-9)
 
 
+def test_calibration_entry_refuses_a_distortion_beside_it(pair_dir):
+    """The lens comes from the calibration file: an entry giving a calibration and a distortion as well (and no
+    intrinsics) is an error naming the distortion key, not a lens model silently dropped."""
+    write_opencv(pair_dir / "nose.yaml", K_of(), RADTAN)
+    doc = copy.deepcopy(PAIR)
+    cam = doc["cameras"]["nose"]
+    for k in ("width", "height", *K_VALUES):
+        del cam[k]
+    cam["calibration"] = "nose.yaml"
+    with pytest.raises(InputError, match=r"cameras.nose.distortion: the intrinsics come from the calibration file"):
+        load_pair_file(write_pair(pair_dir, doc))
+
+
+@pytest.mark.parametrize("model,coeffs,match", [
+    ("equidistant", [-0.03, 0.008, -0.002], r"coeffs: equidistant takes 4 coefficients \(k1, k2, k3, k4\), got 3"),
+    ("equidistant", [-0.03, 0.008, -0.002, 0.0004, 0.0], r"coeffs: equidistant takes 4 coefficients .*, got 5"),
+    ("radtan", [-0.21, 0.045, float("nan"), -6e-4], r"coeffs: expected finite numbers"),
+    ("equidistant", [-0.03, float("inf"), -0.002, 0.0004], r"coeffs: expected finite numbers"),
+])
+def test_distortion_coefficients_count_and_finiteness_name_the_field(pair_dir, model, coeffs, match):
+    """An equidistant lens has exactly k1..k4 (not 3, and a fifth is not passed on to cv2.fisheye); NaN and
+    Infinity (Python's JSON reads both) are errors naming cameras.nose.distortion.coeffs."""
+    doc = copy.deepcopy(PAIR)
+    doc["cameras"]["nose"]["distortion"] = {"model": model, "coeffs": coeffs}
+    with pytest.raises(InputError, match=r"cameras.nose.distortion." + match):
+        load_pair_file(write_pair(pair_dir, doc))
+
+
 @pytest.mark.parametrize("path,value,match", [
     (("cameras", "nose", "focal"), 50, r"cameras.nose.focal: unknown key; expected one of \['width'"),
     (("cameras", "nose", "mount", "tilt"), 3, r"cameras.nose.mount.tilt: unknown key"),
@@ -449,6 +477,17 @@ def test_frame_correction_rounds_the_shift_to_the_nearest_microsecond():
     assert stamp == 1_000_000 - 1800
     _, stamp = frame_correction(None, time_offset_s=-0.0047, exposure_s=0.010)(img, 1_000_000)
     assert stamp == 1_000_000 + 300
+
+
+def test_frame_correction_time_offset_is_bounded_on_both_sides():
+    """A time offset is at most 10 s either way (docs/cameras.md: a camera clock's offset, not an epoch mix-up):
+    +-10 s move the stamp by +-10 000 000 us; +-10.5 s are refused, the negative one as the positive one."""
+    img = np.zeros((H, W), np.uint8)
+    for off, shift in ((10.0, 10_000_000), (-10.0, -10_000_000)):
+        assert frame_correction(None, time_offset_s=off)(img, 20_000_000)[1] == 20_000_000 + shift
+    for off in (10.5, -10.5):
+        with pytest.raises(InputError, match=rf"time_offset_s {off!r}: expected a finite offset of at most 10 s"):
+            frame_correction(None, time_offset_s=off)
 
 
 # ---- ranging with a distorted camera ----------------------------------------------------------------------------
