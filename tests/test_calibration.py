@@ -185,6 +185,10 @@ def test_kalibr_camchain_of_one_camera_defaults_to_that_camera(tmp_path):
     ("camera_matrix: {rows: 3, cols: 3, data: [1, 0]}\ndistortion_model: plumb_bob\n", r"camera_matrix.data: expected 9"),
     ("a: [1, 2\n", "not valid YAML"),
     ("width: 3\n", "not an OpenCV"),
+    ("cam0: {camera_model: pinhole, distortion_model: radtan, distortion_coeffs: [0, 0, 0, 0], resolution: [64, 48],"
+     " intrinsics: [1" + "0" * 400 + ", 40, 31.5, 23.5]}\n", r"cam0.intrinsics: expected finite numbers, got an integer"),
+    ("camera_matrix: {data: [1" + "0" * 400 + ", 0, 32, 0, 50, 24, 0, 0, 1]}\ndistortion_model: plumb_bob\n",
+     r"camera_matrix.data: expected finite numbers, got an integer beyond the float range"),
 ])
 def test_bad_calibration_files_name_the_problem(tmp_path, text, match):
     p = tmp_path / "bad.yaml"
@@ -412,10 +416,12 @@ def test_calibration_entry_refuses_a_distortion_beside_it(pair_dir):
     ("equidistant", [-0.03, 0.008, -0.002, 0.0004, 0.0], r"coeffs: equidistant takes 4 coefficients .*, got 5"),
     ("radtan", [-0.21, 0.045, float("nan"), -6e-4], r"coeffs: expected finite numbers"),
     ("equidistant", [-0.03, float("inf"), -0.002, 0.0004], r"coeffs: expected finite numbers"),
+    ("radtan", [-0.21, 0.045, 10 ** 400, -6e-4], r"coeffs: expected finite numbers, got an integer beyond"),
 ])
 def test_distortion_coefficients_count_and_finiteness_name_the_field(pair_dir, model, coeffs, match):
-    """An equidistant lens has exactly k1..k4 (not 3, and a fifth is not passed on to cv2.fisheye); NaN and
-    Infinity (Python's JSON reads both) are errors naming cameras.nose.distortion.coeffs."""
+    """An equidistant lens has exactly k1..k4 (not 3, and a fifth is not passed on to cv2.fisheye); NaN,
+    Infinity (Python's JSON reads both) and an integer beyond the float range (JSON integers have no limit) are
+    errors naming cameras.nose.distortion.coeffs."""
     doc = copy.deepcopy(PAIR)
     doc["cameras"]["nose"]["distortion"] = {"model": model, "coeffs": coeffs}
     with pytest.raises(InputError, match=r"cameras.nose.distortion." + match):
