@@ -185,6 +185,10 @@ def test_kalibr_camchain_of_one_camera_defaults_to_that_camera(tmp_path):
     ("camera_matrix: {rows: 3, cols: 3, data: [1, 0]}\ndistortion_model: plumb_bob\n", r"camera_matrix.data: expected 9"),
     ("a: [1, 2\n", "not valid YAML"),
     ("width: 3\n", "not an OpenCV"),
+    ("cam0: {camera_model: pinhole, distortion_model: radtan, distortion_coeffs: [0, 0, 0, 0], resolution: [64, 48],"
+     " intrinsics: [1" + "0" * 400 + ", 40, 31.5, 23.5]}\n", r"cam0.intrinsics: expected finite numbers, got an integer"),
+    ("camera_matrix: {data: [1" + "0" * 400 + ", 0, 32, 0, 50, 24, 0, 0, 1]}\ndistortion_model: plumb_bob\n",
+     r"camera_matrix.data: expected finite numbers, got an integer beyond the float range"),
 ])
 def test_bad_calibration_files_name_the_problem(tmp_path, text, match):
     p = tmp_path / "bad.yaml"
@@ -262,6 +266,31 @@ def test_mount_from_T_cam_imu_rejects_a_mirrored_rotation():
     assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3)) and np.linalg.det(T[:3, :3]) == pytest.approx(-1.0)
     with pytest.raises(InputError, match="not a proper rotation"):
         mount_from_T_cam_imu(T)
+
+
+def test_mount_from_T_cam_imu_rejects_a_transposed_matrix():
+    """A T_cam_imu written column-major (transposed) has the translation in its last row and a rotation block that
+    is still a proper rotation (R^T): only the last-row check tells it from a camera at the IMU origin with the
+    inverse attitude, so it must be refused, not turned into a mount 0.32 m and 126 deg off."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_CAM0_IMU, -R_CAM0_IMU @ L_CAM0_BODY
+    with pytest.raises(InputError, match=r"T_cam_imu: expected a 4 x 4 rigid transform with last row \[0, 0, 0, 1\]"):
+        mount_from_T_cam_imu(T.T)
+
+
+def test_mount_from_T_cam_imu_rotation_tolerance_both_sides():
+    """Kalibr prints T_cam_imu to ~1e-7 and that rounding is no error: the mount is the exact one to 1e-6. A block
+    stretched by 1e-4 (R R^T off I by 2e-4: lengths change, no rigid motion does that) is refused, not taken as
+    the nearest rotation."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_CAM0_IMU, -R_CAM0_IMU @ L_CAM0_BODY
+    l_m, eps = mount_from_T_cam_imu(np.round(T, 7))
+    np.testing.assert_allclose(l_m, L_CAM0_BODY, atol=1e-6)
+    np.testing.assert_allclose(np.rad2deg(eps), [0.0, -5.0, 0.0], atol=1e-4)
+    stretched = T.copy()
+    stretched[:3, :3] *= 1.0 + 1e-4
+    with pytest.raises(InputError, match="not a proper rotation"):
+        mount_from_T_cam_imu(stretched)
 
 
 # ---- pair file and cameras file --------------------------------------------------------------------------------
@@ -354,6 +383,51 @@ def test_explicit_mount_wins_over_the_kalibr_extrinsics(tmp_path):
     assert nose.time_offset_s == pytest.approx(-0.0123) and nose.undistort is not None
 
 
+@pytest.mark.parametrize("mount,l_m,eps_deg", [({"eps_deg": [0.0, -2.0, 1.5]}, [0.0, 0.0, 0.0], [0.0, -2.0, 1.5]),
+                                               ({"l_m": [7.6, 0.0, 0.6]}, [7.6, 0.0, 0.6], [0.0, 0.0, 0.0]),
+                                               ({}, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])])
+def test_partial_explicit_mount_wins_whole_over_the_kalibr_extrinsics(tmp_path, mount, l_m, eps_deg):
+    """docs/pair-file.md: an explicit mount wins whole; its missing parts are zero, not the file's. cam0's T_cam_imu
+    says lens at L_CAM0_BODY, 5 deg down: a mount giving only eps_deg has its lens at the body origin, one giving
+    only l_m looks along the nose, and an empty mount is all zero."""
+    (tmp_path / "camchain-imucam.yaml").write_text(kalibr_text())
+    p = tmp_path / "cameras.json"
+    p.write_text(json.dumps({"nose": {"calibration": "camchain-imucam.yaml", "mount": mount}}))
+    nose = load_camera_models(p)["nose"]
+    np.testing.assert_allclose(nose.camera.l_body_m, l_m, atol=1e-12)
+    np.testing.assert_allclose(np.rad2deg(nose.camera.eps_rad), eps_deg, atol=1e-9)
+
+
+def test_calibration_entry_refuses_a_distortion_beside_it(pair_dir):
+    """The lens comes from the calibration file: an entry giving a calibration and a distortion as well (and no
+    intrinsics) is an error naming the distortion key, not a lens model silently dropped."""
+    write_opencv(pair_dir / "nose.yaml", K_of(), RADTAN)
+    doc = copy.deepcopy(PAIR)
+    cam = doc["cameras"]["nose"]
+    for k in ("width", "height", *K_VALUES):
+        del cam[k]
+    cam["calibration"] = "nose.yaml"
+    with pytest.raises(InputError, match=r"cameras.nose.distortion: the intrinsics come from the calibration file"):
+        load_pair_file(write_pair(pair_dir, doc))
+
+
+@pytest.mark.parametrize("model,coeffs,match", [
+    ("equidistant", [-0.03, 0.008, -0.002], r"coeffs: equidistant takes 4 coefficients \(k1, k2, k3, k4\), got 3"),
+    ("equidistant", [-0.03, 0.008, -0.002, 0.0004, 0.0], r"coeffs: equidistant takes 4 coefficients .*, got 5"),
+    ("radtan", [-0.21, 0.045, float("nan"), -6e-4], r"coeffs: expected finite numbers"),
+    ("equidistant", [-0.03, float("inf"), -0.002, 0.0004], r"coeffs: expected finite numbers"),
+    ("radtan", [-0.21, 0.045, 10 ** 400, -6e-4], r"coeffs: expected finite numbers, got an integer beyond"),
+])
+def test_distortion_coefficients_count_and_finiteness_name_the_field(pair_dir, model, coeffs, match):
+    """An equidistant lens has exactly k1..k4 (not 3, and a fifth is not passed on to cv2.fisheye); NaN,
+    Infinity (Python's JSON reads both) and an integer beyond the float range (JSON integers have no limit) are
+    errors naming cameras.nose.distortion.coeffs."""
+    doc = copy.deepcopy(PAIR)
+    doc["cameras"]["nose"]["distortion"] = {"model": model, "coeffs": coeffs}
+    with pytest.raises(InputError, match=r"cameras.nose.distortion." + match):
+        load_pair_file(write_pair(pair_dir, doc))
+
+
 @pytest.mark.parametrize("path,value,match", [
     (("cameras", "nose", "focal"), 50, r"cameras.nose.focal: unknown key; expected one of \['width'"),
     (("cameras", "nose", "mount", "tilt"), 3, r"cameras.nose.mount.tilt: unknown key"),
@@ -409,6 +483,17 @@ def test_frame_correction_rounds_the_shift_to_the_nearest_microsecond():
     assert stamp == 1_000_000 - 1800
     _, stamp = frame_correction(None, time_offset_s=-0.0047, exposure_s=0.010)(img, 1_000_000)
     assert stamp == 1_000_000 + 300
+
+
+def test_frame_correction_time_offset_is_bounded_on_both_sides():
+    """A time offset is at most 10 s either way (docs/cameras.md: a camera clock's offset, not an epoch mix-up):
+    +-10 s move the stamp by +-10 000 000 us; +-10.5 s are refused, the negative one as the positive one."""
+    img = np.zeros((H, W), np.uint8)
+    for off, shift in ((10.0, 10_000_000), (-10.0, -10_000_000)):
+        assert frame_correction(None, time_offset_s=off)(img, 20_000_000)[1] == 20_000_000 + shift
+    for off in (10.5, -10.5):
+        with pytest.raises(InputError, match=rf"time_offset_s {off!r}: expected a finite offset of at most 10 s"):
+            frame_correction(None, time_offset_s=off)
 
 
 # ---- ranging with a distorted camera ----------------------------------------------------------------------------

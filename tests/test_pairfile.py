@@ -144,3 +144,31 @@ def test_not_json_and_missing_file(tmp_path):
         load_pair_file(tmp_path / "bad.json")
     with pytest.raises(InputError, match="pair file not found"):
         load_pair_file(tmp_path / "none.json")
+
+
+def test_pinhole_intrinsics_keep_their_axes(pair_dir):
+    """fx is the focal length along u (image x), fy along v, cx and cy the principal point on those axes: a camera
+    with non-square pixels (fx 40, fy 36) and an off-centre principal point (cx 14.0, cy 12.5) loads with each
+    value where it was written, not swapped."""
+    doc = copy.deepcopy(DOC)
+    doc["cameras"]["nose"].update(fx=40.0, fy=36.0, cx=14.0, cy=12.5)
+    cam = load_pair_file(write(pair_dir, doc)).cameras["nose"]
+    assert (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) == (32, 24, 40.0, 36.0, 14.0, 12.5)
+
+
+def test_frame_to_dict_quaternion_is_body_to_ned(pair_dir):
+    """docs/pair-file.md: q_wxyz is the body -> NED rotation (MAVLink ATTITUDE_QUATERNION). Nose east (yaw +90 deg)
+    is +90 deg about NED down: q = [cos 45, 0, 0, +sin 45] by hand (its inverse, NED -> body, has -sin 45). The
+    written frame reads back with the attitude it was written from."""
+    from eonav.geometry.camera import VehicleState
+    from eonav.io.pairfile import frame_to_dict
+    east = VehicleState.from_ypr([1.0, 2.0, -3.0], np.deg2rad([90.0, 0.0, 0.0]), 0.25)
+    d = frame_to_dict("f2.png", "nose", east, use_quat=True)
+    s = np.sqrt(0.5)
+    np.testing.assert_allclose(d["q_wxyz"], [s, 0.0, 0.0, s], atol=1e-12)
+    assert "ypr_deg" not in d and d["t"] == 0.25 and d["position_ned_m"] == [1.0, 2.0, -3.0]
+    state = VehicleState.from_ypr([1.0, 2.0, -3.0], np.deg2rad([-30.0, 10.0, 20.0]), 0.17)
+    doc = copy.deepcopy(DOC)
+    doc["frames"][1] = frame_to_dict("f2.png", "nose", state, use_quat=True)
+    back = load_pair_file(write(pair_dir, doc)).frames[1]["state"]
+    np.testing.assert_allclose(back.T_body_ned, state.T_body_ned, atol=1e-12)

@@ -87,9 +87,13 @@ def check_distortion(model, coeffs, where: str) -> tuple:
                          f"(k1, k2, p1, p2[, k3[, k4, k5, k6 ...]]), got {n}")
     if model == "equidistant" and n != 4:
         raise InputError(f"{where}.coeffs: equidistant takes 4 coefficients (k1, k2, k3, k4), got {n}")
-    if not np.all(np.isfinite(coeffs)):
+    try:
+        values = tuple(float(x) for x in coeffs)       # (JSON integers have no limit; floats do)
+    except OverflowError:
+        raise InputError(f"{where}.coeffs: expected finite numbers, got an integer beyond the float range") from None
+    if not np.all(np.isfinite(values)):
         raise InputError(f"{where}.coeffs: expected finite numbers, got {coeffs!r}")
-    return model, tuple(float(x) for x in coeffs)
+    return model, values
 
 
 # --------------------------------------------------------------------------------------------------
@@ -127,7 +131,10 @@ def _numbers(v, n, where, exact=True) -> list:
     if (flat is None or (exact and len(flat) != n) or not all(isinstance(x, (int, float))
                                                                and not isinstance(x, bool) for x in flat)):
         raise InputError(f"{where}: expected {n if exact else 'a list of'} numbers, got {v!r}")
-    return [float(x) for x in flat]
+    try:
+        return [float(x) for x in flat]
+    except OverflowError:
+        raise InputError(f"{where}: expected finite numbers, got an integer beyond the float range") from None
 
 
 def _size(w, h, where) -> tuple:
