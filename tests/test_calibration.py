@@ -189,6 +189,13 @@ def test_kalibr_camchain_of_one_camera_defaults_to_that_camera(tmp_path):
      " intrinsics: [1" + "0" * 400 + ", 40, 31.5, 23.5]}\n", r"cam0.intrinsics: expected finite numbers, got an integer"),
     ("camera_matrix: {data: [1" + "0" * 400 + ", 0, 32, 0, 50, 24, 0, 0, 1]}\ndistortion_model: plumb_bob\n",
      r"camera_matrix.data: expected finite numbers, got an integer beyond the float range"),
+    # image sizes: the undistortion maps are built at this size before any image is read (8192 x 8192 is the most)
+    ("cam0: {camera_model: pinhole, distortion_model: radtan, distortion_coeffs: [0, 0, 0, 0], resolution: [8193, "
+     "8192], intrinsics: [40, 40, 31.5, 23.5]}\n", r"cam0.resolution: 8193 x 8192 is more than the 67108864 pixels"),
+    ("cam0: {camera_model: pinhole, distortion_model: radtan, distortion_coeffs: [0, 0, 0, 0], resolution: [1" + "0" * 400
+     + ", 48], intrinsics: [40, 40, 31.5, 23.5]}\n", r"cam0.resolution: .* is more than the 67108864 pixels"),
+    ("cam0: {camera_model: pinhole, distortion_model: radtan, distortion_coeffs: [0, 0, 0, 0], resolution: [.inf, "
+     "48], intrinsics: [40, 40, 31.5, 23.5]}\n", r"cam0.resolution: expected a positive whole image width"),
 ])
 def test_bad_calibration_files_name_the_problem(tmp_path, text, match):
     p = tmp_path / "bad.yaml"
@@ -639,3 +646,13 @@ def test_deploy_example_cameras_file_loads_and_matches_the_camera_ingest_env():
     assert nose.undistort.dist.model == "radtan" and nose.time_offset_s == pytest.approx(-0.0042)
     np.testing.assert_allclose(np.rad2deg(nose.camera.eps_rad), [0, -2, 0], atol=1e-6)   # from its T_cam_imu
     assert models["belly"].undistort.dist.model == "equidistant" and models["tail"].undistort is None
+
+
+def test_calibration_image_size_limit_on_both_sides():
+    """A calibration's image may have up to 8192 x 8192 pixels (``MAX_IMAGE_PIXELS``, the largest image eonav
+    decodes), one more row is refused before the undistortion maps are built at that size."""
+    from eonav.io.calibration import _size
+    assert _size(8192, 8192, "cam0.resolution") == (8192, 8192)
+    assert _size(8192.0, 4096, "cam0.resolution") == (8192, 4096)
+    with pytest.raises(InputError, match="8192 x 8193 is more than"):
+        _size(8192, 8193, "cam0.resolution")

@@ -22,6 +22,7 @@ one ``cv2.remap``. ``mount_from_T_cam_imu`` turns Kalibr's extrinsics into the p
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +32,7 @@ import numpy as np
 from eonav import InputError
 from eonav.geometry.camera import Camera
 from eonav.geometry.frames import T_PAPERCAM_OPTICAL, ypr_from_T_body_ned
+from eonav.io.images import MAX_IMAGE_PIXELS
 
 MODELS = ("radtan", "equidistant")
 RADTAN_LENGTHS = (4, 5, 8, 12, 14)
@@ -138,8 +140,14 @@ def _numbers(v, n, where, exact=True) -> list:
 
 
 def _size(w, h, where) -> tuple:
-    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and int(x) == x and x > 0 for x in (w, h)):
+    """A calibration's image size: positive whole numbers, at most ``MAX_IMAGE_PIXELS`` pixels in all (the largest
+    image eonav decodes; the undistortion maps are built at this size before any image is read)."""
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and (isinstance(x, int) or math.isfinite(x))
+               and int(x) == x and x > 0 for x in (w, h)):
         raise InputError(f"{where}: expected a positive whole image width and height, got {w!r} x {h!r}")
+    if int(w) * int(h) > MAX_IMAGE_PIXELS:
+        raise InputError(f"{where}: {int(w)} x {int(h)} is more than the {MAX_IMAGE_PIXELS} pixels of the largest "
+                         f"image eonav reads")
     return int(w), int(h)
 
 
