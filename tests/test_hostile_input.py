@@ -162,6 +162,59 @@ def test_camera_focal_lengths_must_be_positive():
         assert schema.decode(posed(camera=dict(CAM, **{key: 1e-3})))["camera"][key] == 1e-3
 
 
+def frame(**over):
+    doc = {"kind": "frame", "v": 1, "camera_id": "nose", "seq": 1, "stamp_us": 1_700_000_000_000_000,
+           "encoding": "mono8", "image": arr(np.zeros((3, 4), np.uint8))}
+    doc.update(over)
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def obstacle_list(**over):
+    doc = {"kind": "obstacle_list", "v": 1, "stamp_us": 1_700_000_000_000_000,
+           "obstacles": [{"range_m": 12.0, "bearing_deg": 3.0}], "position_ned_m": [0.0, 0.0, -10.0],
+           "q_wxyz": [1.0, 0.0, 0.0, 0.0]}
+    doc.update(over)
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+NAN = float("nan")
+
+
+@pytest.mark.parametrize("name,n", [("position_ned_m", 3), ("velocity_ned_mps", 3), ("rates_frd_radps", 3),
+                                    ("q_wxyz", 4)])
+def test_vectors_have_exactly_their_length_of_numbers(name, n):
+    """A position, velocity or rate is 3 numbers, an attitude 4: one more or one fewer is refused at decode (a
+    4-vector position would reach the sync's interpolation), and so is True among them (a bool is no measurement,
+    as for the integer fields); the exact length decodes to its numbers."""
+    good = [1.0] + [0.0] * (n - 1)
+    np.testing.assert_array_equal(schema.decode(nav(**{name: good}))[name], good)
+    for bad in (good[:-1], good + [0.0], [True] + good[1:]):
+        rejected(nav(**{name: bad}), rf"nav_state\.{name}: expected a list of {n} numbers", reason="field")
+
+
+def test_a_quaternion_is_unknown_only_when_all_four_are_nan():
+    """NaN = unknown holds for the whole attitude (all four NaN: a nav source without attitude): a quaternion with
+    one or three NaN components is corrupt, not unknown, and is refused where NaN is allowed (nav_state,
+    obstacle_list) as where it is not."""
+    assert np.isnan(schema.decode(nav(q_wxyz=[NAN] * 4))["q_wxyz"]).all()
+    assert np.isnan(schema.decode(obstacle_list(q_wxyz=[NAN] * 4))["q_wxyz"]).all()
+    for q in ([NAN, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, NAN], [NAN, NAN, NAN, 1.0]):
+        rejected(nav(q_wxyz=q), "nav_state.q_wxyz")
+        rejected(obstacle_list(q_wxyz=q), "obstacle_list.q_wxyz")
+        rejected(posed(q_wxyz=q), "posed_frame.q_wxyz")
+
+
+def test_a_range_map_needs_its_pose():
+    """The obstacle service places every pixel of a map in the world with the map's pose: NaN (unknown) is allowed
+    in a nav state's or an obstacle list's pose, never in a map's, where a NaN position or attitude is refused as
+    on a posed frame."""
+    for p in ([NAN, 0.0, -10.0], [NAN] * 3):
+        rejected(range_map(position_ned_m=p), "range_map.position_ned_m")
+    rejected(range_map(q_wxyz=[NAN] * 4), "range_map.q_wxyz")
+    out = schema.decode(obstacle_list(position_ned_m=[NAN] * 3, q_wxyz=[NAN] * 4))
+    assert np.isnan(out["position_ned_m"]).all() and np.isnan(out["q_wxyz"]).all()
+
+
 # -- the node: a message that still raises is that message's failure; counters bounded --------------------------
 class _Quiet:
     def __init__(self):
