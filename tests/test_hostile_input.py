@@ -215,6 +215,52 @@ def test_a_range_map_needs_its_pose():
     assert np.isnan(out["position_ned_m"]).all() and np.isnan(out["q_wxyz"]).all()
 
 
+def test_frame_image_side_limit_is_inclusive():
+    """16384 px (MAX_IMAGE_SIDE_PX) is the largest image side a frame may have, inclusive: a 1 x 16384 and a
+    16384 x 1 mono8 image decode, one pixel more on either side is refused."""
+    side = schema.MAX_IMAGE_SIDE_PX
+    for shape in ((1, side), (side, 1)):
+        assert schema.decode(frame(image=arr(np.zeros(shape, np.uint8))))["image"].shape == shape
+    for shape in ((1, side + 1), (side + 1, 1)):
+        rejected(frame(image=arr(np.zeros(shape, np.uint8))), "frame.image")
+
+
+def test_camera_side_limit_is_inclusive():
+    """A camera 16384 px wide or high (MAX_IMAGE_SIDE_PX) is valid: a range map on a 16384 x 1 and a 1 x 16384
+    camera decodes (no image to check, only the camera and its arrays); 16385 is refused naming the side."""
+    side = schema.MAX_IMAGE_SIDE_PX
+    for w, h in ((side, 1), (1, side)):
+        a = np.ones((h, w), np.float32)
+        out = schema.decode(range_map(camera=dict(CAM, width=w, height=h, cx=0.0, cy=0.0), range_m=arr(a),
+                                      confidence=arr(a), flags=arr(np.ones((h, w), np.uint8))))
+        assert (out["camera"]["width"], out["camera"]["height"]) == (w, h)
+    for key in ("width", "height"):
+        rejected(range_map(camera=dict(CAM, **{key: side + 1})), f"range_map.camera.{key}")
+
+
+def test_principal_point_limits_hold_on_both_signs():
+    """cx, cy may lie outside the image (a crop of a wider sensor), within +-4 x 16384 = 65536 px: both edges
+    decode, a pixel beyond either edge is refused, and -1e300 like 1e300."""
+    lim = 4 * schema.MAX_IMAGE_SIDE_PX
+    assert lim == 65536
+    for key in ("cx", "cy"):
+        for ok in (lim, -lim):
+            assert schema.decode(posed(camera=dict(CAM, **{key: float(ok)})))["camera"][key] == ok
+        for bad in (lim + 1.0, -lim - 1.0, -1e300):
+            rejected(posed(camera=dict(CAM, **{key: bad})), f"posed_frame.camera.{key}")
+
+
+def test_fused_count_must_be_uint8_of_the_camera_shape():
+    """n_fused (measurements per pixel of a fused map) masks the obstacle detector's pixels (min_fused): a float or
+    a wider integer count, or one of another shape (a 1 x W row would broadcast over the whole map), is refused; a
+    uint8 count of the camera's 3 x 4 shape decodes with its values."""
+    ok = schema.decode(range_map(n_fused=arr(np.full((3, 4), 2, np.uint8))))["n_fused"]
+    assert ok.dtype == np.uint8 and ok.shape == (3, 4) and (ok == 2).all()
+    for bad in (np.full((3, 4), 2, np.float32), np.full((3, 4), 2, np.uint16), np.full((1, 4), 2, np.uint8),
+                np.full((4, 3), 2, np.uint8)):
+        rejected(range_map(n_fused=arr(bad)), "range_map.n_fused")
+
+
 # -- the node: a message that still raises is that message's failure; counters bounded --------------------------
 class _Quiet:
     def __init__(self):
