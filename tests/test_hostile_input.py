@@ -3,6 +3,7 @@ still raises in a service is counted and dropped, counters stay bounded, and a f
 the time sync. The process tests put the malformed payloads that once killed the locator and the obstacle service
 on a real bus, then check that the services still range and analyse good input."""
 import contextlib
+import math
 import signal
 import time
 
@@ -259,6 +260,43 @@ def test_fused_count_must_be_uint8_of_the_camera_shape():
     for bad in (np.full((3, 4), 2, np.float32), np.full((3, 4), 2, np.uint16), np.full((1, 4), 2, np.uint8),
                 np.full((4, 3), 2, np.uint8)):
         rejected(range_map(n_fused=arr(bad)), "range_map.n_fused")
+
+
+@pytest.mark.parametrize("make", [range_map, obstacle_list])
+def test_frame_age_both_sides_of_the_limit(make):
+    """frame_age_ms is NaN (unknown) or within +-MAX_AGE_MS (2^62 us in ms, a stamp's range): a small negative age
+    (clock skew between hosts) and both edges decode; beyond either edge, -1e300 and +-inf are refused -- a reader
+    comparing the age with its limit would take a huge negative age as fresh."""
+    kind = "range_map" if make is range_map else "obstacle_list"
+    lim = schema.MAX_AGE_MS
+    assert lim == 2 ** 62 / 1000
+    assert math.isnan(schema.decode(make(frame_age_ms=NAN))["frame_age_ms"])
+    for ok in (-5.0, 0.0, lim, -lim):
+        assert schema.decode(make(frame_age_ms=ok))["frame_age_ms"] == ok
+    for bad in (lim * 1.0001, -lim * 1.0001, -1e300, float("inf"), -float("inf")):
+        rejected(make(frame_age_ms=bad), f"{kind}.frame_age_ms")
+
+
+def test_obstacle_list_holds_at_most_1024_maps():
+    """Each obstacle of a list is a map (the MAVLink output and guidance subscribers read its fields by name): a
+    list with a number, a string or a list among its items is refused; 1024 obstacles decode, 1025 are refused."""
+    one = {"range_m": 12.0, "bearing_deg": 3.0}
+    for stray in (7, "tree", [12.0, 3.0], None):
+        rejected(obstacle_list(obstacles=[one, stray]), "obstacle_list.obstacles")
+    assert len(schema.decode(obstacle_list(obstacles=[one] * 1024))["obstacles"]) == 1024
+    rejected(obstacle_list(obstacles=[one] * 1025), "obstacle_list.obstacles")
+
+
+@pytest.mark.parametrize("make,kind,field", [(range_map, "range_map", "other_stamp_us"),
+                                             (nav, "nav_state", "autopilot_time_us"),
+                                             (frame, "frame", "source_pts_us")])
+def test_unset_stamps_are_minus_one_only(make, kind, field):
+    """-1 is the one 'unset' value of the optional stamps: any other negative value is corrupt (a reader subtracting
+    it from a stamp would get an interval beyond 2^62 us) and is refused; -1, 0 and 2^62 - 1 decode."""
+    for ok in (-1, 0, 2 ** 62 - 1):
+        assert schema.decode(make(**{field: ok}))[field] == ok
+    for bad in (-2, -1_700_000_000_000_000, -2 ** 63):
+        rejected(make(**{field: bad}), f"{kind}.{field}")
 
 
 # -- the node: a message that still raises is that message's failure; counters bounded --------------------------
