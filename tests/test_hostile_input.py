@@ -3,6 +3,7 @@ still raises in a service is counted and dropped, counters stay bounded, and a f
 the time sync. The process tests put the malformed payloads that once killed the locator and the obstacle service
 on a real bus, then check that the services still range and analyse good input."""
 import contextlib
+import math
 import signal
 import time
 
@@ -160,6 +161,142 @@ def test_camera_focal_lengths_must_be_positive():
         rejected(posed(camera=dict(CAM, **{key: 0.0})), f"posed_frame.camera.{key}")
         rejected(posed(camera=dict(CAM, **{key: 0})), f"posed_frame.camera.{key}")
         assert schema.decode(posed(camera=dict(CAM, **{key: 1e-3})))["camera"][key] == 1e-3
+
+
+def frame(**over):
+    doc = {"kind": "frame", "v": 1, "camera_id": "nose", "seq": 1, "stamp_us": 1_700_000_000_000_000,
+           "encoding": "mono8", "image": arr(np.zeros((3, 4), np.uint8))}
+    doc.update(over)
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def obstacle_list(**over):
+    doc = {"kind": "obstacle_list", "v": 1, "stamp_us": 1_700_000_000_000_000,
+           "obstacles": [{"range_m": 12.0, "bearing_deg": 3.0}], "position_ned_m": [0.0, 0.0, -10.0],
+           "q_wxyz": [1.0, 0.0, 0.0, 0.0]}
+    doc.update(over)
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+NAN = float("nan")
+
+
+@pytest.mark.parametrize("name,n", [("position_ned_m", 3), ("velocity_ned_mps", 3), ("rates_frd_radps", 3),
+                                    ("q_wxyz", 4)])
+def test_vectors_have_exactly_their_length_of_numbers(name, n):
+    """A position, velocity or rate is 3 numbers, an attitude 4: one more or one fewer is refused at decode (a
+    4-vector position would reach the sync's interpolation), and so is True among them (a bool is no measurement,
+    as for the integer fields); the exact length decodes to its numbers."""
+    good = [1.0] + [0.0] * (n - 1)
+    np.testing.assert_array_equal(schema.decode(nav(**{name: good}))[name], good)
+    for bad in (good[:-1], good + [0.0], [True] + good[1:]):
+        rejected(nav(**{name: bad}), rf"nav_state\.{name}: expected a list of {n} numbers", reason="field")
+
+
+def test_a_quaternion_is_unknown_only_when_all_four_are_nan():
+    """NaN = unknown holds for the whole attitude (all four NaN: a nav source without attitude): a quaternion with
+    one or three NaN components is corrupt, not unknown, and is refused where NaN is allowed (nav_state,
+    obstacle_list) as where it is not."""
+    assert np.isnan(schema.decode(nav(q_wxyz=[NAN] * 4))["q_wxyz"]).all()
+    assert np.isnan(schema.decode(obstacle_list(q_wxyz=[NAN] * 4))["q_wxyz"]).all()
+    for q in ([NAN, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, NAN], [NAN, NAN, NAN, 1.0]):
+        rejected(nav(q_wxyz=q), "nav_state.q_wxyz")
+        rejected(obstacle_list(q_wxyz=q), "obstacle_list.q_wxyz")
+        rejected(posed(q_wxyz=q), "posed_frame.q_wxyz")
+
+
+def test_a_range_map_needs_its_pose():
+    """The obstacle service places every pixel of a map in the world with the map's pose: NaN (unknown) is allowed
+    in a nav state's or an obstacle list's pose, never in a map's, where a NaN position or attitude is refused as
+    on a posed frame."""
+    for p in ([NAN, 0.0, -10.0], [NAN] * 3):
+        rejected(range_map(position_ned_m=p), "range_map.position_ned_m")
+    rejected(range_map(q_wxyz=[NAN] * 4), "range_map.q_wxyz")
+    out = schema.decode(obstacle_list(position_ned_m=[NAN] * 3, q_wxyz=[NAN] * 4))
+    assert np.isnan(out["position_ned_m"]).all() and np.isnan(out["q_wxyz"]).all()
+
+
+def test_frame_image_side_limit_is_inclusive():
+    """16384 px (MAX_IMAGE_SIDE_PX) is the largest image side a frame may have, inclusive: a 1 x 16384 and a
+    16384 x 1 mono8 image decode, one pixel more on either side is refused."""
+    side = schema.MAX_IMAGE_SIDE_PX
+    for shape in ((1, side), (side, 1)):
+        assert schema.decode(frame(image=arr(np.zeros(shape, np.uint8))))["image"].shape == shape
+    for shape in ((1, side + 1), (side + 1, 1)):
+        rejected(frame(image=arr(np.zeros(shape, np.uint8))), "frame.image")
+
+
+def test_camera_side_limit_is_inclusive():
+    """A camera 16384 px wide or high (MAX_IMAGE_SIDE_PX) is valid: a range map on a 16384 x 1 and a 1 x 16384
+    camera decodes (no image to check, only the camera and its arrays); 16385 is refused naming the side."""
+    side = schema.MAX_IMAGE_SIDE_PX
+    for w, h in ((side, 1), (1, side)):
+        a = np.ones((h, w), np.float32)
+        out = schema.decode(range_map(camera=dict(CAM, width=w, height=h, cx=0.0, cy=0.0), range_m=arr(a),
+                                      confidence=arr(a), flags=arr(np.ones((h, w), np.uint8))))
+        assert (out["camera"]["width"], out["camera"]["height"]) == (w, h)
+    for key in ("width", "height"):
+        rejected(range_map(camera=dict(CAM, **{key: side + 1})), f"range_map.camera.{key}")
+
+
+def test_principal_point_limits_hold_on_both_signs():
+    """cx, cy may lie outside the image (a crop of a wider sensor), within +-4 x 16384 = 65536 px: both edges
+    decode, a pixel beyond either edge is refused, and -1e300 like 1e300."""
+    lim = 4 * schema.MAX_IMAGE_SIDE_PX
+    assert lim == 65536
+    for key in ("cx", "cy"):
+        for ok in (lim, -lim):
+            assert schema.decode(posed(camera=dict(CAM, **{key: float(ok)})))["camera"][key] == ok
+        for bad in (lim + 1.0, -lim - 1.0, -1e300):
+            rejected(posed(camera=dict(CAM, **{key: bad})), f"posed_frame.camera.{key}")
+
+
+def test_fused_count_must_be_uint8_of_the_camera_shape():
+    """n_fused (measurements per pixel of a fused map) masks the obstacle detector's pixels (min_fused): a float or
+    a wider integer count, or one of another shape (a 1 x W row would broadcast over the whole map), is refused; a
+    uint8 count of the camera's 3 x 4 shape decodes with its values."""
+    ok = schema.decode(range_map(n_fused=arr(np.full((3, 4), 2, np.uint8))))["n_fused"]
+    assert ok.dtype == np.uint8 and ok.shape == (3, 4) and (ok == 2).all()
+    for bad in (np.full((3, 4), 2, np.float32), np.full((3, 4), 2, np.uint16), np.full((1, 4), 2, np.uint8),
+                np.full((4, 3), 2, np.uint8)):
+        rejected(range_map(n_fused=arr(bad)), "range_map.n_fused")
+
+
+@pytest.mark.parametrize("make", [range_map, obstacle_list])
+def test_frame_age_both_sides_of_the_limit(make):
+    """frame_age_ms is NaN (unknown) or within +-MAX_AGE_MS (2^62 us in ms, a stamp's range): a small negative age
+    (clock skew between hosts) and both edges decode; beyond either edge, -1e300 and +-inf are refused -- a reader
+    comparing the age with its limit would take a huge negative age as fresh."""
+    kind = "range_map" if make is range_map else "obstacle_list"
+    lim = schema.MAX_AGE_MS
+    assert lim == 2 ** 62 / 1000
+    assert math.isnan(schema.decode(make(frame_age_ms=NAN))["frame_age_ms"])
+    for ok in (-5.0, 0.0, lim, -lim):
+        assert schema.decode(make(frame_age_ms=ok))["frame_age_ms"] == ok
+    for bad in (lim * 1.0001, -lim * 1.0001, -1e300, float("inf"), -float("inf")):
+        rejected(make(frame_age_ms=bad), f"{kind}.frame_age_ms")
+
+
+def test_obstacle_list_holds_at_most_1024_maps():
+    """Each obstacle of a list is a map (the MAVLink output and guidance subscribers read its fields by name): a
+    list with a number, a string or a list among its items is refused; 1024 obstacles decode, 1025 are refused."""
+    one = {"range_m": 12.0, "bearing_deg": 3.0}
+    for stray in (7, "tree", [12.0, 3.0], None):
+        rejected(obstacle_list(obstacles=[one, stray]), "obstacle_list.obstacles")
+    assert len(schema.decode(obstacle_list(obstacles=[one] * 1024))["obstacles"]) == 1024
+    rejected(obstacle_list(obstacles=[one] * 1025), "obstacle_list.obstacles")
+
+
+@pytest.mark.parametrize("make,kind,field", [(range_map, "range_map", "other_stamp_us"),
+                                             (nav, "nav_state", "autopilot_time_us"),
+                                             (frame, "frame", "source_pts_us")])
+def test_unset_stamps_are_minus_one_only(make, kind, field):
+    """-1 is the one 'unset' value of the optional stamps: any other negative value is corrupt (a reader subtracting
+    it from a stamp would get an interval beyond 2^62 us) and is refused; -1, 0 and 2^62 - 1 decode."""
+    for ok in (-1, 0, 2 ** 62 - 1):
+        assert schema.decode(make(**{field: ok}))[field] == ok
+    for bad in (-2, -1_700_000_000_000_000, -2 ** 63):
+        rejected(make(**{field: bad}), f"{kind}.{field}")
 
 
 # -- the node: a message that still raises is that message's failure; counters bounded --------------------------

@@ -38,6 +38,22 @@ def test_float_array_round_trip():
     assert np.isnan(d["range_m"][0, 0]) and np.allclose(d["range_m"][1], r[1])
 
 
+def test_big_endian_arrays_go_on_the_wire_little_endian():
+    """The wire is little endian (docs/bus.md): a big-endian array given to encode (as read from a FITS file or a
+    network buffer) is converted, so the bytes sent are the little-endian ones (258 = 0x0102 -> 02 01) and the
+    reader gets the same values, not byte-swapped ones."""
+    img = np.array([[258, 1], [0, 65535]], dtype=">u2")
+    payload = frame_msg(image=img, encoding="mono16")
+    assert msgpack.unpackb(payload, raw=False)["image"]["data"] == bytes.fromhex("0201 0100 0000 ffff")
+    np.testing.assert_array_equal(schema.decode(payload)["image"], [[258, 1], [0, 65535]])
+    r = np.array([[1.5, -2.0, 1e30], [0.25, np.inf, 7.0]], dtype=">f4")
+    d = schema.decode(schema.encode("range_map", camera_id="c", seq=1, stamp_us=1, method="dense", range_m=r,
+                                    confidence=r.astype(">f8"), camera=CAM_2X3, position_ned_m=[0, 0, 0],
+                                    q_wxyz=[1, 0, 0, 0]))
+    np.testing.assert_array_equal(d["range_m"], [[1.5, -2.0, np.float32(1e30)], [0.25, np.inf, 7.0]])
+    np.testing.assert_array_equal(d["confidence"], d["range_m"].astype(np.float64))
+
+
 def raw(doc):
     return msgpack.packb(doc, use_bin_type=True)
 
