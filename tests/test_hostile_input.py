@@ -389,10 +389,12 @@ def test_far_future_nav_stamp_is_refused_and_does_not_blind_the_sync():
 @contextlib.contextmanager
 def _services():
     from tests.test_locator_service import locator_and_obstacles
-    # the health asserted at the end is about surviving the payloads, not about input silence: on a loaded machine
-    # the waits for the map and the list can outlast the default 1 s input timeout (state degraded: input silent)
-    with locator_and_obstacles(("--fusion", "off", "--input-timeout-ms", "60000"),
-                               ("--input-timeout-ms", "60000")) as ctx:
+    # the health asserted at the end is about surviving the payloads, not about input silence or freshness: on a
+    # loaded machine the waits for the map and the list can outlast the default 1 s input timeout (state degraded:
+    # input silent), and the locator's first good frame (its kernels loaded then) or the map can be older than the
+    # 0.8 / 1 s freshness limits by the time they are taken (dropped too_old: no map, no list)
+    slow = ("--input-timeout-ms", "60000", "--max-input-age-ms", "60000")
+    with locator_and_obstacles(("--fusion", "off", *slow), slow) as ctx:
         yield ctx
 
 
