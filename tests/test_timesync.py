@@ -255,3 +255,22 @@ def test_attitude_only_mode():
     assert r.ok and np.all(np.isnan(r.position_ned_m))
     assert ypr_from_T_body_ned(T_body_ned_from_quat(r.q_wxyz))[1] == pytest.approx(D(1), abs=1e-12)
     assert not _buf().pose_at(10_000).ok
+
+
+def test_nav_sample_and_frame_exactly_at_the_evicted_horizon_are_too_old():
+    """The eviction horizon is inclusive: with samples every 10 ms in a 4-sample buffer, 0..50 ms were evicted. A nav
+    sample stamped 50 ms again is refused as ``too_old`` (not taken as an out-of-order sample and evicted at once), and
+    a frame at 50 ms is ``never`` / ``older_than_buffer`` like one at 49.999 ms, not extrapolated 10 ms back from the
+    60 ms sample."""
+    nb = _buf(max_samples=4)
+    for k in range(10):
+        nb.add(k * 10_000, [1, 0, 0, 0], [k, 0, 0])
+    assert nb.att.t == [60_000, 70_000, 80_000, 90_000]
+    nb.add(50_000, [1, 0, 0, 0], [5, 0, 0])
+    assert nb.counts["too_old"] == 2 and nb.counts["out_of_order"] == 0      # attitude and position
+    for t in (49_999, 50_000):
+        d = nb.decide(t)
+        assert (d.state, d.reason) == ("never", "older_than_buffer")
+        r = nb.pose_at(t)
+        assert not r.ok and r.reason == "older_than_buffer"
+    assert nb.decide(50_001).state == "ready"         # 9.999 ms before the first kept sample: within 20 ms
