@@ -274,3 +274,22 @@ def test_nav_sample_and_frame_exactly_at_the_evicted_horizon_are_too_old():
         r = nb.pose_at(t)
         assert not r.ok and r.reason == "older_than_buffer"
     assert nb.decide(50_001).state == "ready"         # 9.999 ms before the first kept sample: within 20 ms
+
+
+def test_extrapolation_limit_is_inclusive_before_and_after_the_samples():
+    """``max_extrapolation_us`` (20 ms) is the farthest a pose may be extrapolated, on both sides: positions 0 m at
+    0.1 s and 1 m at 0.2 s (10 m/s), a frame exactly 20 ms before the first sample is posed at -0.2 m, exactly 20 ms
+    after the newest at 1.2 m (both flagged); one microsecond further is refused."""
+    nb = _buf(max_extrapolation_us=20_000)
+    nb.add(100_000, [1, 0, 0, 0], [0, 0, 0])
+    nb.add(200_000, [1, 0, 0, 0], [1, 0, 0])
+    r = nb.pose_at(80_000)
+    assert r.ok and r.quality_flags & QF_EXTRAPOLATED
+    assert r.position_ned_m[0] == pytest.approx(-0.2, abs=1e-12)
+    d = nb.decide(79_999)
+    assert (d.state, d.reason) == ("never", "before_first_nav")
+    r = nb.pose_at(220_000, allow_extrapolation=True)
+    assert r.ok and r.quality_flags & QF_EXTRAPOLATED
+    assert r.position_ned_m[0] == pytest.approx(1.2, abs=1e-12)
+    r = nb.pose_at(220_001, allow_extrapolation=True)
+    assert not r.ok and r.reason == "extrapolation_limit"
