@@ -293,3 +293,26 @@ def test_extrapolation_limit_is_inclusive_before_and_after_the_samples():
     assert r.position_ned_m[0] == pytest.approx(1.2, abs=1e-12)
     r = nb.pose_at(220_001, allow_extrapolation=True)
     assert not r.ok and r.reason == "extrapolation_limit"
+
+
+def test_max_gap_is_the_largest_bracket_accepted_and_gap_warn_flags_only_above():
+    """``max_gap_us`` is the largest bracket accepted (a 250 ms bracket poses its midpoint, 250.001 ms is a ``gap``);
+    ``gap_warn_us`` flags QF_GAP only for brackets above it (60 ms: not flagged, 60.001 ms: flagged)."""
+    nb = _buf(max_gap_us=250_000)
+    nb.add(0, [1, 0, 0, 0], [0, 0, 0])
+    nb.add(250_000, [1, 0, 0, 0], [5, 0, 0])
+    r = nb.pose_at(125_000)
+    assert r.ok and r.nav_gap_us == 250_000
+    assert r.position_ned_m[0] == pytest.approx(2.5, abs=1e-12)
+    nb = _buf(max_gap_us=250_000)
+    nb.add(0, [1, 0, 0, 0], [0, 0, 0])
+    nb.add(250_001, [1, 0, 0, 0], [5, 0, 0])
+    d = nb.decide(125_000)
+    assert (d.state, d.reason) == ("never", "gap")
+    for end, flagged in ((60_000, False), (60_001, True)):
+        nb = _buf(gap_warn_us=60_000)
+        nb.add(0, [1, 0, 0, 0], [0, 0, 0])
+        nb.add(end, [1, 0, 0, 0], [1, 0, 0])
+        r = nb.pose_at(30_000)
+        assert r.ok and r.nav_gap_us == end
+        assert bool(r.quality_flags & QF_GAP) == flagged
