@@ -316,3 +316,15 @@ def test_max_gap_is_the_largest_bracket_accepted_and_gap_warn_flags_only_above()
         r = nb.pose_at(30_000)
         assert r.ok and r.nav_gap_us == end
         assert bool(r.quality_flags & QF_GAP) == flagged
+
+
+def test_attitude_norm_tolerance_is_two_sided():
+    """An attitude is taken only when its norm is within 1 % of 1, on both sides: norms 0.5 and 0.98 are refused
+    (``bad_attitude``) like 2; a norm of 1.005 is taken and stored normalised."""
+    nb = _buf()
+    nb.add(0, [0.5, 0, 0, 0], None)
+    nb.add(10_000, [0.98, 0, 0, 0], None)
+    assert len(nb.att) == 0 and nb.counts["bad_attitude"] == 2
+    nb.add(20_000, [1.005, 0, 0, 0], None)
+    assert nb.att.t == [20_000]
+    np.testing.assert_allclose(nb.att.v[0], [1, 0, 0, 0], atol=1e-15)
