@@ -328,3 +328,15 @@ def test_attitude_norm_tolerance_is_two_sided():
     nb.add(20_000, [1.005, 0, 0, 0], None)
     assert nb.att.t == [20_000]
     np.testing.assert_allclose(nb.att.v[0], [1, 0, 0, 0], atol=1e-15)
+
+
+def test_interpolated_quaternion_has_non_negative_w_across_the_yaw_wrap():
+    """The library's quaternions have w >= 0 (eonav.geometry.frames). Slerp from yaw 170 deg to -170 deg takes the
+    short way, through 180 deg, where the arc leaves that hemisphere: three quarters along (yaw -175 deg) the pose's
+    quaternion is quat_wxyz_from_ypr(-175 deg) itself, not its negative."""
+    nb = _buf()
+    nb.add(0, quat_wxyz_from_ypr(D(170), 0, 0), [0, 0, 0])
+    nb.add(40_000, quat_wxyz_from_ypr(D(-170), 0, 0), [0, 0, 0])
+    q = nb.pose_at(30_000).q_wxyz
+    assert q[0] >= 0
+    np.testing.assert_allclose(q, quat_wxyz_from_ypr(D(-175), 0, 0), atol=1e-12)
