@@ -340,3 +340,20 @@ def test_interpolated_quaternion_has_non_negative_w_across_the_yaw_wrap():
     q = nb.pose_at(30_000).q_wxyz
     assert q[0] >= 0
     np.testing.assert_allclose(q, quat_wxyz_from_ypr(D(-175), 0, 0), atol=1e-12)
+
+
+def test_single_position_sample_extrapolates_along_its_velocity_both_ways():
+    """One position sample (5, -2, -10) m at 0.1 s with velocity (10, -5, 1) m/s, attitude bracketing: a frame 10 ms
+    after it (extrapolation allowed) is at p + 0.01 v, one 10 ms before it at p - 0.01 v; both flagged, velocity the
+    sample's."""
+    nb = _buf()
+    nb.add(0, [1, 0, 0, 0], None)
+    nb.add(200_000, [1, 0, 0, 0], None)
+    p, v = np.array([5.0, -2.0, -10.0]), np.array([10.0, -5.0, 1.0])
+    nb.add(100_000, None, p, v)
+    assert nb.pose_at(110_000).reason == "waiting_for_position"
+    for t_us, dt_s, allow in ((110_000, 0.01, True), (90_000, -0.01, False)):
+        r = nb.pose_at(t_us, allow_extrapolation=allow)
+        assert r.ok and r.quality_flags & QF_EXTRAPOLATED
+        np.testing.assert_allclose(r.position_ned_m, p + dt_s * v, atol=1e-12)
+        np.testing.assert_allclose(r.velocity_ned_mps, v, atol=0)
