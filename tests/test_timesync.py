@@ -357,3 +357,26 @@ def test_single_position_sample_extrapolates_along_its_velocity_both_ways():
         assert r.ok and r.quality_flags & QF_EXTRAPOLATED
         np.testing.assert_allclose(r.position_ned_m, p + dt_s * v, atol=1e-12)
         np.testing.assert_allclose(r.velocity_ned_mps, v, atol=0)
+
+
+def test_extrapolation_continues_the_last_bracket_linearly_not_the_cubic():
+    """Beyond the samples position continues the last bracket's straight line and velocity the line through its end
+    velocities (the cubic Hermite is for interpolation only). Constant 10 m/s north with noisy velocity reports (10.5,
+    9.5 m/s): 15 ms past the 0.1 s sample the position is the truth 1.15 m (the cubic, weighting the noisy velocities,
+    gives 1.1414 m). Constant 4 m/s^2 with exact velocities: the extrapolated velocity is the truth a t = 0.46 m/s, the
+    position the line's 23 mm, short of the truth by 0.5 a t_ex (t_ex + dt) = 3.45 mm (the bound the sync service's position lead cites)."""
+    nb = _buf()
+    nb.add(0, [1, 0, 0, 0], [0, 0, 0], [10.5, 0, 0])
+    nb.add(100_000, [1, 0, 0, 0], [1, 0, 0], [9.5, 0, 0])
+    r = nb.pose_at(115_000, allow_extrapolation=True)
+    assert r.ok and r.quality_flags & QF_EXTRAPOLATED and not r.quality_flags & QF_VELOCITY_AIDED
+    assert r.position_ned_m[0] == pytest.approx(1.15, abs=1e-12)
+    assert nb.pose_at(-10_000).position_ned_m[0] == pytest.approx(-0.1, abs=1e-12)
+    a = 4.0
+    nb = _buf()
+    for t_s in (0.0, 0.1):
+        nb.add(int(t_s * 1e6), [1, 0, 0, 0], [0.5 * a * t_s**2, 0, 0], [a * t_s, 0, 0])
+    r = nb.pose_at(115_000, allow_extrapolation=True)
+    assert r.velocity_ned_mps[0] == pytest.approx(a * 0.115, abs=1e-12)
+    assert r.position_ned_m[0] == pytest.approx(0.023, abs=1e-12)
+    assert 0.5 * a * 0.115**2 - r.position_ned_m[0] == pytest.approx(0.5 * a * 0.015 * (0.015 + 0.1), abs=1e-12)
