@@ -233,3 +233,18 @@ def test_pairer_counts_a_frame_that_never_got_a_position_under_its_own_reason(tm
     assert pr.poll(now_s=0.0) == [] and len(pr.pending) == 1
     assert pr.poll(now_s=0.2) == [] and pr.pending == []
     assert dict(pr.counts) == {"dropped.no_position_yet": 1}
+
+
+def test_pairer_position_lead_is_inclusive(tmp_path):
+    """``position_lead_s`` is the most position may lag the frame for an early release ("at most this"): position 15 ms
+    behind a frame whose attitude is bracketed is released with a 15 ms lead, and waits with a 14.9 ms one."""
+    p, cam = _cameras_file(tmp_path)
+    msgs = _nav_msgs(0, 0.47)                 # attitude up to 0.46 s, position (with velocity) up to 0.44 s
+    for lead, want in ((0.015, [1]), (0.0149, [])):
+        pr = S.Pairer(S.load_cameras(p), NavBuffer(), max_wait_s=0.3, position_lead_s=lead)
+        for m in msgs:
+            pr.add_nav({"q_wxyz": [np.nan] * 4, "position_ned_m": [np.nan] * 3, "velocity_ned_mps": [np.nan] * 3,
+                        **m})
+        pr.add_frame(schema.decode(schema.encode("frame", **_frame(0, 0.455, 1))), now_s=0.0)
+        out = pr.poll(now_s=0.0)
+        assert [o["seq"] for o in out] == want and len(pr.pending) == 1 - len(want)
