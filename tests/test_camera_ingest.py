@@ -70,6 +70,16 @@ def test_timestamps_units(tmp_path):
         C.parse_timestamps(f)
 
 
+def test_timestamps_may_repeat_but_not_go_back(tmp_path):
+    """The stamps must not decrease; a repeated stamp (two frames logged in one clock tick, a camera that stamps at
+    millisecond resolution) is allowed and kept as it is: 1.0, 1.0, 1.1 s -> 1 000 000, 1 000 000, 1 100 000 us."""
+    f = tmp_path / "t.txt"
+    f.write_text("1.0\n1.0\n1.1\n")
+    assert C.parse_timestamps(f) == [1_000_000, 1_000_000, 1_100_000]
+    f.write_text("1700000000000000\n1700000000000000\n")
+    assert C.parse_timestamps(f) == [1_700_000_000_000_000] * 2
+
+
 def test_folder_needs_one_stamp_per_image(tmp_path):
     d = _folder(tmp_path, stamps_s=[1.0, 2.0], n=3)
     with pytest.raises(InputError, match="2 stamps for 3 image files"):
