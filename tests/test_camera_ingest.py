@@ -213,6 +213,27 @@ def test_undecodable_pixels_count_as_corrupt_not_wrong_size():
     assert [f["seq"] for f in out] == [0] and out[0]["stamp_us"] == 3
 
 
+def test_sixteen_bit_pixels_are_scaled_not_truncated():
+    """A 16-bit image goes to 8 bits by v * 255 // 65535 (full scale to full scale): 0, 257, 1000, 4095, 32896,
+    65535 -> 0, 1, 3, 15, 128, 255 (hand values). Keeping the low byte instead would give 1000 -> 232 and a 12-bit
+    sensor's white (4095) -> 255: bright where the scene is dark."""
+    v = np.array([[0, 257, 1000, 4095, 32896, 65535]], np.uint16)
+    assert C.convert(v, "mono8").tolist() == [[0, 1, 3, 15, 128, 255]]
+    assert C.convert(v, "bgr8")[0, 2].tolist() == [3, 3, 3]
+
+
+def test_colour_frames_are_read_as_bgr():
+    """Decoded colour frames are BGR (OpenCV's order): mono8 is 0.114 B + 0.587 G + 0.299 R, so pure blue -> 29,
+    pure green -> 150, pure red -> 76 (hand values, rounded); with the channels read as RGB blue and red would swap
+    (76 and 29). The same with an alpha channel; bgr8 keeps the order."""
+    bgr = np.zeros((1, 3, 3), np.uint8)
+    bgr[0, 0, 0] = bgr[0, 1, 1] = bgr[0, 2, 2] = 255            # blue, green, red
+    assert C.convert(bgr, "mono8").tolist() == [[29, 150, 76]]
+    bgra = np.dstack([bgr, np.full((1, 3), 255, np.uint8)])
+    assert C.convert(bgra, "mono8").tolist() == [[29, 150, 76]]
+    assert C.convert(bgra, "bgr8").tolist() == bgr.tolist()
+
+
 def test_repeated_and_backward_stamps_are_counted_as_nonincreasing():
     """Stamps 100, 200, 200, 150, 300 us: the repeated 200 and the 150 after it do not increase (two counts of
     ``nonincreasing_stamps``); all five frames are still published in order."""
