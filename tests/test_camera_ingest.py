@@ -318,6 +318,19 @@ def test_file_loop_keeps_stamps_increasing():
     assert (d == 50_000).all(), d
 
 
+def test_file_without_pts_is_stamped_and_paced_at_its_frame_rate():
+    """A video whose container gives no PTS (POS_MSEC NaN) at 20 fps: frame n is stamped first grab + n * 50 ms
+    (``fps``), the first one at the grab itself, and the auto pacer sleeps 50 ms before each later frame, whatever
+    the decode pace. Hand values, us from the first grab."""
+    clock = FakeClock()
+    start = clock.us
+    nan = float("nan")
+    frames = C.capture_frames(lambda: FakeCap([nan] * 4, fps=20.0), "file", pacer=C.Pacer("auto", clock), clock=clock)
+    got = list(frames)
+    assert [(f.stamp_us - start, f.stamp_source) for f in got] == [(n * 50_000, "fps") for n in range(4)]
+    assert clock.slept == pytest.approx([0.05] * 3, abs=1e-6)
+
+
 def test_v4l2_monotonic_stamps_converted_else_host():
     clock = FakeClock()   # its monotonic -> realtime offset is 0, so a plausible kernel stamp is close to now
     frames = C.capture_frames(lambda: FakeCap([clock.us / 1000.0 - 3.0, 12.0]), "v4l2", clock=clock)
