@@ -331,6 +331,21 @@ def test_file_without_pts_is_stamped_and_paced_at_its_frame_rate():
     assert clock.slept == pytest.approx([0.05] * 3, abs=1e-6)
 
 
+def test_looped_file_with_no_frame_ends_instead_of_reopening_forever():
+    """``--loop`` over a video that yields no frame at all (empty, or nothing decodable) ends at the first EOF: there
+    is no lap to repeat, and re-opening it would spin the capture thread without end. One open, no frame."""
+    opened = []
+    stop = threading.Event()
+
+    def factory():
+        opened.append(1)
+        if len(opened) >= 3:
+            stop.set()           # the guard for a build that re-opens: it stops after 3 opens, and the test fails
+        return FakeCap([])
+    got = list(C.capture_frames(factory, "file", loop=True, clock=FakeClock(), stop=stop))
+    assert got == [] and len(opened) == 1
+
+
 def test_v4l2_monotonic_stamps_converted_else_host():
     clock = FakeClock()   # its monotonic -> realtime offset is 0, so a plausible kernel stamp is close to now
     frames = C.capture_frames(lambda: FakeCap([clock.us / 1000.0 - 3.0, 12.0]), "v4l2", clock=clock)
