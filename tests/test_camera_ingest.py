@@ -346,6 +346,42 @@ def test_looped_file_with_no_frame_ends_instead_of_reopening_forever():
     assert got == [] and len(opened) == 1
 
 
+class FlakyCap(FakeCap):
+    """A live camera: grab n advances the host clock by steps_us[n] and succeeds or not as ok[n]; after the list
+    every grab fails (the camera unplugged)."""
+
+    def __init__(self, clock, steps_us, ok):
+        super().__init__([-1.0] * len(ok), fps=0.0)
+        self.clock, self.steps_us, self.ok = clock, list(steps_us), list(ok)
+
+    def grab(self):
+        self.i += 1
+        if self.i >= len(self.ok):
+            return False
+        self.clock.us += self.steps_us[self.i]
+        return self.ok[self.i]
+
+
+def test_live_timeout_counts_from_the_last_frame_not_the_start():
+    """A V4L2 camera delivering a frame a second for 8 s, with one failed grab at 6.5 s, then unplugged: the one
+    failure is tolerated (the last frame was 0.5 s before, not over 5 s; the retry 50 ms later moves the last two
+    frames to 7.05 and 8.05 s), all 9 frames go out, and the source gives up (EonavError, for a restart) on the first
+    failed grab more than 5 s (--live-timeout-s) after the last frame: 5.05 s, failed grabs being retried every 50 ms.
+    Hand values, us from the first grab."""
+    from eonav import EonavError
+    clock = FakeClock()
+    start = clock.us
+    steps = [0] + [1_000_000] * 6 + [500_000, 500_000, 1_000_000]
+    ok = [True] * 7 + [False] + [True] * 2
+    frames = C.capture_frames(lambda: FlakyCap(clock, steps, ok), "v4l2", clock=clock, live_timeout_s=5.0)
+    got = []
+    with pytest.raises(EonavError, match="no frame for 5.0 s"):
+        for f in frames:
+            got.append(f)
+    assert [f.stamp_us - start for f in got] == [s * 1_000_000 for s in range(7)] + [7_050_000, 8_050_000]
+    assert clock.us - got[-1].stamp_us == pytest.approx(5_050_000, abs=1)
+
+
 def test_v4l2_monotonic_stamps_converted_else_host():
     clock = FakeClock()   # its monotonic -> realtime offset is 0, so a plausible kernel stamp is close to now
     frames = C.capture_frames(lambda: FakeCap([clock.us / 1000.0 - 3.0, 12.0]), "v4l2", clock=clock)
