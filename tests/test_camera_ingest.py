@@ -70,6 +70,16 @@ def test_timestamps_units(tmp_path):
         C.parse_timestamps(f)
 
 
+def test_timestamps_may_repeat_but_not_go_back(tmp_path):
+    """The stamps must not decrease; a repeated stamp (two frames logged in one clock tick, a camera that stamps at
+    millisecond resolution) is allowed and kept as it is: 1.0, 1.0, 1.1 s -> 1 000 000, 1 000 000, 1 100 000 us."""
+    f = tmp_path / "t.txt"
+    f.write_text("1.0\n1.0\n1.1\n")
+    assert C.parse_timestamps(f) == [1_000_000, 1_000_000, 1_100_000]
+    f.write_text("1700000000000000\n1700000000000000\n")
+    assert C.parse_timestamps(f) == [1_700_000_000_000_000] * 2
+
+
 def test_folder_needs_one_stamp_per_image(tmp_path):
     d = _folder(tmp_path, stamps_s=[1.0, 2.0], n=3)
     with pytest.raises(InputError, match="2 stamps for 3 image files"):
@@ -203,6 +213,27 @@ def test_undecodable_pixels_count_as_corrupt_not_wrong_size():
     assert [f["seq"] for f in out] == [0] and out[0]["stamp_us"] == 3
 
 
+def test_sixteen_bit_pixels_are_scaled_not_truncated():
+    """A 16-bit image goes to 8 bits by v * 255 // 65535 (full scale to full scale): 0, 257, 1000, 4095, 32896,
+    65535 -> 0, 1, 3, 15, 128, 255 (hand values). Keeping the low byte instead would give 1000 -> 232 and a 12-bit
+    sensor's white (4095) -> 255: bright where the scene is dark."""
+    v = np.array([[0, 257, 1000, 4095, 32896, 65535]], np.uint16)
+    assert C.convert(v, "mono8").tolist() == [[0, 1, 3, 15, 128, 255]]
+    assert C.convert(v, "bgr8")[0, 2].tolist() == [3, 3, 3]
+
+
+def test_colour_frames_are_read_as_bgr():
+    """Decoded colour frames are BGR (OpenCV's order): mono8 is 0.114 B + 0.587 G + 0.299 R, so pure blue -> 29,
+    pure green -> 150, pure red -> 76 (hand values, rounded); with the channels read as RGB blue and red would swap
+    (76 and 29). The same with an alpha channel; bgr8 keeps the order."""
+    bgr = np.zeros((1, 3, 3), np.uint8)
+    bgr[0, 0, 0] = bgr[0, 1, 1] = bgr[0, 2, 2] = 255            # blue, green, red
+    assert C.convert(bgr, "mono8").tolist() == [[29, 150, 76]]
+    bgra = np.dstack([bgr, np.full((1, 3), 255, np.uint8)])
+    assert C.convert(bgra, "mono8").tolist() == [[29, 150, 76]]
+    assert C.convert(bgra, "bgr8").tolist() == bgr.tolist()
+
+
 def test_repeated_and_backward_stamps_are_counted_as_nonincreasing():
     """Stamps 100, 200, 200, 150, 300 us: the repeated 200 and the 150 after it do not increase (two counts of
     ``nonincreasing_stamps``); all five frames are still published in order."""
@@ -285,6 +316,70 @@ def test_file_loop_keeps_stamps_increasing():
     C.capture_loop(frames, sink, camera_id="c", stop=stop)
     d = np.diff([f["stamp_us"] for f in out])
     assert (d == 50_000).all(), d
+
+
+def test_file_without_pts_is_stamped_and_paced_at_its_frame_rate():
+    """A video whose container gives no PTS (POS_MSEC NaN) at 20 fps: frame n is stamped first grab + n * 50 ms
+    (``fps``), the first one at the grab itself, and the auto pacer sleeps 50 ms before each later frame, whatever
+    the decode pace. Hand values, us from the first grab."""
+    clock = FakeClock()
+    start = clock.us
+    nan = float("nan")
+    frames = C.capture_frames(lambda: FakeCap([nan] * 4, fps=20.0), "file", pacer=C.Pacer("auto", clock), clock=clock)
+    got = list(frames)
+    assert [(f.stamp_us - start, f.stamp_source) for f in got] == [(n * 50_000, "fps") for n in range(4)]
+    assert clock.slept == pytest.approx([0.05] * 3, abs=1e-6)
+
+
+def test_looped_file_with_no_frame_ends_instead_of_reopening_forever():
+    """``--loop`` over a video that yields no frame at all (empty, or nothing decodable) ends at the first EOF: there
+    is no lap to repeat, and re-opening it would spin the capture thread without end. One open, no frame."""
+    opened = []
+    stop = threading.Event()
+
+    def factory():
+        opened.append(1)
+        if len(opened) >= 3:
+            stop.set()           # the guard for a build that re-opens: it stops after 3 opens, and the test fails
+        return FakeCap([])
+    got = list(C.capture_frames(factory, "file", loop=True, clock=FakeClock(), stop=stop))
+    assert got == [] and len(opened) == 1
+
+
+class FlakyCap(FakeCap):
+    """A live camera: grab n advances the host clock by steps_us[n] and succeeds or not as ok[n]; after the list
+    every grab fails (the camera unplugged)."""
+
+    def __init__(self, clock, steps_us, ok):
+        super().__init__([-1.0] * len(ok), fps=0.0)
+        self.clock, self.steps_us, self.ok = clock, list(steps_us), list(ok)
+
+    def grab(self):
+        self.i += 1
+        if self.i >= len(self.ok):
+            return False
+        self.clock.us += self.steps_us[self.i]
+        return self.ok[self.i]
+
+
+def test_live_timeout_counts_from_the_last_frame_not_the_start():
+    """A V4L2 camera delivering a frame a second for 8 s, with one failed grab at 6.5 s, then unplugged: the one
+    failure is tolerated (the last frame was 0.5 s before, not over 5 s; the retry 50 ms later moves the last two
+    frames to 7.05 and 8.05 s), all 9 frames go out, and the source gives up (EonavError, for a restart) on the first
+    failed grab more than 5 s (--live-timeout-s) after the last frame: 5.05 s, failed grabs being retried every 50 ms.
+    Hand values, us from the first grab."""
+    from eonav import EonavError
+    clock = FakeClock()
+    start = clock.us
+    steps = [0] + [1_000_000] * 6 + [500_000, 500_000, 1_000_000]
+    ok = [True] * 7 + [False] + [True] * 2
+    frames = C.capture_frames(lambda: FlakyCap(clock, steps, ok), "v4l2", clock=clock, live_timeout_s=5.0)
+    got = []
+    with pytest.raises(EonavError, match="no frame for 5.0 s"):
+        for f in frames:
+            got.append(f)
+    assert [f.stamp_us - start for f in got] == [s * 1_000_000 for s in range(7)] + [7_050_000, 8_050_000]
+    assert clock.us - got[-1].stamp_us == pytest.approx(5_050_000, abs=1)
 
 
 def test_v4l2_monotonic_stamps_converted_else_host():
