@@ -123,6 +123,24 @@ def test_yawed_box_turns_from_north_towards_east():
     assert np.all(np.diff(got) > 0) and got[-1] - got[0] > 4.0     # farther to the right (east)
 
 
+def test_a_box_alongside_the_camera_is_seen_ahead_and_not_behind():
+    """A 16 m long hangar beside the camera (north -10..6, east 2..4, 4 m high; its centre 2 m BEHIND the lens,
+    which is inside the box's bounding sphere): the part ahead is seen, the part behind is not. Hand-derived, level
+    camera at the origin 3 m up: pixel (83, 51) looks along (1, 0.4, 0.1) and meets the hangar's west side
+    (east 2) at x_c = 2 / 0.4 = 5 m; pixel (11, 51) looks along (1, -0.4, 0.1) -- its line runs through the hangar
+    only BEHIND the lens (t = -10..-5) -- and sees the ground at x_c = 3 / 0.1 = 30 m. Catches the bounding-sphere
+    cull's 'centre behind' rule applied when the lens is inside the sphere (the hangar vanishes) and the hit's
+    t > 0 test dropped (a box behind the aircraft drawn ahead, at a negative range)."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
+    state = VehicleState.from_ypr([0.0, 0.0, -3.0], [0.0, 0.0, 0.0])
+    box = Box.on_ground("hangar", -2.0, 3.0, 16.0, 2.0, 4.0)
+    r = render(Scene((box,)), cam, state, supersample=1, noise_sigma=0.0)
+    assert (83 - cam.cx) / cam.fx == pytest.approx(0.4) and (51 - cam.cy) / cam.fy == pytest.approx(0.1)
+    assert r.object_id[51, 83] == 2 and r.range_m[51, 83] == pytest.approx(5.0, rel=1e-5)
+    assert r.object_id[51, 11] == 1 and r.range_m[51, 11] == pytest.approx(30.0, rel=1e-5)
+    assert np.all(r.range_m > 0)
+
+
 def test_ground_range_is_the_analytic_plane_intersection():
     cam = _camera()
     state = VehicleState.from_ypr([0.0, 0.0, -12.0], np.deg2rad([20.0, -5.0, 6.0]))
