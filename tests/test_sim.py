@@ -141,6 +141,33 @@ def test_a_box_alongside_the_camera_is_seen_ahead_and_not_behind():
     assert np.all(r.range_m > 0)
 
 
+def test_box_faces_are_lit_by_the_sun_and_hazed_by_their_distance():
+    """Shading, hand-derived: grey = albedo (AMBIENT + (1 - AMBIENT) max(0, n . sun)) (AMBIENT 0.45), then haze
+    grey tau + sky_horizon_grey (1 - tau), tau = exp(-distance / visibility) with the Euclidean distance from the lens
+    (x_c |m|, m = (1, xn, yn)), not x_c. A flat (contrast 0) box 10 m below a level camera, sun given unnormalised
+    as (-3, 0, -4) (= (-0.6, 0, -0.8), south and up): its south face (n = -north) gets 0.45 + 0.55 * 0.6 = 0.78,
+    its top (n = -down) 0.45 + 0.55 * 0.8 = 0.89. Catches the outward normal's sign flipped (sunlit faces dark),
+    the hit face taken as the slab with the smallest entry (wrong normal), the sun vector used unnormalised, and
+    the haze taken over x_c instead of the distance."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
+    state = VehicleState.from_ypr([0.0, 0.0, -10.0], [0.0, 0.0, 0.0])
+    box = Box.on_ground("block", 30.0, 0.0, 4.0, 20.0, 4.0, albedo=100.0, contrast=0.0)   # south face at north 28
+    scene = Scene((box,), sun_ned=(-3.0, 0.0, -4.0), visibility_m=200.0)
+    r = render(scene, cam, state, supersample=1, noise_sigma=0.0, quantize=False)
+    u = 70
+    xn = (u - cam.cx) / cam.fx
+    for v, x_c, light in ((69, 28.0, 0.78), (60, None, 0.89)):         # south face, top face
+        yn = (v - cam.cy) / cam.fy
+        if x_c is None:
+            x_c = 6.0 / yn                                               # the top, 4 m high: 10 - 4 = x_c yn
+            assert 28.0 < x_c < 32.0
+        else:
+            assert -4.0 < -10.0 + x_c * yn < 0.0                         # on the south face
+        tau = np.exp(-x_c * np.sqrt(1.0 + xn * xn + yn * yn) / 200.0)
+        assert r.object_id[v, u] == 2 and r.range_m[v, u] == pytest.approx(x_c, rel=1e-5)
+        assert r.image[v, u] == pytest.approx(100.0 * light * tau + 205.0 * (1.0 - tau), abs=1e-3)
+
+
 def test_ground_range_is_the_analytic_plane_intersection():
     cam = _camera()
     state = VehicleState.from_ypr([0.0, 0.0, -12.0], np.deg2rad([20.0, -5.0, 6.0]))
