@@ -168,6 +168,27 @@ def test_box_faces_are_lit_by_the_sun_and_hazed_by_their_distance():
         assert r.image[v, u] == pytest.approx(100.0 * light * tau + 205.0 * (1.0 - tau), abs=1e-3)
 
 
+@pytest.mark.parametrize("S, offsets", [(3, (-1 / 3, 0.0, 1 / 3)), (2, (-0.25, 0.25))])
+def test_supersampling_averages_rays_on_the_centred_sub_grid(S, offsets):
+    """Anti-aliasing is a box filter over S x S rays at the centres of the pixel's S x S sub-cells (hand: offsets
+    -1/3, 0, 1/3 px at S = 3; -1/4, 1/4 at S = 2): the supersampled image equals the mean of single-ray renders
+    whose principal point is moved by minus each offset (a ray through u + du at cx is the ray through u at
+    cx - du). Catches the sub-grid shifted by half a sub-cell (the picture moved by (1 - 1/S) / 2 px)."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0], width=40, height=32, cx=19.5, cy=15.5)
+    state = VehicleState.from_ypr([0.0, 0.0, -3.0], np.deg2rad([0.0, -8.0, 0.0]))
+    scene = Scene((Box.on_ground("crate", 25.0, 1.0, 3.0, 3.0, 3.0),), seed=4)
+    got = render(scene, cam, state, supersample=S, noise_sigma=0.0, quantize=False).image
+    singles = []
+    for dv in offsets:
+        for du in offsets:
+            c = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0], width=40, height=32,
+                        cx=19.5 - du, cy=15.5 - dv)
+            singles.append(render(scene, c, state, supersample=1, noise_sigma=0.0, quantize=False).image)
+    want = np.mean(singles, axis=0)
+    assert np.std(want) > 5.0                                            # a textured picture, with an edge
+    np.testing.assert_allclose(got, want, atol=1e-3)
+
+
 def test_ground_range_is_the_analytic_plane_intersection():
     cam = _camera()
     state = VehicleState.from_ypr([0.0, 0.0, -12.0], np.deg2rad([20.0, -5.0, 6.0]))
