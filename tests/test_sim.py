@@ -123,6 +123,72 @@ def test_yawed_box_turns_from_north_towards_east():
     assert np.all(np.diff(got) > 0) and got[-1] - got[0] > 4.0     # farther to the right (east)
 
 
+def test_a_box_alongside_the_camera_is_seen_ahead_and_not_behind():
+    """A 16 m long hangar beside the camera (north -10..6, east 2..4, 4 m high; its centre 2 m BEHIND the lens,
+    which is inside the box's bounding sphere): the part ahead is seen, the part behind is not. Hand-derived, level
+    camera at the origin 3 m up: pixel (83, 51) looks along (1, 0.4, 0.1) and meets the hangar's west side
+    (east 2) at x_c = 2 / 0.4 = 5 m; pixel (11, 51) looks along (1, -0.4, 0.1) -- its line runs through the hangar
+    only BEHIND the lens (t = -10..-5) -- and sees the ground at x_c = 3 / 0.1 = 30 m. Catches the bounding-sphere
+    cull's 'centre behind' rule applied when the lens is inside the sphere (the hangar vanishes) and the hit's
+    t > 0 test dropped (a box behind the aircraft drawn ahead, at a negative range)."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
+    state = VehicleState.from_ypr([0.0, 0.0, -3.0], [0.0, 0.0, 0.0])
+    box = Box.on_ground("hangar", -2.0, 3.0, 16.0, 2.0, 4.0)
+    r = render(Scene((box,)), cam, state, supersample=1, noise_sigma=0.0)
+    assert (83 - cam.cx) / cam.fx == pytest.approx(0.4) and (51 - cam.cy) / cam.fy == pytest.approx(0.1)
+    assert r.object_id[51, 83] == 2 and r.range_m[51, 83] == pytest.approx(5.0, rel=1e-5)
+    assert r.object_id[51, 11] == 1 and r.range_m[51, 11] == pytest.approx(30.0, rel=1e-5)
+    assert np.all(r.range_m > 0)
+
+
+def test_box_faces_are_lit_by_the_sun_and_hazed_by_their_distance():
+    """Shading, hand-derived: grey = albedo (AMBIENT + (1 - AMBIENT) max(0, n . sun)) (AMBIENT 0.45), then haze
+    grey tau + sky_horizon_grey (1 - tau), tau = exp(-distance / visibility) with the Euclidean distance from the lens
+    (x_c |m|, m = (1, xn, yn)), not x_c. A flat (contrast 0) box 10 m below a level camera, sun given unnormalised
+    as (-3, 0, -4) (= (-0.6, 0, -0.8), south and up): its south face (n = -north) gets 0.45 + 0.55 * 0.6 = 0.78,
+    its top (n = -down) 0.45 + 0.55 * 0.8 = 0.89. Catches the outward normal's sign flipped (sunlit faces dark),
+    the hit face taken as the slab with the smallest entry (wrong normal), the sun vector used unnormalised, and
+    the haze taken over x_c instead of the distance."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0])
+    state = VehicleState.from_ypr([0.0, 0.0, -10.0], [0.0, 0.0, 0.0])
+    box = Box.on_ground("block", 30.0, 0.0, 4.0, 20.0, 4.0, albedo=100.0, contrast=0.0)   # south face at north 28
+    scene = Scene((box,), sun_ned=(-3.0, 0.0, -4.0), visibility_m=200.0)
+    r = render(scene, cam, state, supersample=1, noise_sigma=0.0, quantize=False)
+    u = 70
+    xn = (u - cam.cx) / cam.fx
+    for v, x_c, light in ((69, 28.0, 0.78), (60, None, 0.89)):         # south face, top face
+        yn = (v - cam.cy) / cam.fy
+        if x_c is None:
+            x_c = 6.0 / yn                                               # the top, 4 m high: 10 - 4 = x_c yn
+            assert 28.0 < x_c < 32.0
+        else:
+            assert -4.0 < -10.0 + x_c * yn < 0.0                         # on the south face
+        tau = np.exp(-x_c * np.sqrt(1.0 + xn * xn + yn * yn) / 200.0)
+        assert r.object_id[v, u] == 2 and r.range_m[v, u] == pytest.approx(x_c, rel=1e-5)
+        assert r.image[v, u] == pytest.approx(100.0 * light * tau + 205.0 * (1.0 - tau), abs=1e-3)
+
+
+@pytest.mark.parametrize("S, offsets", [(3, (-1 / 3, 0.0, 1 / 3)), (2, (-0.25, 0.25))])
+def test_supersampling_averages_rays_on_the_centred_sub_grid(S, offsets):
+    """Anti-aliasing is a box filter over S x S rays at the centres of the pixel's S x S sub-cells (hand: offsets
+    -1/3, 0, 1/3 px at S = 3; -1/4, 1/4 at S = 2): the supersampled image equals the mean of single-ray renders
+    whose principal point is moved by minus each offset (a ray through u + du at cx is the ray through u at
+    cx - du). Catches the sub-grid shifted by half a sub-cell (the picture moved by (1 - 1/S) / 2 px)."""
+    cam = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0], width=40, height=32, cx=19.5, cy=15.5)
+    state = VehicleState.from_ypr([0.0, 0.0, -3.0], np.deg2rad([0.0, -8.0, 0.0]))
+    scene = Scene((Box.on_ground("crate", 25.0, 1.0, 3.0, 3.0, 3.0),), seed=4)
+    got = render(scene, cam, state, supersample=S, noise_sigma=0.0, quantize=False).image
+    singles = []
+    for dv in offsets:
+        for du in offsets:
+            c = _camera(l_body_m=[0.0, 0.0, 0.0], eps_rad=[0.0, 0.0, 0.0], width=40, height=32,
+                        cx=19.5 - du, cy=15.5 - dv)
+            singles.append(render(scene, c, state, supersample=1, noise_sigma=0.0, quantize=False).image)
+    want = np.mean(singles, axis=0)
+    assert np.std(want) > 5.0                                            # a textured picture, with an edge
+    np.testing.assert_allclose(got, want, atol=1e-3)
+
+
 def test_ground_range_is_the_analytic_plane_intersection():
     cam = _camera()
     state = VehicleState.from_ypr([0.0, 0.0, -12.0], np.deg2rad([20.0, -5.0, 6.0]))
@@ -369,6 +435,21 @@ def test_flight_states_are_smooth_and_match_the_rendered_frames():
     s = flight_states("approach", [0.1])[0]
     np.testing.assert_allclose(frames[1][1].state.T_body_ned, s.T_body_ned)
     assert frames[1][2].image.shape == (48, 48) and flight("approach").scene.boxes
+
+
+def test_flight_frames_have_independent_sensor_noise():
+    """render_flight draws frame i's sensor noise from seed (seed, i): each frame's noise (the frame minus the same
+    frame rendered noise-free) is the quantised N(0, 2) asked for, reproducible from the seed, and uncorrelated
+    between frames. Catches one noise pattern repeated in every frame (a fixed pattern that matches between frames
+    at zero motion, as if the scene were at infinity)."""
+    kw = dict(n_frames=2, rate_hz=10.0, size=48, supersample=1)
+    clean = [f[2].image for f in render_flight("approach", noise_sigma=0.0, **kw)]
+    noisy = [f[2].image for f in render_flight("approach", noise_sigma=2.0, seed=7, **kw)]
+    again = [f[2].image for f in render_flight("approach", noise_sigma=2.0, seed=7, **kw)]
+    assert all(np.array_equal(a, b) for a, b in zip(noisy, again))
+    n0, n1 = (noisy[i] - clean[i] for i in range(2))
+    assert 1.8 < np.std(n0) < 2.3 and 1.8 < np.std(n1) < 2.3         # 2304 draws: std of the std ~ 0.03
+    assert abs(np.corrcoef(n0.ravel(), n1.ravel())[0, 1]) < 0.1         # independent: |r| ~ 0.02
 
 
 def test_approach_flight_consecutive_frames_agree_with_mapping():
