@@ -174,6 +174,15 @@ def test_port_must_be_1_to_65535(port, ok):
                 parse_connection(s, "--source")
 
 
+
+@pytest.mark.parametrize("s", ["/dev/ttyACM0,0", "COM3,0"])
+def test_baud_rate_0_is_a_configuration_error(s):
+    """Baud 0 is no speed (on POSIX, B0 means hang up the line): refused like a malformed string, while 1 is the
+    smallest accepted."""
+    with pytest.raises(InputError, match="baud rate must be positive"):
+        parse_connection(s, "--source")
+    assert parse_connection(s[:-1] + "1") == ("serial", s[:-2], 1)
+
 # ---- back-off -----------------------------------------------------------------------------------------------------
 
 def test_back_off_doubles_up_to_its_limit_and_says_down():
@@ -221,6 +230,95 @@ def test_a_lost_link_is_reopened_after_the_first_back_off_step():
         link.close()
         srv.close()
 
+
+
+def refusing_tcp_server():
+    """A TCP socket bound to a free port but not listening: a connect to it is refused until ``listen()``."""
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    return srv
+
+
+def test_back_off_starts_again_from_its_first_step_after_the_link_was_up():
+    """Three refusals (0.5, 1, 2 s apart), the link opens, later drops, and the autopilot refuses again: the next
+    attempt is 0.5 s after that refusal (the failures before the link was up do not count), not 4 s."""
+    t = {"now": 100.0}
+    counts = {}
+    srv = refusing_tcp_server()
+    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(0.5, 8.0),
+                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
+    try:
+        for now in (100.0, 100.5, 101.5):
+            t["now"] = now
+            assert link.poll() is None
+        assert counts == {"link.attempts": 3} and "next attempt in 2.0 s" in link.status()[1]
+        srv.listen(4)
+        t["now"] = 103.5
+        conn = link.poll()
+        assert conn is not None and counts["link.opened"] == 1
+        t["now"] = 110.0
+        link.mark_lost(conn, ConnectionResetError("connection reset by peer"))
+        srv.close()                                                       # the autopilot is gone: refused again
+        t["now"] = 110.5
+        assert link.poll() is None and counts["link.attempts"] == 5
+        state, detail = link.status()
+        assert state == "down" and "ConnectionRefusedError" in detail and "next attempt in 0.5 s" in detail
+    finally:
+        link.close()
+        srv.close()
+
+
+def test_a_late_failure_report_of_the_old_connection_keeps_the_new_one():
+    """The sending and the receiving thread can both see the same connection fail; the second report, arriving
+    after the link was re-opened, is about the old connection and must not drop the new one."""
+    t = {"now": 50.0}
+    counts = {}
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(4)
+    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(0.5, 8.0),
+                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
+    try:
+        old = link.poll()
+        link.mark_lost(old, ConnectionResetError("connection reset by peer"))
+        t["now"] = 50.5
+        new = link.poll()
+        assert new is not None and new is not old
+        link.mark_lost(old, BrokenPipeError("broken pipe"))             # the other thread, late
+        assert link.conn is new and link.status()[0] == "silent" and counts["link.lost"] == 1
+        assert link.poll() is new and counts["link.attempts"] == 2
+    finally:
+        link.close()
+        srv.close()
+
+
+class RecordingEvent(threading.Event):
+    """A stop event that records how long ``recv`` asks to wait on it (and returns at once)."""
+
+    def __init__(self):
+        super().__init__()
+        self.waits = []
+
+    def wait(self, timeout=None):
+        self.waits.append(timeout)
+        return False
+
+
+def test_recv_while_down_waits_at_most_its_timeout():
+    """While the link is down ``recv`` waits for the next attempt, but never longer than its own timeout: the
+    receiving thread must come back to check its stop event and report health (the back-off can be 8 s)."""
+    t = {"now": 100.0}
+    srv = refusing_tcp_server()
+    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(4.0, 8.0))
+    stop = RecordingEvent()
+    try:
+        assert link.recv(0.2, stop) is None                   # refused: the next attempt at 104.0
+        t["now"] = 103.9
+        assert link.recv(0.2, stop) is None                   # 0.1 s to the next attempt
+        assert stop.waits == [0.2, pytest.approx(0.1, abs=1e-9)]
+    finally:
+        link.close()
+        srv.close()
 
 # ---- real links ---------------------------------------------------------------------------------------------------
 

@@ -137,6 +137,49 @@ def test_dataflash_reader_keeps_ekf_core_0_only(tmp_path):
     assert [(t, repr(m)) for t, m in got] == [(t, repr(m)) for t, m in want]
 
 
+
+def fmt_record_of(data, name: bytes) -> int:
+    """The byte offset of the FMT record that defines message ``name`` in a dataflash log."""
+    i = data.index(b"\xa3\x95\x80")
+    while data[i + 5:i + 9].rstrip(b"\0") != name:
+        i = data.index(b"\xa3\x95\x80", i + 89)
+    return i
+
+
+def test_pos_without_a_relhomealt_column_still_gives_the_position(tmp_path):
+    """A POS format without the RelHomeAlt column (its name changed, as another firmware would write it): the
+    position (lat, lon, alt AMSL) is still every POS's, the relative altitude only is not known; no POS is lost."""
+    b = bytearray(BIN.read_bytes())
+    i = fmt_record_of(b, b"POS")
+    cols = b"TimeUS,Lat,Lng,Alt,RelHomeAlt,RelOriginAlt"
+    assert b[i + 25:i + 89].rstrip(b"\0") == cols
+    b[i + 25:i + 89] = cols.replace(b"RelHomeAlt", b"RelAlt").ljust(64, b"\0")
+    p = tmp_path / "pos_relalt.bin"
+    p.write_bytes(bytes(b))
+    pos = [m for m in dfreader_messages(BIN) if m.get_type() == "POS"]
+    r = DataflashReader(p)
+    got = [g for _, g in r if g.get_type() == "GLOBAL_POSITION_INT"]
+    assert len(got) == len(pos) > 100 and r.stats.bad_fields == 0
+    for m, g in zip(pos, got):
+        assert abs(g.lat - m.Lat * 1e7) <= 0.5 and abs(g.lon - m.Lng * 1e7) <= 0.5 and abs(g.alt - m.Alt * 1000) <= 0.5
+        assert g.relative_alt == 0
+
+
+def test_fmt_record_longer_than_its_format_is_refused(tmp_path):
+    """An FMT record whose length is one byte more than its format needs (ATT, QffffffB: 3 + 8 + 6*4 + 1 = 36): read
+    with it, every ATT swallows a byte of the next message (all attitudes lost, the rest resynchronised); the log
+    is refused at open, naming the record."""
+    from eonav import InputError
+    b = bytearray(BIN.read_bytes())
+    i = fmt_record_of(b, b"ATT")
+    assert b[i + 4] == 36 and b[i + 9:i + 25].rstrip(b"\0") == b"QffffffB"
+    b[i + 4] = 37
+    p = tmp_path / "att_37.bin"
+    p.write_bytes(bytes(b))
+    with pytest.raises(InputError, match=f"FMT record at byte {i} defines type {b[i + 3]} \\('ATT'\\) with length 37, "
+                                         "but its format 'QffffffB' needs 36"):
+        list(DataflashReader(p))
+
 def test_service_replays_a_dataflash_log():
     msgs = dfreader_messages(BIN)
     first_orgn = next(i for i, m in enumerate(msgs) if m.get_type() == "ORGN")
