@@ -4,6 +4,7 @@ whose device appears late, a silent UDP peer; then the MAVLink ingest as a real 
 degraded until the autopilot is heard."""
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import threading
@@ -174,7 +175,6 @@ def test_port_must_be_1_to_65535(port, ok):
                 parse_connection(s, "--source")
 
 
-
 @pytest.mark.parametrize("s", ["/dev/ttyACM0,0", "COM3,0"])
 def test_baud_rate_0_is_a_configuration_error(s):
     """Baud 0 is no speed (on POSIX, B0 means hang up the line): refused like a malformed string, while 1 is the
@@ -204,18 +204,31 @@ def test_back_off_doubles_up_to_its_limit_and_says_down():
     assert state == "down" and "ConnectionRefusedError" in detail and "next attempt in" in detail
 
 
+@contextlib.contextmanager
+def tcp_link(now_s: float, listening: bool = True, backoff_s=(0.5, 8.0)):
+    """A ``MavLink`` to a local TCP socket, listening (its backlog accepts the connection) or only bound (a connect
+    is refused until ``srv.listen()``), on the test's clock ``t["now"]`` (exact instants) with its counters kept:
+    yields (link, t, counts, srv); both closed after."""
+    t = {"now": now_s}
+    counts = {}
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    if listening:
+        srv.listen(4)
+    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=backoff_s,
+                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
+    try:
+        yield link, t, counts, srv
+    finally:
+        link.close()
+        srv.close()
+
+
 def test_a_lost_link_is_reopened_after_the_first_back_off_step():
     """A link that was up and drops (autopilot reboot, cable) is re-opened after the first back-off step (0.5 s),
     not the longest (8 s): the obstacle messages must resume as soon as the autopilot is back. A real TCP server
     (its backlog accepts the connection); the clock is the test's, so the instants are exact."""
-    t = {"now": 50.0}
-    counts = {}
-    srv = socket.socket()
-    srv.bind(("127.0.0.1", 0))
-    srv.listen(4)
-    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(0.5, 8.0),
-                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
-    try:
+    with tcp_link(50.0) as (link, t, counts, srv):
         conn = link.poll()
         assert conn is not None and counts == {"link.attempts": 1, "link.opened": 1}
         t["now"] = 60.0
@@ -226,28 +239,12 @@ def test_a_lost_link_is_reopened_after_the_first_back_off_step():
         assert link.poll() is None and counts["link.attempts"] == 1            # not yet due
         t["now"] = 60.5
         assert link.poll() is not None and counts == {"link.attempts": 2, "link.opened": 2, "link.lost": 1}
-    finally:
-        link.close()
-        srv.close()
-
-
-
-def refusing_tcp_server():
-    """A TCP socket bound to a free port but not listening: a connect to it is refused until ``listen()``."""
-    srv = socket.socket()
-    srv.bind(("127.0.0.1", 0))
-    return srv
 
 
 def test_back_off_starts_again_from_its_first_step_after_the_link_was_up():
     """Three refusals (0.5, 1, 2 s apart), the link opens, later drops, and the autopilot refuses again: the next
     attempt is 0.5 s after that refusal (the failures before the link was up do not count), not 4 s."""
-    t = {"now": 100.0}
-    counts = {}
-    srv = refusing_tcp_server()
-    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(0.5, 8.0),
-                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
-    try:
+    with tcp_link(100.0, listening=False) as (link, t, counts, srv):
         for now in (100.0, 100.5, 101.5):
             t["now"] = now
             assert link.poll() is None
@@ -263,22 +260,12 @@ def test_back_off_starts_again_from_its_first_step_after_the_link_was_up():
         assert link.poll() is None and counts["link.attempts"] == 5
         state, detail = link.status()
         assert state == "down" and "ConnectionRefusedError" in detail and "next attempt in 0.5 s" in detail
-    finally:
-        link.close()
-        srv.close()
 
 
 def test_a_late_failure_report_of_the_old_connection_keeps_the_new_one():
     """The sending and the receiving thread can both see the same connection fail; the second report, arriving
     after the link was re-opened, is about the old connection and must not drop the new one."""
-    t = {"now": 50.0}
-    counts = {}
-    srv = socket.socket()
-    srv.bind(("127.0.0.1", 0))
-    srv.listen(4)
-    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(0.5, 8.0),
-                   count=lambda k, n=1: counts.__setitem__(k, counts.get(k, 0) + n))
-    try:
+    with tcp_link(50.0) as (link, t, counts, srv):
         old = link.poll()
         link.mark_lost(old, ConnectionResetError("connection reset by peer"))
         t["now"] = 50.5
@@ -287,9 +274,6 @@ def test_a_late_failure_report_of_the_old_connection_keeps_the_new_one():
         link.mark_lost(old, BrokenPipeError("broken pipe"))             # the other thread, late
         assert link.conn is new and link.status()[0] == "silent" and counts["link.lost"] == 1
         assert link.poll() is new and counts["link.attempts"] == 2
-    finally:
-        link.close()
-        srv.close()
 
 
 class RecordingEvent(threading.Event):
@@ -307,18 +291,13 @@ class RecordingEvent(threading.Event):
 def test_recv_while_down_waits_at_most_its_timeout():
     """While the link is down ``recv`` waits for the next attempt, but never longer than its own timeout: the
     receiving thread must come back to check its stop event and report health (the back-off can be 8 s)."""
-    t = {"now": 100.0}
-    srv = refusing_tcp_server()
-    link = MavLink(f"tcp:127.0.0.1:{srv.getsockname()[1]}", clock=lambda: t["now"], backoff_s=(4.0, 8.0))
     stop = RecordingEvent()
-    try:
+    with tcp_link(100.0, listening=False, backoff_s=(4.0, 8.0)) as (link, t, _, _):
         assert link.recv(0.2, stop) is None                   # refused: the next attempt at 104.0
         t["now"] = 103.9
         assert link.recv(0.2, stop) is None                   # 0.1 s to the next attempt
         assert stop.waits == [0.2, pytest.approx(0.1, abs=1e-9)]
-    finally:
-        link.close()
-        srv.close()
+
 
 # ---- real links ---------------------------------------------------------------------------------------------------
 
