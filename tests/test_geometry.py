@@ -174,3 +174,15 @@ def test_scaled_camera_scales_each_axis_by_its_own_rounded_size():
     v = np.arange(sc.height)
     full_v = (v + 0.5) * 11 / 8 - 0.5
     np.testing.assert_allclose((v - sc.cy) / sc.fy, (full_v - cam.cy) / cam.fy, atol=1e-12)
+
+
+def test_non_finite_quaternion_is_rejected_not_turned_into_a_nan_rotation():
+    """rotation_from_quat_wxyz (T_body_ned_from_quat's core) refuses a NaN or infinite quaternion (a dropped or
+    corrupt ATTITUDE_QUATERNION field) with InputError, as its docstring says, instead of returning a matrix of NaN
+    that would poison every range and obstacle downstream. Dropping the finiteness check lets NaN through (NaN < 1e-9
+    is False) and turns inf into NaN entries."""
+    for q in ([np.nan, 0, 0, 0], [1, 0, np.nan, 0], [np.inf, 0, 0, 0], [1, 0, 0, -np.inf]):
+        with pytest.raises(InputError, match="quaternion"):
+            rotation_from_quat_wxyz(q)
+        with pytest.raises(InputError, match="quaternion"):
+            T_body_ned_from_quat(q)
