@@ -186,3 +186,16 @@ def test_non_finite_quaternion_is_rejected_not_turned_into_a_nan_rotation():
             rotation_from_quat_wxyz(q)
         with pytest.raises(InputError, match="quaternion"):
             T_body_ned_from_quat(q)
+
+
+def test_slerp_off_midpoint_moves_from_q0_towards_q1_for_near_and_far_attitudes():
+    """slerp_quat_wxyz at s = 0.25 between yaw a and yaw b about one axis is yaw a + 0.25 (b - a) (hand value), both
+    for attitude samples 1 deg apart (the normalised-lerp branch, d > 0.9995: the usual case between 50 Hz
+    ATTITUDE_QUATERNION samples; nlerp's error there is ~1e-8 rad, measured) and 40 deg apart (the true slerp branch);
+    s = 0 and 1 give the ends. A branch that runs from q1 back towards q0 gives 10.75 deg instead of 10.25 deg; the
+    midpoint test cannot tell the two directions apart."""
+    for a_deg, b_deg, atol in ((10.0, 11.0, 1e-7), (10.0, 50.0, 1e-12)):
+        q0, q1 = quat_wxyz_from_ypr(np.deg2rad(a_deg), 0, 0), quat_wxyz_from_ypr(np.deg2rad(b_deg), 0, 0)
+        for s in (0.0, 0.25, 1.0):
+            ypr = ypr_from_T_body_ned(T_body_ned_from_quat(slerp_quat_wxyz(q0, q1, s)))
+            np.testing.assert_allclose(ypr, [np.deg2rad(a_deg + s * (b_deg - a_deg)), 0, 0], atol=atol)
