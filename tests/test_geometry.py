@@ -199,3 +199,12 @@ def test_slerp_off_midpoint_moves_from_q0_towards_q1_for_near_and_far_attitudes(
         for s in (0.0, 0.25, 1.0):
             ypr = ypr_from_T_body_ned(T_body_ned_from_quat(slerp_quat_wxyz(q0, q1, s)))
             np.testing.assert_allclose(ypr, [np.deg2rad(a_deg + s * (b_deg - a_deg)), 0, 0], atol=atol)
+
+
+@pytest.mark.parametrize("fx,fy", [(0.0, 500.0), (-500.0, 500.0), (500.0, 0.0), (500.0, -500.0), (500.0, np.nan)])
+def test_camera_rejects_a_focal_length_that_is_not_positive_on_either_axis(fx, fy):
+    """A Camera's fx and fy are both checked: fy = 0 would make every y ray (v - cy) / fy infinite, and a negative fy
+    (an image whose v axis points up) would silently mirror every range map top to bottom. A check that tests fx
+    twice lets the fy cases through."""
+    with pytest.raises(InputError, match="fx, fy must be positive"):
+        Camera("c", 64, 48, fx, fy, 31.5, 23.5)
