@@ -208,3 +208,18 @@ def test_camera_rejects_a_focal_length_that_is_not_positive_on_either_axis(fx, f
     twice lets the fy cases through."""
     with pytest.raises(InputError, match="fx, fy must be positive"):
         Camera("c", 64, 48, fx, fy, 31.5, 23.5)
+
+
+def test_vehicle_state_rejects_an_attitude_matrix_that_is_not_orthonormal():
+    """VehicleState refuses a T_body_ned 1 % off orthonormal (a rotation scaled by 1.01, or sheared by 0.01: T T^T
+    off the identity by 0.02 and 0.01, hand values), which would stretch every camera-to-NED distance, and takes a
+    rotation rounded to float32 (T T^T off by ~5e-8, measured) as the rotation it is. A tolerance loosened to 0.1
+    lets both bad matrices through."""
+    T = T_body_ned_from_ypr(0.3, -0.2, 0.7)
+    shear = np.eye(3)
+    shear[0, 1] = 0.01
+    for bad in (1.01 * T, shear @ T):
+        with pytest.raises(InputError, match="not a rotation matrix"):
+            VehicleState([0, 0, -10], bad)
+    T32 = T.astype(np.float32).astype(float)
+    np.testing.assert_array_equal(VehicleState([0, 0, -10], T32).T_body_ned, T32)
