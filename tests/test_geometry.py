@@ -223,3 +223,15 @@ def test_vehicle_state_rejects_an_attitude_matrix_that_is_not_orthonormal():
             VehicleState([0, 0, -10], bad)
     T32 = T.astype(np.float32).astype(float)
     np.testing.assert_array_equal(VehicleState([0, 0, -10], T32).T_body_ned, T32)
+
+
+def test_vehicle_state_rejects_a_mirrored_attitude():
+    """A reflection is orthonormal but not a rotation: T_body_ned with the body y axis flipped (a left-handed FLU-style
+    body mixed with NED, det -1) would mirror every obstacle port for starboard. VehicleState refuses it, like a matrix
+    that is not orthonormal; the proper rotation it came from is accepted."""
+    T = T_body_ned_from_ypr(0.3, -0.2, 0.7)
+    mirrored = np.diag([1.0, -1.0, 1.0]) @ T
+    assert np.allclose(mirrored @ mirrored.T, np.eye(3)) and np.isclose(np.linalg.det(mirrored), -1.0)
+    with pytest.raises(InputError, match="not a rotation matrix"):
+        VehicleState([0, 0, -10], mirrored)
+    VehicleState([0, 0, -10], T)

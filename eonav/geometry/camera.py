@@ -70,7 +70,7 @@ class VehicleState:
         T = np.asarray(self.T_body_ned, float).reshape(3, 3)
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(T))):
             raise InputError("vehicle state: position_ned_m and attitude must be finite")
-        if np.abs(T @ T.T - np.eye(3)).max() > 1e-6:
+        if np.abs(T @ T.T - np.eye(3)).max() > 1e-6 or np.linalg.det(T) < 0:     # orthonormal, and not a reflection
             raise InputError("vehicle state: T_body_ned is not a rotation matrix")
         object.__setattr__(self, "position_ned_m", p)
         object.__setattr__(self, "T_body_ned", T)
