@@ -1,5 +1,6 @@
 """The per-pixel inverse-range filter (eonav.fusion) against hand-derived values and simulated truth."""
 import copy
+import math
 
 import numpy as np
 import pytest
@@ -171,6 +172,29 @@ def test_a_yaw_carries_the_variance_by_the_transfers_jacobian_derived_by_hand(ke
     assert p.var[24, 9] == pytest.approx(1e-6 / cos30 ** 2, rel=1e-5)
     assert p.du[24, 9] == pytest.approx(32 - 40 * np.tan(np.deg2rad(30.0)) - 9, abs=1e-4) and p.dv[24, 9] == 0.0
     assert p.a[24, 9] == 3.0 and p.n[24, 9] == 2
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_camera_with_non_square_pixels_carries_a_point_by_fx_across_and_fy_down(kernels):
+    """fx 40, fy 60 (cx 31.5, cy 23.5): a point at 20 m on pixel (u 50, v 40). 2 m forward: both image offsets grow
+    by 20/18 whatever the focal lengths, u' = 31.5 + 18.5 x 20/18 = 52.056, v' = 23.5 + 16.5 x 20/18 = 41.833;
+    1 m to starboard and 1 m down: u' = 50 - 40 x 1/20 = 48, v' = 40 - 60 x 1/20 = 37 (rho unchanged). Catches fx
+    and fy swapped in the transfer's ray (m1 = x_p / fy: u' 45.2) or projection (test cameras have fx = fy)."""
+    c = Camera("c", 64, 48, 40.0, 60.0, 31.5, 23.5)
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    st.rho[40, 50], st.var[40, 50], st.a[40, 50], st.b[40, 50], st.n[40, 50] = 0.05, 1e-6, 3.0, 1.0, 2
+    fwd = predict(st, c, pose(north=2.0, t=0.1), 0.1, NO_NOISE, crack_k=0, kernels=kernels)
+    ys, xs = np.nonzero(np.isfinite(fwd.rho))
+    assert list(ys) == [42] and list(xs) == [52]
+    assert fwd.rho[42, 52] == pytest.approx(1 / 18.0, rel=1e-6)
+    assert fwd.du[42, 52] == pytest.approx(31.5 + 18.5 * 20 / 18 - 52, abs=1e-4)
+    assert fwd.dv[42, 52] == pytest.approx(23.5 + 16.5 * 20 / 18 - 42, abs=1e-4)
+    side = predict(st, c, VehicleState.from_ypr([0.0, 1.0, 1.0], [0.0, 0.0, 0.0], 0.1), 0.1, NO_NOISE, crack_k=0,
+                   kernels=kernels)
+    ys, xs = np.nonzero(np.isfinite(side.rho))
+    assert list(ys) == [37] and list(xs) == [48]
+    assert side.rho[37, 48] == pytest.approx(0.05, rel=1e-6)
+    assert abs(side.du[37, 48]) < 1e-4 and abs(side.dv[37, 48]) < 1e-4
 
 
 @pytest.mark.parametrize("kernels", PATHS)
