@@ -273,6 +273,23 @@ def test_repeated_measurements_shrink_the_variance_as_a_kalman_filter(kernels):
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_sigma_scale_widens_the_measurement_of_a_fused_cell_as_of_a_started_one(kernels):
+    """sigma_scale 2, two measurements 0.04 +- 1e-3 of one cell. The first starts it with s^2 = (2 x 1e-3)^2 =
+    4e-6; the second agrees exactly (x = mu) with tau^2 = 4e-6 too: s'^2 = 2e-6, C1 from a / (a + b) = 3/4 times
+    N(0; 0, 8e-6) against b / (a + b) = 1/4 times the uniform 1/2, and s^2 = C1 s'^2 + C2 s^2 (no spread: m = mu),
+    2.0024e-6. Catches sigma_scale applied to started cells only (the fused one with tau 1e-3: s'^2 = 0.8e-6)."""
+    cfg = UpdateConfig(sigma_scale=2.0)
+    st = one_cell_state()
+    measure(st, 0.04, 1e-3, kernels, cfg)
+    assert np.allclose(st.var, 4e-6, rtol=1e-6)
+    measure(st, 0.04, 1e-3, kernels, cfg)
+    g = 0.75 / math.sqrt(2 * math.pi * 8e-6)
+    c1 = g / (g + 0.25 * 0.5)
+    assert np.allclose(st.rho, 0.04, rtol=1e-6) and (st.n == 2).all()
+    assert np.allclose(st.var, c1 * 2e-6 + (1 - c1) * 4e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_an_outlier_leaves_a_converged_cell_where_it_was(kernels):
     st = one_cell_state()
     for _ in range(8):
