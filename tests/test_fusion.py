@@ -290,6 +290,30 @@ def test_sigma_scale_widens_the_measurement_of_a_fused_cell_as_of_a_started_one(
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_the_state_keeps_the_smallest_far_limit_of_the_pairs_and_at_infinity_needs_2_sigma_below_it(kernels):
+    """A converged cell at rho 0.001 +- 0.0075 (2 sigma 0.015). Pairs with far limits 0.02, 0.01 then 0.02 again
+    (none, 0: no limit): the state keeps 0.01, so the cell is not AT_INFINITY (0.015 > 0.01; relative sigma 7.5:
+    ILL_CONDITIONED, no range); a state that only saw the 0.02 pair reports it at infinity (confidence 0.02 /
+    0.0075). Catches the state keeping the largest limit (the cell called clear to infinity on the weaker claim)."""
+    def unmeasured(st, rho_far):
+        shape = st.shape
+        update(st, np.full(shape, np.nan, np.float32), np.full(shape, 1e-3, np.float32),
+               np.full(shape, OUT_OF_VIEW, np.uint8), rho_far=rho_far, kernels=kernels)
+
+    st = planar_state(cam(4, 4), 0.001, var=0.0075 ** 2)
+    for rho_far, want in ((0.02, 0.02), (0.01, 0.01), (0.02, 0.01), (None, 0.01), (0.0, 0.01)):
+        unmeasured(st, rho_far)
+        assert st.rho_far == pytest.approx(want), rho_far
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert (m.flags == ILL_CONDITIONED).all() and np.isnan(m.range_m).all()
+    st = planar_state(cam(4, 4), 0.001, var=0.0075 ** 2)
+    unmeasured(st, 0.02)
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert (m.flags & VALID).all() and np.isinf(m.range_m).all()
+    assert np.allclose(m.confidence, 0.02 / 0.0075, rtol=1e-4)
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_an_outlier_leaves_a_converged_cell_where_it_was(kernels):
     st = one_cell_state()
     for _ in range(8):
