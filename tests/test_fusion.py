@@ -999,6 +999,19 @@ def test_a_weak_measurement_with_any_other_fault_bit_is_not_fused(kernels):
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_a_weak_measurement_within_2_sigma_of_0_is_fused_also_under_a_loose_relative_sigma_limit(kernels):
+    """"Weak" is a relative sigma above max_rel_std OR rho within 2 sigma of 0; the second alone counts once
+    max_rel_std >= 0.5. With max_rel_std 0.8: ILL_CONDITIONED at 0.05 +- 0.0275 (relative 0.55 < 0.8, but 2 sigma
+    0.055 > 0.05) is weak and fused; at 0.05 +- 0.0225 (2 sigma 0.045 < 0.05, relative 0.45) it is tight, flagged
+    for another reason, and not fused. Catches the near-0 test written rho >= sigma (1 sigma)."""
+    cfg = UpdateConfig(max_rel_std=0.8)
+    for tau, fused in ((0.0275, True), (0.0225, False)):
+        st = one_cell_state()
+        c = measure(st, 0.05, tau, kernels, cfg, ILL_CONDITIONED)
+        assert c["measured"] == (16 if fused else 0) and st.occupied().all() == fused, tau
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_many_weak_measurements_add_up_to_a_confident_range(kernels):
     # 20 measurements of rho = 0.01 (100 m) with a relative sigma of 0.5 each (no single pair could range it):
     # the fused sigma is 0.5 / sqrt(20) = 0.11 relative (a little more: at this sigma the Gaussian's density, ~50 /m,
