@@ -467,6 +467,9 @@ def test_cells_emptied_by_a_mask_keep_the_last_measurements_reason_and_a_full_cl
     assert st.flags[1, 2] == hidden and st.flags[0, 0] == VALID
     m = fused_map(st, MapConfig(fill=False), kernels=kernels)
     assert m.flags[1, 2] & hidden == hidden and not m.flags[1, 2] & VALID and np.isnan(m.range_m[1, 2])
+    # the one the last pair ranged (VALID) and the free-space rule then emptied: no range, and not reported
+    # VALID either (an empty cell keeps only the reason bits; catches the map taking every last-measurement bit)
+    assert m.flags[0, 0] == ILL_CONDITIONED and np.isnan(m.range_m[0, 0]) and m.confidence[0, 0] == 0
     assert (m.flags[~mask] == VALID).all() and np.allclose(m.range_m[~mask], 20.0, rtol=1e-4)
     st.clear()
     assert not st.occupied().any() and (st.flags == 0).all() and (st.n == 0).all()
