@@ -1,5 +1,6 @@
 """The per-pixel inverse-range filter (eonav.fusion) against hand-derived values and simulated truth."""
 import copy
+import math
 
 import numpy as np
 import pytest
@@ -174,6 +175,29 @@ def test_a_yaw_carries_the_variance_by_the_transfers_jacobian_derived_by_hand(ke
 
 
 @pytest.mark.parametrize("kernels", PATHS)
+def test_a_camera_with_non_square_pixels_carries_a_point_by_fx_across_and_fy_down(kernels):
+    """fx 40, fy 60 (cx 31.5, cy 23.5): a point at 20 m on pixel (u 50, v 40). 2 m forward: both image offsets grow
+    by 20/18 whatever the focal lengths, u' = 31.5 + 18.5 x 20/18 = 52.056, v' = 23.5 + 16.5 x 20/18 = 41.833;
+    1 m to starboard and 1 m down: u' = 50 - 40 x 1/20 = 48, v' = 40 - 60 x 1/20 = 37 (rho unchanged). Catches fx
+    and fy swapped in the transfer's ray (m1 = x_p / fy: u' 45.2) or projection (test cameras have fx = fy)."""
+    c = Camera("c", 64, 48, 40.0, 60.0, 31.5, 23.5)
+    st = InverseRangeState.empty(c, pose(), 0.0)
+    st.rho[40, 50], st.var[40, 50], st.a[40, 50], st.b[40, 50], st.n[40, 50] = 0.05, 1e-6, 3.0, 1.0, 2
+    fwd = predict(st, c, pose(north=2.0, t=0.1), 0.1, NO_NOISE, crack_k=0, kernels=kernels)
+    ys, xs = np.nonzero(np.isfinite(fwd.rho))
+    assert list(ys) == [42] and list(xs) == [52]
+    assert fwd.rho[42, 52] == pytest.approx(1 / 18.0, rel=1e-6)
+    assert fwd.du[42, 52] == pytest.approx(31.5 + 18.5 * 20 / 18 - 52, abs=1e-4)
+    assert fwd.dv[42, 52] == pytest.approx(23.5 + 16.5 * 20 / 18 - 42, abs=1e-4)
+    side = predict(st, c, VehicleState.from_ypr([0.0, 1.0, 1.0], [0.0, 0.0, 0.0], 0.1), 0.1, NO_NOISE, crack_k=0,
+                   kernels=kernels)
+    ys, xs = np.nonzero(np.isfinite(side.rho))
+    assert list(ys) == [37] and list(xs) == [48]
+    assert side.rho[37, 48] == pytest.approx(0.05, rel=1e-6)
+    assert abs(side.du[37, 48]) < 1e-4 and abs(side.dv[37, 48]) < 1e-4
+
+
+@pytest.mark.parametrize("kernels", PATHS)
 def test_a_one_pixel_crack_takes_its_neighbours_mean_and_their_weaker_evidence_derived_by_hand(kernels):
     """Crack closing (``close_cracks``, run by predict; here with the camera standing still, so the points stay on
     their pixels). A row crack between rho 0.05 (var 1e-6, Beta(6, 1), n 4, VALID | OCCLUDED) and 0.054 (var 2e-6,
@@ -246,6 +270,47 @@ def test_repeated_measurements_shrink_the_variance_as_a_kalman_filter(kernels):
         assert st.n[0, 0] == n
     ratio = st.a[0, 0] / (st.a[0, 0] + st.b[0, 0])
     assert ratio > 0.85                       # every measurement was an inlier: the evidence says so
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_sigma_scale_widens_the_measurement_of_a_fused_cell_as_of_a_started_one(kernels):
+    """sigma_scale 2, two measurements 0.04 +- 1e-3 of one cell. The first starts it with s^2 = (2 x 1e-3)^2 =
+    4e-6; the second agrees exactly (x = mu) with tau^2 = 4e-6 too: s'^2 = 2e-6, C1 from a / (a + b) = 3/4 times
+    N(0; 0, 8e-6) against b / (a + b) = 1/4 times the uniform 1/2, and s^2 = C1 s'^2 + C2 s^2 (no spread: m = mu),
+    2.0024e-6. Catches sigma_scale applied to started cells only (the fused one with tau 1e-3: s'^2 = 0.8e-6)."""
+    cfg = UpdateConfig(sigma_scale=2.0)
+    st = one_cell_state()
+    measure(st, 0.04, 1e-3, kernels, cfg)
+    assert np.allclose(st.var, 4e-6, rtol=1e-6)
+    measure(st, 0.04, 1e-3, kernels, cfg)
+    g = 0.75 / math.sqrt(2 * math.pi * 8e-6)
+    c1 = g / (g + 0.25 * 0.5)
+    assert np.allclose(st.rho, 0.04, rtol=1e-6) and (st.n == 2).all()
+    assert np.allclose(st.var, c1 * 2e-6 + (1 - c1) * 4e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_the_state_keeps_the_smallest_far_limit_of_the_pairs_and_at_infinity_needs_2_sigma_below_it(kernels):
+    """A converged cell at rho 0.001 +- 0.0075 (2 sigma 0.015). Pairs with far limits 0.02, 0.01 then 0.02 again
+    (none, 0: no limit): the state keeps 0.01, so the cell is not AT_INFINITY (0.015 > 0.01; relative sigma 7.5:
+    ILL_CONDITIONED, no range); a state that only saw the 0.02 pair reports it at infinity (confidence 0.02 /
+    0.0075). Catches the state keeping the largest limit (the cell called clear to infinity on the weaker claim)."""
+    def unmeasured(st, rho_far):
+        shape = st.shape
+        update(st, np.full(shape, np.nan, np.float32), np.full(shape, 1e-3, np.float32),
+               np.full(shape, OUT_OF_VIEW, np.uint8), rho_far=rho_far, kernels=kernels)
+
+    st = planar_state(cam(4, 4), 0.001, var=0.0075 ** 2)
+    for rho_far, want in ((0.02, 0.02), (0.01, 0.01), (0.02, 0.01), (None, 0.01), (0.0, 0.01)):
+        unmeasured(st, rho_far)
+        assert st.rho_far == pytest.approx(want), rho_far
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert (m.flags == ILL_CONDITIONED).all() and np.isnan(m.range_m).all()
+    st = planar_state(cam(4, 4), 0.001, var=0.0075 ** 2)
+    unmeasured(st, 0.02)
+    m = fused_map(st, MapConfig(fill=False), kernels=kernels)
+    assert (m.flags & VALID).all() and np.isinf(m.range_m).all()
+    assert np.allclose(m.confidence, 0.02 / 0.0075, rtol=1e-4)
 
 
 @pytest.mark.parametrize("kernels", PATHS)
@@ -402,6 +467,9 @@ def test_cells_emptied_by_a_mask_keep_the_last_measurements_reason_and_a_full_cl
     assert st.flags[1, 2] == hidden and st.flags[0, 0] == VALID
     m = fused_map(st, MapConfig(fill=False), kernels=kernels)
     assert m.flags[1, 2] & hidden == hidden and not m.flags[1, 2] & VALID and np.isnan(m.range_m[1, 2])
+    # the one the last pair ranged (VALID) and the free-space rule then emptied: no range, and not reported
+    # VALID either (an empty cell keeps only the reason bits; catches the map taking every last-measurement bit)
+    assert m.flags[0, 0] == ILL_CONDITIONED and np.isnan(m.range_m[0, 0]) and m.confidence[0, 0] == 0
     assert (m.flags[~mask] == VALID).all() and np.allclose(m.range_m[~mask], 20.0, rtol=1e-4)
     st.clear()
     assert not st.occupied().any() and (st.flags == 0).all() and (st.n == 0).all()
@@ -931,6 +999,19 @@ def test_a_weak_measurement_with_any_other_fault_bit_is_not_fused(kernels):
         assert (st.rho == np.float32(0.04)).all() and (st.n == 3).all()
     st = one_cell_state()
     assert measure(st, 0.05, 0.025, kernels, UpdateConfig(), ILL_CONDITIONED)["started"] == 16
+
+
+@pytest.mark.parametrize("kernels", PATHS)
+def test_a_weak_measurement_within_2_sigma_of_0_is_fused_also_under_a_loose_relative_sigma_limit(kernels):
+    """"Weak" is a relative sigma above max_rel_std OR rho within 2 sigma of 0; the second alone counts once
+    max_rel_std >= 0.5. With max_rel_std 0.8: ILL_CONDITIONED at 0.05 +- 0.0275 (relative 0.55 < 0.8, but 2 sigma
+    0.055 > 0.05) is weak and fused; at 0.05 +- 0.0225 (2 sigma 0.045 < 0.05, relative 0.45) it is tight, flagged
+    for another reason, and not fused. Catches the near-0 test written rho >= sigma (1 sigma)."""
+    cfg = UpdateConfig(max_rel_std=0.8)
+    for tau, fused in ((0.0275, True), (0.0225, False)):
+        st = one_cell_state()
+        c = measure(st, 0.05, tau, kernels, cfg, ILL_CONDITIONED)
+        assert c["measured"] == (16 if fused else 0) and st.occupied().all() == fused, tau
 
 
 @pytest.mark.parametrize("kernels", PATHS)
