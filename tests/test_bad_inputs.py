@@ -102,6 +102,7 @@ CASES = {
     "out_fifo": ("locate", ["good.json", "--out", "fifo"], r"--out .*fifo: is a FIFO \(named pipe\)"),
     "png_no_writer": ("locate", ["good.json", "--png", "range.nopicture"], r"--png .*: no image writer"),
     "truth_not_npz": ("locate", ["good.json", "--truth", "good.json"], r"--truth .*good.json: not an .npz file"),
+    "other_zero": ("locate", ["good.json", "--other", "0"], r"--other 0: the pair file has frames 0\.\.1"),
     "pair_dir": ("locate", ["adir"], r"pair file .*adir: is a directory, expected a regular file"),
     "pair_fifo": ("locate", ["fifo"], r"pair file .*fifo: is a FIFO \(named pipe\), expected a regular file"),
     "pair_dev_zero": ("locate", ["/dev/zero"], r"pair file /dev/zero: is a character device, expected a regular"),
