@@ -149,3 +149,21 @@ def test_within_5pct_is_an_error_below_5_percent_as_the_bench_scores_it():
     assert accuracy_summary(r, t)["within_5pct"] == 0.5
     assert score(r, t, np.ones(4, bool))["within_5pct_of_scored"] == 0.5
 
+
+def test_cv_threads_zero_disables_opencv_threading_and_old_threads_zero_keeps_the_default(tmp_path, monkeypatch,
+                                                                                           capsys):
+    """--cv-threads N calls cv2.setNumThreads(N) for every N >= 0, 0 included (OpenCV's threading off); -1, the
+    default, leaves OpenCV alone. The old spelling --threads meant OpenCV's default by 0, so --threads 0 is -1. Run
+    in-process up to the first check after the setting (--out a directory: exit 2 naming --out). Catches `> 0` for
+    `>= 0` (--cv-threads 0 silently keeps every core busy) and --threads 0 passed through as 0."""
+    import cv2
+
+    from eonav.app import cli
+    calls = []
+    monkeypatch.setattr(cv2, "setNumThreads", calls.append)
+    for flags, want in ((["--cv-threads", "0"], [0]), (["--cv-threads", "3"], [3]), ([], []),
+                        (["--cv-threads", "-1"], []), (["--threads", "0"], []), (["--threads", "2"], [2])):
+        calls.clear()
+        assert cli.main(["locate", str(tmp_path / "pair.json"), "--out", str(tmp_path), *flags]) == 2, flags
+        assert "--out" in capsys.readouterr().err
+        assert calls == want, flags
