@@ -627,3 +627,14 @@ def test_pipeline_under_eonav_run_access_control(tmp_path):
     assert set(states) >= {"camera", "mavlink", "sync", "locator", "obstacles"}, states
     assert all(set(v) <= {"ok", "degraded"} for v in states.values()), states
     assert summary["health_not_ok_while_fed"] == [], summary["health_not_ok_while_fed"]
+
+
+def test_acl_init_service_needs_a_name_and_a_module(tmp_path, capsys):
+    """--service NAME=MODULE: a missing '=', an empty name or an empty module is an error naming the flag (exit 2,
+    nothing written), not a user with no role. Catches one of the three checks dropped."""
+    for i, bad in enumerate(("locator", "locator=", "=locator")):
+        d = tmp_path / str(i)
+        assert cli.main(["acl", "init", str(d), "--service", bad]) == 2, bad
+        assert f"--service {bad!r}: expected NAME=MODULE" in capsys.readouterr().err, bad
+        assert not d.exists(), bad
+
