@@ -638,3 +638,13 @@ def test_acl_init_service_needs_a_name_and_a_module(tmp_path, capsys):
         assert f"--service {bad!r}: expected NAME=MODULE" in capsys.readouterr().err, bad
         assert not d.exists(), bad
 
+
+def test_acl_init_camera_ids_replace_the_default_camera(tmp_path):
+    """--camera-ids left, right: the vehicle's cameras are camera_left and camera_right beside the other default
+    services; the default camera_nose is not a user (no credentials for a camera the vehicle does not have). Blanks
+    and a trailing comma name no camera. Catches the default services taken whole (test_acl_init_command's ids
+    include nose, so it cannot tell)."""
+    assert cli.main(["acl", "init", str(tmp_path), "--camera-ids", "left, right,"]) == 0
+    assert set(acl.read_users(tmp_path)) == {"camera_left", "camera_right", "mavlink", "sync", "locator", "obstacles",
+                                             "operator", "guidance", "router"}
+
