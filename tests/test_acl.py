@@ -627,3 +627,54 @@ def test_pipeline_under_eonav_run_access_control(tmp_path):
     assert set(states) >= {"camera", "mavlink", "sync", "locator", "obstacles"}, states
     assert all(set(v) <= {"ok", "degraded"} for v in states.values()), states
     assert summary["health_not_ok_while_fed"] == [], summary["health_not_ok_while_fed"]
+
+
+def test_acl_init_service_needs_a_name_and_a_module(tmp_path, capsys):
+    """--service NAME=MODULE: a missing '=', an empty name or an empty module is an error naming the flag (exit 2,
+    nothing written), not a user with no role. Catches one of the three checks dropped."""
+    for i, bad in enumerate(("locator", "locator=", "=locator")):
+        d = tmp_path / str(i)
+        assert cli.main(["acl", "init", str(d), "--service", bad]) == 2, bad
+        assert f"--service {bad!r}: expected NAME=MODULE" in capsys.readouterr().err, bad
+        assert not d.exists(), bad
+
+
+def test_acl_init_camera_ids_replace_the_default_camera(tmp_path):
+    """--camera-ids left, right: the vehicle's cameras are camera_left and camera_right beside the other default
+    services; the default camera_nose is not a user (no credentials for a camera the vehicle does not have). Blanks
+    and a trailing comma name no camera. Catches the default services taken whole (test_acl_init_command's ids
+    include nose, so it cannot tell)."""
+    assert cli.main(["acl", "init", str(tmp_path), "--camera-ids", "left, right,"]) == 0
+    assert set(acl.read_users(tmp_path)) == {"camera_left", "camera_right", "mavlink", "sync", "locator", "obstacles",
+                                             "operator", "guidance", "router"}
+
+
+def test_run_secure_uses_a_private_directory_removed_at_exit(tmp_path, monkeypatch):
+    """``eonav run --secure``: the pipeline runs with access control (acl_dir set) in a fresh directory only its user
+    can enter, removed when the run ends, even by an error; with --acl DIR that DIR is used and kept; with neither,
+    no access control. The pipeline itself is replaced by a probe. Catches `args.acl` for `not args.acl` (--secure
+    alone running without access control) and the directory left behind."""
+    from eonav.app.cli import build_parser
+    from eonav.app.commands import run as R
+    for var in ("EONAV_ACL_DIR", "EONAV_PIPELINE"):
+        monkeypatch.delenv(var, raising=False)
+    seen = []
+
+    def probe(args):
+        d = args.acl_dir
+        seen.append((d, d is not None and os.path.isdir(d) and stat.S_IMODE(os.stat(d).st_mode)))
+        if args.vehicle == "boom":
+            raise InputError("boom")
+        return 0
+    monkeypatch.setattr(R, "_run", probe)
+    assert R.run(build_parser().parse_args(["run", "--secure"])) == 0
+    d, mode = seen[-1]
+    assert d and mode == 0o700 and not os.path.exists(d)
+    with pytest.raises(InputError):
+        R.run(build_parser().parse_args(["run", "--secure", "--vehicle", "boom"]))
+    assert seen[-1][1] == 0o700 and not os.path.exists(seen[-1][0])
+    keep = tmp_path / "acl"
+    keep.mkdir(mode=0o700)
+    assert R.run(build_parser().parse_args(["run", "--secure", "--acl", str(keep)])) == 0
+    assert seen[-1][0] == str(keep) and keep.is_dir()
+    assert R.run(build_parser().parse_args(["run"])) == 0 and seen[-1] == (None, False)

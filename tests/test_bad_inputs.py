@@ -80,6 +80,7 @@ def work(tmp_path_factory):
         (d / f"{name}.json").write_text(json.dumps(pair_doc(img1=img)))
     (d / "latin1.json").write_bytes(json.dumps(pair_doc(), ensure_ascii=False).replace("nose", "caméra")
                                     .encode("latin-1"))
+    np.savez(d / "small_truth.npz", range_m=np.full((10, 10), 5.0, np.float32))     # not the camera's 32 x 24
     (d / "nested.json").write_text("[" * 100_000)
     (d / "digits.json").write_text('{"cameras": ' + "7" * 5000 + "}")
     with open(d / "big.json", "wb") as f:                  # 17 MiB, sparse: the size alone refuses it
@@ -102,6 +103,9 @@ CASES = {
     "out_fifo": ("locate", ["good.json", "--out", "fifo"], r"--out .*fifo: is a FIFO \(named pipe\)"),
     "png_no_writer": ("locate", ["good.json", "--png", "range.nopicture"], r"--png .*: no image writer"),
     "truth_not_npz": ("locate", ["good.json", "--truth", "good.json"], r"--truth .*good.json: not an .npz file"),
+    "truth_shape": ("locate", ["good.json", "--truth", "small_truth.npz"],
+                    r"--truth .*small_truth.npz: shape \(10, 10\) differs from the range map \(24, 32\)"),
+    "other_zero": ("locate", ["good.json", "--other", "0"], r"--other 0: the pair file has frames 0\.\.1"),
     "pair_dir": ("locate", ["adir"], r"pair file .*adir: is a directory, expected a regular file"),
     "pair_fifo": ("locate", ["fifo"], r"pair file .*fifo: is a FIFO \(named pipe\), expected a regular file"),
     "pair_dev_zero": ("locate", ["/dev/zero"], r"pair file /dev/zero: is a character device, expected a regular"),

@@ -135,3 +135,35 @@ def test_accuracy_summary_against_hand_computed_figures():
     # NaN truth is unknown, not sky: it leaves every figure as it was
     s2 = accuracy_summary(np.append(r, [5, 5]), np.append(t, [np.nan, np.nan]).astype(np.float32))
     assert s2 == s
+
+
+def test_within_5pct_is_an_error_below_5_percent_as_the_bench_scores_it():
+    """"within 5 %" counts relative errors strictly below 0.05, the definition of ``eonav bench locate``
+    (bench_locate.score; the figures of docs/methods.md). By hand: 105 m and 95 m against a 100 m truth are errors of
+    5/100, the double 0.05 exactly, so not within; 104.99 m and 100 m are: 2 of 4. Catches `<=` for `<` (the CLI's
+    summary then disagrees with the bench on the same map)."""
+    from eonav.app.bench_locate import score
+    from eonav.app.commands.locate import accuracy_summary
+    t = np.full(4, 100.0)
+    r = np.array([105.0, 95.0, 104.99, 100.0])
+    assert accuracy_summary(r, t)["within_5pct"] == 0.5
+    assert score(r, t, np.ones(4, bool))["within_5pct_of_scored"] == 0.5
+
+
+def test_cv_threads_zero_disables_opencv_threading_and_old_threads_zero_keeps_the_default(tmp_path, monkeypatch,
+                                                                                           capsys):
+    """--cv-threads N calls cv2.setNumThreads(N) for every N >= 0, 0 included (OpenCV's threading off); -1, the
+    default, leaves OpenCV alone. The old spelling --threads meant OpenCV's default by 0, so --threads 0 is -1. Run
+    in-process up to the first check after the setting (--out a directory: exit 2 naming --out). Catches `> 0` for
+    `>= 0` (--cv-threads 0 silently keeps every core busy) and --threads 0 passed through as 0."""
+    import cv2
+
+    from eonav.app import cli
+    calls = []
+    monkeypatch.setattr(cv2, "setNumThreads", calls.append)
+    for flags, want in ((["--cv-threads", "0"], [0]), (["--cv-threads", "3"], [3]), ([], []),
+                        (["--cv-threads", "-1"], []), (["--threads", "0"], []), (["--threads", "2"], [2])):
+        calls.clear()
+        assert cli.main(["locate", str(tmp_path / "pair.json"), "--out", str(tmp_path), *flags]) == 2, flags
+        assert "--out" in capsys.readouterr().err
+        assert calls == want, flags

@@ -153,3 +153,33 @@ def test_frames_reach_the_fusion_with_microsecond_stamps_in_file_order():
     runner = Runner()
     assert list(fused_maps(runner, SimpleNamespace(frames=frames), views)) == [0, 1, 2, "end"]
     assert runner.pushed == [("nose", 0, 0), ("right", 1500, 1), ("nose", 2123457, 2)]
+
+
+def test_max_stereo_dt_reaches_the_scheduler_that_pairs_the_rig(seq_dir, tmp_path, monkeypatch):
+    """--max-stereo-dt-s S is one limit for both halves of the rig decision: stereo_rig finds the rig with it AND the
+    fusion's scheduler pairs the two cameras' frames with it. A "right" camera 5 ms after each nose frame is a rig
+    at S = 0.01 but not at the 0.002 default; the runner eonav fuse builds must get (nose, right) and 0.01. The
+    runner is stopped at construction (the wiring is the point, not the fusion). Catches the limit left out of
+    ScheduleConfig (the rig found, then never paired: a silent mono run)."""
+    from eonav.app.cli import build_parser
+    from eonav.app.commands import fuse
+    from eonav.fusion import sequence
+
+    def add_right(d):
+        d["cameras"]["right"] = dict(d["cameras"]["nose"])
+        d["frames"] = [g for fr in d["frames"] for g in (fr, dict(fr, camera="right", t=fr["t"] + 0.005))]
+    seen = []
+
+    class Built(Exception):
+        pass
+
+    def capture(config, *a, **kw):
+        seen.append(config.schedule)
+        raise Built
+    monkeypatch.setattr(sequence, "FusionRunner", capture)
+    p = write_doc(seq_dir, tmp_path, add_right)
+    for flags, rig, dt in (([], None, 0.002), (["--max-stereo-dt-s", "0.01"], ("nose", "right"), 0.01)):
+        seen.clear()
+        with pytest.raises(Built):
+            fuse.run(build_parser().parse_args(["fuse", str(p), "--out", str(tmp_path / "o.npz"), *flags]))
+        assert [(s.stereo_rig, s.max_stereo_dt_s) for s in seen] == [(rig, dt)], flags

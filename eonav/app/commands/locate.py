@@ -111,6 +111,8 @@ def run(args) -> int:
     if not 1 <= args.other < len(pf.frames):
         raise InputError(f"--other {args.other}: the pair file has frames 0..{len(pf.frames) - 1}")
     a, b = pf.views(indices=(0, args.other))
+    if truth is not None and truth.shape != a.image.shape[:2]:       # before any work: no --out left by an error
+        raise InputError(f"--truth {args.truth}: shape {truth.shape} differs from the range map {a.image.shape[:2]}")
     fn = get_method(args.method)
     if args.measured_only:
         if args.method != "dense":
@@ -124,8 +126,6 @@ def run(args) -> int:
     print(f"{args.method}: {int(np.isfinite(r).sum())}/{n} pixels with a finite range "
           f"({100.0 * np.isfinite(r).sum() / n:.1f} %), {int(np.isposinf(r).sum())} at infinity -> {out}")
     if truth is not None:
-        if truth.shape != r.shape:
-            raise InputError(f"--truth {args.truth}: shape {truth.shape} differs from the range map {r.shape}")
         s = accuracy_summary(r, truth, res.confidence)
         print(f"accuracy vs truth: median relative error {100 * s['median_rel_error']:.2f} %, "
               f"{100 * s['within_5pct']:.1f} % of estimates within 5 %, coverage {100 * s['coverage']:.1f} % "
