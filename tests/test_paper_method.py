@@ -294,7 +294,7 @@ def test_truncation_flag_fires_where_disparities_are_large():
         res = locate_paper(va, vb)
         comp = np.isfinite(res.range_m)
         fr.append(np.mean((res.flags[comp] & TRUNCATION) > 0))
-        assert not np.any((res.flags & TRUNCATION) & (res.flags & VALID))
+        assert not np.any(((res.flags & TRUNCATION) > 0) & ((res.flags & VALID) > 0))    # (bits: not flags & flags)
         assert np.all(res.confidence[(res.flags & TRUNCATION) > 0] == 0)
     assert fr[0] < 0.3 and fr[1] > 0.75
 
@@ -327,7 +327,9 @@ def test_out_of_view_flags_exactly_the_points_that_leave_image_b():
     res, has, leaves = _out_of_view_against_map_to_b(None)
     assert res.info["delay_px"] == 4.0
     assert (leaves & has)[:, :4].sum() > 50 and (leaves & has)[:2].sum() > 50       # not a vacuous check
-    assert not np.any((res.flags & OUT_OF_VIEW) & (res.flags & VALID))
+    # OUT_OF_VIEW clears VALID and the confidence (as bits: '(flags & OUT_OF_VIEW) & (flags & VALID)' is 0 always)
+    oov = (res.flags & OUT_OF_VIEW) > 0
+    assert not np.any(oov & ((res.flags & VALID) > 0)) and np.all(res.confidence[oov] == 0)
 
 
 def test_out_of_view_with_another_camera_b_is_judged_in_image_b():
