@@ -341,6 +341,28 @@ def test_out_of_view_with_another_camera_b_is_judged_in_image_b():
     assert (leaves & has).sum() > 500 and (~leaves & has).sum() > 500                  # both sides present
 
 
+def _stripes(w):
+    """Stripes across the wall's w coordinate only: the image gradient is along one image axis."""
+    return 120 + 50 * np.sin(2 * np.pi * w / 1.3) + 20 * np.sin(2 * np.pi * w / 0.55 + 1.0)
+
+
+@pytest.mark.parametrize("axis", ["y", "x"])
+def test_ranges_where_the_gradient_is_along_one_image_axis_only(axis):
+    """The texture test is on the gradient's norm |(a1, b1)|: horizontal stripes seen while descending 0.1 m
+    (vertical disparity, a1 ~ 0) and vertical stripes seen while moving 0.1 m right (b1 ~ 0) are both ranged.
+    Measured: 77 % of the pixels VALID, median |error| 3.1 % / 3.3 % against the wall's 30 m. Catches the
+    threshold on |a1| or |b1| alone (no pixel ranged at all)."""
+    if axis == "y":
+        tex, st = (lambda s, t: _stripes(t)), VehicleState.from_ypr([0.0, 0.0, 0.1], [0, 0, 0])
+    else:
+        tex, st = (lambda s, t: _stripes(s)), VehicleState.from_ypr([0.0, 0.1, 0.0], [0, 0, 0])
+    va, vb, ra = pair(st, tex=tex)
+    res = locate_paper(va, vb)
+    ok = (res.flags & VALID) > 0
+    assert ok.mean() > 0.6
+    assert np.median(np.abs(res.range_m / ra - 1)[ok]) < 0.06
+
+
 def test_no_motion_gives_no_confident_ranges():
     va, vb, _ = pair(S_A)                                      # hover: same pose, new noise
     res = locate_paper(va, vb)
