@@ -409,6 +409,11 @@ def test_point_cloud_eqs_32_33_lies_on_the_wall():
     np.testing.assert_allclose(ned[:, 0], 30.0, atol=1e-3)     # float32 range, 30 m
     pc = camera_points_eq32(ra, CAM)
     np.testing.assert_allclose(pc[..., 1] / pc[..., 0], (CAM.pixel_grid()[0] - CAM.cx) / CAM.fx, atol=1e-6)
+    # camera a at the NED origin, level, looking north (FRD = NED): the pixel (u, v) sees the wall point
+    # 30 m north, 30 (u - cx) / fx east and 30 (v - cy) / fy down (pinhole): below the centre row is below
+    u, v = (g[tuple(vu.T)] for g in CAM.pixel_grid())
+    np.testing.assert_allclose(ned[:, 1], 30.0 * (u - CAM.cx) / CAM.fx, atol=1e-3)
+    np.testing.assert_allclose(ned[:, 2], 30.0 * (v - CAM.cy) / CAM.fy, atol=1e-3)
 
 
 def test_locator_input_errors():
