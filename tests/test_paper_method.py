@@ -407,6 +407,21 @@ def test_geometry_is_evaluated_at_the_estimators_delayed_position():
     assert abs(med[1] - med[0]) < 0.065 and abs(med[3] - med[2]) < 0.065
 
 
+def test_locator_with_unequal_focal_lengths():
+    """Camera with fx 240, fy 300 px, moving 1 m forward and rolling 0.03 rad: eq. (24) takes m2 = y_p / fy (the
+    x-rows fx, the y-rows fy). Measured median |error| against the wall's 30 m: 4.5 % over the 70 % of the pixels
+    VALID; with m2 = y_p / fx (the roll's disparity 25 % off in the x-rows) 10.9 %."""
+    cam = Camera("fxfy", 192, 192, 240.0, 300.0, 95.5, 95.5)
+    sb = VehicleState.from_ypr([1.0, 0.0, 0.0], [0.0, 0.0, 0.03])
+    planes = [wall(_smooth_texture())]
+    ia, ra = render_planes(cam, S_A, planes, noise=1.0, seed=1)
+    ib, _ = render_planes(cam, sb, planes, noise=1.0, seed=2)
+    res = locate_paper(View(cam, S_A, ia), View(cam, sb, ib), combine="linear")
+    ok = (res.flags & VALID) > 0
+    assert ok.mean() > 0.6
+    assert np.median(np.abs(res.range_m / ra - 1)[ok]) < 0.07
+
+
 def test_no_motion_gives_no_confident_ranges():
     va, vb, _ = pair(S_A)                                      # hover: same pose, new noise
     res = locate_paper(va, vb)
