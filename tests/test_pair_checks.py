@@ -781,3 +781,21 @@ def test_forward_backward_check_drops_tracks_into_an_occluding_surface():
     assert len(tr) >= 50
     off = np.linalg.norm(tr.pts_b - tr.pts_a - [3.0, 2.0], axis=1) > 1.0
     assert off.mean() < 0.03, (off.sum(), len(tr))
+
+
+def test_epipolar_distance_by_hand_on_slanted_lines_with_non_square_pixels():
+    # fx 100, fy 80, camera b 0.5 m right and 0.5 m down of a, same attitude: the line of a point runs through its own
+    # pixel (its image at rho = 0) along (fx, fy) = (5, 4) / sqrt(41); a match moved t along it and e across it
+    # (normal (4, -5) / sqrt(41)) is e px from its line, whatever t (another depth)
+    cam = Camera("c", 100, 80, 100.0, 80.0, 49.5, 39.5)
+    a = View(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((80, 100), np.float32))
+    b = View(cam, VehicleState.from_ypr([0, 0.5, 0.5], [0, 0, 0]), np.zeros((80, 100), np.float32))
+    geo = pair_geometry(a, b)
+    pa = np.float32([[10, 20], [60, 50], [90, 10], [30, 70]])
+    t = np.array([-6.0, -15.0, 0.0, -2.5])
+    e = np.array([0.0, 0.7, -0.3, 1.2])
+    pb = pa + (t[:, None] * [5, 4] + e[:, None] * [4, -5]) / np.sqrt(41)
+    d, n = epipolar_residual_px(geo, Tracks(pa, pb.astype(np.float32)))
+    sign = np.sign(n[:, 0])
+    assert np.allclose(n * sign[:, None], np.array([4, -5]) / np.sqrt(41), atol=1e-6)
+    assert np.allclose(d * sign, e, atol=1e-4)
