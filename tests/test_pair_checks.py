@@ -799,3 +799,15 @@ def test_epipolar_distance_by_hand_on_slanted_lines_with_non_square_pixels():
     sign = np.sign(n[:, 0])
     assert np.allclose(n * sign[:, None], np.array([4, -5]) / np.sqrt(41), atol=1e-6)
     assert np.allclose(d * sign, e, atol=1e-4)
+
+
+def test_epipolar_distance_is_nan_for_points_behind_camera_b():
+    # camera b 0.5 m right of a and yawed 90 deg right: a's rays right of its centre column are ahead of b (in front
+    # half-space), those left of it point behind b and have no epipolar line: NaN, as the lines' normals
+    cam = Camera("c", 100, 80, 100.0, 100.0, 49.5, 39.5)
+    a = View(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((80, 100), np.float32))
+    b = View(cam, VehicleState.from_ypr([0, 0.5, 0], [np.radians(90), 0, 0]), np.zeros((80, 100), np.float32))
+    pa = np.float32([[60, 20], [95, 50], [40, 20], [5, 60]])
+    d, n = epipolar_residual_px(pair_geometry(a, b), Tracks(pa, pa + 1))
+    assert np.all(np.isfinite(d[:2])) and np.all(np.isfinite(n[:2]))
+    assert np.all(np.isnan(d[2:])) and np.all(np.isnan(n[2:]))
