@@ -16,7 +16,7 @@ from eonav.geometry.camera import Camera, VehicleState, View, pair_geometry
 from eonav.ranging.methods.dense import _plane_pair, locate_dense
 from eonav.ranging.photometric import fit_brightness, match_brightness
 from eonav.ranging.rangemap import VALID
-from eonav.ranging.tracks import Tracks, epipolar_residual_px, pose_shift_px, track_points
+from eonav.ranging.tracks import Tracks, epipolar_residual_px, pose_shift_px, track_points, tukey_weights
 
 
 def texture(h, w, seed=0):
@@ -811,3 +811,14 @@ def test_epipolar_distance_is_nan_for_points_behind_camera_b():
     d, n = epipolar_residual_px(pair_geometry(a, b), Tracks(pa, pa + 1))
     assert np.all(np.isfinite(d[:2])) and np.all(np.isfinite(n[:2]))
     assert np.all(np.isnan(d[2:])) and np.all(np.isnan(n[2:]))
+
+
+def test_tukey_weights_by_hand():
+    # r = 0, +-1, +-2, 7, -50: median |r| = 2, robust sigma 1.4826 * 2 = 2.9652, cut at c = 4.685 * 2.9652 = 13.892;
+    # w = (1 - (r / c)^2)^2: 1, 0.98966, 0.95898, 0.55666, 0 beyond c. Residuals below the floor: sigma = min_scale
+    r = np.array([0.0, 1.0, -1.0, 2.0, -2.0, 7.0, -50.0])
+    w = tukey_weights(r, 0.05)
+    assert np.allclose(w, [1.0, 0.98966, 0.98966, 0.95898, 0.95898, 0.55666, 0.0], atol=2e-5)
+    # r = 0.01 with sigma floored at 0.05: (1 - (0.01 / 0.23425)^2)^2 = 0.99636; 0.3 > 0.23425 is cut
+    w = tukey_weights(np.array([0.001, -0.002, 0.01, 0.3]), 0.05)
+    assert w[2] == pytest.approx(0.99636, abs=2e-5) and w[3] == 0.0
