@@ -822,3 +822,26 @@ def test_tukey_weights_by_hand():
     # r = 0.01 with sigma floored at 0.05: (1 - (0.01 / 0.23425)^2)^2 = 0.99636; 0.3 > 0.23425 is cut
     w = tukey_weights(np.array([0.001, -0.002, 0.01, 0.3]), 0.05)
     assert w[2] == pytest.approx(0.99636, abs=2e-5) and w[3] == 0.0
+
+
+def _radial_tracks(n, shift):
+    """Camera b 1 m straight ahead of a (same attitude): every epipolar line is the ray from the image centre through
+    the point's own pixel. n points on a circle of radius 30 px, each moved 10 % outward along its line (some depth)
+    and then by ``shift`` (px): the matches' distances from their lines are n_i . shift exactly."""
+    cam = Camera("c", 120, 100, 100.0, 100.0, 59.5, 49.5)
+    a = View(cam, VehicleState.from_ypr([0, 0, 0], [0, 0, 0]), np.zeros((100, 120), np.float32))
+    b = View(cam, VehicleState.from_ypr([1.0, 0, 0], [0, 0, 0]), np.zeros((100, 120), np.float32))
+    ang = 2 * np.pi * (np.arange(n) + 0.25) / n
+    off = 30.0 * np.stack([np.cos(ang), np.sin(ang)], 1)
+    pa = np.array([59.5, 49.5]) + off
+    pb = pa + 0.1 * off + shift
+    return pair_geometry(a, b), Tracks(pa.astype(np.float32), pb.astype(np.float32))
+
+
+def test_pose_shift_with_exactly_min_tracks():
+    """pose_shift_px fits a known (0.3, -0.4) px shift of radial lines to |s| = 0.5 px (hand value) with exactly
+    min_tracks = 20 usable matches; with 19 it gives NaN."""
+    geo, tr = _radial_tracks(20, [0.3, -0.4])
+    assert pose_shift_px(geo, tr) == pytest.approx(0.5, abs=1e-4)
+    geo, tr = _radial_tracks(19, [0.3, -0.4])
+    assert np.isnan(pose_shift_px(geo, tr))
