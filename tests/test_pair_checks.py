@@ -845,3 +845,18 @@ def test_pose_shift_with_exactly_min_tracks():
     assert pose_shift_px(geo, tr) == pytest.approx(0.5, abs=1e-4)
     geo, tr = _radial_tracks(19, [0.3, -0.4])
     assert np.isnan(pose_shift_px(geo, tr))
+
+
+@pytest.mark.parametrize("shape, shift", [((240, 320), (0.0, 8.0)), ((320, 240), (8.0, 0.0))])
+def test_tracks_end_inside_image_b(shape, shift):
+    """Image b is image a moved 8 px down (a landscape image) or right (a portrait one): corners within 8 px of that
+    edge of a leave b, and Lucas-Kanade still reports a few of them found a few px beyond b's last row or column
+    (measured: 6 of ~960 on the landscape pair with the row bound taken from b's width). None is kept: every match lies
+    in b, 0 <= x <= w - 1 and 0 <= y <= h - 1."""
+    h, w = shape
+    img = texture(h, w, seed=1)
+    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    b = cv2.warpAffine(img, M, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    tr = track_points(img, b, max_points=1000, min_distance_px=3)
+    assert len(tr) > 500
+    assert np.all((tr.pts_b >= 0) & (tr.pts_b <= [w - 1, h - 1]))
