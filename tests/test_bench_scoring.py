@@ -94,6 +94,34 @@ def test_table_one_rows_give_the_error_relative_to_the_actual_range():
     assert np.isclose(rows[0][3], 0.20) and np.isclose(rows[1][3], 0.05)
 
 
+
+def test_scale_line_is_the_median_range_over_the_reference():
+    # reference 10, 20, 40, 80 m (the last pixel not scored); dense ranges 11, 22, 44 and 0 m (no range): x1.100;
+    # dis 5, 10, 20 m: x0.500 (a reversed ratio would say x0.909 and x2.000)
+    from types import SimpleNamespace
+
+    from eonav.app.bench_locate import scale_line
+    truth = np.array([[10.0, 20.0, 40.0, 80.0]])
+    case = SimpleNamespace(truth_m=truth, mask=np.array([[True, True, True, False]]))
+    per = {"dense": SimpleNamespace(range_m=np.array([[11.0, 22.0, 44.0, 0.0]])),
+           "dis": SimpleNamespace(range_m=np.array([[5.0, 10.0, 20.0, 40.0]]))}
+    assert scale_line(case, per) == "   median range / reference: dense x1.100, dis x0.500"
+
+
+def test_common_pixel_line_scores_the_pixels_every_method_ranges_against_the_truth():
+    # truth 10 m on five pixels and a sky pixel both methods range (not scored); dense ranges pixels 0-3, dis 1-4:
+    # the common ones are 1-3, dense 11, 11, 12 m (10, 10, 20 %: median 10 %), dis 8, 8, 9 m (20, 20, 10 %: 20 %);
+    # relative to the estimate they would read 9.09 % and 25 %
+    from types import SimpleNamespace
+
+    from eonav.app.bench_locate import common_pixel_line
+    truth = np.array([[10.0, 10.0, 10.0, 10.0, 10.0, np.inf]])
+    case = SimpleNamespace(truth_m=truth, mask=np.ones(truth.shape, bool))
+    per = {"dense": SimpleNamespace(range_m=np.array([[13.0, 11.0, 11.0, 12.0, np.nan, 500.0]])),
+           "dis": SimpleNamespace(range_m=np.array([[0.0, 8.0, 8.0, 9.0, 30.0, 500.0]]))}
+    assert common_pixel_line(case, per) == "   same 3 pixels for dense and dis: dense 10.00 %, dis 20.00 %"
+    assert common_pixel_line(case, {"dense": per["dense"]}) is None          # a method missing: no line
+
 # --- bench fuse: its error / coverage, the widest partner and the target lines ----------------------------------
 
 def test_fuse_errors_leave_zero_and_negative_ranges_uncovered():
