@@ -74,6 +74,17 @@ def test_error_and_coverage_by_true_range():
     assert abs(e1 - 0.95) < 1e-6 and c1 == 1.0
 
 
+
+def test_a_pixel_on_a_range_bins_edge_is_in_the_upper_bin_only():
+    # bins [lo, hi): rows 0-4 at exactly 150 m belong to [150, inf) alone (all 100 ranged 10 m: 93.3 % off), the
+    # other 300 to [0, 150); a bin taking its upper edge too would count rows 0-4 twice (400 pixels below 150 m)
+    st, res = _state_and_map()
+    truth = np.full((20, 20), 8.0, np.float32)
+    truth[:5] = 150.0
+    (_, _, n0, e0, _), (_, _, n1, e1, c1) = by_range(res, truth, np.ones((20, 20), bool), bins=(0.0, 150.0, np.inf))
+    assert (n0, n1) == (300, 100)
+    assert abs(e0 - 0.25) < 1e-6 and abs(e1 - 140 / 150) < 1e-6 and c1 == 1.0
+
 def test_the_held_cells_are_counted_with_the_map_without_the_rule():
     # a 20 x 20 plane at 10 m, converged (n 3) but for two cells held from one measurement the last pair flagged
     # LOW_TEXTURE: (5, 5) ranged 10.5 m (5 % off, tight: VALID without the rule), (12, 12) with a loose sigma (no

@@ -94,6 +94,34 @@ def test_table_one_rows_give_the_error_relative_to_the_actual_range():
     assert np.isclose(rows[0][3], 0.20) and np.isclose(rows[1][3], 0.05)
 
 
+
+def test_scale_line_is_the_median_range_over_the_reference():
+    # reference 10, 20, 40, 80 m (the last pixel not scored); dense ranges 11, 22, 44 and 0 m (no range): x1.100;
+    # dis 5, 10, 20 m: x0.500 (a reversed ratio would say x0.909 and x2.000)
+    from types import SimpleNamespace
+
+    from eonav.app.bench_locate import scale_line
+    truth = np.array([[10.0, 20.0, 40.0, 80.0]])
+    case = SimpleNamespace(truth_m=truth, mask=np.array([[True, True, True, False]]))
+    per = {"dense": SimpleNamespace(range_m=np.array([[11.0, 22.0, 44.0, 0.0]])),
+           "dis": SimpleNamespace(range_m=np.array([[5.0, 10.0, 20.0, 40.0]]))}
+    assert scale_line(case, per) == "   median range / reference: dense x1.100, dis x0.500"
+
+
+def test_common_pixel_line_scores_the_pixels_every_method_ranges_against_the_truth():
+    # truth 10 m on five pixels and a sky pixel both methods range (not scored); dense ranges pixels 0-3, dis 1-4:
+    # the common ones are 1-3, dense 11, 11, 12 m (10, 10, 20 %: median 10 %), dis 8, 8, 9 m (20, 20, 10 %: 20 %);
+    # relative to the estimate they would read 9.09 % and 25 %
+    from types import SimpleNamespace
+
+    from eonav.app.bench_locate import common_pixel_line
+    truth = np.array([[10.0, 10.0, 10.0, 10.0, 10.0, np.inf]])
+    case = SimpleNamespace(truth_m=truth, mask=np.ones(truth.shape, bool))
+    per = {"dense": SimpleNamespace(range_m=np.array([[13.0, 11.0, 11.0, 12.0, np.nan, 500.0]])),
+           "dis": SimpleNamespace(range_m=np.array([[0.0, 8.0, 8.0, 9.0, 30.0, 500.0]]))}
+    assert common_pixel_line(case, per) == "   same 3 pixels for dense and dis: dense 10.00 %, dis 20.00 %"
+    assert common_pixel_line(case, {"dense": per["dense"]}) is None          # a method missing: no line
+
 # --- bench fuse: its error / coverage, the widest partner and the target lines ----------------------------------
 
 def test_fuse_errors_leave_zero_and_negative_ranges_uncovered():
@@ -154,6 +182,47 @@ def test_fuse_targets_ratio_coverage_z_and_time_verdicts(capsys):
     assert [ln.split("-> ")[-1] for ln in tab] == ["met", "NOT met"]
     assert [ln.split("-> ")[-1] for ln in tim] == ["met", "NOT met"]
 
+
+
+def test_fuse_z_spread_counts_only_the_pixels_with_the_flag():
+    # truth 10 m, sigma 0.001 /m: 10 VALID pixels with z = -2, -1, -1, 0, 0, 0, 0, 1, 1, 2 (median 0, MAD 1: spread
+    # 1.4826) and 10 FILLED ones at z = -10, +10 (MAD 10: 14.826). Mixing them would report the VALID spread as
+    # 1.4826 x 6; fewer than 10 pixels with the flag: NaN
+    from eonav.app.bench_fuse import z_spread
+    from eonav.ranging.rangemap import FILLED, VALID
+    z = np.array([[-2.0, -1.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 2.0] + [-10.0, 10.0] * 5])
+    res = _result(0.1 + 0.001 * z, np.full(z.shape, 0.001))
+    res.flags[:, :10], res.flags[:, 10:] = VALID, FILLED
+    truth, mask = np.full(z.shape, 10.0), np.ones(z.shape, bool)
+    assert np.isclose(z_spread(res, truth, mask), 1.4826, rtol=1e-3)
+    assert np.isclose(z_spread(res, truth, mask, FILLED), 14.826, rtol=1e-3)
+    mask[0, 0] = False
+    assert np.isnan(z_spread(res, truth, mask))
+
+
+def _real_row(fused, dense_newest, dense_widest, dis_newest, dis_widest):
+    return {"fused": fused, "dense newest": dense_newest, "dense widest": dense_widest, "DIS newest": dis_newest,
+            "DIS widest": dis_widest}
+
+
+def test_fuse_targets_of_a_real_sequence_judge_its_last_frame(capsys):
+    # frames 1 and 5 scored: the line is frame 5's. "a": fused 2 % beats DIS widest 3 % and DIS newest 4 % (met) but
+    # not the better dense pair (newest 1.5 %, widest 2.5 %: NOT met, though it beats the worse one). "b": DIS widest
+    # gave no output and the fused map covers 80 % (met); it beats every pair
+    from eonav.app.bench_fuse import print_targets
+    nan = float("nan")
+    first = _real_row((0.30, 0.10), (0.01, 0.5), (0.01, 0.5), (0.01, 0.5), (0.01, 0.5))     # frame 1: all NOT met
+    print_targets({"real:a": {1: first, 5: _real_row((0.02, 0.90), (0.015, 0.9), (0.025, 0.9), (0.04, 0.7),
+                                                     (0.03, 0.6)), "time_added": 0.1},
+                   "real:b": {1: first, 5: _real_row((0.02, 0.80), (0.05, 0.9), (0.06, 0.9), (0.04, 0.7),
+                                                     (nan, 0.0))}})
+    lines = [ln.strip() for ln in capsys.readouterr().out.splitlines()]
+    a, b = (next(ln for ln in lines if ln.startswith(f"real:{n}: last frame")) for n in "ab")
+    assert a.startswith("real:a: last frame fused 2.00 % over 90.0 % vs DIS widest 3.00 % -> met;")
+    assert "vs DIS newest 4.00 % over 70.0 % -> met;" in a
+    assert a.endswith("vs dense newest 1.50 % / widest 2.50 % -> NOT met")
+    assert b.startswith("real:b: last frame fused 2.00 % over 80.0 % vs DIS widest no output (above) -> met;")
+    assert b.endswith("vs dense newest 5.00 % / widest 6.00 % -> met")
 
 # --- bench pipeline: one measured frame's timeline --------------------------------------------------------------
 

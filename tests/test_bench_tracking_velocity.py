@@ -115,3 +115,20 @@ def test_the_moving_scenarios_vehicles_never_pass_through_each_other(name):
     old = replace(crosser, box=replace(crosser.box, center_ned_m=(110.0, *crosser.box.center_ned_m[1:])))
     hit = [t for t in times if overlaps(old, t)]
     assert hit and hit[0] == pytest.approx(3.32, abs=0.011) and hit[-1] == pytest.approx(4.18, abs=0.011)
+
+
+def test_mover_pixels_are_the_movers_own_when_a_static_box_comes_first():
+    # the scene's boxes are the scenario's static ones, then the movers (``scene_at``): the wall is box 0 (object id 2),
+    # the crosser box 1 (id 3). A 4 x 5 image: the crosser's 8 pixels in rows 0-1 (6 within 10 %, 2 off by 20 %), the
+    # wall's 12 in rows 2-3 (all right); the crosser has 12 visible pixels in view (at least min_obstacle_pixels)
+    sc = B.Scenario("m", "approach", 1.0, clear=True, boxes=(WALL,), movers=(MOVER,))
+    m = frame(0, [], set(), 12, 60.0)
+    oid = np.full((4, 5), 2, np.int32)
+    oid[:2, :4] = 3
+    truth = np.full((4, 5), 60.0, np.float32)
+    rng = truth.copy()
+    rng[0, :2] = 72.0
+    m.update(object_id=oid, truth_range_m=truth, range_m=rng, flags=np.full((4, 5), B.VALID, np.uint8))
+    assert B.mover_pixels(m, sc) == {"crosser": {"pixels": 8, "right": 6, "wrong": 2, "filled": 0, "occluded": 0}}
+    m["visible_px"] = {0: 500, 1: 11}                     # the crosser too small; the wall's pixels do not count
+    assert B.mover_pixels(m, sc) == {}
