@@ -4,6 +4,7 @@ that reference, the sigma following each window's own misfit on a scene whose tr
 rectified pair), and the infinity test near a border of the image."""
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -328,3 +329,19 @@ def test_an_unknown_window_floor_is_an_input_error():
     (a, b), _ = _misfit_pair(1, 0.0)
     with pytest.raises(InputError, match="window_floor"):
         locate_dense(a, b, window_floor="median")
+
+
+def test_window_floor_kinds_are_the_documented_variances():
+    """The floor of the window's residual variance per kind (``dense._window_floor2``), hand-computed: "sensor" the
+    residual variance of two images each carrying sensor noise sigma_img through a pre-smoothing of variance gain g0,
+    2 g0 sigma_img^2 (g0 0.1, sigma_img 2: 0.8); "global" the final residual's noise over every pixel in view
+    squared (1.5: 2.25); "mid" the GEOMETRIC mean of those two, sqrt(0.8 x 2.25) = sqrt(1.8) = 1.3416 (not their
+    arithmetic mean 1.525); "valid" the VALID pixels' residual noise squared (0.9: 0.81), not the in-view one's.
+    Without a sensor figure (tex_noise "residual") the sensor floor is 0 and so is "mid"."""
+    floor = lambda kind, img_sigma=2.0: dense._window_floor2(kind, 0.1, img_sigma, 1.5, 0.9)
+    assert floor("sensor") == pytest.approx(0.8, rel=1e-12)
+    assert floor("global") == pytest.approx(2.25, rel=1e-12)
+    assert floor("mid") == pytest.approx(math.sqrt(1.8), rel=1e-12)
+    assert floor("valid") == pytest.approx(0.81, rel=1e-12)
+    assert floor("sensor", None) == 0.0 and floor("mid", None) == 0.0
+    assert dense._window_floor2("global", 0.1, 2.0, 0.0, 0.0) == pytest.approx(1e-12)      # clamped, never 0
