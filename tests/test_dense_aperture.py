@@ -15,7 +15,8 @@ import pytest
 
 from eonav.geometry.camera import Camera, VehicleState, View
 from eonav.ranging.methods.dense import locate_dense
-from eonav.ranging.rangemap import VALID
+from eonav.ranging.rangemap import AT_INFINITY, VALID
+from test_dense import infinity_pair
 
 F, B = 500.0, 0.1          # focal length (px) and baseline (m): rho = d / (F B)
 H, W = 120, 160
@@ -194,3 +195,19 @@ def test_runway_edge_false_range_is_the_renderers_aliasing():
     (edge_share, edge_ratio), (ctrl_share, ctrl_ratio) = measure(3)
     assert edge_share < 0.05 and (edge_share == 0 or edge_ratio > 0.85)
     assert ctrl_share > 0.25 and abs(ctrl_ratio - 1.0) < 0.05
+
+
+def test_aperture_term_leaves_points_at_infinity_at_infinity():
+    """The term is a disparity error of a finite range, so AT_INFINITY pixels (VALID, range +inf: rho within 2 sigma
+    of 0) are left alone (``dense._apply_aperture``): on a textured scene at infinity (both images one texture, a
+    0.5 m baseline: truth rho = 0 everywhere, tests/test_dense.py's infinity_pair) aperture_px 0.1 changes no flag,
+    range or sigma. Applied to them, the relative-sigma rule (sigma <= max_rel_std x rho, never true at rho ~ 0)
+    would take VALID from every one of them (measured 99.6 % of the image) and their range +inf with it."""
+    views = infinity_pair()
+    r0 = locate_dense(*views, aperture_px=0.0)
+    r1 = locate_dense(*views, aperture_px=0.1)
+    at_inf = (r0.flags & AT_INFINITY) > 0
+    assert at_inf.mean() > 0.9 and np.all((r0.flags[at_inf] & VALID) > 0)        # the scene is what it claims
+    np.testing.assert_array_equal(r1.flags, r0.flags)
+    assert np.all(np.isposinf(r1.range_m[at_inf]))
+    np.testing.assert_array_equal(r1.inv_range_std_per_m, r0.inv_range_std_per_m)

@@ -4,6 +4,7 @@ that reference, the sigma following each window's own misfit on a scene whose tr
 rectified pair), and the infinity test near a border of the image."""
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,7 +14,7 @@ import dense_reference as ref
 from eonav import InputError
 from eonav.ranging.methods import dense
 from eonav.ranging.methods.dense import locate_dense
-from eonav.ranging.rangemap import ILL_CONDITIONED, VALID
+from eonav.ranging.rangemap import AT_INFINITY, ILL_CONDITIONED, VALID
 from test_dense import rectified_views, sine_texture
 
 F32 = np.float32
@@ -328,3 +329,51 @@ def test_an_unknown_window_floor_is_an_input_error():
     (a, b), _ = _misfit_pair(1, 0.0)
     with pytest.raises(InputError, match="window_floor"):
         locate_dense(a, b, window_floor="median")
+
+
+def test_window_floor_kinds_are_the_documented_variances():
+    """The floor of the window's residual variance per kind (``dense._window_floor2``), hand-computed: "sensor" the
+    residual variance of two images each carrying sensor noise sigma_img through a pre-smoothing of variance gain g0,
+    2 g0 sigma_img^2 (g0 0.1, sigma_img 2: 0.8); "global" the final residual's noise over every pixel in view
+    squared (1.5: 2.25); "mid" the GEOMETRIC mean of those two, sqrt(0.8 x 2.25) = sqrt(1.8) = 1.3416 (not their
+    arithmetic mean 1.525); "valid" the VALID pixels' residual noise squared (0.9: 0.81), not the in-view one's.
+    Without a sensor figure (tex_noise "residual") the sensor floor is 0 and so is "mid"."""
+    floor = lambda kind, img_sigma=2.0: dense._window_floor2(kind, 0.1, img_sigma, 1.5, 0.9)
+    assert floor("sensor") == pytest.approx(0.8, rel=1e-12)
+    assert floor("global") == pytest.approx(2.25, rel=1e-12)
+    assert floor("mid") == pytest.approx(math.sqrt(1.8), rel=1e-12)
+    assert floor("valid") == pytest.approx(0.81, rel=1e-12)
+    assert floor("sensor", None) == 0.0 and floor("mid", None) == 0.0
+    assert dense._window_floor2("global", 0.1, 2.0, 0.0, 0.0) == pytest.approx(1e-12)      # clamped, never 0
+
+
+def _half_infinity_pair(seed, inf_from):
+    """The faint textured plane of ``_misfit_pair`` with extra noise 3 x the sensor's in all of image b, whose columns
+    from ``inf_from`` x the width on are another texture at infinity (the same in both images, disparity 0): AT_INFINITY
+    pixels (VALID, range +inf) whose residual is the sensor noise alone, well below the plane's."""
+    h, w, f, bl, d = 160, 240, 500.0, 0.1, 6.3
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    rng = np.random.default_rng(seed)
+    tex = lambda xx: (sine_texture(xx, y) - 128) * 0.15 + 128
+    left = tex(x) + rng.normal(0, 1.0, (h, w))
+    right = tex(x + d) + rng.normal(0, 1.0, (h, w)) + 3.0 * rng.normal(0, 1, (h, w))
+    if inf_from < 1:
+        far, t2 = x >= inf_from * w, sine_texture(x, y, seed=5)
+        left = np.where(far, t2 + rng.normal(0, 1.0, (h, w)), left)
+        right = np.where(far, t2 + rng.normal(0, 1.0, (h, w)), right)
+    return rectified_views(left.astype(F32), right.astype(F32), f, bl)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_valid_pixels_noise_leaves_out_the_points_at_infinity(seed):
+    """``info["noise_sigma_valid"]`` (the "valid" floor's figure, ``_apply_model_error``) is the residual's noise over
+    the pixels with a finite range: AT_INFINITY pixels carry the VALID bit but no range the window term could widen.
+    With half the image a texture at infinity (residual the sensor noise alone) the figure stays the plane's: measured
+    seeds 1 / 2: 1.42 / 1.48 with the plane alone, 1.39 / 1.46 with the half at infinity, whose pixels pull the in-view
+    figure down to 0.98 / 1.00. Counting them (a dropped AT_INFINITY test) it would fall to about that."""
+    r_plane = locate_dense(*_half_infinity_pair(seed, 1.0), fill=False)
+    res = locate_dense(*_half_infinity_pair(seed, 0.5), fill=False)
+    at_inf, val = (res.flags & AT_INFINITY) != 0, (res.flags & VALID) != 0
+    assert at_inf[:, 130:].mean() > 0.95 and (val & ~at_inf)[:, 10:110].mean() > 0.95     # the scene is what it claims
+    assert res.info["noise_sigma_valid"] == pytest.approx(r_plane.info["noise_sigma_valid"], rel=0.1)
+    assert res.info["noise_sigma_valid"] > 1.25 * res.info["noise_sigma"]
