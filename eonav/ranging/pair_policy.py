@@ -237,7 +237,6 @@ class PairPolicy:
         """``pair_metrics`` of a motion candidate (a subclass may compute a frame's candidates together)."""
         return pair_metrics(a, b, self.config.ref_range_m)
 
-
     def _parallax_text(self, m: PairMetrics) -> str:
         cfg = self.config
         s = f"disparity {m.disparity_px:.2f} px at {cfg.ref_range_m:g} m < {cfg.min_disparity_px:g} px"
